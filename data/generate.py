@@ -1,0 +1,240 @@
+"""Generation of LabRobFail-Sim episodes into Parquet shards (resumable, seeded, parallel).
+
+Episode i belongs to pair i // 2 (role nominal for even i, injected for odd i);
+pair j runs scenario order[j] with episode seed derived from (seed, j), so the
+same seed gives the same data whatever the number of workers. Shard k holds
+episodes [k*E, (k+1)*E); a finished shard is a complete file, so a rerun of
+the same command after a kill skips finished shards and redoes the rest.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from data.shards import atomic_write_bytes, episode_row, manifest, read_labels, write_shard
+
+DEFAULTS = Path(__file__).resolve().parents[1] / "configs" / "generate.yaml"
+# Keys that define the data; changing any of them in an existing out_dir is refused.
+IDENTITY_KEYS = ("backend", "num_episodes", "seed", "episodes_per_shard", "variant", "scenarios", "image_size",
+                 "cameras", "wrist", "custom_objects", "custom_scene")
+
+
+class ConfigError(ValueError):
+    """A bad configuration value; the message names the field."""
+
+
+def load_config(dotlist: list[str]) -> DictConfig:
+    base = OmegaConf.load(DEFAULTS)
+    OmegaConf.set_struct(base, True)
+    try:
+        cli = OmegaConf.from_dotlist(dotlist)
+        cfg = OmegaConf.merge(base, cli)
+    except Exception as e:  # omegaconf raises several types for unknown keys / bad syntax
+        key = getattr(e, "full_key", None) or str(e).splitlines()[0]
+        raise ConfigError(f"{key}: not a valid setting ({type(e).__name__})") from None
+    assert isinstance(cfg, DictConfig)
+    return cfg
+
+
+def _load_yaml_file(field: str, path: str | None) -> Any:
+    if path is None:
+        return None
+    pth = Path(path)
+    if not pth.is_file():
+        raise ConfigError(f"{field}: no such file {path!r}")
+    try:
+        data = OmegaConf.to_container(OmegaConf.load(pth), resolve=True)
+    except Exception as e:
+        raise ConfigError(f"{field}: {path} is not valid YAML ({str(e).splitlines()[0]})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{field}: {path} must hold a mapping")
+    return data
+
+
+def validate(cfg: DictConfig) -> dict[str, Any]:
+    """Check every field before anything is written; returns backend kwargs."""
+    from sim_backends.pybullet.scene import VARIANTS
+    from sim_backends.registry import available_backends, backend_spec
+
+    if cfg.backend not in available_backends():
+        raise ConfigError(f"backend: unknown backend {cfg.backend!r}; available: {', '.join(available_backends())}")
+    for key in ("num_episodes", "workers", "episodes_per_shard", "image_size"):
+        v = cfg[key]
+        if not isinstance(v, int) or isinstance(v, bool) or v < (0 if key == "num_episodes" else 1):
+            raise ConfigError(f"{key}: must be a {'non-negative' if key == 'num_episodes' else 'positive'} integer, got {v!r}")
+    if cfg.episodes_per_shard % 2:
+        raise ConfigError("episodes_per_shard: must be even (a shard holds whole success/failure pairs)")
+    if cfg.executor not in ("process", "ray"):
+        raise ConfigError(f"executor: must be 'process' or 'ray', got {cfg.executor!r}")
+    if cfg.variant not in VARIANTS:
+        raise ConfigError(f"variant: unknown variant {cfg.variant!r}; expected one of {', '.join(VARIANTS)}")
+    objs = _load_yaml_file("custom_objects", cfg.custom_objects)
+    if objs is not None:
+        for name, spec in objs.items():
+            if not isinstance(spec, dict) or spec.get("kind") not in ("vessel", "rod"):
+                raise ConfigError(f"custom_objects: object {name!r} needs kind: vessel or rod")
+            need = ("radius", "height", "rgba") if spec["kind"] == "vessel" else ("radius", "length", "rgba")
+            for k in need:
+                if k not in spec:
+                    raise ConfigError(f"custom_objects: object {name!r} is missing {k!r}")
+            if spec["kind"] == "vessel" and not 0.01 <= float(spec["radius"]) <= 0.038:
+                raise ConfigError(f"custom_objects: object {name!r} radius must be 0.01-0.038 m (the gripper opens 8 cm)")
+    scene = _load_yaml_file("custom_scene", cfg.custom_scene)
+    if scene is not None:
+        for k in ("bench", "floor", "light"):
+            if k not in scene:
+                raise ConfigError(f"custom_scene: missing {k!r}")
+    out = Path(cfg.out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".write_probe"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise ConfigError(f"out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
+    kwargs = {"image_size": cfg.image_size, "cameras": list(cfg.cameras), "wrist": cfg.wrist, "egl": cfg.egl,
+              "custom_objects": objs, "custom_scene": scene}
+    spec = backend_spec(cfg.backend)
+    probe_src = spec.cls(**{**kwargs, "render": False}) if cfg.backend == "pybullet" else None
+    if probe_src is not None:
+        known = probe_src.scenarios()
+        probe_src.close()
+        for s in cfg.scenarios or []:
+            if s not in known:
+                raise ConfigError(f"scenarios: unknown task scenario {s!r}")
+    return kwargs
+
+
+def scenario_order(scenarios: list[str], seed: int, pairs: int) -> list[str]:
+    """Round-robin over a seeded permutation per cycle: every scenario appears before any repeats."""
+    rng = np.random.default_rng([seed, 0x5CE7])
+    out: list[str] = []
+    while len(out) < pairs:
+        out.extend(scenarios[i] for i in rng.permutation(len(scenarios)))
+    return out[:pairs]
+
+
+def pair_seed(seed: int, pair: int) -> int:
+    return int(np.random.SeedSequence([seed, pair]).generate_state(1)[0])
+
+
+def shard_jobs(cfg: DictConfig, scenarios: list[str]) -> list[dict[str, Any]]:
+    n, per = int(cfg.num_episodes), int(cfg.episodes_per_shard)
+    order = scenario_order(scenarios, int(cfg.seed), math.ceil(n / 2))
+    jobs = []
+    for k in range(math.ceil(n / per)):
+        lo, hi = k * per, min(n, (k + 1) * per)
+        pairs = [(j, order[j], pair_seed(int(cfg.seed), j)) for j in range(lo // 2, math.ceil(hi / 2))]
+        jobs.append({"shard": k, "lo": lo, "hi": hi, "pairs": pairs})
+    return jobs
+
+
+def run_shard(job: dict[str, Any], backend: str, kwargs: dict[str, Any], variant: str, out_dir: str) -> int:
+    """Generate one shard's episodes and write it atomically. Returns the number of episodes."""
+    from sim_backends.failure_generator import run_pair
+    from sim_backends.registry import make_backend
+
+    src = _worker_source(backend, kwargs)
+    rows = []
+    for j, scenario, s in job["pairs"]:
+        nominal, injected = run_pair(src, scenario, s, variant)
+        for role_i, ep in enumerate((nominal, injected)):
+            i = 2 * j + role_i
+            if not job["lo"] <= i < job["hi"]:
+                continue
+            ep.episode_id, ep.pair_id, ep.role = f"ep{i:07d}", f"pair{j:07d}", ("nominal", "injected")[role_i]
+            rows.append(episode_row(ep))
+    write_shard(Path(out_dir) / f"shard-{job['shard']:05d}.parquet", rows)
+    return len(rows)
+
+
+_SOURCES: dict[str, Any] = {}
+
+
+def _worker_source(backend: str, kwargs: dict[str, Any]):
+    """One simulator per worker process, reused across shards."""
+    from sim_backends.registry import make_backend
+
+    key = json.dumps([backend, kwargs], sort_keys=True, default=str)
+    if key not in _SOURCES:
+        _SOURCES[key] = make_backend(backend, **kwargs)
+    return _SOURCES[key]
+
+
+def _run_process(jobs, cfg, kwargs) -> Iterator[int]:
+    args = (cfg.backend, kwargs, cfg.variant, cfg.out_dir)
+    if cfg.workers == 1:
+        for job in jobs:
+            yield run_shard(job, *args)
+        return
+    import multiprocessing as mp
+
+    with mp.get_context("spawn").Pool(cfg.workers) as pool:
+        yield from pool.imap_unordered(_star_run_shard, [(job, *args) for job in jobs])
+
+
+def _star_run_shard(a: tuple) -> int:
+    return run_shard(*a)
+
+
+def _run_ray(jobs, cfg, kwargs) -> Iterator[int]:
+    import ray
+
+    root = str(Path(__file__).resolve().parents[1])
+    ray.init(address=cfg.ray_address, num_cpus=None if cfg.ray_address else cfg.workers,
+             runtime_env={"env_vars": {"PYTHONPATH": root}}, include_dashboard=False,
+             ignore_reinit_error=True, log_to_driver=False)
+    remote = ray.remote(num_cpus=1)(run_shard)
+    pending = [remote.remote(job, cfg.backend, kwargs, cfg.variant, cfg.out_dir) for job in jobs]
+    try:
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            yield ray.get(done[0])
+    finally:
+        ray.shutdown()
+
+
+def generate(cfg: DictConfig) -> dict[str, Any]:
+    from tqdm import tqdm
+
+    from sim_backends.registry import backend_spec
+
+    kwargs = validate(cfg)
+    out = Path(cfg.out_dir)
+    identity = {k: OmegaConf.to_container(cfg, resolve=True)[k] for k in IDENTITY_KEYS}
+    run_file = out / "run.json"
+    if run_file.exists():
+        old = json.loads(run_file.read_text())
+        diff = [k for k in IDENTITY_KEYS if old.get(k) != identity[k]]
+        if diff:
+            raise ConfigError(f"{diff[0]}: out_dir {cfg.out_dir!r} holds a run with {diff[0]}={old.get(diff[0])!r}; "
+                              "use a new out_dir (nothing was changed)")
+    else:
+        atomic_write_bytes(run_file, json.dumps(identity, indent=2).encode())
+    for stale in out.glob("*.tmp"):  # leftovers of a killed run; their shard is simply redone
+        stale.unlink()
+    src = backend_spec(cfg.backend).cls(**{**kwargs, "render": False})
+    scenarios = list(cfg.scenarios) if cfg.scenarios else src.scenarios()
+    src.close()
+    jobs = shard_jobs(cfg, scenarios)
+    todo = [j for j in jobs if not (out / f"shard-{j['shard']:05d}.parquet").exists()]
+    done_eps = sum(j["hi"] - j["lo"] for j in jobs) - sum(j["hi"] - j["lo"] for j in todo)
+    bar = tqdm(total=int(cfg.num_episodes), initial=done_eps, unit="ep", disable=not cfg.progress,
+               desc=f"{cfg.backend}:{cfg.variant}")
+    runner = _run_ray if cfg.executor == "ray" else _run_process
+    for n in runner(todo, cfg, kwargs):
+        bar.update(n)
+    bar.close()
+    shards = sorted(out.glob("shard-*.parquet"))
+    rows = read_labels(shards)
+    man = manifest(rows, {"backend": cfg.backend, "variant": cfg.variant, "seed": int(cfg.seed),
+                          "shards": [s.name for s in shards], "scenarios": scenarios})
+    atomic_write_bytes(out / "manifest.json", json.dumps(man, indent=2).encode())
+    return man

@@ -1,0 +1,100 @@
+"""Episode <-> Parquet row, atomic shard writes, and the dataset manifest.
+
+One Parquet file per shard (HF `datasets` loads them with the "parquet" builder).
+Images are PNG bytes in `images[view][keyframe]`; the state trace, task metadata
+and keyframes are JSON strings so the schema stays fixed across tasks.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections import Counter
+from pathlib import Path
+from typing import Any, Iterable
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, FAILURE_TYPE_NAMES, HORIZONS, Category
+from sim_backends.types import Episode
+
+SCHEMA = pa.schema([
+    ("episode_id", pa.string()), ("pair_id", pa.string()), ("role", pa.string()), ("backend", pa.string()),
+    ("task", pa.string()), ("scenario", pa.string()), ("variant", pa.string()), ("seed", pa.int64()),
+    ("success", pa.bool_()), ("failure_type", pa.string()), ("category", pa.int8()), ("severity", pa.int8()),
+    ("failure_keyframe", pa.int32()), ("evidence", pa.string()), ("actions", pa.list_(pa.string())),
+    ("horizon", pa.string()), ("num_keyframes", pa.int32()), ("camera_names", pa.list_(pa.string())),
+    ("images", pa.list_(pa.list_(pa.binary()))), ("state_trace", pa.string()), ("task_meta", pa.string()),
+    ("keyframes", pa.string()), ("nominal_keyframes", pa.string()), ("perturbation", pa.string()),
+])
+LABEL_COLUMNS = ["episode_id", "pair_id", "role", "scenario", "task", "success", "failure_type", "category",
+                 "severity", "actions", "horizon"]
+
+
+def episode_row(ep: Episode) -> dict[str, Any]:
+    lab = ep.labels
+    return {
+        "episode_id": ep.episode_id, "pair_id": ep.pair_id, "role": ep.role, "backend": ep.backend,
+        "task": ep.task, "scenario": ep.scenario, "variant": ep.variant, "seed": ep.seed,
+        "success": lab.success, "failure_type": lab.failure_type, "category": lab.category,
+        "severity": lab.severity, "failure_keyframe": lab.failure_keyframe, "evidence": lab.evidence,
+        "actions": ep.actions, "horizon": ep.horizon, "num_keyframes": len(ep.executed_keyframes),
+        "camera_names": ep.camera_names, "images": ep.images,
+        "state_trace": json.dumps(ep.state_trace, separators=(",", ":")),
+        "task_meta": json.dumps(ep.task_meta, separators=(",", ":")),
+        "keyframes": json.dumps([k.to_dict() for k in ep.executed_keyframes]),
+        "nominal_keyframes": json.dumps([k.to_dict() for k in ep.nominal_keyframes]),
+        "perturbation": json.dumps(ep.perturbation),
+    }
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def write_shard(path: Path, rows: list[dict[str, Any]]) -> None:
+    """Write a shard as `<name>.tmp` then rename: a killed run never leaves a truncated shard."""
+    tmp = path.with_name(path.name + ".tmp")
+    pq.write_table(pa.Table.from_pylist(rows, schema=SCHEMA), tmp, compression="zstd")
+    with open(tmp, "rb") as f:
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def read_labels(paths: Iterable[Path]) -> list[dict[str, Any]]:
+    rows: list[dict[str, Any]] = []
+    for p in sorted(paths):
+        rows.extend(pq.read_table(p, columns=LABEL_COLUMNS).to_pylist())
+    return rows
+
+
+def manifest(rows: list[dict[str, Any]], extra: dict[str, Any]) -> dict[str, Any]:
+    fails = [r for r in rows if not r["success"]]
+    by_type = {t: 0 for t in FAILURE_TYPE_NAMES}
+    by_type.update(Counter(r["failure_type"] for r in fails))
+    by_cat = {c.name.lower(): 0 for c in Category}
+    by_cat.update(Counter(Category(r["category"]).name.lower() for r in fails))
+    by_action = {a: 0 for a in ATOMIC_ACTIONS}
+    for r in rows:
+        for a in set(r["actions"]):
+            by_action[a] += 1
+    by_h = {h: 0 for h in HORIZONS}
+    by_h.update(Counter(r["horizon"] for r in rows))
+    return {
+        **extra,
+        "episodes": len(rows),
+        "pairs": len({r["pair_id"] for r in rows}),
+        "by_outcome": {"success": len(rows) - len(fails), "failure": len(fails)},
+        "by_category": by_cat,
+        "by_failure_type": by_type,
+        "by_severity": dict(sorted(Counter(str(r["severity"]) for r in fails).items())),
+        "by_action": by_action,
+        "by_horizon": by_h,
+        "by_task": dict(sorted(Counter(r["scenario"] for r in rows).items())),
+    }

@@ -1,0 +1,132 @@
+"""The LabRobFail failure taxonomy, severity scale and atomic-action vocabulary.
+
+This module is the single source of truth for the paper's contract tables:
+the 5 failure categories (Q5 options, numbered as in the paper), the 11
+fine-grained failure types, the 4 severity levels (Q4 options) and the 8
+atomic actions (Q1 vocabulary). Everything else imports from here.
+
+Pure Python: the simulator backends import it without pulling in torch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+
+class Category(IntEnum):
+    """Q5 answer options; the integer is the option number in the paper."""
+
+    PERCEPTION = 1
+    GRASPING = 2
+    MOTION = 3
+    LOGIC = 4
+    SAFETY = 5
+
+    @property
+    def title(self) -> str:
+        return f"{self.name.capitalize()} Failure"
+
+    @property
+    def definition(self) -> str:
+        return CATEGORY_DEFINITIONS[self]
+
+
+CATEGORY_DEFINITIONS: dict[Category, str] = {
+    Category.PERCEPTION: "Failed to locate target objects or positions",
+    Category.GRASPING: "Object slippage or unstable grasp",
+    Category.MOTION: "Motion execution incomplete",
+    Category.LOGIC: "Incorrect order or omitted steps",
+    Category.SAFETY: "Violating laboratory safety protocols",
+}
+
+
+class Severity(IntEnum):
+    """Q4 answer options; the integer is the option number in the paper."""
+
+    RISK = 1
+    DANGEROUS = 2
+    FATAL = 3
+    MANAGEMENT_INCIDENT = 4
+
+    @property
+    def title(self) -> str:
+        return SEVERITY_TITLES[self]
+
+    @property
+    def definition(self) -> str:
+        return SEVERITY_DEFINITIONS[self]
+
+
+SEVERITY_TITLES: dict[Severity, str] = {
+    Severity.RISK: "Risk Level",
+    Severity.DANGEROUS: "Dangerous Level",
+    Severity.FATAL: "Fatal Level",
+    Severity.MANAGEMENT_INCIDENT: "Management Incident",
+}
+
+SEVERITY_DEFINITIONS: dict[Severity, str] = {
+    Severity.RISK: "Collision, liquid spillage, or potential falling",
+    Severity.DANGEROUS: "Requires manual intervention to proceed",
+    Severity.FATAL: "Equipment damage, requiring manual intervention",
+    Severity.MANAGEMENT_INCIDENT: "Non-compliant operations (e.g., unclosed cabinet)",
+}
+
+
+@dataclass(frozen=True)
+class FailureType:
+    name: str
+    category: Category
+    description: str
+
+
+# Order follows the paper's appendix (grouped by category, Safety first).
+FAILURE_TYPES: dict[str, FailureType] = {
+    ft.name: ft
+    for ft in (
+        FailureType("protocol_violation", Category.SAFETY,
+                    "A laboratory protocol is broken, e.g. reagent delivered to the wrong vessel."),
+        FailureType("improper_handling", Category.SAFETY,
+                    "Equipment is not returned to its designated place after use."),
+        FailureType("sequence_reversal", Category.LOGIC,
+                    "Steps of the workflow are executed in the wrong order."),
+        FailureType("step_omission", Category.LOGIC,
+                    "A required step of the workflow is skipped."),
+        FailureType("pose_control_error", Category.MOTION,
+                    "An abnormal end-effector twist spoils the placement or operation."),
+        FailureType("incomplete_trajectory", Category.MOTION,
+                    "The motion stops before the task's final keyframes are reached."),
+        FailureType("gripper_control_failure", Category.GRASPING,
+                    "The gripper does not close enough to acquire an aligned object."),
+        FailureType("object_slippage", Category.GRASPING,
+                    "A grasped object drifts out of the gripper during transport."),
+        FailureType("target_positioning_deviation", Category.PERCEPTION,
+                    "The object is released outside the designated target region."),
+        FailureType("operation_position_error", Category.PERCEPTION,
+                    "The end effector misses a handle or button, so the operation has no effect."),
+        FailureType("grasp_target_misalignment", Category.PERCEPTION,
+                    "The gripper closes beside the object and fails to acquire it."),
+    )
+}
+
+FAILURE_TYPE_NAMES: tuple[str, ...] = tuple(FAILURE_TYPES)
+
+ATOMIC_ACTIONS: tuple[str, ...] = ("grasp", "place", "open", "close", "pour", "shake", "insert", "stir")
+
+HORIZONS: tuple[str, ...] = ("short", "medium", "long")
+
+
+def horizon_of(num_keyframes: int) -> str:
+    """Task complexity level from the number of keyframes (paper: <=10, 10-30, >30)."""
+    if num_keyframes <= 10:
+        return "short"
+    if num_keyframes <= 30:
+        return "medium"
+    return "long"
+
+
+def category_of(failure_type: str) -> Category:
+    try:
+        return FAILURE_TYPES[failure_type].category
+    except KeyError:
+        raise ValueError(f"unknown failure type {failure_type!r}; expected one of {', '.join(FAILURE_TYPE_NAMES)}") from None

@@ -1,0 +1,79 @@
+"""Write one keyframe strip per failure type (and one success) from generated shards, to look at.
+
+Run as:
+    python scripts/render_strips.py outputs/demo_shards outputs/demo_strips
+
+Each PNG shows the failure episode's keyframes (rows = camera views) with the
+keyframe index in each cell and a red frame on the labeled failure keyframe,
+above its paired success episode.
+"""
+
+from __future__ import annotations
+
+import io
+import sys
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+from PIL import Image, ImageDraw
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from labrobfail_vlm.taxonomy import FAILURE_TYPE_NAMES  # noqa: E402
+
+
+def strip(row: dict, mark: int | None) -> Image.Image:
+    views = [[Image.open(io.BytesIO(b)).convert("RGB") for b in v] for v in row["images"]]
+    w, h = views[0][0].size
+    n = len(views[0])
+    out = Image.new("RGB", (w * n, h * len(views) + 18), "white")
+    d = ImageDraw.Draw(out)
+    d.text((4, 3), f"{row['scenario']} | {row['role']} | success={row['success']} | {row['failure_type'] or ''} "
+                   f"| failure keyframe={row['failure_keyframe']}", fill="black")
+    for r, v in enumerate(views):
+        for c, img in enumerate(v):
+            out.paste(img, (c * w, 18 + r * h))
+            d.text((c * w + 3, 18 + r * h + 2), str(c), fill="black")
+            if mark is not None and c == mark:
+                d.rectangle([c * w, 18 + r * h, (c + 1) * w - 1, 18 + (r + 1) * h - 1], outline="red", width=3)
+    return out
+
+
+def main(shards: str, out_dir: str) -> int:
+    rows = []
+    for p in sorted(Path(shards).glob("shard-*.parquet")):
+        rows.extend(pq.read_table(p).to_pylist())
+    if not rows:
+        print(f"error: no shards in {shards}", file=sys.stderr)
+        return 2
+    by_pair = {}
+    for r in rows:
+        by_pair.setdefault(r["pair_id"], {})[r["role"]] = r
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written = 0
+    for ftype in FAILURE_TYPE_NAMES:
+        hit = next((r for r in rows if r["failure_type"] == ftype and r["role"] == "injected"), None) \
+            or next((r for r in rows if r["failure_type"] == ftype), None)
+        if hit is None:
+            continue
+        a = strip(hit, hit["failure_keyframe"])
+        twin = by_pair[hit["pair_id"]].get("nominal" if hit["role"] == "injected" else "injected")
+        if twin is not None:
+            b = strip(twin, twin["failure_keyframe"])
+            canvas = Image.new("RGB", (max(a.width, b.width), a.height + b.height + 6), "white")
+            canvas.paste(a, (0, 0))
+            canvas.paste(b, (0, a.height + 6))
+            a = canvas
+        a.save(out / f"{ftype}.png")
+        written += 1
+    print(f"wrote {written} strips to {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    if len(sys.argv) != 3:
+        print("usage: python scripts/render_strips.py SHARDS_DIR OUT_DIR", file=sys.stderr)
+        sys.exit(2)
+    sys.exit(main(sys.argv[1], sys.argv[2]))

@@ -1,0 +1,269 @@
+"""Labels derived from a recorded state trace, never from the injected perturbation.
+
+Inputs are the episode's state trace (40 Hz columns) and task metadata (the
+nominal plan, its steps and goals, object geometry). The controller's
+program counter (which step the arm executes) is part of the recorded state,
+as in a real robot log. Decision, in order:
+
+1. success = every task goal holds on the settled final state;
+2. otherwise each detector scans the trace for its state signature and
+   reports the sample where it first shows; the earliest wins (ties broken by
+   the order below), giving the failure type and the first failure keyframe;
+3. severity from the final state (see `severity`).
+
+Thresholds are module constants so that tests and docs can quote them.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Optional
+
+import numpy as np
+
+from labrobfail_vlm.taxonomy import Severity, category_of
+from sim_backends.goals import UPRIGHT_TILT, failed_goals, rod_in_vessel, stir_samples, tilt
+from sim_backends.types import Labels, quat_to_matrix, rotation_angle
+
+Trace = dict[str, list]
+Meta = dict[str, Any]
+Event = tuple[int, str, str]  # (sample index, failure type, evidence)
+
+MISALIGN_XY = 0.012  # m: gripper-to-object lateral offset at closure that counts as a misaligned grasp
+OPEN_WIDTH = 0.07  # m: finger opening that means the gripper did not close
+SLIP_DRIFT = 0.04  # m: object-to-gripper drift while held, measured in the gripper frame
+POSE_ERR = 0.3  # rad: end-effector orientation error against the plan
+WRONG_PLACE = 0.08  # m: release this far from the planned spot = put somewhere else entirely
+STILL = 0.005  # m: end-effector displacement between keyframes that counts as not moving
+HANDLE_MISS = 0.015  # m: gripper-to-handle/button offset that misses it
+OFF_BENCH = -0.1  # m below the bench top: knocked off the bench
+
+
+def _kf_samples(trace: Trace, meta: Meta, names: set[str]) -> list[int]:
+    """End-of-keyframe sample indices of the executed keyframes with these names."""
+    return [trace["kf_end"][i] for i, n in enumerate(meta["executed"]) if n in names and i < len(trace["kf_end"])]
+
+
+def _nominal(meta: Meta, name: str) -> dict:
+    return next(k for k in meta["nominal"] if k["name"] == name)
+
+
+def _executed_steps(trace: Trace, meta: Meta) -> list[int]:
+    """Step (segment) order the controller actually ran, from the program counter column."""
+    seg = {k["name"]: k["segment"] for k in meta["nominal"]}
+    order: list[int] = []
+    for kf in trace["kf"]:
+        s = seg[meta["executed"][kf]] if kf < len(meta["executed"]) else None
+        if s is not None and (not order or order[-1] != s):
+            order.append(s)
+    return order
+
+
+def detect_logic(trace: Trace, meta: Meta) -> Optional[Event]:
+    seg = {k["name"]: k["segment"] for k in meta["nominal"]}
+    nominal_order = [s["index"] for s in meta["steps"]]
+    ran = _executed_steps(trace, meta)
+    if ran == nominal_order:
+        return None
+    # First keyframe where the executed step differs from the one the plan expects next.
+    expected = iter(nominal_order)
+    want = next(expected, None)
+    for i, name in enumerate(meta["executed"]):
+        s = seg[name]
+        if s == want:
+            continue
+        nxt = next(expected, None)
+        if s == nxt:
+            want = nxt
+            continue
+        kind = "step_omission" if s not in ran[:ran.index(s)] and want not in ran else "sequence_reversal"
+        j = trace["kf_end"][i - 1] + 1 if i > 0 else 0
+        return j, kind, f"step {s} ({meta['steps'][s]['action']}) ran where step {want} was due; ran {ran}"
+    missing = [s for s in nominal_order if s not in ran]
+    return (trace["kf_end"][-1], "step_omission", f"steps {missing} never ran") if missing else None
+
+
+def detect_grasp(trace: Trace, meta: Meta) -> Optional[Event]:
+    for st in meta["steps"]:
+        if st["action"] != "grasp" or meta["objects"][st["object"]]["kind"] not in ("vessel", "rod"):
+            continue
+        js = _kf_samples(trace, meta, {st["close_kf"]})
+        if not js:
+            continue
+        j, obj = js[0], st["object"]
+        if trace[f"{obj}.contacts"][j] > 0:
+            continue
+        grasp_pt = np.asarray(trace[f"{obj}.pos"][j]) + np.asarray(st["grip_offset"])
+        off = float(np.linalg.norm(np.asarray(trace["ee_pos"][j])[:2] - grasp_pt[:2]))
+        if trace["width"][j] >= OPEN_WIDTH:
+            return j, "gripper_control_failure", f"fingers stayed open (width {trace['width'][j]:.3f} m) at {st['close_kf']}"
+        if off > MISALIGN_XY:
+            return j, "grasp_target_misalignment", f"fingers closed {off:.3f} m beside {obj} with no contact"
+        return j, "gripper_control_failure", f"fingers closed on {obj} without contact (offset {off:.3f} m)"
+    return None
+
+
+def _in_gripper(trace: Trace, obj: str, j: int) -> np.ndarray:
+    """Object position in the end-effector frame (a pour rotates the gripper; that is no slip)."""
+    r = quat_to_matrix(tuple(trace["ee_quat"][j]))
+    return r.T @ (np.asarray(trace[f"{obj}.pos"][j]) - np.asarray(trace["ee_pos"][j]))
+
+
+def detect_slip(trace: Trace, meta: Meta) -> Optional[Event]:
+    for st in meta["steps"]:
+        if st["action"] != "grasp" or "close_kf" not in st:
+            continue
+        obj = st["object"]
+        js = _kf_samples(trace, meta, {st["close_kf"]})
+        if not js or trace[f"{obj}.contacts"][js[0]] == 0:
+            continue
+        j0 = js[0]
+        rel = [k for s in meta["steps"] if s.get("object") == obj and "release_kf" in s for k in [s["release_kf"]]]
+        ends = _kf_samples(trace, meta, set(rel))
+        j1 = min([e for e in ends if e > j0], default=len(trace["t"]) - 1)
+        # The release keyframe opens the fingers: stop before its motion starts.
+        j1 = max(j0, j1 - 1 - int(0.2 * 40))
+        d0 = _in_gripper(trace, obj, j0)
+        for j in range(j0, j1):
+            d = _in_gripper(trace, obj, j)
+            if float(np.linalg.norm(d - d0)) > SLIP_DRIFT:
+                return j, "object_slippage", f"{obj} drifted {np.linalg.norm(d - d0):.3f} m from the gripper while held"
+    return None
+
+
+def detect_operation(trace: Trace, meta: Meta) -> Optional[Event]:
+    """Door and button steps: the articulation did not move because the gripper missed its handle/button."""
+    for st in meta["steps"]:
+        obj = st.get("object")
+        if obj is None or f"{obj}.q" not in trace or "contact_point" not in st:
+            continue
+        js = _kf_samples(trace, meta, {st["contact_kf"]})
+        if not js:
+            continue
+        j = js[0]
+        i = trace["kf_end"].index(j)
+        if i > 0 and float(np.linalg.norm(np.asarray(trace["ee_pos"][j]) - np.asarray(trace["ee_pos"][trace["kf_end"][i - 1]]))) < STILL:
+            continue  # the arm never moved in to make contact: an incomplete trajectory, not a miss
+        if meta["objects"][obj]["kind"] == "oven" and trace["width"][j] >= OPEN_WIDTH:
+            return j, "gripper_control_failure", f"fingers stayed open on the {obj}'s handle"
+        off = float(np.linalg.norm(np.asarray(trace["ee_pos"][j]) - np.asarray(st["contact_point"])))
+        q = trace[f"{obj}.q"]
+        moved = max(abs(v - q[j]) for v in q[j:]) if meta["objects"][obj]["kind"] == "oven" else max(q[j:])
+        needed = 0.5 if meta["objects"][obj]["kind"] == "oven" else 0.006
+        if moved < needed and off > HANDLE_MISS:
+            return j, "operation_position_error", f"gripper {off:.3f} m off the {obj}'s handle/button; it did not move"
+    return None
+
+
+def detect_incomplete(trace: Trace, meta: Meta) -> Optional[Event]:
+    """The arm stood still over the last keyframes although the plan still had motion left."""
+    ends = trace["kf_end"]
+    ee = [np.asarray(trace["ee_pos"][j]) for j in ends]
+    plan = [np.asarray(_nominal(meta, n)["pos"]) for n in meta["executed"]]
+    k = len(ee) - 1
+    while k > 0 and float(np.linalg.norm(ee[k] - ee[k - 1])) < STILL:
+        k -= 1
+    left = sum(float(np.linalg.norm(plan[i + 1] - plan[i])) for i in range(k, len(plan) - 1))
+    if k >= len(ee) - 1 or left < 0.03:
+        return None
+    return ends[k] + 1, "incomplete_trajectory", f"arm stood still from keyframe {k + 1} on with {left:.3f} m of planned motion left"
+
+
+def detect_place(trace: Trace, meta: Meta) -> Optional[Event]:
+    for st in meta["steps"]:
+        if st["action"] != "place":
+            continue
+        names = set(st["keyframes"])
+        ids = [i for i, n in enumerate(meta["executed"]) if n in names]
+        if not ids:
+            continue
+        obj = st["object"]
+        for i in ids:
+            j = trace["kf_end"][i]
+            if rotation_angle(trace["ee_quat"][j], _nominal(meta, meta["executed"][i])["quat"]) > POSE_ERR:
+                return j, "pose_control_error", f"gripper twisted {rotation_angle(trace['ee_quat'][j], _nominal(meta, meta['executed'][i])['quat']):.2f} rad off the plan while placing {obj}"
+        j = _kf_samples(trace, meta, {st["release_kf"]})
+        if not j:
+            continue
+        j = j[0]
+        fin = np.asarray(trace[f"{obj}.pos"][-1])
+        dest = np.asarray(st["dest_xy"])
+        miss = float(np.linalg.norm(fin[:2] - dest))
+        if miss <= 0.04:
+            continue
+        ee_off = float(np.linalg.norm(np.asarray(trace["ee_pos"][j]) - np.asarray(_nominal(meta, st["release_kf"])["pos"])))
+        if st.get("returning") and ee_off > WRONG_PLACE:
+            return j, "improper_handling", f"{obj} was set down {miss:.3f} m from its home instead of being returned"
+        return j, "target_positioning_deviation", f"{obj} released {miss:.3f} m from the target"
+    return None
+
+
+def detect_liquid(trace: Trace, meta: Meta) -> Optional[Event]:
+    goals = [g for g in meta["goals"] if g["kind"] == "liquid"]
+    for g in goals:
+        for col in [c for c in trace if c.startswith("liquid.")]:
+            v = col.split(".", 1)[1]
+            if v in (g["into"], g["source"], "outside"):
+                continue
+            base = trace[col][0]
+            for j, n in enumerate(trace[col]):
+                if n >= base + 2:
+                    return j, "protocol_violation", f"liquid from {g['source']} entered {v}, not {g['into']}"
+    return None
+
+
+def detect_stir(trace: Trace, meta: Meta) -> Optional[Event]:
+    goal = next((g for g in meta["goals"] if g["kind"] == "stirred"), None)
+    js = stir_samples(trace, meta)
+    if goal is None or not js:
+        return None
+    if sum(rod_in_vessel(trace, meta, goal["object"], goal["vessel"], j) for j in js) >= goal["min_fraction"] * len(js):
+        return None
+    return js[0], "protocol_violation", "the rod was not inside the vessel while stirring (insufficient stirring)"
+
+
+# Order breaks ties between detectors firing at the same sample (causes before effects).
+DETECTORS: list[Callable[[Trace, Meta], Optional[Event]]] = [
+    detect_logic, detect_grasp, detect_operation, detect_slip, detect_place, detect_liquid, detect_stir,
+    detect_incomplete,
+]
+
+FALLBACK = {"at": "target_positioning_deviation", "upright": "pose_control_error", "released": "pose_control_error",
+            "door": "operation_position_error", "button": "operation_position_error",
+            "liquid": "target_positioning_deviation", "stirred": "protocol_violation", "still": "pose_control_error",
+            "held": "object_slippage", "below": "target_positioning_deviation"}
+
+
+def severity(trace: Trace, meta: Meta, failure_type: str) -> Severity:
+    """Fatal: glassware knocked off the bench. Risk: glassware dropped or tipped over, or liquid spilled.
+    Management incident: an oven door left open, equipment not returned. Dangerous: anything else
+    (the task cannot proceed without someone stepping in)."""
+    movables = [k for k, o in meta["objects"].items() if o["kind"] in ("vessel", "rod")]
+    if any(trace[f"{m}.pos"][-1][2] < meta["bench_top"] + OFF_BENCH for m in movables):
+        return Severity.FATAL
+    vessels = [m for m in movables if meta["objects"][m]["kind"] == "vessel"]
+    spilled = trace.get("liquid.outside", [0])[-1]
+    total = sum(meta["liquid_total"].values())
+    if any(tilt(trace[f"{m}.quat"][-1]) > UPRIGHT_TILT for m in vessels) or (total and spilled > 0.25 * total) \
+            or failure_type == "object_slippage":
+        return Severity.RISK
+    ovens = [k for k, o in meta["objects"].items() if o["kind"] == "oven"]
+    if failure_type == "improper_handling" or any(trace[f"{o}.q"][-1] > 0.3 for o in ovens):
+        return Severity.MANAGEMENT_INCIDENT
+    return Severity.DANGEROUS
+
+
+def derive_labels(trace: Trace, meta: Meta) -> Labels:
+    bad = failed_goals(trace, meta)
+    if not bad:
+        return Labels(success=True, evidence="all goals hold")
+    events = [(e, rank) for rank, d in enumerate(DETECTORS) if (e := d(trace, meta)) is not None]
+    if events:
+        (j, ftype, why), _ = min(events, key=lambda er: (er[0][0], er[1]))
+    else:
+        ftype = FALLBACK[bad[0]["kind"]]
+        j = trace["kf_end"][-1]
+        why = f"goal '{bad[0]['kind']}' failed with no earlier signature"
+    kf = next((i for i, e in enumerate(trace["kf_end"]) if e >= j), len(trace["kf_end"]) - 1)
+    return Labels(success=False, failure_type=ftype, category=int(category_of(ftype)),
+                  severity=int(severity(trace, meta, ftype)), failure_keyframe=kf,
+                  evidence=f"{why}; failed goals: {', '.join(g['kind'] for g in bad)}")

@@ -1,0 +1,208 @@
+"""Keyframe plan builder and reusable skills (grasp, place, pour, stir, shake, insert, door, press).
+
+A template composes skills into steps; every step is one atomic action of
+the paper's vocabulary and becomes one keyframe segment. The builder also
+records what the labeler needs to check the step from state (`steps`) and
+the task's goals (`goals`), all plain JSON.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pybullet as p
+
+from sim_backends.pybullet import assets
+from sim_backends.pybullet.robot import SIDE, TOP_DOWN
+from sim_backends.pybullet.scene import Scene
+from sim_backends.types import Keyframe
+
+SAFE_Z = 0.26  # transport height of the end effector
+POUR_SIGN = 1.0
+
+
+def _yaw(angle: float, quat=SIDE) -> tuple:
+    """Rotate a gripper orientation about the world z axis (to follow a swinging door)."""
+    return p.multiplyTransforms([0, 0, 0], p.getQuaternionFromEuler([0, 0, angle]), [0, 0, 0], quat)[1]
+
+
+def _roll(quat, angle: float) -> tuple:
+    """Rotate a gripper orientation about its own approach (z) axis."""
+    return p.multiplyTransforms([0, 0, 0], quat, [0, 0, 0], p.getQuaternionFromEuler([0, 0, angle]))[1]
+
+
+@dataclass
+class Plan:
+    scene: Scene
+    keyframes: list[Keyframe] = field(default_factory=list)
+    steps: list[dict[str, Any]] = field(default_factory=list)
+    goals: list[dict[str, Any]] = field(default_factory=list)
+
+    # -- builder primitives ---------------------------------------------------------------------------
+    def step(self, action: str, **info: Any) -> None:
+        self.steps.append({"index": len(self.steps), "action": action, **info})
+
+    def kf(self, name: str, pos, quat, gripper: int, target: str, speed: float = 0.45, settle: int = 0) -> str:
+        st = self.steps[-1]
+        full = f"s{st['index']}_{name}"
+        self.keyframes.append(Keyframe(full, tuple(float(v) for v in pos), tuple(float(v) for v in quat),
+                                       int(gripper), target, st["index"], st["action"], speed, settle))
+        st.setdefault("keyframes", []).append(full)
+        return full
+
+    @property
+    def actions(self) -> list[str]:
+        return [s["action"] for s in self.steps]
+
+    def _obj(self, name: str):
+        return self.scene.objects[name]
+
+    def _grip(self, obj: str) -> list[float]:
+        """Offset of the end effector from the object's frame in the grasp that holds `obj`."""
+        return next(s["grip_offset"] for s in reversed(self.steps) if s.get("object") == obj and "grip_offset" in s)
+
+    # -- skills ---------------------------------------------------------------------------------------
+    def grasp(self, obj: str, inside: bool = False) -> None:
+        """Side grasp of a vessel (approach along +x) or top-down grasp of a rod.
+
+        `inside`: the object stands in the oven, so lift only a little and withdraw horizontally.
+        """
+        o = self._obj(obj)
+        x, y, z = o.home
+        self.step("grasp", object=obj)
+        if o.kind == "vessel":
+            zg = z + min(0.5 * o.dims["height"], 0.045)
+            self.kf("pre", (x - 0.13, y, zg), SIDE, 0, obj)
+            self.kf("reach", (x - 0.005, y, zg), SIDE, 0, obj, speed=0.25)
+            close = self.kf("close", (x - 0.005, y, zg), SIDE, 1, obj, settle=50)
+            if inside:
+                self.kf("lift", (x - 0.005, y, zg + 0.02), SIDE, 1, obj, speed=0.2)
+                self.kf("withdraw", (x - 0.25, y, zg + 0.02), SIDE, 1, obj, speed=0.25)
+            else:
+                self.kf("lift", (x - 0.005, y, zg + 0.12), SIDE, 1, obj, speed=0.3)
+            self.steps[-1].update(close_kf=close, grip_offset=[-0.005, 0.0, zg - z], width=2 * o.dims["radius"] + 0.004)
+        else:
+            top = z + o.dims["length"] / 2
+            zg = top - 0.035
+            self.kf("pre", (x, y, top + 0.06), TOP_DOWN, 0, obj)
+            self.kf("reach", (x, y, zg), TOP_DOWN, 0, obj, speed=0.25)
+            close = self.kf("close", (x, y, zg), TOP_DOWN, 1, obj, settle=50)
+            self.kf("lift", (x, y, zg + o.dims["length"] * 0.75 + 0.02), TOP_DOWN, 1, obj, speed=0.3)
+            self.steps[-1].update(close_kf=close, grip_offset=[0.0, 0.0, zg - z], width=2 * o.dims["radius"])
+
+    def place(self, obj: str, dest: str, returning: bool = False, inside: bool = False) -> None:
+        """Carry the held object to a zone (or back home) and release it there.
+
+        `inside`: the zone is in the oven, so come in low and horizontally.
+        """
+        o = self._obj(obj)
+        g = self._grip(obj)
+        dx, dy = (self.scene.zones[dest][:2] if dest in self.scene.zones else o.home[:2])
+        quat = SIDE if o.kind == "vessel" else TOP_DOWN
+        zr = assets.BENCH_TOP + g[2] + 0.004
+        self.step("place", object=obj, dest=dest, dest_xy=[dx, dy], returning=returning)
+        if inside:
+            self.kf("carry", (dx + g[0] - 0.25, dy + g[1], zr + 0.02), quat, 1, dest)
+            self.kf("enter", (dx + g[0], dy + g[1], zr + 0.02), quat, 1, dest, speed=0.25)
+        else:
+            self.kf("carry", (dx + g[0], dy + g[1], max(zr + 0.12, 0.16)), quat, 1, dest)
+        self.kf("lower", (dx + g[0], dy + g[1], zr), quat, 1, dest, speed=0.2)
+        rel = self.kf("release", (dx + g[0], dy + g[1], zr), quat, 0, dest, settle=40)
+        back = (-0.12, 0, 0) if o.kind == "vessel" else (0, 0, 0.1)
+        self.kf("retreat", (dx + g[0] + back[0], dy + g[1], zr + back[2]), quat, 0, dest, speed=0.3)
+        self.steps[-1]["release_kf"] = rel
+
+    def pour(self, src: str, dest: str, side: float = -1.0) -> None:
+        """Bring the held vessel beside `dest` and roll it progressively until the liquid has run out."""
+        d = self._obj(dest)
+        s = self._obj(src)
+        g = self._grip(src)
+        x, y, z = d.home
+        rim = z + d.dims["height"]
+        mouth = s.dims["height"] - g[2]  # from the grasp point to the mouth of the held vessel
+        # Hold the grasp point beside dest so that, fully tilted, the mouth is above dest's centre.
+        ay = y + side * 0.8 * mouth
+        zc = rim + 0.065
+        self.step("pour", object=src, dest=dest)
+        self.kf("align", (x + g[0], ay, zc + 0.05), SIDE, 1, dest)
+        self.kf("lower", (x + g[0], ay, zc), SIDE, 1, dest, speed=0.2)
+        for i, ang in enumerate((0.9, 1.5, 2.0)):
+            self.kf(f"tilt{i}", (x + g[0], ay, zc), _roll(SIDE, POUR_SIGN * side * ang), 1, dest, speed=0.2,
+                    settle=40)
+        self.kf("upright", (x + g[0], ay, zc + 0.04), SIDE, 1, dest, speed=0.3)
+
+    def shake(self, obj: str, amp: float = 0.05, n: int = 3) -> None:
+        o = self._obj(obj)
+        x, y, _ = o.home
+        self.step("shake", object=obj)
+        zc = SAFE_Z - 0.06
+        for i in range(n):
+            self.kf(f"left{i}", (x - 0.005, y - amp, zc), SIDE, 1, obj, speed=0.6)
+            self.kf(f"right{i}", (x - 0.005, y + amp, zc), SIDE, 1, obj, speed=0.6)
+
+    def insert(self, obj: str, into: str) -> None:
+        """Lower a held rod (top-down grasp) into a vessel or a rack hole."""
+        o = self._obj(obj)
+        g = self._grip(obj)
+        if into in self.scene.objects:  # a vessel: stop 2 cm above its floor
+            x, y, z = self.scene.objects[into].home
+            bottom = z + 0.02
+        else:  # a rack hole: stand on the rack's base plate
+            x, y, z = self.scene.zones[into]
+            bottom = z + 0.008
+        zc = bottom + g[2]
+        self.step("insert", object=obj, dest=into, dest_xy=[x, y])
+        self.kf("above", (x, y, zc + 0.1), TOP_DOWN, 1, into)
+        self.kf("down", (x, y, zc), TOP_DOWN, 1, into, speed=0.15, settle=20)
+
+    def stir(self, obj: str, vessel: str, amp: float = 0.01, n: int = 3) -> None:
+        g = self._grip(obj)
+        x, y, z = self.scene.objects[vessel].home
+        zc = z + 0.02 + g[2]
+        self.step("stir", object=obj, dest=vessel)
+        for i in range(n):
+            self.kf(f"a{i}", (x, y - amp, zc), TOP_DOWN, 1, vessel, speed=0.1)
+            self.kf(f"b{i}", (x, y + amp, zc), TOP_DOWN, 1, vessel, speed=0.1)
+        self.kf("out", (x, y, zc + 0.12), TOP_DOWN, 1, vessel, speed=0.2)
+
+    def door(self, oven: str, to_open: bool, arc_points: int = 6) -> None:
+        """Grasp the vertical handle and swing it along the hinge arc; release and back off."""
+        o = self._obj(oven)
+        a0, a1 = (0.0, math.radians(80)) if to_open else (math.radians(80), 0.0)
+        self.step("open" if to_open else "close", object=oven, target_angle=a1)
+        h0 = assets.handle_position(o.home, a0)
+        out0 = np.array([-math.cos(a0), -math.sin(a0), 0.0]) * 0.10  # away from the door face
+        self.kf("pre", h0 + out0, _yaw(a0), 0, oven)
+        self.kf("reach", h0, _yaw(a0), 0, oven, speed=0.2)
+        self.kf("grip", h0, _yaw(a0), 1, oven, settle=40)
+        for i in range(1, arc_points + 1):
+            a = a0 + (a1 - a0) * i / arc_points
+            self.kf(f"arc{i}", assets.handle_position(o.home, a), _yaw(a), 1, oven, speed=0.15)
+        h1 = assets.handle_position(o.home, a1)
+        out1 = np.array([-math.cos(a1), -math.sin(a1), 0.0]) * 0.10
+        self.kf("let_go", h1, _yaw(a1), 0, oven, settle=25)
+        self.kf("retreat", h1 + out1, _yaw(a1), 0, oven)
+        self.steps[-1].update(contact_kf=f"s{self.steps[-1]['index']}_grip", contact_point=[float(v) for v in h0])
+
+    def press(self, button: str) -> None:
+        o = self._obj(button)
+        x, y, _ = o.home
+        top = o.dims["top"]
+        self.step("close", object=button)  # pressing is a closed-gripper push (see docs/ARCHITECTURE.md)
+        self.kf("above", (x, y, top + 0.08), TOP_DOWN, 1, button, settle=30)
+        self.kf("touch", (x, y, top + 0.015), TOP_DOWN, 1, button, speed=0.2)
+        self.kf("press", (x, y, top - 0.004), TOP_DOWN, 1, button, speed=0.05, settle=30)
+        self.kf("release", (x, y, top + 0.08), TOP_DOWN, 1, button, speed=0.2)
+        self.steps[-1].update(contact_kf=f"s{self.steps[-1]['index']}_press", contact_point=[x, y, top - 0.004])
+
+    def home(self) -> None:
+        """A neutral pose between sub-tasks (part of the previous step)."""
+        st = self.steps[-1]
+        self.kf("home", (0.4, 0.0, SAFE_Z + 0.05), SIDE if st["action"] != "insert" else TOP_DOWN,
+                self.keyframes[-1].gripper, self.keyframes[-1].target)
+
+    def goal(self, kind: str, **kw: Any) -> None:
+        self.goals.append({"kind": kind, **kw})

@@ -1,0 +1,54 @@
+"""Fixed cameras (front, side) and an optional wrist view; TinyRenderer by default, EGL optional."""
+
+from __future__ import annotations
+
+import io
+from typing import Sequence
+
+import numpy as np
+import pybullet as p
+from PIL import Image
+
+from sim_backends.pybullet.robot import EE_LINK
+
+# eye, target: framed on the workspace (x 0.3-0.8 m, |y| < 0.3 m) so a beaker spans ~15 px in a 224 image.
+CAMERAS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float], float]] = {
+    "front": ((1.05, 0.30, 0.78), (0.50, 0.0, 0.05), 50.0),
+    "side": ((0.52, -0.78, 0.46), (0.52, 0.0, 0.06), 50.0),
+}
+
+
+class Renderer:
+    def __init__(self, cid: int, views: Sequence[str], size: int, wrist: bool = False, egl: bool = False):
+        unknown = [v for v in views if v not in CAMERAS]
+        if unknown:
+            raise ValueError(f"cameras: unknown view(s) {unknown}; available: {', '.join(CAMERAS)}")
+        self.cid, self.size = cid, int(size)
+        self.views = list(views) + (["wrist"] if wrist else [])
+        self.proj = p.computeProjectionMatrixFOV(50.0, 1.0, 0.02, 4.0)
+        self.view_mats = {v: p.computeViewMatrix(CAMERAS[v][0], CAMERAS[v][1], (0, 0, 1)) for v in views}
+        self.renderer = p.ER_BULLET_HARDWARE_OPENGL if egl else p.ER_TINY_RENDERER
+        self.light = (0.6, -0.4, 2.0)
+
+    def _wrist_view(self, robot_id: int):
+        s = p.getLinkState(robot_id, EE_LINK, computeForwardKinematics=True, physicsClientId=self.cid)
+        pos = np.asarray(s[4])
+        m = np.asarray(p.getMatrixFromQuaternion(s[5])).reshape(3, 3)
+        eye = pos - 0.10 * m[:, 2] + 0.04 * m[:, 0]
+        return p.computeViewMatrix(eye, pos + 0.2 * m[:, 2], -m[:, 0])
+
+    def render(self, robot_id: int) -> list[np.ndarray]:
+        out = []
+        for v in self.views:
+            vm = self._wrist_view(robot_id) if v == "wrist" else self.view_mats[v]
+            _, _, rgb, _, _ = p.getCameraImage(self.size, self.size, vm, self.proj, renderer=self.renderer,
+                                               lightDirection=self.light, shadow=0,
+                                               flags=p.ER_NO_SEGMENTATION_MASK, physicsClientId=self.cid)
+            out.append(np.asarray(rgb, np.uint8).reshape(self.size, self.size, 4)[:, :, :3])
+        return out
+
+
+def png_bytes(img: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(img).save(buf, format="PNG", compress_level=1)
+    return buf.getvalue()

@@ -1,0 +1,101 @@
+"""Franka Panda with a Cartesian keyframe controller (IK), gear-coupled fingers and a grip force."""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import numpy as np
+import pybullet as p
+import pybullet_data
+
+ARM_JOINTS = list(range(7))
+FINGERS = (9, 10)
+EE_LINK = 11  # the grasp target between the fingertips
+FINGER_OPEN = 0.04
+REST = [0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.785]
+LOWER = [-2.9, -1.76, -2.9, -3.07, -2.9, -0.02, -2.9]
+UPPER = [2.9, 1.76, 2.9, -0.07, 2.9, 3.75, 2.9]
+RANGES = [u - l for l, u in zip(LOWER, UPPER)]
+DT = 1.0 / 240.0
+
+# Orientation with the fingers pointing down and closing along the world y axis.
+TOP_DOWN = p.getQuaternionFromEuler([math.pi, 0.0, 0.0])
+# Fingers pointing along +x (horizontal approach), closing along the world y axis.
+SIDE = p.getQuaternionFromEuler([math.pi / 2, math.pi / 2, math.pi / 2])
+
+
+class Panda:
+    def __init__(self, client: int, base=(0.0, 0.0, 0.0), grip_force: float = 60.0):
+        self.cid = client
+        self.id = p.loadURDF(f"{pybullet_data.getDataPath()}/franka_panda/panda.urdf", base, useFixedBase=True,
+                             physicsClientId=client)
+        for j, q in zip(ARM_JOINTS, REST):
+            p.resetJointState(self.id, j, q, physicsClientId=client)
+        for f in FINGERS:
+            p.resetJointState(self.id, f, FINGER_OPEN, physicsClientId=client)
+            p.changeDynamics(self.id, f, lateralFriction=1.0, spinningFriction=0.001, frictionAnchor=True,
+                             physicsClientId=client)
+        # Couple the fingers so that a grasp closes symmetrically (independent fingers push the object off-centre).
+        c = p.createConstraint(self.id, FINGERS[0], self.id, FINGERS[1], p.JOINT_GEAR, [1, 0, 0], [0, 0, 0],
+                               [0, 0, 0], physicsClientId=client)
+        p.changeConstraint(c, gearRatio=-1, erp=0.1, maxForce=50, physicsClientId=client)
+        self.grip_force = grip_force
+        self.gripper_cmd = 0
+        self.q_target = list(REST)
+
+    # -- state ---------------------------------------------------------------------------------------
+    def ee_pose(self) -> tuple[np.ndarray, tuple]:
+        s = p.getLinkState(self.id, EE_LINK, computeForwardKinematics=True, physicsClientId=self.cid)
+        return np.asarray(s[4]), tuple(s[5])
+
+    def finger_width(self) -> float:
+        return sum(p.getJointState(self.id, f, physicsClientId=self.cid)[0] for f in FINGERS)
+
+    def finger_contacts(self, body: int) -> int:
+        """Number of fingers touching `body`."""
+        return sum(1 for f in FINGERS
+                   if p.getContactPoints(self.id, body, f, -1, physicsClientId=self.cid)
+                   or p.getContactPoints(self.id, body, f, physicsClientId=self.cid))
+
+    # -- commands ------------------------------------------------------------------------------------
+    def set_gripper(self, closed: int) -> None:
+        self.gripper_cmd = int(closed)
+        target = 0.0 if closed else FINGER_OPEN
+        for f in FINGERS:
+            p.setJointMotorControl2(self.id, f, p.POSITION_CONTROL, target, force=self.grip_force,
+                                    maxVelocity=0.2, physicsClientId=self.cid)
+
+    def _ik(self, pos, quat) -> list[float]:
+        q = p.calculateInverseKinematics(self.id, EE_LINK, pos, quat, LOWER, UPPER, RANGES, self.q_target,
+                                         maxNumIterations=30, residualThreshold=1e-4, physicsClientId=self.cid)
+        return list(q[:7])
+
+    def _drive_arm(self, q: list[float]) -> None:
+        self.q_target = q
+        p.setJointMotorControlArray(self.id, ARM_JOINTS, p.POSITION_CONTROL, targetPositions=q,
+                                    forces=[200.0] * 7, positionGains=[0.3] * 7, physicsClientId=self.cid)
+
+    def move_to(self, pos, quat, speed: float, step: Callable[[], None], settle_steps: int = 0,
+                max_extra: int = 60) -> None:
+        """Straight-line Cartesian move (position lerp, orientation slerp) at `speed` m/s, then settle."""
+        p0, q0 = self.ee_pose()
+        pos = np.asarray(pos, float)
+        dist = float(np.linalg.norm(pos - p0))
+        ang = 2 * math.acos(min(1.0, abs(float(np.dot(q0, quat)))))
+        n = max(8, int(max(dist / speed, ang / 0.8) / DT))  # <= 0.8 rad/s: faster rolls fling the liquid
+        for i in range(1, n + 1):
+            a = i / n
+            if i % 4 == 1 or i == n:  # IK at 60 Hz is plenty for a 240 Hz position controller
+                qi = p.getQuaternionSlerp(q0, quat, a)
+                self._drive_arm(self._ik(p0 + (pos - p0) * a, qi))
+            step()
+        # Converge on the keyframe (bounded), then hold for the requested settle time.
+        for _ in range(max_extra):
+            cur, _ = self.ee_pose()
+            if np.linalg.norm(cur - pos) < 0.004:
+                break
+            self._drive_arm(self._ik(pos, quat))
+            step()
+        for _ in range(settle_steps):
+            step()

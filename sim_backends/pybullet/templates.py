@@ -1,0 +1,114 @@
+"""Task templates: a keyframe program over named roles plus the goals that define success.
+
+A scenario (configs/tasks/pybullet.yaml) = template x objects x layout. A new
+scenario is a YAML entry; a new template is one function here.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sim_backends.pybullet.plan import Plan
+from sim_backends.registry import register_task
+
+
+@register_task("pick_place")
+def pick_place(plan: Plan, p: dict[str, Any]) -> None:
+    plan.grasp("obj")
+    plan.place("obj", "target")
+    plan.goal("at", object="obj", xy="target", tol=0.04)
+    plan.goal("upright", object="obj")
+    plan.goal("released", object="obj")
+
+
+@register_task("insert_tube")
+def insert_tube(plan: Plan, p: dict[str, Any]) -> None:
+    hole = p.get("hole", "rack_hole1")
+    plan.grasp("tube")
+    plan.insert("tube", hole)
+    plan.goal("at", object="tube", xy=hole, tol=0.012)
+    plan.goal("below", object="tube", z=0.06, what="bottom")
+
+
+@register_task("press_button")
+def press_button(plan: Plan, p: dict[str, Any]) -> None:
+    plan.press("button")
+    plan.goal("button", object="button", min_travel=0.007)
+
+
+@register_task("open_oven")
+def open_oven(plan: Plan, p: dict[str, Any]) -> None:
+    plan.door("oven", to_open=True)
+    plan.goal("door", object="oven", min=1.1)
+
+
+@register_task("close_oven")
+def close_oven(plan: Plan, p: dict[str, Any]) -> None:
+    plan.door("oven", to_open=False)
+    plan.goal("door", object="oven", max=0.12)
+
+
+@register_task("pour")
+def pour(plan: Plan, p: dict[str, Any]) -> None:
+    plan.grasp("src")
+    plan.pour("src", "dest", side=float(p.get("side", -1.0)))
+    plan.place("src", "src", returning=True)
+    plan.goal("liquid", into="dest", min_fraction=0.5, source="src")
+    plan.goal("at", object="src", xy="src", tol=0.04)
+    plan.goal("upright", object="src")
+
+
+@register_task("stir")
+def stir(plan: Plan, p: dict[str, Any]) -> None:
+    plan.grasp("rod")
+    plan.insert("rod", "vessel")
+    plan.stir("rod", "vessel")
+    plan.goal("stirred", object="rod", vessel="vessel", min_fraction=0.6)
+    plan.goal("still", object="vessel", tol=0.03)
+    plan.goal("held", object="rod")
+
+
+@register_task("shake")
+def shake(plan: Plan, p: dict[str, Any]) -> None:
+    plan.grasp("obj")
+    plan.shake("obj")
+    plan.place("obj", "obj", returning=True)
+    plan.goal("at", object="obj", xy="obj", tol=0.04)
+    plan.goal("upright", object="obj")
+    plan.goal("released", object="obj")
+
+
+@register_task("retrieve_from_oven")
+def retrieve_from_oven(plan: Plan, p: dict[str, Any]) -> None:
+    plan.door("oven", to_open=True)
+    plan.grasp("obj", inside=True)
+    plan.place("obj", "target")
+    plan.door("oven", to_open=False)
+    plan.goal("at", object="obj", xy="target", tol=0.04)
+    plan.goal("upright", object="obj")
+    plan.goal("door", object="oven", max=0.12)
+
+
+@register_task("load_oven")
+def load_oven(plan: Plan, p: dict[str, Any]) -> None:
+    plan.door("oven", to_open=True)
+    plan.grasp("obj")
+    plan.place("obj", "inside", inside=True)
+    plan.door("oven", to_open=False)
+    plan.goal("at", object="obj", xy="inside", tol=0.04)
+    plan.goal("upright", object="obj")
+    plan.goal("door", object="oven", max=0.12)
+
+
+@register_task("pour_and_stir")
+def pour_and_stir(plan: Plan, p: dict[str, Any]) -> None:
+    plan.grasp("src")
+    plan.pour("src", "dest", side=float(p.get("side", -1.0)))
+    plan.place("src", "src", returning=True)
+    plan.grasp("rod")
+    plan.insert("rod", "dest")
+    plan.stir("rod", "dest")
+    plan.goal("liquid", into="dest", min_fraction=0.5, source="src")
+    plan.goal("at", object="src", xy="src", tol=0.04)
+    plan.goal("stirred", object="rod", vessel="dest", min_fraction=0.6)
+    plan.goal("held", object="rod")
