@@ -59,27 +59,23 @@ def _executed_steps(trace: Trace, meta: Meta) -> list[int]:
 
 
 def detect_logic(trace: Trace, meta: Meta) -> Optional[Event]:
-    seg = {k["name"]: k["segment"] for k in meta["nominal"]}
+    """Compare the step order the controller ran with the plan's: a step never run is an omission,
+    a step run early is a reversal. The failure shows at the first keyframe of the out-of-place step."""
     nominal_order = [s["index"] for s in meta["steps"]]
     ran = _executed_steps(trace, meta)
     if ran == nominal_order:
         return None
-    # First keyframe where the executed step differs from the one the plan expects next.
-    expected = iter(nominal_order)
-    want = next(expected, None)
-    for i, name in enumerate(meta["executed"]):
-        s = seg[name]
-        if s == want:
-            continue
-        nxt = next(expected, None)
-        if s == nxt:
-            want = nxt
-            continue
-        kind = "step_omission" if s not in ran[:ran.index(s)] and want not in ran else "sequence_reversal"
-        j = trace["kf_end"][i - 1] + 1 if i > 0 else 0
-        return j, kind, f"step {s} ({meta['steps'][s]['action']}) ran where step {want} was due; ran {ran}"
-    missing = [s for s in nominal_order if s not in ran]
-    return (trace["kf_end"][-1], "step_omission", f"steps {missing} never ran") if missing else None
+    seg = {k["name"]: k["segment"] for k in meta["nominal"]}
+    p = next((i for i, (a, b) in enumerate(zip(ran, nominal_order)) if a != b), len(ran))
+    if p >= len(ran):  # the run is a prefix of the plan: its last steps never ran
+        missing = nominal_order[p:]
+        return trace["kf_end"][-1], "step_omission", f"steps {missing} never ran"
+    s, expected = ran[p], nominal_order[p]
+    kind = "step_omission" if expected not in ran else "sequence_reversal"
+    i = next(i for i, n in enumerate(meta["executed"]) if seg[n] == s)
+    j = trace["kf_end"][i - 1] + 1 if i > 0 else 0
+    return j, kind, (f"step {s} ({meta['steps'][s]['action']}) ran where step {expected} "
+                     f"({meta['steps'][expected]['action']}) was due; steps ran in order {ran}")
 
 
 def detect_grasp(trace: Trace, meta: Meta) -> Optional[Event]:

@@ -58,3 +58,13 @@ def test_unknown_scenario_and_variant(src):
         src.reset("fly_to_moon", 0)
     with pytest.raises(ValueError, match="unknown variant"):
         src.reset("press_button_red", 0, "unseen_planet")
+
+
+def test_logic_failures_from_step_order(src):
+    from sim_backends.perturbations import semantic
+
+    om = _run(src, "pick_place_bottle", 1, lambda k: semantic.omit(k, 0))
+    assert om.labels.failure_type == "step_omission" and om.labels.failure_keyframe == 0
+    rev = _run(src, "stir_beaker", 1, lambda k: semantic.permute(k, 0, 2))
+    assert rev.labels.failure_type == "sequence_reversal" and rev.labels.category == 4
+    assert rev.labels.failure_keyframe == 0  # it stirred before it had the rod
