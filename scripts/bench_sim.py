@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from omegaconf import OmegaConf  # noqa: E402
 
-from data.generate import generate, load_config  # noqa: E402
+from data.generate import generate, load_config, pair_seed, scenario_order  # noqa: E402
 from sim_backends.failure_generator import run_pair  # noqa: E402
 from sim_backends.registry import make_backend  # noqa: E402
 
@@ -33,10 +33,11 @@ def per_hour(n: int, seconds: float) -> float:
 
 def in_process(render: bool, pairs: int) -> float:
     src = make_backend("pybullet", render=render)
-    names = src.scenarios()
+    # The generator's own pair plan (seed 0), so these rows run the same scenarios as the end-to-end ones.
+    order = scenario_order(src.scenarios(), 0, pairs)
     t = time.perf_counter()
-    for j in range(pairs):
-        run_pair(src, names[j % len(names)], j, "seen")
+    for j, scenario in enumerate(order):
+        run_pair(src, scenario, pair_seed(0, j), "seen")
     dt = time.perf_counter() - t
     src.close()
     return per_hour(2 * pairs, dt)
