@@ -99,7 +99,10 @@ def rod(cid: int, pos, length: float = 0.22, radius: float = 0.006, rgba=(0.85, 
     return b
 
 
-def rack(cid: int, pos, holes: int = 3, pitch: float = 0.05, hole: float = 0.024, height: float = 0.06,
+RACK_HEIGHT = 0.06
+
+
+def rack(cid: int, pos, holes: int = 3, pitch: float = 0.05, hole: float = 0.024, height: float = RACK_HEIGHT,
          rgba=(0.55, 0.38, 0.22, 1.0)) -> int:
     """Test-tube rack: a base plate, two end walls and a top plate with square holes along y."""
     t = 0.006
@@ -216,6 +219,9 @@ def oven(cid: int, pos, width: float = 0.24, depth: float = 0.22, height: float 
 
 
 HANDLE_OFFSET = (-0.035, 0.24 - 0.035)  # handle axis in the door frame (x, y), for the default width
+
+
+DOOR_OPEN = math.radians(80)  # the planned open angle (the plan bypasses the door's free edge)
 
 
 def handle_position(oven_pos, angle: float, depth: float = 0.22, width: float = 0.24, height: float = 0.18

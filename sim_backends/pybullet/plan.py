@@ -74,7 +74,7 @@ class Plan:
         x, y, z = o.home
         self.step("grasp", object=obj)
         if o.kind == "vessel":
-            zg = z + min(0.5 * o.dims["height"], 0.045)
+            zg = z + min(0.6 * o.dims["height"], 0.048)  # low grasps near the base trap the IK
             self.kf("pre", (x - 0.13, y, zg), SIDE, 0, obj)
             self.kf("reach", (x - 0.005, y, zg), SIDE, 0, obj, speed=0.25)
             close = self.kf("close", (x - 0.005, y, zg), SIDE, 1, obj, settle=50)
@@ -143,37 +143,59 @@ class Plan:
             self.kf(f"left{i}", (x - 0.005, y - amp, zc), SIDE, 1, obj, speed=0.6)
             self.kf(f"right{i}", (x - 0.005, y + amp, zc), SIDE, 1, obj, speed=0.6)
 
+    def _ee_z_for_bottom(self, obj: str, bottom: float) -> float:
+        """End-effector height that puts the lower end of a held rod at `bottom`."""
+        return bottom + 0.5 * self._obj(obj).dims["length"] + self._grip(obj)[2]
+
     def insert(self, obj: str, into: str) -> None:
-        """Lower a held rod (top-down grasp) into a vessel or a rack hole."""
-        o = self._obj(obj)
-        g = self._grip(obj)
-        if into in self.scene.objects:  # a vessel: stop 2 cm above its floor
-            x, y, z = self.scene.objects[into].home
-            bottom = z + 0.02
+        """Lower a held rod (top-down grasp) into a vessel or a rack hole.
+
+        The approach keyframe keeps the rod's lower end 3 cm above the rim/top plate, so the carry
+        never sweeps the rod through the destination.
+        """
+        if into in self.scene.objects:  # a vessel: stop 1.5 cm above its floor
+            v = self.scene.objects[into]
+            x, y, z = v.home
+            bottom, top = z + 0.015, z + v.dims["height"]
         else:  # a rack hole: stand on the rack's base plate
             x, y, z = self.scene.zones[into]
-            bottom = z + 0.008
-        zc = bottom + g[2]
+            bottom, top = z + 0.008, z + assets.RACK_HEIGHT
         self.step("insert", object=obj, dest=into, dest_xy=[x, y])
-        self.kf("above", (x, y, zc + 0.1), TOP_DOWN, 1, into)
-        self.kf("down", (x, y, zc), TOP_DOWN, 1, into, speed=0.15, settle=20)
+        self.kf("above", (x, y, self._ee_z_for_bottom(obj, top + 0.03)), TOP_DOWN, 1, into)
+        self.kf("down", (x, y, self._ee_z_for_bottom(obj, bottom)), TOP_DOWN, 1, into, speed=0.15, settle=20)
 
     def stir(self, obj: str, vessel: str, amp: float = 0.01, n: int = 3) -> None:
-        g = self._grip(obj)
-        x, y, z = self.scene.objects[vessel].home
-        zc = z + 0.02 + g[2]
+        v = self.scene.objects[vessel]
+        x, y, z = v.home
+        zc = self._ee_z_for_bottom(obj, z + 0.015)
         self.step("stir", object=obj, dest=vessel)
         for i in range(n):
             self.kf(f"a{i}", (x, y - amp, zc), TOP_DOWN, 1, vessel, speed=0.1)
             self.kf(f"b{i}", (x, y + amp, zc), TOP_DOWN, 1, vessel, speed=0.1)
-        self.kf("out", (x, y, zc + 0.12), TOP_DOWN, 1, vessel, speed=0.2)
+        self.kf("out", (x, y, self._ee_z_for_bottom(obj, z + v.dims["height"] + 0.03)), TOP_DOWN, 1, vessel,
+                speed=0.2)
+
+    def _door_bypass(self, oven: str, z: float) -> list[tuple[float, float, float]]:
+        """Waypoints around the free edge of the open door: outside face first, then the opening.
+
+        The open door stands across the path between the bench in front of the hinge side and the
+        oven's opening; the arm must go round its free edge, never through it.
+        """
+        o = self._obj(oven)
+        hinge_x = o.home[0] - 0.11
+        free = assets.handle_position(o.home, assets.DOOR_OPEN)
+        x = min(free[0], hinge_x - 0.24) - 0.07
+        return [(x, free[1] - 0.10, z), (x, o.home[1], z)]
 
     def door(self, oven: str, to_open: bool, arc_points: int = 6) -> None:
         """Grasp the vertical handle and swing it along the hinge arc; release and back off."""
         o = self._obj(oven)
-        a0, a1 = (0.0, math.radians(80)) if to_open else (math.radians(80), 0.0)
+        a0, a1 = (0.0, assets.DOOR_OPEN) if to_open else (assets.DOOR_OPEN, 0.0)
         self.step("open" if to_open else "close", object=oven, target_angle=a1)
         h0 = assets.handle_position(o.home, a0)
+        if not to_open:  # come from the opening round to the outside face of the open door
+            for i, wp in enumerate(reversed(self._door_bypass(oven, h0[2]))):
+                self.kf(f"bypass{i}", wp, SIDE, 0, oven)
         out0 = np.array([-math.cos(a0), -math.sin(a0), 0.0]) * 0.10  # away from the door face
         self.kf("pre", h0 + out0, _yaw(a0), 0, oven)
         self.kf("reach", h0, _yaw(a0), 0, oven, speed=0.2)
@@ -185,6 +207,9 @@ class Plan:
         out1 = np.array([-math.cos(a1), -math.sin(a1), 0.0]) * 0.10
         self.kf("let_go", h1, _yaw(a1), 0, oven, settle=25)
         self.kf("retreat", h1 + out1, _yaw(a1), 0, oven)
+        if to_open:  # end in front of the opening, ready to reach inside
+            for i, wp in enumerate(self._door_bypass(oven, h1[2])):
+                self.kf(f"bypass{i}", wp, SIDE, 0, oven)
         self.steps[-1].update(contact_kf=f"s{self.steps[-1]['index']}_grip", contact_point=[float(v) for v in h0])
 
     def press(self, button: str) -> None:

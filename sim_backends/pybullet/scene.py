@@ -20,7 +20,7 @@ from sim_backends.pybullet.robot import Panda
 
 # Seen objects (training distribution). Vessels: radius/height in metres, Panda's fingers open to 8 cm.
 SEEN_OBJECTS: dict[str, dict[str, Any]] = {
-    "beaker_small": {"kind": "vessel", "radius": 0.028, "height": 0.085, "sides": 8, "rgba": [0.70, 0.88, 0.95, 1]},
+    "beaker_small": {"kind": "vessel", "radius": 0.025, "height": 0.085, "sides": 8, "rgba": [0.70, 0.88, 0.95, 1]},
     "beaker_large": {"kind": "vessel", "radius": 0.034, "height": 0.10, "sides": 8, "rgba": [0.62, 0.84, 0.92, 1]},
     "flask": {"kind": "vessel", "radius": 0.034, "height": 0.11, "sides": 7, "neck_radius": 0.02,
               "rgba": [0.75, 0.90, 0.85, 1]},
@@ -147,7 +147,7 @@ def build(cid: int, layout: dict[str, Any], variant: str, rng: np.random.Generat
         if kind == "rack":
             pos = (float(xy[0]), float(xy[1]), assets.BENCH_TOP)
             body = assets.rack(cid, pos)
-            objects[role] = SceneObject(role, "rack", body, pos, {"height": 0.06})
+            objects[role] = SceneObject(role, "rack", body, pos, {"height": assets.RACK_HEIGHT})
             for i, h in enumerate(assets.hole_positions(pos)):
                 zones[f"{role}_hole{i}"] = (h[0], h[1], assets.BENCH_TOP)
             continue
