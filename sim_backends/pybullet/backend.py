@@ -189,7 +189,16 @@ class PyBulletSource(FailureSource):
             "executed": [k.name for k in executed],
             "bench_top": assets.BENCH_TOP,
             "liquid_total": {k: len(v) for k, v in scene.particles.items()},
+            "labels": scene.labels,
+            "description": self._describe(),
         }
+
+    def _describe(self) -> str:
+        """The task in words (the `{task_name}` of the VQA preamble), from the template's description."""
+        assert self.scene is not None
+        sc = self._scenario(self._key[0])
+        text = sc.get("description") or self.cfg["templates"].get(sc["template"], {}).get("description")
+        return str(text or self._key[0].replace("_", " ")).format_map({**self.scene.labels, **sc.get("params", {})})
 
 
 class _Trace:

@@ -71,6 +71,7 @@ class Scene:
     particles: dict[str, list[int]]  # vessel name -> particle ids initially inside it
     appearance: dict[str, Any]
     bench_id: int = -1
+    labels: dict[str, str] = field(default_factory=dict)  # role -> words used in task text and corrections
 
     def body(self, name: str) -> int:
         return self.objects[name].body
@@ -95,6 +96,12 @@ def _checker_texture(cid: int, rgba: list[float], seed: int) -> int:
         return p.loadTexture(path, physicsClientId=cid)
     finally:
         os.unlink(path)
+
+
+# Words for the objects in task descriptions and correction instructions (custom objects may set `label`).
+OBJECT_LABELS = {"beaker_small": "small beaker", "beaker_large": "large beaker", "flask": "Erlenmeyer flask",
+                 "bottle": "reagent bottle", "glass_rod": "glass rod", "test_tube": "test tube"}
+KIND_LABELS = {"oven": "drying oven", "button": "button", "rack": "test tube rack", "zone": "target area"}
 
 
 def resolve_object(kind_name: str, variant: str, custom: dict[str, dict[str, Any]] | None) -> dict[str, Any]:
@@ -123,10 +130,17 @@ def build(cid: int, layout: dict[str, Any], variant: str, rng: np.random.Generat
     objects: dict[str, SceneObject] = {}
     zones: dict[str, tuple[float, float, float]] = {}
     parts: dict[str, list[int]] = {}
+    labels: dict[str, str] = {}
     jitter = float(layout.get("_jitter", 0.015))
     for role, spec in layout.items():
         if role.startswith("_"):
             continue
+        if "object" in spec:
+            od0 = resolve_object(spec["object"], variant, custom_objects)
+            labels[role] = str(spec.get("label") or od0.get("label") or OBJECT_LABELS.get(spec["object"])
+                               or spec["object"].replace("_", " "))
+        else:
+            labels[role] = str(spec.get("label") or KIND_LABELS.get(spec.get("kind", ""), role.replace("_", " ")))
         xy = np.asarray(spec["xy"], float) + rng.uniform(-jitter, jitter, 2) * float(spec.get("jitter", 1.0))
         kind = spec.get("kind") or resolve_object(spec["object"], variant, custom_objects)["kind"]
         if kind == "zone":
@@ -150,6 +164,7 @@ def build(cid: int, layout: dict[str, Any], variant: str, rng: np.random.Generat
             objects[role] = SceneObject(role, "rack", body, pos, {"height": assets.RACK_HEIGHT})
             for i, h in enumerate(assets.hole_positions(pos)):
                 zones[f"{role}_hole{i}"] = (h[0], h[1], assets.BENCH_TOP)
+                labels[f"{role}_hole{i}"] = f"hole {i + 1} of the {labels[role]}"
             continue
         od = resolve_object(spec["object"], variant, custom_objects)
         z0 = float(spec.get("z", 0.0)) + assets.BENCH_TOP
@@ -175,4 +190,4 @@ def build(cid: int, layout: dict[str, Any], variant: str, rng: np.random.Generat
             objects[role] = SceneObject(role, "rod", body, pos, {"length": ln, "radius": float(od["radius"])})
         else:
             raise ValueError(f"scenario: object {spec['object']!r} has unknown kind {od['kind']!r}")
-    return Scene(cid, robot, objects, zones, parts, appearance, bench_id)
+    return Scene(cid, robot, objects, zones, parts, appearance, bench_id, labels)
