@@ -3,7 +3,9 @@ VENV  ?= .venv
 PY    := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: install demo test bench clean
+.PHONY: install browser demo test bench clean
+APT_STAMP := $(VENV)/.apt-stamp
+SUDO  := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -13,16 +15,26 @@ $(STAMP): pyproject.toml constraints.txt
 
 install: $(STAMP)
 
+# Debian's Chromium + ChromeDriver for the review-page test (nothing is downloaded by the tests themselves).
+$(APT_STAMP): | $(STAMP)
+	command -v chromium >/dev/null && command -v chromedriver >/dev/null || \
+	  ($(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq chromium chromium-driver >/dev/null)
+	touch $(APT_STAMP)
+
+browser: $(APT_STAMP)
+
 # The main job on the embedded default: PyBullet on CPU -> labeled failure/success pairs -> shards,
 # then one keyframe strip per failure type found (outputs/demo_strips/*.png).
 demo: $(STAMP)
 	$(PY) scripts/generate.py backend=pybullet num_episodes=48 out_dir=outputs/demo_shards seed=0 workers=2
 	$(PY) scripts/render_strips.py outputs/demo_shards outputs/demo_strips
+	$(PY) scripts/build_dataset.py shards=outputs/demo_shards out_dir=outputs/demo_dataset
 
-test: $(STAMP)
-	$(PY) -m pytest -q tests
+test: $(STAMP) $(APT_STAMP)
+	LABROBFAIL_REQUIRE_BROWSER=1 $(PY) -m pytest -q tests
 
 bench: $(STAMP)
+	$(PY) scripts/bench_grid.py
 	$(PY) scripts/bench_sim.py
 
 clean:

@@ -18,6 +18,8 @@ from typing import Any, Iterator
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.config import load_config as _load_config
 from data.shards import atomic_write_bytes, episode_row, manifest, read_labels, write_shard
 
 DEFAULTS = Path(__file__).resolve().parents[1] / "configs" / "generate.yaml"
@@ -26,21 +28,8 @@ IDENTITY_KEYS = ("backend", "num_episodes", "seed", "episodes_per_shard", "varia
                  "cameras", "wrist", "custom_objects", "custom_scene")
 
 
-class ConfigError(ValueError):
-    """A bad configuration value; the message names the field."""
-
-
 def load_config(dotlist: list[str]) -> DictConfig:
-    base = OmegaConf.load(DEFAULTS)
-    OmegaConf.set_struct(base, True)
-    try:
-        cli = OmegaConf.from_dotlist(dotlist)
-        cfg = OmegaConf.merge(base, cli)
-    except Exception as e:  # omegaconf raises several types for unknown keys / bad syntax
-        key = getattr(e, "full_key", None) or str(e).splitlines()[0]
-        raise ConfigError(f"{key}: not a valid setting ({type(e).__name__})") from None
-    assert isinstance(cfg, DictConfig)
-    return cfg
+    return _load_config(DEFAULTS, dotlist)
 
 
 def _load_yaml_file(field: str, path: str | None) -> Any:

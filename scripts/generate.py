@@ -16,22 +16,15 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from data.generate import ConfigError, generate, load_config  # noqa: E402
+from data.generate import generate, load_config  # noqa: E402
+from labrobfail_vlm.config import cli_main  # noqa: E402
 
 
 def main(argv: list[str]) -> int:
-    try:
-        cfg = load_config(argv)
-        man = generate(cfg)
-    except (ConfigError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("error: interrupted; rerun the same command to resume", file=sys.stderr)
-        return 130
+    man = generate(load_config(argv))
     print(json.dumps({k: man[k] for k in ("episodes", "by_outcome", "by_failure_type", "by_action", "by_horizon")}))
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    cli_main(main)

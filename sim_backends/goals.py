@@ -15,6 +15,7 @@ Trace = dict[str, list]
 Meta = dict[str, Any]
 
 UPRIGHT_TILT = 0.35  # rad; beyond this a vessel counts as tipped over
+OFF_BENCH = -0.1  # m below the bench top: knocked off the bench
 
 
 def tilt(quat) -> float:
@@ -115,3 +116,18 @@ GOALS: dict[str, Callable[[Trace, Meta, dict], bool]] = {
 
 def failed_goals(trace: Trace, meta: Meta) -> list[dict]:
     return [g for g in meta["goals"] if not GOALS[g["kind"]](trace, meta, g)]
+
+
+FALLEN_TILT = 1.0  # rad; a vessel lying on its side has fallen over
+
+
+def object_fell(trace: Trace, meta: Meta) -> bool:
+    """An object ended off the bench or lying on its side (the manual-operation case of Q6)."""
+    for name, o in meta["objects"].items():
+        if o["kind"] not in ("vessel", "rod") or f"{name}.pos" not in trace:
+            continue
+        if trace[f"{name}.pos"][-1][2] < meta["bench_top"] + OFF_BENCH:
+            return True
+        if o["kind"] == "vessel" and tilt(trace[f"{name}.quat"][-1]) > FALLEN_TILT:
+            return True
+    return False

@@ -21,7 +21,7 @@ from typing import Any, Callable, Optional
 import numpy as np
 
 from labrobfail_vlm.taxonomy import Severity, category_of
-from sim_backends.goals import UPRIGHT_TILT, failed_goals, rod_in_vessel, stir_samples, tilt
+from sim_backends.goals import OFF_BENCH, UPRIGHT_TILT, failed_goals, rod_in_vessel, stir_samples, tilt
 from sim_backends.types import Labels, quat_to_matrix, rotation_angle
 
 Trace = dict[str, list]
@@ -35,7 +35,7 @@ POSE_ERR = 0.3  # rad: end-effector orientation error against the plan
 WRONG_PLACE = 0.08  # m: release this far from the planned spot = put somewhere else entirely
 STILL = 0.005  # m: end-effector displacement between keyframes that counts as not moving
 HANDLE_MISS = 0.015  # m: gripper-to-handle/button offset that misses it
-OFF_BENCH = -0.1  # m below the bench top: knocked off the bench
+
 
 
 def _kf_samples(trace: Trace, meta: Meta, names: set[str]) -> list[int]:

@@ -14,29 +14,7 @@ import pytest
 from sim_backends.labeler import derive_labels
 from sim_backends.types import Labels
 
-ROOT = Path(__file__).resolve().parents[1]
-SMALL = ["scenarios=[press_button_red,open_oven_center,pick_place_bottle]", "image_size=48", "episodes_per_shard=2",
-         "progress=false"]
-
-
-def gen(out, *extra, check=True):
-    r = subprocess.run([sys.executable, "scripts/generate.py", f"out_dir={out}", *SMALL, *extra], cwd=ROOT,
-                       capture_output=True, text=True, timeout=600)
-    if check:
-        assert r.returncode == 0, r.stderr
-    return r
-
-
-def rows(out):
-    return sorted((r for p in sorted(Path(out).glob("shard-*.parquet")) for r in pq.read_table(p).to_pylist()),
-                  key=lambda r: r["episode_id"])
-
-
-@pytest.fixture(scope="module")
-def run6(tmp_path_factory):
-    out = tmp_path_factory.mktemp("gen") / "a"
-    gen(out, "num_episodes=6", "seed=3")
-    return out
+from conftest import ROOT, SMALL, gen, rows  # noqa: E402
 
 
 def test_manifest_and_pairs(run6):

@@ -1,0 +1,160 @@
+"""VQA annotation: one shard row (a labeled episode) -> its keyframe grid and six question-answer records.
+
+Answers come from the simulator's state-derived labels and task metadata (never from
+the injected perturbation); question wording and answer formats come from
+labrobfail_vlm.questions, corrections from labrobfail_vlm.corrections, the grid from
+labrobfail_vlm.grid. `check_record` is the paper's rule-based filter.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+from labrobfail_vlm import questions as Q
+from labrobfail_vlm.corrections import Context, correction
+from labrobfail_vlm.grid import GridConfig, build_grid, frame_for_keyframe, sample_keyframes
+from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, Category, Severity
+from sim_backends.goals import object_fell
+
+
+@dataclass
+class Annotated:
+    trajectory: str  # unique id across runs: "<variant>-<episode_id>"
+    group: str  # split unit: a success/failure pair and its shared initial state
+    variant: str
+    image_name: str
+    grid: Image.Image
+    records: list[dict[str, Any]]
+    meta: dict[str, Any] = field(default_factory=dict)  # what the review page and stats show
+
+
+def _step_of(name: str) -> int:
+    return int(name.split("_", 1)[0][1:])
+
+
+def failure_context(row: dict[str, Any], meta: dict[str, Any], trace: dict[str, list]) -> Context:
+    """Fill the correction placeholders from task metadata (which step failed, on what, towards where)."""
+    steps, labels, executed = meta["steps"], meta.get("labels", {}), meta["executed"]
+    kf = min(int(row["failure_keyframe"] or 0), len(executed) - 1)
+    st = steps[_step_of(executed[kf])] if executed else steps[0]
+    word = lambda role: labels.get(role, str(role).replace("_", " "))  # noqa: E731
+    obj = st.get("object")
+    kind = meta["objects"].get(obj, {}).get("kind", "")
+    device = {"oven": "door", "button": "button"}.get(kind, "")
+    if row["failure_type"] == "sequence_reversal":  # redo the task's first grasp-and-place
+        st = next((s for s in steps if s["action"] == "grasp"), st)
+        obj = st.get("object")
+    dest = st.get("dest") or next((s["dest"] for s in steps[st["index"]:] if s.get("object") == obj and s.get("dest")),
+                                  None)
+    destination = "its original position" if dest is not None and dest == obj else word(dest or "target")
+    pour = next((s for s in steps if s["action"] == "pour"), None)
+    done = {_step_of(n) for n in executed}
+    omitted = next((s["action"] for s in steps if s["index"] not in done), st["action"])
+    return Context(failure_type=row["failure_type"], action=st["action"], device=device,
+                   fell=object_fell(trace, meta), fatal=row["severity"] == int(Severity.FATAL),
+                   target=word(obj) if obj else "object", destination=destination,
+                   source=word(pour["object"]) if pour else word(obj or "container"),
+                   omitted=omitted, opening=st["action"] == "open")
+
+
+def decode_views(images: list[list[bytes]], picks: list[int]) -> list[list[Image.Image]]:
+    return [[Image.open(io.BytesIO(view[i])).convert("RGB") for i in picks] for view in images]
+
+
+def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator) -> Annotated:
+    meta = json.loads(row["task_meta"])
+    trace = json.loads(row["state_trace"])
+    kfs = json.loads(row["keyframes"])
+    picks = sample_keyframes([k["segment"] for k in kfs], grid_cfg.max_frames)
+    grid = build_grid(decode_views(row["images"], picks), grid_cfg)
+    traj = f"{row['variant']}-{row['episode_id']}"
+    image = f"images/{traj}.png"
+    task_name = meta.get("description") or row["scenario"].replace("_", " ")
+    success = bool(row["success"])
+    answers: dict[str, str] = {"Q1": Q.format_actions(list(row["actions"]))}
+    ctx = None
+    if success:
+        answers.update(Q3=Q.NO_FAILURE, Q4=Q.NO_FAILURE, Q5=Q.NO_FAILURE, Q6=Q.NO_CORRECTION)
+        frame = None
+    else:
+        frame = frame_for_keyframe(picks, int(row["failure_keyframe"]))
+        ctx = failure_context(row, meta, trace)
+        answers.update(Q3=str(frame), Q4=str(int(row["severity"])), Q5=str(int(row["category"])),
+                       Q6=correction(ctx)[1])
+    records = []
+    for dim in Q.DIMENSIONS:
+        v = int(rng.integers(len(Q.VARIANTS[dim])))
+        ans = Q.q2_answer(v, success) if dim == "Q2" else answers[dim]
+        records.append({
+            "id": f"{traj}_{dim}", "image": image, "images": [image],  # "images": LLaMA-Factory's column
+            "conversations": [{"from": "human", "value": Q.question_text(dim, v, task_name, grid_cfg.time_axis)},
+                              {"from": "gpt", "value": ans}],
+        })
+    info = {
+        "trajectory": traj, "scenario": row["scenario"], "task": task_name, "variant": row["variant"],
+        "success": success, "failure_type": row["failure_type"], "category": row["category"],
+        "severity": row["severity"], "failure_keyframe": row["failure_keyframe"], "frame": frame,
+        "frames": len(picks), "sampled_keyframes": picks, "horizon": row["horizon"], "actions": list(row["actions"]),
+        "evidence": row["evidence"], "strategy": correction(ctx)[0] if ctx else None,
+        # names a (reworded) correction must keep: the objects it acts on, as filled from metadata
+        "q6_keep": [w for w in ((ctx.target, ctx.destination, ctx.source) if ctx else ()) if w in answers["Q6"]],
+    }
+    return Annotated(traj, f"{row['variant']}-{row['pair_id']}", row["variant"], image, grid, records, info)
+
+
+# ---- the rule-based filter -------------------------------------------------------------------------------
+_INT = re.compile(r"^\d+$")
+
+
+def check_record(rec: Any, info: dict[str, Any]) -> str | None:
+    """None if the record is well-formed and consistent with the metadata, else the reason to drop it."""
+    try:
+        rid, conv = rec["id"], rec["conversations"]
+        human, gpt = conv
+        if not (isinstance(rid, str) and isinstance(rec["image"], str) and human["from"] == "human"
+                and gpt["from"] == "gpt" and isinstance(human["value"], str) and isinstance(gpt["value"], str)):
+            return "malformed"
+    except (KeyError, TypeError, ValueError):
+        return "malformed"
+    q, a = human["value"], gpt["value"].strip()
+    if not q.startswith("<image>\n") or q.count("<image>") != 1 or not a:
+        return "malformed"
+    dim = rid.rsplit("_", 1)[-1]
+    ok = info["success"]
+    if dim == "Q1":
+        acts = [s.strip() for s in a.split(",")]
+        return None if acts == info["actions"] and set(acts) <= set(ATOMIC_ACTIONS) else "inconsistent"
+    if dim == "Q2":
+        if a not in ("Yes", "No"):
+            return "malformed"
+        v = next((i for i, var in enumerate(Q.VARIANTS["Q2"]) if var.text in q), None)
+        if v is None:  # Q2 is never paraphrased: its wording decides what "Yes" means
+            return "malformed"
+        return None if a == Q.q2_answer(v, ok) else "inconsistent"
+    if dim == "Q3":
+        if ok:
+            return None if a == Q.NO_FAILURE else "inconsistent"
+        if not _INT.match(a) or not 1 <= int(a) <= info["frames"]:
+            return "frame_out_of_range"
+        return None if int(a) == info["frame"] else "inconsistent"
+    if dim in ("Q4", "Q5"):
+        if ok:
+            return None if a == Q.NO_FAILURE else "inconsistent"
+        hi, want = (len(Severity), info["severity"]) if dim == "Q4" else (len(Category), info["category"])
+        if not _INT.match(a) or not 1 <= int(a) <= hi:
+            return "malformed"
+        return None if int(a) == int(want) else "inconsistent"
+    if dim == "Q6":
+        if ok:
+            return None if a == Q.NO_CORRECTION else "inconsistent"
+        if len(a.split()) < 4:
+            return "malformed"
+        return None if all(w.lower() in a.lower() for w in info.get("q6_keep", [])) else "inconsistent"
+    return "malformed"

@@ -1,0 +1,182 @@
+"""LabRobFail-Data builder: shards -> grids + six-dimension VQA records -> filtered splits, exports, stats, plots.
+
+Output layout (out_dir):
+  images/<trajectory>.png            one keyframe grid per trajectory
+  train.json val.json test.json      ShareGPT/LLaVA records (and test_object/scene/both.json for unseen rows)
+  dataset_info.json                  LLaMA-Factory's description of those files (sharegpt formatting)
+  trajectories.json                  per-trajectory metadata (labels, split, sampled keyframes, strategy)
+  stats.json                         counts, filter report (drops by reason), split sizes
+  plots/*.png                        horizon distribution, success/failure per task, types by category
+  review.html                        the human-sampling page (data/review.py)
+Every file is written atomically; a trajectory is kept only with all six records passing the filter.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow.parquet as pq
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from data.annotate import Annotated, annotate, check_record
+from data.paraphrase import Paraphraser
+from data.shards import atomic_write_bytes
+from data.splits import SEEN_SPLITS, UNSEEN_SPLITS, assign
+from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.grid import GridConfig
+
+READ_COLUMNS = ["episode_id", "pair_id", "variant", "scenario", "success", "failure_type", "category", "severity",
+                "failure_keyframe", "evidence", "actions", "horizon", "images", "state_trace", "task_meta", "keyframes"]
+
+
+def write_json(path: Path, obj: Any) -> None:
+    atomic_write_bytes(path, json.dumps(obj, indent=1, ensure_ascii=False).encode())
+
+
+def _shard_files(cfg: DictConfig) -> list[Path]:
+    dirs = cfg.shards
+    if dirs is None:
+        raise ConfigError("shards: give a shard directory (shards=DIR) or a list of them")
+    dirs = [dirs] if isinstance(dirs, str) else list(dirs)
+    files: list[Path] = []
+    for d in dirs:
+        if not Path(d).is_dir():
+            raise ConfigError(f"shards: no such directory {d!r}")
+        found = sorted(Path(d).glob("shard-*.parquet"))
+        if not found:
+            raise ConfigError(f"shards: no shard-*.parquet files in {d!r}")
+        files.extend(found)
+    return files
+
+
+def _rows(files: list[Path]):
+    for f in files:
+        try:
+            pf = pq.ParquetFile(f)
+            missing = [c for c in READ_COLUMNS if c not in pf.schema_arrow.names]
+            if missing:
+                raise ConfigError(f"shards: {f} lacks columns {missing}")
+            for batch in pf.iter_batches(batch_size=16, columns=READ_COLUMNS):
+                yield from batch.to_pylist()
+        except ConfigError:
+            raise
+        except Exception as e:  # pyarrow raises several types for a corrupt file
+            raise ConfigError(f"shards: cannot read {f} ({type(e).__name__}: {str(e).splitlines()[0]})") from None
+
+
+def _review_marks(path: str | None) -> dict[str, str]:
+    if path is None:
+        return {}
+    try:
+        marks = json.loads(Path(path).read_text())["marks"]
+        assert isinstance(marks, dict) and all(v in ("accept", "reject") for v in marks.values())
+    except (OSError, ValueError, KeyError, TypeError, AssertionError):
+        raise ConfigError(f"review: {path} is not a marks file exported by review.html") from None
+    return marks
+
+
+def build(cfg: DictConfig) -> dict[str, Any]:
+    files = _shard_files(cfg)
+    try:
+        gcfg = GridConfig(**OmegaConf.to_container(cfg.grid))  # type: ignore[arg-type]
+    except (TypeError, ValueError) as e:
+        raise ConfigError(str(e)) from None
+    if len(cfg.ratios) != 3 or any(float(r) < 0 for r in cfg.ratios) or abs(sum(cfg.ratios) - 1) > 1e-6:
+        raise ConfigError(f"ratios: three non-negative fractions summing to 1, got {list(cfg.ratios)}")
+    marks = _review_marks(cfg.review)
+    para = Paraphraser(cfg.paraphrase.base_url, cfg.paraphrase.model, cfg.paraphrase.api_key_env,
+                       cfg.paraphrase.timeout_s) if cfg.paraphrase.enabled else None
+    out = Path(cfg.out_dir)
+    try:
+        (out / "images").mkdir(parents=True, exist_ok=True)
+        (out / "plots").mkdir(exist_ok=True)
+    except OSError as e:
+        raise ConfigError(f"out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
+
+    rng = np.random.default_rng(int(cfg.seed))
+    drops: Counter[str] = Counter()
+    para_stats: Counter[str] = Counter()
+    kept: list[Annotated] = []
+    total_rows = 0
+    n_total = sum(pq.ParquetFile(f).metadata.num_rows for f in files)
+    for row in tqdm(_rows(files), total=n_total, desc="annotate", unit="traj", disable=not cfg.progress):
+        total_rows += 1
+        if row["variant"] not in ("seen", *UNSEEN_SPLITS):
+            raise ConfigError(f"shards: row {row['episode_id']} has unknown variant {row['variant']!r}")
+        ann = annotate(row, gcfg, rng)
+        if marks.get(ann.trajectory) == "reject":
+            drops["review_rejected"] += 1
+            continue
+        if para is not None:
+            for i, rec in enumerate(ann.records):
+                dim = rec["id"].rsplit("_", 1)[-1]
+                if dim not in cfg.paraphrase.dimensions or dim == "Q2":
+                    continue
+                new = para.reword(rec, dim, ann.meta["task"])
+                if new is not None and check_record(new, ann.meta) is None:
+                    ann.records[i] = new
+                    para_stats["accepted"] += 1
+                else:
+                    para_stats["rejected"] += 1
+        reasons = [r for rec in ann.records if (r := check_record(rec, ann.meta))]
+        if reasons:
+            drops.update(reasons)
+            continue
+        buf = io.BytesIO()
+        ann.grid.save(buf, format="PNG", optimize=False, compress_level=3)
+        atomic_write_bytes(out / ann.image_name, buf.getvalue())
+        kept.append(ann)
+
+    split_of = assign([(a.group, a.variant) for a in kept], int(cfg.seed), tuple(cfg.ratios))
+    splits: dict[str, list[dict[str, Any]]] = {s: [] for s in (*SEEN_SPLITS, *UNSEEN_SPLITS.values())}
+    for a in kept:
+        a.meta["split"] = split_of[a.group]
+        splits[split_of[a.group]].extend(a.records)
+    for name, recs in splits.items():
+        if name in SEEN_SPLITS or recs:
+            write_json(out / f"{name}.json", recs)
+    write_json(out / "dataset_info.json", {
+        f"labrobfail_{name}": {"file_name": f"{name}.json", "formatting": "sharegpt",
+                               "columns": {"messages": "conversations", "images": "images"},
+                               "tags": {"role_tag": "from", "content_tag": "value", "user_tag": "human",
+                                        "assistant_tag": "gpt"}}
+        for name, recs in splits.items() if name in SEEN_SPLITS or recs})
+    trajectories = [a.meta for a in kept]
+    write_json(out / "trajectories.json", trajectories)
+    stats = dataset_stats(trajectories, splits, total_rows, drops, para_stats, gcfg)
+    write_json(out / "stats.json", stats)
+    from data.plots import write_plots
+    from data.review import write_review_page
+    write_plots(trajectories, out / "plots")
+    write_review_page(kept, out / "review.html", int(cfg.review_sample), int(cfg.seed))
+    return stats
+
+
+def dataset_stats(traj: list[dict[str, Any]], splits: dict[str, list], total_rows: int, drops: Counter,
+                  para: Counter, gcfg: GridConfig) -> dict[str, Any]:
+    fails = [t for t in traj if not t["success"]]
+    return {
+        "trajectories_in": total_rows,
+        "trajectories_kept": len(traj),
+        "records": sum(len(r) for r in splits.values()),
+        "filter": {"dropped_trajectories": total_rows - len(traj), "by_reason": dict(drops),
+                   "drop_rate": round((total_rows - len(traj)) / total_rows, 4) if total_rows else 0.0},
+        "paraphrase": dict(para),
+        "splits": {k: {"records": len(v), "trajectories": len(v) // 6} for k, v in splits.items() if v or k in
+                   SEEN_SPLITS},
+        "by_outcome": {"success": len(traj) - len(fails), "failure": len(fails)},
+        "by_failure_type": dict(Counter(t["failure_type"] for t in fails).most_common()),
+        "by_category": dict(sorted(Counter(str(t["category"]) for t in fails).items())),
+        "by_severity": dict(sorted(Counter(str(t["severity"]) for t in fails).items())),
+        "by_strategy": dict(Counter(t["strategy"] for t in fails).most_common()),
+        "by_horizon": dict(Counter(t["horizon"] for t in traj)),
+        "by_task": dict(sorted(Counter(t["scenario"] for t in traj).items())),
+        "grid": {"width": gcfg.width, "height": gcfg.height, "max_frames": gcfg.max_frames,
+                 "time_axis": gcfg.time_axis, "draw_index": gcfg.draw_index},
+    }

@@ -1,0 +1,72 @@
+"""Optional LLM paraphrase of questions (and Q6 answers) through an OpenAI-compatible chat endpoint.
+
+Off by default. The API key is read from the environment variable named in the config and
+only ever placed in the Authorization header: never logged, never written. A reworded
+record must pass the same rule-based filter as the original (data.annotate.check_record);
+otherwise the original wording is kept and the rejection is counted.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import urllib.error
+import urllib.request
+from typing import Any
+
+from labrobfail_vlm import questions as Q
+
+SYSTEM = ("You are an expert annotator for robotic manipulation tasks in chemical laboratory environments. "
+          "Reword the given question (and the answer, when one is given) so that the meaning, every object name "
+          "and every number stay exactly the same. Reply with JSON only: {\"question\": ..., \"answer\": ...}.")
+
+
+class Paraphraser:
+    def __init__(self, base_url: str, model: str, api_key_env: str, timeout_s: float = 30.0):
+        if not base_url.startswith(("http://", "https://")):
+            raise ValueError(f"paraphrase.base_url: expected an http(s) URL, got {base_url!r}")
+        self.url = base_url.rstrip("/") + "/chat/completions"
+        self.model, self.timeout = model, float(timeout_s)
+        self._key = os.environ.get(api_key_env, "")
+
+    def _chat(self, content: str) -> dict[str, Any]:
+        body = json.dumps({"model": self.model, "temperature": 0.7,
+                           "messages": [{"role": "system", "content": SYSTEM}, {"role": "user", "content": content}]})
+        req = urllib.request.Request(self.url, data=body.encode(), method="POST",
+                                     headers={"Content-Type": "application/json",
+                                              **({"Authorization": f"Bearer {self._key}"} if self._key else {})})
+        with urllib.request.urlopen(req, timeout=self.timeout) as r:  # noqa: S310 - URL checked above
+            reply = json.loads(r.read())
+        text = reply["choices"][0]["message"]["content"].strip()
+        if text.startswith("```"):
+            text = text.strip("`").removeprefix("json").strip()
+        out = json.loads(text)
+        if not isinstance(out, dict):
+            raise ValueError("reply is not a JSON object")
+        return out
+
+    def reword(self, rec: dict[str, Any], dim: str, task_name: str) -> dict[str, Any] | None:
+        """A reworded copy of `rec`, or None when the endpoint fails or replies nonsense."""
+        human, gpt = rec["conversations"]
+        pre = "<image>\n" + Q.preamble(task_name) + " "
+        if not human["value"].startswith(pre):
+            return None
+        rest = human["value"][len(pre):]
+        question, _, options = rest.partition("\nOptions:")
+        payload = {"question": question} | ({"answer": gpt["value"]} if dim == "Q6" else {})
+        try:
+            out = self._chat(json.dumps(payload))
+        except (urllib.error.URLError, OSError, ValueError, KeyError, IndexError, TypeError):
+            return None
+        new_q = out.get("question")
+        if not isinstance(new_q, str) or not new_q.strip() or "<image>" in new_q:
+            return None
+        new = copy.deepcopy(rec)
+        new["conversations"][0]["value"] = pre + new_q.strip() + (f"\nOptions:{options}" if options else "")
+        if dim == "Q6":
+            ans = out.get("answer")
+            if not isinstance(ans, str) or not ans.strip():
+                return None
+            new["conversations"][1]["value"] = ans.strip()
+        return new

@@ -1,0 +1,40 @@
+"""Dataset splits: seen 8:1:1 train/val/test grouped by initial state; unseen variants go to their own tests.
+
+A group is a success/failure pair (same scenario, seed and variant, so the same initial
+state): both trajectories land in the same split, so no test grid has a training twin.
+Groups are ordered by a seeded hash and cut at 80 % and 90 %, which is deterministic and
+exact up to one group.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Iterable
+
+UNSEEN_SPLITS = {"unseen_object": "test_object", "unseen_scene": "test_scene", "unseen_both": "test_both"}
+SEEN_SPLITS = ("train", "val", "test")
+
+
+def _key(group: str, seed: int) -> str:
+    return hashlib.sha256(f"{seed}:{group}".encode()).hexdigest()
+
+
+def assign(groups: Iterable[tuple[str, str]], seed: int = 0, ratios: tuple[float, float, float] = (0.8, 0.1, 0.1)
+           ) -> dict[str, str]:
+    """Map each (group, variant) to a split name."""
+    out: dict[str, str] = {}
+    seen: list[str] = []
+    for g, variant in dict.fromkeys(groups):
+        if variant in UNSEEN_SPLITS:
+            out[g] = UNSEEN_SPLITS[variant]
+        elif variant == "seen":
+            seen.append(g)
+        else:
+            raise ValueError(f"split: unknown variant {variant!r} in group {g!r}")
+    seen.sort(key=lambda g: _key(g, seed))
+    n = len(seen)
+    a = round(n * ratios[0])
+    b = a + round(n * ratios[1])
+    for i, g in enumerate(seen):
+        out[g] = "train" if i < a else "val" if i < b else "test"
+    return out

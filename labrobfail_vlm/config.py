@@ -1,0 +1,44 @@
+"""OmegaConf loading shared by every entry point: YAML defaults + command-line dotlist, one-line errors.
+
+Entry points call `cli_main(fn)`: a ConfigError or ValueError becomes `error: <message>` on stderr
+and exit code 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Callable
+
+from omegaconf import DictConfig, OmegaConf
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+
+
+class ConfigError(ValueError):
+    """A bad configuration value or input; the message names the field or file."""
+
+
+def load_config(defaults: str | Path, dotlist: list[str]) -> DictConfig:
+    """Defaults from a YAML file under configs/ (struct: unknown keys are errors) merged with `key=value` args."""
+    base = OmegaConf.load(CONFIG_DIR / defaults if not Path(defaults).is_absolute() else defaults)
+    OmegaConf.set_struct(base, True)
+    try:
+        cfg = OmegaConf.merge(base, OmegaConf.from_dotlist(dotlist))
+    except Exception as e:  # omegaconf raises several types for unknown keys / bad syntax
+        key = getattr(e, "full_key", None) or str(e).splitlines()[0]
+        raise ConfigError(f"{key}: not a valid setting ({type(e).__name__})") from None
+    assert isinstance(cfg, DictConfig)
+    return cfg
+
+
+def cli_main(fn: Callable[[list[str]], int]) -> None:
+    try:
+        code = fn(sys.argv[1:])
+    except (ValueError, OSError) as e:  # ConfigError is a ValueError
+        print(f"error: {e}", file=sys.stderr)
+        code = 2
+    except KeyboardInterrupt:
+        print("error: interrupted; rerun the same command to resume", file=sys.stderr)
+        code = 130
+    sys.exit(code)

@@ -1,0 +1,58 @@
+"""Benchmark the keyframe-grid builder (16 keyframes x 2 views of 224x224 -> 1536x768) and write JSON.
+
+Run as:
+    python scripts/bench_grid.py [--repeats 200] [--out outputs/bench_grid.json]
+
+Rows side by side in one run: with the temporal index, without it, and a prefix grid; p50/p95 in ms.
+Target (issue 3): a 1536x768 grid in at most 10 ms.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from labrobfail_vlm.grid import GridConfig, build_grid  # noqa: E402
+
+
+def timed(fn, repeats: int) -> dict[str, float]:
+    fn()  # warm-up (font cache)
+    ts = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        ts.append(1000 * (time.perf_counter() - t))
+    return {"p50_ms": round(float(np.percentile(ts, 50)), 3), "p95_ms": round(float(np.percentile(ts, 95)), 3)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--repeats", type=int, default=200)
+    ap.add_argument("--out", default="outputs/bench_grid.json")
+    a = ap.parse_args()
+    rng = np.random.default_rng(0)
+    frames = [[rng.integers(0, 255, (224, 224, 3), dtype=np.uint8) for _ in range(16)] for _ in range(2)]
+    rows = {
+        "with_index": timed(lambda: build_grid(frames, GridConfig()), a.repeats),
+        "without_index": timed(lambda: build_grid(frames, GridConfig(draw_index=False)), a.repeats),
+        "prefix_8_of_16": timed(lambda: build_grid(frames, GridConfig(), visible=8), a.repeats),
+    }
+    res = {"grid": "1536x768, 16 keyframes x 2 views of 224x224", "repeats": a.repeats, "rows": rows,
+           "index_overhead_ratio": round(rows["with_index"]["p50_ms"] / rows["without_index"]["p50_ms"], 3),
+           "target_ms": 10.0, "meets_target": rows["with_index"]["p95_ms"] <= 10.0,
+           "machine": platform.processor() or platform.machine()}
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.out).write_text(json.dumps(res, indent=1))
+    print(json.dumps(res))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,32 @@
+"""Build LabRobFail-Data from simulator shards: keyframe grids, six-dimension VQA records, splits, stats, plots.
+
+Run as:
+    python scripts/build_dataset.py shards=outputs/demo_shards out_dir=outputs/demo_dataset
+    python scripts/build_dataset.py 'shards=[outputs/seen,outputs/unseen_both]' out_dir=outputs/dataset
+    python scripts/build_dataset.py shards=outputs/seen out_dir=outputs/dataset review=review_marks.json
+    python scripts/build_dataset.py shards=outputs/seen out_dir=outputs/ds_noidx grid.draw_index=false
+
+Defaults: configs/dataset.yaml. Writes train/val/test.json (+ test_object/scene/both.json), images/,
+stats.json (with the filter report), plots/ and review.html into out_dir.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from data.build import build  # noqa: E402
+from labrobfail_vlm.config import cli_main, load_config  # noqa: E402
+
+
+def main(argv: list[str]) -> int:
+    stats = build(load_config("dataset.yaml", argv))
+    print(json.dumps({k: stats[k] for k in ("trajectories_kept", "records", "filter", "splits", "by_outcome")}))
+    return 0
+
+
+if __name__ == "__main__":
+    cli_main(main)

@@ -1,0 +1,225 @@
+"""LabRobFail-Data: grids, six-dimension records, the filter, leak-free splits, exports, plots, paraphrase."""
+
+import copy
+import json
+import os
+import subprocess
+import sys
+import threading
+from http.server import BaseHTTPRequestHandler, HTTPServer
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from conftest import ROOT, gen
+from data.annotate import check_record
+from data.splits import assign
+from labrobfail_vlm import questions as Q
+from labrobfail_vlm.grid import BLANK, GridConfig, build_grid, frame_for_keyframe, sample_keyframes
+
+
+def build(shards, out, *extra):
+    return subprocess.run([sys.executable, "scripts/build_dataset.py", f"shards={shards}", f"out_dir={out}",
+                           "progress=false", *extra], cwd=ROOT, capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def unseen2(tmp_path_factory):
+    out = tmp_path_factory.mktemp("gen") / "u"
+    gen(out, "num_episodes=2", "seed=5", "variant=unseen_both")
+    return out
+
+
+@pytest.fixture(scope="module")
+def ds(run6, unseen2, tmp_path_factory):
+    out = tmp_path_factory.mktemp("ds") / "d"
+    r = build(f"[{run6},{unseen2}]", out)
+    assert r.returncode == 0, r.stderr
+    return out
+
+
+def load(ds, name):
+    return json.loads((ds / f"{name}.json").read_text())
+
+
+# ---- grid -------------------------------------------------------------------------------------------------
+def frames(views=2, m=9, size=64):
+    rng = np.random.default_rng(0)
+    return [[rng.integers(0, 255, (size, size, 3), dtype=np.uint8) for _ in range(m)] for _ in range(views)]
+
+
+def test_grid_layout_index_and_prefix():
+    cfg = GridConfig()
+    g = np.asarray(build_grid(frames(), cfg))
+    assert g.shape == (768, 1536, 3)
+    # time step 9 (index 8) wraps into the second band: row 2 (view 0), column 0
+    assert g[384 + 96, 96].tolist() != list(BLANK)
+    assert g[384 + 96, 192 + 96].tolist() == list(BLANK)  # time step 10 does not exist
+    plain = np.asarray(build_grid(frames(), GridConfig(draw_index=False)))
+    tag = (slice(0, 20), slice(0, 20))
+    assert (g[tag] != plain[tag]).any() and (g[200:300, 50:150] == plain[200:300, 50:150]).all()
+    prefix = np.asarray(build_grid(frames(), cfg, visible=3))
+    assert (prefix[:384, 3 * 192:] == BLANK).all() and (prefix[384:] == BLANK).all()
+    assert (prefix[:384, :3 * 192] == g[:384, :3 * 192]).all()
+    rows = np.asarray(build_grid(frames(), GridConfig(time_axis="rows")))
+    assert rows.shape == (768, 1536, 3) and not (rows == g).all()
+    with pytest.raises(ValueError, match="unequal"):
+        build_grid([frames()[0], frames()[0][:3]])
+
+
+def test_keyframe_sampling_keeps_action_transitions():
+    segs = [0] * 10 + [1] * 12 + [2] * 13
+    picks = sample_keyframes(segs, 16)
+    assert len(picks) == 16 and picks == sorted(picks)
+    assert {0, 9, 10, 21, 22, 34} <= set(picks)
+    assert sample_keyframes([0, 0, 1], 16) == [0, 1, 2]
+    assert frame_for_keyframe([0, 4, 9], 5) == 3 and frame_for_keyframe([0, 4, 9], 4) == 2
+
+
+# ---- dataset ------------------------------------------------------------------------------------------------
+def test_every_trajectory_has_six_dimensions_and_pairs_do_not_straddle(ds):
+    traj = load(ds, "trajectories")
+    recs = [r for s in ("train", "val", "test", "test_both") for r in load(ds, s)]
+    by_traj = {}
+    for r in recs:
+        t, dim = r["id"].rsplit("_", 1)
+        by_traj.setdefault(t, set()).add(dim)
+        assert (ds / r["image"]).is_file()
+    assert len(by_traj) == len(traj) == 8
+    assert all(d == set(Q.DIMENSIONS) for d in by_traj.values())
+    split = {t["trajectory"]: t["split"] for t in traj}
+    assert {split[t] for t in split if t.startswith("unseen_both")} == {"test_both"}
+    pairs = {}
+    for t in traj:
+        pairs.setdefault(t["trajectory"].rsplit("-", 1)[0] + str(int(t["trajectory"][-7:]) // 2), set()).add(t["split"])
+    assert all(len(s) == 1 for s in pairs.values())
+
+
+def test_answers_follow_the_labels(ds):
+    traj = {t["trajectory"]: t for t in load(ds, "trajectories")}
+    recs = [r for s in ("train", "val", "test", "test_both") for r in load(ds, s)]
+    for r in recs:
+        t, dim = r["id"].rsplit("_", 1)
+        info, q, a = traj[t], r["conversations"][0]["value"], r["conversations"][1]["value"]
+        assert q.startswith("<image>\nThe image consists of a series of sequential frames.") and info["task"] in q
+        if dim == "Q1":
+            assert a == ", ".join(info["actions"])
+        if dim == "Q3":
+            assert a == (Q.NO_FAILURE if info["success"] else str(info["frame"]))
+        if dim == "Q4" and not info["success"]:
+            assert a == str(info["severity"]) and "(4) Management Incident" in q
+        if dim == "Q5" and not info["success"]:
+            assert a == str(info["category"]) and "(5) Safety Failure" in q
+        if dim == "Q2":
+            positive = "successfully" in q or "without issues" in q
+            assert a == ("Yes" if positive == info["success"] else "No")
+
+
+def test_exports_load_with_hf_datasets_and_stats_plots_exist(ds):
+    import datasets
+    d = datasets.load_dataset("json", data_files={"train": str(ds / "train.json")}, split="train")
+    assert len(d) == len(load(ds, "train")) and set(d.column_names) >= {"id", "image", "conversations"}
+    stats = load(ds, "stats")
+    assert stats["filter"]["dropped_trajectories"] == 0 and stats["trajectories_kept"] == 8
+    info = load(ds, "dataset_info")
+    assert info["labrobfail_train"]["formatting"] == "sharegpt"
+    for p in ("horizon_distribution", "success_failure_per_task", "failure_types_by_category"):
+        im = Image.open(ds / "plots" / f"{p}.png")
+        assert im.width > 300
+
+
+def test_filter_rejects_bad_records(ds):
+    traj = {t["trajectory"]: t for t in load(ds, "trajectories")}
+    rec = next(r for r in load(ds, "train") if r["id"].endswith("_Q3") and not traj[r["id"][:-3]]["success"])
+    info = traj[rec["id"][:-3]]
+    assert check_record(rec, info) is None
+    bad = copy.deepcopy(rec)
+    bad["conversations"][1]["value"] = str(info["frames"] + 1)
+    assert check_record(bad, info) == "frame_out_of_range"
+    bad["conversations"][1]["value"] = str(info["frame"] % info["frames"] + 1)
+    assert check_record(bad, info) == "inconsistent"
+    assert check_record({"id": rec["id"], "conversations": []}, info) == "malformed"
+    q2 = next(r for r in load(ds, "train") if r["id"] == rec["id"][:-3] + "_Q2")
+    flipped = copy.deepcopy(q2)
+    flipped["conversations"][1]["value"] = {"Yes": "No", "No": "Yes"}[q2["conversations"][1]["value"]]
+    assert check_record(q2, info) is None and check_record(flipped, info) == "inconsistent"
+
+
+def test_split_groups_are_exact_and_deterministic():
+    groups = [(f"seen-pair{i:07d}", "seen") for i in range(50)] + [("unseen_scene-pair0000000", "unseen_scene")]
+    a = assign(groups, seed=1)
+    assert a == assign(list(reversed(groups)), seed=1)
+    counts = {s: list(a.values()).count(s) for s in ("train", "val", "test", "test_scene")}
+    assert counts == {"train": 40, "val": 5, "test": 5, "test_scene": 1}
+    with pytest.raises(ValueError, match="unknown variant"):
+        assign([("x", "bogus")])
+
+
+def test_bad_inputs_are_one_line_errors(run6, tmp_path):
+    for args, field in [([f"shards={tmp_path}/none"], "shards"), (["grid.time_axis=diagonal"], "grid.time_axis"),
+                        (["ratios=[0.5,0.5,0.5]"], "ratios"), (["bogus=1"], "bogus")]:
+        r = subprocess.run([sys.executable, "scripts/build_dataset.py", f"out_dir={tmp_path}/o",
+                            *([f"shards={run6}"] if not args[0].startswith("shards") else []), *args],
+                           cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert r.returncode == 2 and "Traceback" not in r.stderr and field in r.stderr, r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_review_marks_remove_rejected(run6, ds, tmp_path):
+    traj = load(ds, "trajectories")
+    marks = {traj[0]["trajectory"]: "reject", traj[1]["trajectory"]: "accept"}
+    (tmp_path / "m.json").write_text(json.dumps({"marks": marks}))
+    r = build(run6, tmp_path / "o", f"review={tmp_path / 'm.json'}")
+    assert r.returncode == 0, r.stderr
+    stats = json.loads((tmp_path / "o" / "stats.json").read_text())
+    assert stats["filter"]["by_reason"] == {"review_rejected": 1} and stats["trajectories_kept"] == 5
+    (tmp_path / "bad.json").write_text("[1, 2]")
+    r = build(run6, tmp_path / "o2", f"review={tmp_path / 'bad.json'}")
+    assert r.returncode == 2 and "review" in r.stderr
+
+
+class _FakeLLM(BaseHTTPRequestHandler):
+    seen_auth: list = []
+    mode = "good"
+
+    def do_POST(self):  # noqa: N802
+        body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
+        _FakeLLM.seen_auth.append(self.headers.get("Authorization"))
+        payload = json.loads(body["messages"][1]["content"])
+        if _FakeLLM.mode == "good":
+            out = {"question": "Rephrased: " + payload["question"], "answer": payload.get("answer")}
+        else:  # a reply that changes the meaning: the filter must catch it
+            out = {"question": payload["question"], "answer": "Do something else entirely please."}
+        reply = {"choices": [{"message": {"content": json.dumps(out)}}]}
+        data = json.dumps(reply).encode()
+        self.send_response(200)
+        self.send_header("Content-Length", str(len(data)))
+        self.end_headers()
+        self.wfile.write(data)
+
+    def log_message(self, *a):
+        pass
+
+
+@pytest.mark.parametrize("mode", ["good", "bad"])
+def test_paraphrase_through_openai_compatible_endpoint(run6, tmp_path, mode):
+    srv = HTTPServer(("127.0.0.1", 0), _FakeLLM)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    _FakeLLM.mode, _FakeLLM.seen_auth = mode, []
+    env = {**os.environ, "LRF_TEST_KEY": "sk-secret-123"}
+    out = tmp_path / "p"
+    r = subprocess.run([sys.executable, "scripts/build_dataset.py", f"shards={run6}", f"out_dir={out}", "progress=false",
+                        "paraphrase.enabled=true", f"paraphrase.base_url=http://127.0.0.1:{srv.server_port}/v1",
+                        "paraphrase.api_key_env=LRF_TEST_KEY"], cwd=ROOT, capture_output=True, text=True, env=env,
+                       timeout=300)
+    srv.shutdown()
+    assert r.returncode == 0, r.stderr
+    assert _FakeLLM.seen_auth and set(_FakeLLM.seen_auth) == {"Bearer sk-secret-123"}
+    stats = json.loads((out / "stats.json").read_text())
+    text = "".join(p.read_text() for p in out.glob("*.json")) + (out / "review.html").read_text() + r.stdout + r.stderr
+    assert "sk-secret-123" not in text
+    if mode == "good":
+        assert stats["paraphrase"]["accepted"] > 0 and "Rephrased: " in text
+    else:  # Q6 answers that lose the object names are rejected; the originals stay
+        assert stats["paraphrase"].get("rejected", 0) > 0 and stats["trajectories_kept"] == 6
