@@ -126,6 +126,17 @@ def detect_slip(trace: Trace, meta: Meta) -> Optional[Event]:
     return None
 
 
+def _stopped_after(trace: Trace, meta: Meta, st: dict, j: int) -> bool:
+    """The end effector covered less than half of the step's planned motion after sample j."""
+    plan = {k["name"]: np.asarray(k["pos"]) for k in meta["nominal"]}
+    names = [n for n in st["keyframes"] if n in plan]
+    planned = max(float(np.linalg.norm(plan[n] - plan[st["contact_kf"]])) for n in names)
+    ends = [e for e in _kf_samples(trace, meta, set(names)) if e >= j]
+    moved = max((float(np.linalg.norm(np.asarray(trace["ee_pos"][e]) - np.asarray(trace["ee_pos"][j]))) for e in ends),
+                default=0.0)
+    return planned > 0.05 and moved < 0.5 * planned
+
+
 def detect_operation(trace: Trace, meta: Meta) -> Optional[Event]:
     """Door and button steps: the articulation did not move because the gripper missed its handle/button."""
     for st in meta["steps"]:
@@ -136,8 +147,12 @@ def detect_operation(trace: Trace, meta: Meta) -> Optional[Event]:
         if not js:
             continue
         j = js[0]
+        if _stopped_after(trace, meta, st, j):
+            continue  # the arm stopped mid-step: the incomplete-trajectory detector decides
         i = trace["kf_end"].index(j)
-        if i > 0 and float(np.linalg.norm(np.asarray(trace["ee_pos"][j]) - np.asarray(trace["ee_pos"][trace["kf_end"][i - 1]]))) < STILL:
+        # The contact keyframe holds still by design (close on the handle); compare with the approach start.
+        k0 = trace["kf_end"][max(0, i - 2)]
+        if i > 0 and float(np.linalg.norm(np.asarray(trace["ee_pos"][j]) - np.asarray(trace["ee_pos"][k0]))) < STILL:
             continue  # the arm never moved in to make contact: an incomplete trajectory, not a miss
         if meta["objects"][obj]["kind"] == "oven" and trace["width"][j] >= OPEN_WIDTH:
             return j, "gripper_control_failure", f"fingers stayed open on the {obj}'s handle"
