@@ -24,7 +24,16 @@ def load_config(defaults: str | Path, dotlist: list[str]) -> DictConfig:
     base = OmegaConf.load(CONFIG_DIR / defaults if not Path(defaults).is_absolute() else defaults)
     OmegaConf.set_struct(base, True)
     try:
-        cfg = OmegaConf.merge(base, OmegaConf.from_dotlist(dotlist))
+        cli = OmegaConf.from_dotlist(dotlist)
+        layers = [base]
+        if "presets" in base:  # `preset=NAME` applies presets.NAME between the defaults and the command line
+            name = cli.get("preset", base.get("preset"))
+            if name not in base.presets:
+                raise ConfigError(f"preset: unknown preset {name!r}; known: {', '.join(base.presets)}")
+            layers.append(base.presets[name])
+        cfg = OmegaConf.merge(*layers, cli)
+    except ConfigError:
+        raise
     except Exception as e:  # omegaconf raises several types for unknown keys / bad syntax
         key = getattr(e, "full_key", None) or str(e).splitlines()[0]
         raise ConfigError(f"{key}: not a valid setting ({type(e).__name__})") from None

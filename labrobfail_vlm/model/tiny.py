@@ -1,0 +1,102 @@
+"""The tiny preset: a randomly initialised Qwen3-VL and a tokenizer trained on the project's own QA text.
+
+It is written with `save_pretrained` into a directory and then loaded through exactly the
+same path as a real checkpoint (labrobfail_vlm.model.loading), so CPU tests and `make demo`
+exercise the real Qwen3-VL classes. Special tokens and the chat template follow Qwen's.
+
+Run as:
+    python -m labrobfail_vlm.model.tiny outputs/tiny_qwen3vl
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from tokenizers import Tokenizer, decoders, models, pre_tokenizers, trainers
+
+SPECIAL = ["<|endoftext|>", "<|im_start|>", "<|im_end|>", "<|vision_start|>", "<|vision_end|>", "<|image_pad|>",
+           "<|video_pad|>"]
+
+# Qwen-style chat template. Whitespace control would eat the newline after the role, so it is emitted explicitly.
+CHAT_TEMPLATE = (
+    "{%- for message in messages -%}"
+    "{{ '<|im_start|>' + message['role'] + '\\n' }}"
+    "{%- if message['content'] is string -%}{{ message['content'] }}"
+    "{%- else -%}{%- for c in message['content'] -%}"
+    "{%- if c['type'] == 'image' -%}{{ '<|vision_start|><|image_pad|><|vision_end|>' }}"
+    "{%- elif c['type'] == 'text' -%}{{ c['text'] }}{%- endif -%}"
+    "{%- endfor -%}{%- endif -%}"
+    "{{ '<|im_end|>\\n' }}"
+    "{%- endfor -%}"
+    "{%- if add_generation_prompt -%}{{ '<|im_start|>assistant\\n' }}{%- endif -%}"
+)
+
+TINY_VISION = {"depth": 2, "hidden_size": 64, "intermediate_size": 128, "num_heads": 4, "patch_size": 16,
+               "spatial_merge_size": 2, "temporal_patch_size": 2, "num_position_embeddings": 2304,
+               "deepstack_visual_indexes": [1]}
+TINY_TEXT = {"hidden_size": 128, "intermediate_size": 256, "num_hidden_layers": 2, "num_attention_heads": 4,
+             "num_key_value_heads": 2, "head_dim": 32, "max_position_embeddings": 4096,
+             "rope_parameters": {"rope_type": "default", "rope_theta": 5000000.0, "mrope_section": [6, 5, 5],
+                                 "mrope_interleaved": True}}
+
+
+def corpus() -> list[str]:
+    """Every string the model must read or write: questions, options, answers, corrections, task words."""
+    from labrobfail_vlm import corrections, questions
+    from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, FAILURE_TYPES
+    from sim_backends.pybullet.scene import KIND_LABELS, OBJECT_LABELS
+
+    texts = [questions.PREAMBLE, questions.PREAMBLE_TIME_ROWS, questions.NO_CORRECTION, questions.NO_FAILURE,
+             *questions.OPTIONS.values(), *(v.text for vs in questions.VARIANTS.values() for v in vs),
+             *(t for _, t in corrections.STRATEGIES.values()), *(f.description for f in FAILURE_TYPES.values()),
+             ", ".join(ATOMIC_ACTIONS), "Yes No", " ".join(str(i) for i in range(0, 64)),
+             *OBJECT_LABELS.values(), *KIND_LABELS.values(), "open the door of the drying oven, pick up, place it on, "
+             "insert it into, press the red green button, pour the liquid from into, stir the solution with, shake "
+             "and put it back, take out, put inside and close, then, its original position, hole of the"]
+    return texts * 4
+
+
+def train_tokenizer(vocab_size: int = 1024):
+    from transformers import PreTrainedTokenizerFast
+
+    tok = Tokenizer(models.BPE(unk_token=None))
+    tok.pre_tokenizer = pre_tokenizers.ByteLevel(add_prefix_space=False)
+    tok.decoder = decoders.ByteLevel()
+    trainer = trainers.BpeTrainer(vocab_size=vocab_size, special_tokens=SPECIAL, show_progress=False,
+                                  initial_alphabet=pre_tokenizers.ByteLevel.alphabet())
+    tok.train_from_iterator(corpus(), trainer)
+    fast = PreTrainedTokenizerFast(tokenizer_object=tok, eos_token="<|im_end|>", pad_token="<|endoftext|>",
+                                   additional_special_tokens=SPECIAL[1:])
+    fast.chat_template = CHAT_TEMPLATE
+    return fast
+
+
+def build_tiny(out_dir: str | Path, seed: int = 0) -> Path:
+    """Write a tiny random Qwen3-VL checkpoint (weights as safetensors, tokenizer, processor, template)."""
+    import torch
+    from transformers import GenerationConfig, Qwen3VLConfig, Qwen3VLForConditionalGeneration
+
+    from labrobfail_vlm.model.processor import LabRobFailProcessor, image_processor
+
+    out = Path(out_dir)
+    tok = train_tokenizer()
+    ids = {t: tok.convert_tokens_to_ids(t) for t in SPECIAL}
+    cfg = Qwen3VLConfig(
+        text_config={**TINY_TEXT, "vocab_size": len(tok), "pad_token_id": ids["<|endoftext|>"]},
+        vision_config={**TINY_VISION, "out_hidden_size": TINY_TEXT["hidden_size"]},
+        image_token_id=ids["<|image_pad|>"], video_token_id=ids["<|video_pad|>"],
+        vision_start_token_id=ids["<|vision_start|>"], vision_end_token_id=ids["<|vision_end|>"])
+    torch.manual_seed(seed)
+    model = Qwen3VLForConditionalGeneration(cfg)
+    # A config-built model has no eos in its generation config: without it generate never stops.
+    model.generation_config = GenerationConfig(eos_token_id=ids["<|im_end|>"], pad_token_id=ids["<|endoftext|>"],
+                                               do_sample=False)
+    model.save_pretrained(out, safe_serialization=True)
+    LabRobFailProcessor(image_processor=image_processor(), tokenizer=tok, chat_template=CHAT_TEMPLATE
+                        ).save_pretrained(out)
+    return out
+
+
+if __name__ == "__main__":
+    print(build_tiny(sys.argv[1] if len(sys.argv) > 1 else "outputs/tiny_qwen3vl"))

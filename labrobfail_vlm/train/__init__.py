@@ -1,0 +1,1 @@
+"""Training of LabRobFail-VLM: VQA data collation, the hybrid trainer, checkpoints."""

@@ -1,0 +1,119 @@
+"""Fine-tune LabRobFail-VLM (Qwen3-VL): full vision encoder + merger, LoRA on the language decoder.
+
+Run as:
+    python train.py preset=tiny dataset_dir=outputs/demo_dataset output_dir=outputs/demo_train max_steps=50
+    python train.py model.path=/models/Qwen3-VL-8B-Instruct dataset_dir=outputs/dataset output_dir=outputs/run
+    python train.py preset=frozen_vision ...          # ablations: full | frozen_vision | no_index
+    deepspeed --num_gpus 2 train.py deepspeed=configs/ds_zero3.json preset=tiny dataset_dir=... output_dir=...
+    python train.py ... resume=true                   # continue from the newest checkpoint in output_dir
+
+Defaults and presets: configs/train.yaml. Checkpoints: labrobfail_vlm/train/checkpoint.py.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from labrobfail_vlm.config import ConfigError, cli_main, load_config  # noqa: E402
+
+
+def _world_size() -> int:
+    return int(os.environ.get("WORLD_SIZE", "1"))
+
+
+def _check_dataset(cfg: Any) -> None:
+    stats = Path(cfg.dataset_dir or "") / "stats.json"
+    if cfg.dataset_dir is None or not stats.is_file():
+        raise ConfigError(f"dataset_dir: {cfg.dataset_dir!r} is not a dataset built by scripts/build_dataset.py")
+    drawn = json.loads(stats.read_text()).get("grid", {}).get("draw_index", True)
+    if bool(drawn) != bool(cfg.grid_index):
+        raise ConfigError(f"grid_index: the dataset was built with grid.draw_index={drawn}, the run expects "
+                          f"{cfg.grid_index} (the no_index preset needs a dataset built with grid.draw_index=false)")
+
+
+def run(cfg: Any) -> dict[str, Any]:
+    import torch
+    from transformers import TrainingArguments
+    from transformers.trainer_utils import get_last_checkpoint
+
+    from labrobfail_vlm.model.hybrid import apply_tuning, count_trainable
+    from labrobfail_vlm.model.loading import load_model, load_processor
+    from labrobfail_vlm.train.data import Collator, VQADataset
+    from labrobfail_vlm.train.trainer import HybridTrainer
+
+    _check_dataset(cfg)
+    if cfg.model.path is None:
+        raise ConfigError("model.path: give a local Qwen3-VL directory (or use preset=tiny)")
+    if cfg.preset == "tiny" and not Path(cfg.model.path).is_dir():
+        from labrobfail_vlm.model.tiny import build_tiny
+        build_tiny(cfg.model.path, seed=int(cfg.seed))
+    dtype = {"bfloat16": torch.bfloat16, "float32": torch.float32}.get(cfg.model.dtype)
+    if dtype is None:
+        raise ConfigError(f"model.dtype: expected bfloat16 or float32, got {cfg.model.dtype!r}")
+    per_dev, world = int(cfg.per_device_batch), _world_size()
+    if per_dev < 1 or int(cfg.global_batch) % (per_dev * world):
+        raise ConfigError(f"global_batch: {cfg.global_batch} is not a multiple of per_device_batch x ranks "
+                          f"({per_dev} x {world})")
+    if cfg.wandb.enabled:
+        os.environ.setdefault("WANDB_MODE", str(cfg.wandb.mode))
+        os.environ.setdefault("WANDB_PROJECT", str(cfg.wandb.project))
+        os.environ.setdefault("WANDB_DIR", str(Path(cfg.output_dir)))
+        os.environ.setdefault("WANDB_SILENT", "true")
+    args = TrainingArguments(
+        output_dir=str(cfg.output_dir), per_device_train_batch_size=per_dev,
+        gradient_accumulation_steps=int(cfg.global_batch) // (per_dev * world),
+        num_train_epochs=float(cfg.epochs), max_steps=int(cfg.max_steps), lr_scheduler_type=str(cfg.scheduler),
+        warmup_steps=float(cfg.warmup_ratio), learning_rate=float(cfg.lr.lora), weight_decay=float(cfg.weight_decay),
+        logging_steps=int(cfg.logging_steps), save_steps=int(cfg.save_steps), save_total_limit=int(cfg.save_total_limit),
+        save_strategy="steps", report_to=["wandb"] if cfg.wandb.enabled else "none", seed=int(cfg.seed),
+        bf16=dtype == torch.bfloat16 and torch.cuda.is_available(), remove_unused_columns=False,
+        dataloader_num_workers=0, deepspeed=cfg.deepspeed, disable_tqdm=not cfg.progress,
+        gradient_checkpointing=bool(cfg.gradient_checkpointing), use_cpu=not torch.cuda.is_available(),
+        max_grad_norm=1.0, logging_first_step=True)
+    # Under ZeRO-3 the HfDeepSpeedConfig made by TrainingArguments must exist before the model is built.
+    processor = load_processor(cfg.model.path)
+    processor.tokenizer.padding_side = "right"
+    model = load_model(cfg.model.path, dtype)
+    model.config.use_cache = False
+    model = apply_tuning(model, str(cfg.tuning), dict(cfg.lora))
+    counts = count_trainable(model)
+    if args.process_index == 0:
+        print(json.dumps({"trainable_parameters": counts, "tuning": cfg.tuning, "preset": cfg.preset}), flush=True)
+    train = VQADataset(cfg.dataset_dir, "train")
+    trainer = HybridTrainer(model=model, args=args, train_dataset=train,
+                            data_collator=Collator(processor, int(cfg.max_length)), processing_class=processor,
+                            group_lrs=dict(cfg.lr), base_model=str(cfg.model.path), tuning=str(cfg.tuning))
+    resume = None
+    if cfg.resume is True:
+        resume = get_last_checkpoint(str(cfg.output_dir))
+        if resume is None:
+            raise ConfigError(f"resume: no checkpoint-N in {cfg.output_dir}")
+    elif isinstance(cfg.resume, str):
+        if not Path(cfg.resume).is_dir():
+            raise ConfigError(f"resume: no such checkpoint {cfg.resume!r}")
+        resume = cfg.resume
+    result = trainer.train(resume_from_checkpoint=resume)
+    trainer.save_model(str(Path(cfg.output_dir) / "final"))
+    losses = [h["loss"] for h in trainer.state.log_history if "loss" in h]
+    summary = {"global_step": trainer.state.global_step, "train_loss": result.training_loss,
+               "first_loss": losses[0] if losses else None, "last_loss": losses[-1] if losses else None,
+               "trainable_parameters": counts}
+    if args.process_index == 0:
+        (Path(cfg.output_dir) / "train_summary.json").write_text(json.dumps(summary, indent=1))
+        print(json.dumps(summary), flush=True)
+    return summary
+
+
+def main(argv: list[str]) -> int:
+    run(load_config("train.yaml", [a for a in argv if not a.startswith("--local_rank")]))
+    return 0
+
+
+if __name__ == "__main__":
+    cli_main(main)
