@@ -65,6 +65,12 @@ def run(cfg: Any) -> dict[str, Any]:
         os.environ.setdefault("WANDB_PROJECT", str(cfg.wandb.project))
         os.environ.setdefault("WANDB_DIR", str(Path(cfg.output_dir)))
         os.environ.setdefault("WANDB_SILENT", "true")
+    if cfg.deepspeed is not None:
+        if not Path(cfg.deepspeed).is_file():
+            raise ConfigError(f"deepspeed: no such config file {cfg.deepspeed!r}")
+        import deepspeed  # DeepSpeed's own process group: its config reads the world size from it
+
+        deepspeed.init_distributed(dist_backend="nccl" if torch.cuda.is_available() else "gloo")
     args = TrainingArguments(
         output_dir=str(cfg.output_dir), per_device_train_batch_size=per_dev,
         gradient_accumulation_steps=int(cfg.global_batch) // (per_dev * world),
@@ -76,7 +82,10 @@ def run(cfg: Any) -> dict[str, Any]:
         dataloader_num_workers=0, deepspeed=cfg.deepspeed, disable_tqdm=not cfg.progress,
         gradient_checkpointing=bool(cfg.gradient_checkpointing), use_cpu=not torch.cuda.is_available(),
         max_grad_norm=1.0, logging_first_step=True)
-    # Under ZeRO-3 the HfDeepSpeedConfig made by TrainingArguments must exist before the model is built.
+    # Under ZeRO-3 the HfDeepSpeedConfig made by TrainingArguments must exist, and the process group be up
+    # (reading world_size initialises it), before the model is built.
+    if args.world_size != world:
+        raise ConfigError(f"deepspeed: {args.world_size} ranks are up but WORLD_SIZE says {world}")
     processor = load_processor(cfg.model.path)
     processor.tokenizer.padding_side = "right"
     model = load_model(cfg.model.path, dtype)

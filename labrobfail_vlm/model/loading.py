@@ -12,25 +12,31 @@ from typing import Any
 from labrobfail_vlm.config import ConfigError
 
 
-def check_model_dir(path: str | Path, field: str = "model.path") -> Path:
+def check_model_dir(path: str | Path, field: str = "model.path", weights: bool = True) -> Path:
     p = Path(path)
     if not p.is_dir():
         raise ConfigError(f"{field}: no such model directory {str(path)!r}")
+    if not ((p / "tokenizer.json").is_file() or (p / "tokenizer_config.json").is_file()):
+        raise ConfigError(f"{field}: {path} has no tokenizer files")
+    if not weights:
+        return p
     if not (p / "config.json").is_file():
         raise ConfigError(f"{field}: {path} has no config.json (not a Hugging Face model directory)")
     if not list(p.glob("*.safetensors")) and not (p / "model.safetensors.index.json").is_file():
         bins = list(p.glob("*.bin")) + list(p.glob("*.pt"))
         raise ConfigError(f"{field}: {path} has no .safetensors weights" +
                           (" (pickle weights are refused)" if bins else ""))
-    if not ((p / "tokenizer.json").is_file() or (p / "tokenizer_config.json").is_file()):
-        raise ConfigError(f"{field}: {path} has no tokenizer files")
     return p
 
 
 def load_processor(path: str | Path):
     from labrobfail_vlm.model.processor import LabRobFailProcessor
 
-    return LabRobFailProcessor.from_pretrained(str(check_model_dir(path)))
+    p = check_model_dir(path, weights=False)
+    try:
+        return LabRobFailProcessor.from_pretrained(str(p))
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ConfigError(f"model: cannot load the processor from {path} ({type(e).__name__})") from None
 
 
 def load_model(path: str | Path, dtype: Any = None, **kwargs: Any):

@@ -1,0 +1,144 @@
+"""Hybrid fine-tuning on a tiny real Qwen3-VL: gradient groups, label masking, save/reload, merge, DeepSpeed."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from conftest import ROOT
+
+SMALL_GRID = ["grid.width=256", "grid.height=128", "grid.max_frames=8", "grid.columns=4"]
+
+
+@pytest.fixture(scope="session")
+def tiny(tmp_path_factory):
+    from labrobfail_vlm.model.tiny import build_tiny
+    return build_tiny(tmp_path_factory.mktemp("m") / "tiny")
+
+
+@pytest.fixture(scope="session")
+def small_ds(run6, tmp_path_factory):
+    out = tmp_path_factory.mktemp("ds") / "small"
+    r = subprocess.run([sys.executable, "scripts/build_dataset.py", f"shards={run6}", f"out_dir={out}",
+                        "progress=false", *SMALL_GRID], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    return out
+
+
+def batch(tiny, small_ds, n=2):
+    from labrobfail_vlm.model.loading import load_processor
+    from labrobfail_vlm.train.data import Collator, VQADataset
+    proc = load_processor(tiny)
+    proc.tokenizer.padding_side = "right"
+    ds = VQADataset(small_ds, "train")
+    return proc, Collator(proc, 512)([ds[i] for i in range(n)])
+
+
+def test_labels_cover_exactly_the_answer(tiny, small_ds):
+    proc, b = batch(tiny, small_ds, n=3)
+    from labrobfail_vlm.train.data import VQADataset
+    ds = VQADataset(small_ds, "train")
+    for i in range(3):
+        kept = b["labels"][i][b["labels"][i] != -100]
+        assert proc.tokenizer.decode(kept) == ds[i]["answer"] + "<|im_end|>\n"
+    assert (b["input_ids"] == proc.image_token_id).sum() == 3 * 32  # 256x128 grid: 8x4 visual tokens each
+
+
+@pytest.mark.parametrize("mode,expect", [("hybrid", {"vision", "merger", "lora"}), ("frozen_vision", {"lora"}),
+                                         ("full", {"vision", "merger", "text"})])
+def test_gradients_reach_exactly_the_intended_groups(tiny, small_ds, mode, expect):
+    from labrobfail_vlm.model.hybrid import apply_tuning, group_of
+    from labrobfail_vlm.model.loading import load_model
+    _, b = batch(tiny, small_ds)
+    model = apply_tuning(load_model(tiny), mode, {"r": 8, "alpha": 16, "dropout": 0.0})
+    if mode != "full":  # LoRA B starts at zero; nudge it so gradients reach A as well
+        for n, p in model.named_parameters():
+            if "lora_B" in n:
+                torch.nn.init.normal_(p, std=0.02)
+    model(**b).loss.backward()
+    got = {}
+    for n, p in model.named_parameters():
+        g = group_of(n)
+        has = p.grad is not None and bool(p.grad.abs().sum() > 0)
+        got.setdefault(g, []).append(has)
+        if not p.requires_grad:
+            assert p.grad is None, n
+    flowing = {g for g, v in got.items() if any(v)}
+    assert flowing == expect
+    for g in expect:  # every tensor of an intended group gets a gradient (deepstack mergers included)
+        assert sum(got[g]) >= 0.9 * len(got[g]), (g, sum(got[g]), len(got[g]))
+
+
+def test_save_reload_identical_logits_and_merge(tiny, small_ds, tmp_path):
+    from transformers import Qwen3VLForConditionalGeneration, TrainingArguments
+
+    from labrobfail_vlm.model.hybrid import apply_tuning
+    from labrobfail_vlm.model.loading import load_model
+    from labrobfail_vlm.train.checkpoint import load_finetuned
+    from labrobfail_vlm.train.data import Collator, VQADataset
+    from labrobfail_vlm.train.trainer import HybridTrainer
+    proc, b = batch(tiny, small_ds)
+    model = apply_tuning(load_model(tiny), "hybrid", {"r": 8, "alpha": 16, "dropout": 0.0})
+    args = TrainingArguments(output_dir=str(tmp_path / "run"), per_device_train_batch_size=2, max_steps=2,
+                             report_to="none", use_cpu=True, remove_unused_columns=False, disable_tqdm=True,
+                             save_strategy="no", learning_rate=1e-3)
+    tr = HybridTrainer(model=model, args=args, train_dataset=VQADataset(small_ds), data_collator=Collator(proc, 512),
+                       processing_class=proc, group_lrs={"vision": 1e-3, "merger": 1e-3, "lora": 1e-3, "text": 0},
+                       base_model=str(tiny), tuning="hybrid")
+    assert [g["lr"] for g in tr.create_optimizer().param_groups] == [1e-3, 1e-3, 1e-3]
+    tr.train()
+    tr.save_model(str(tmp_path / "ck"))
+    model.eval()
+    with torch.no_grad():
+        ref = model(**b).logits
+        again = load_finetuned(tmp_path / "ck").eval()(**b).logits
+    assert torch.equal(ref, again)
+    base = load_model(tiny).eval()
+    with torch.no_grad():
+        assert not torch.allclose(base(**b).logits, ref)  # training changed the model
+    r = subprocess.run([sys.executable, "scripts/merge.py", str(tmp_path / "ck"), str(tmp_path / "merged")], cwd=ROOT,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    merged = Qwen3VLForConditionalGeneration.from_pretrained(tmp_path / "merged").eval()
+    with torch.no_grad():
+        assert (merged(**b).logits - ref).abs().max() < 1e-5
+    assert (tmp_path / "merged" / "chat_template.jinja").is_file()
+
+
+def test_bad_train_config_is_one_line(small_ds, tmp_path):
+    for args, field in [(["preset=huge"], "preset"), ([f"dataset_dir={tmp_path}"], "dataset_dir"),
+                        (["preset=no_index", f"dataset_dir={small_ds}"], "grid_index"),
+                        (["model.path=/nonexistent", f"dataset_dir={small_ds}"], "model.path")]:
+        r = subprocess.run([sys.executable, "train.py", f"output_dir={tmp_path}/o", *args], cwd=ROOT,
+                           capture_output=True, text=True, timeout=120)
+        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+        assert field in r.stderr.strip().splitlines()[-1]
+
+
+@pytest.mark.skipif(shutil.which("deepspeed", path=os.path.dirname(sys.executable)) is None,
+                    reason="deepspeed not installed (make install adds it)")
+def test_deepspeed_two_cpu_ranks_train_save_resume(tiny, small_ds, tmp_path):
+    ds_bin = os.path.join(os.path.dirname(sys.executable), "deepspeed")
+    out = tmp_path / "ds"
+    common = [ds_bin, "--num_gpus", "2", "train.py", "preset=tiny", f"model.path={tiny}", f"dataset_dir={small_ds}",
+              f"output_dir={out}", "deepspeed=configs/ds_zero3.json", "global_batch=4", "per_device_batch=1",
+              "save_steps=2", "logging_steps=1", "wandb.enabled=false", "progress=false"]
+    env = {**os.environ, "MASTER_PORT": "29531"}
+    r = subprocess.run([*common, "max_steps=2"], cwd=ROOT, capture_output=True, text=True, timeout=900, env=env)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    from safetensors.torch import load_file
+    adapter = load_file(str(out / "checkpoint-2" / "adapter_model.safetensors"))
+    vision = load_file(str(out / "checkpoint-2" / "vision_merger.safetensors"))
+    assert adapter and all(t.numel() > 0 for t in adapter.values())  # gathered, not empty partitions
+    assert any("merger" in k for k in vision) and all(t.numel() > 0 for t in vision.values())
+    assert any(float(t.abs().sum()) > 0 for k, t in adapter.items() if "lora_B" in k)  # it trained
+    r = subprocess.run([*common, "max_steps=3", "resume=true"], cwd=ROOT, capture_output=True, text=True,
+                       timeout=900, env=env)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    summary = json.loads((out / "train_summary.json").read_text())
+    assert summary["global_step"] == 3
+    assert (out / "final" / "adapter_model.safetensors").is_file()
