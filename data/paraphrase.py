@@ -10,12 +10,11 @@ from __future__ import annotations
 
 import copy
 import json
-import os
 import urllib.error
-import urllib.request
 from typing import Any
 
 from labrobfail_vlm import questions as Q
+from labrobfail_vlm.llm_client import ChatClient
 
 SYSTEM = ("You are an expert annotator for robotic manipulation tasks in chemical laboratory environments. "
           "Reword the given question (and the answer, when one is given) so that the meaning, every object name "
@@ -24,21 +23,14 @@ SYSTEM = ("You are an expert annotator for robotic manipulation tasks in chemica
 
 class Paraphraser:
     def __init__(self, base_url: str, model: str, api_key_env: str, timeout_s: float = 30.0):
-        if not base_url.startswith(("http://", "https://")):
-            raise ValueError(f"paraphrase.base_url: expected an http(s) URL, got {base_url!r}")
-        self.url = base_url.rstrip("/") + "/chat/completions"
-        self.model, self.timeout = model, float(timeout_s)
-        self._key = os.environ.get(api_key_env, "")
+        try:
+            self.client = ChatClient(base_url, model, api_key_env, timeout_s)
+        except ValueError as e:
+            raise ValueError(f"paraphrase.{e}") from None
 
     def _chat(self, content: str) -> dict[str, Any]:
-        body = json.dumps({"model": self.model, "temperature": 0.7,
-                           "messages": [{"role": "system", "content": SYSTEM}, {"role": "user", "content": content}]})
-        req = urllib.request.Request(self.url, data=body.encode(), method="POST",
-                                     headers={"Content-Type": "application/json",
-                                              **({"Authorization": f"Bearer {self._key}"} if self._key else {})})
-        with urllib.request.urlopen(req, timeout=self.timeout) as r:  # noqa: S310 - URL checked above
-            reply = json.loads(r.read())
-        text = reply["choices"][0]["message"]["content"].strip()
+        text = self.client.chat([{"role": "system", "content": SYSTEM}, {"role": "user", "content": content}],
+                                temperature=0.7).strip()
         if text.startswith("```"):
             text = text.strip("`").removeprefix("json").strip()
         out = json.loads(text)

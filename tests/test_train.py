@@ -124,7 +124,7 @@ def test_bad_train_config_is_one_line(small_ds, tmp_path):
 def test_deepspeed_two_cpu_ranks_train_save_resume(tiny, small_ds, tmp_path):
     ds_bin = os.path.join(os.path.dirname(sys.executable), "deepspeed")
     out = tmp_path / "ds"
-    common = [ds_bin, "--num_gpus", "2", "train.py", "preset=tiny", f"model.path={tiny}", f"dataset_dir={small_ds}",
+    common = [ds_bin, "--num_gpus", "2", "train.py", "preset=tiny", "tuning=hybrid", f"model.path={tiny}", f"dataset_dir={small_ds}",
               f"output_dir={out}", "deepspeed=configs/ds_zero3.json", "global_batch=4", "per_device_batch=1",
               "save_steps=2", "logging_steps=1", "wandb.enabled=false", "progress=false"]
     env = {**os.environ, "MASTER_PORT": "29531"}

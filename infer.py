@@ -1,0 +1,71 @@
+"""Diagnose one trajectory: keyframe grid in, one JSON diagnosis out (stdout).
+
+Run as:
+    python infer.py --grid frames.png [--task "pick up the beaker ..."] [--model DIR] [--json OUT]
+    python infer.py --frames DIR --task "press the red button"      # DIR/<view>/<frame>.png -> grid
+    python infer.py --grid frames.png --six-prompts                  # no shared-prefix KV cache
+
+Without --model it uses the checkpoint `make demo` trains (outputs/demo_train/final). Any bad input
+(file, folder, model directory) gives one line on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from labrobfail_vlm.config import ConfigError, cli_main  # noqa: E402
+
+DEFAULT_MODEL = "outputs/demo_train/final"
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one line, exit 2, like every other bad input
+        raise ConfigError(f"usage: {message}")
+
+
+def main(argv: list[str]) -> int:
+    ap = _Parser(description=__doc__.splitlines()[0])
+    src = ap.add_mutually_exclusive_group(required=True)
+    src.add_argument("--grid", help="a keyframe grid image (as built by labrobfail_vlm.grid)")
+    src.add_argument("--frames", help="folder with one sub-folder of keyframe images per camera view")
+    ap.add_argument("--task", default="", help="the task in words (the {task_name} of the prompt)")
+    ap.add_argument("--model", default=DEFAULT_MODEL, help="fine-tuned checkpoint, merged model or Qwen3-VL dir")
+    ap.add_argument("--json", help="also write the diagnosis to this file (atomically)")
+    ap.add_argument("--num-frames", type=int, default=None, help="keyframes in the grid (default: 16)")
+    ap.add_argument("--six-prompts", action="store_true", help="encode the image once per question")
+    a = ap.parse_args(argv)
+
+    from labrobfail_vlm.images import load_frames, load_image
+    from labrobfail_vlm.model.loading import check_model_dir
+    from labrobfail_vlm.train.checkpoint import is_finetuned
+
+    if not Path(a.model).is_dir():
+        raise ConfigError(f"--model: no such model directory {a.model!r}"
+                          + (" (run `make demo` to train the default one)" if a.model == DEFAULT_MODEL else ""))
+    if not is_finetuned(a.model):
+        check_model_dir(a.model, "--model")
+    out = Path(a.json) if a.json else None
+    if out is not None and not out.parent.is_dir():
+        raise ConfigError(f"--json: folder {out.parent} does not exist")
+    image = load_image(a.grid) if a.grid else None
+    frames = load_frames(a.frames)[1] if a.frames else None
+
+    from labrobfail_vlm.analyzer import FailureAnalyzer
+
+    fa = FailureAnalyzer.from_pretrained(a.model)
+    diag = fa.analyze(image if image is not None else frames, task=a.task, one_pass=not a.six_prompts,
+                      frames=a.num_frames)
+    text = diag.to_json()
+    if out is not None:
+        from data.shards import atomic_write_bytes
+        atomic_write_bytes(out, (text + "\n").encode())
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    cli_main(main)

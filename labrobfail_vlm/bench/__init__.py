@@ -1,0 +1,1 @@
+"""LabRobFail-Bench: parsing of replies, metrics, baselines, reports."""

@@ -1,0 +1,48 @@
+"""Bench metrics: top-1 accuracy (Q1-Q5), Q3 within one frame, and BLEU-1..4 / ROUGE-L for Q6.
+
+BLEU: nltk's corpus_bleu with cumulative uniform weights up to n and SmoothingFunction().method1
+(fixed), on lower-cased word/punctuation tokens. ROUGE-L: rouge-score's RougeScorer with the
+Porter stemmer, mean F-measure. Both are the reference implementations, called as they are.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Sequence
+
+from nltk.translate.bleu_score import SmoothingFunction, corpus_bleu
+from rouge_score import rouge_scorer
+
+_TOKEN = re.compile(r"\w+|[^\w\s]")
+
+
+def tokens(text: str) -> list[str]:
+    return _TOKEN.findall(text.lower())
+
+
+def bleu(refs: Sequence[str], hyps: Sequence[str]) -> dict[str, float]:
+    r = [[tokens(x)] for x in refs]
+    h = [tokens(x) for x in hyps]
+    smooth = SmoothingFunction().method1
+    return {f"bleu{n}": float(corpus_bleu(r, h, weights=tuple([1.0 / n] * n), smoothing_function=smooth))
+            for n in range(1, 5)}
+
+
+def rouge_l(refs: Sequence[str], hyps: Sequence[str]) -> float:
+    sc = rouge_scorer.RougeScorer(["rougeL"], use_stemmer=True)
+    vals = [sc.score(r, h)["rougeL"].fmeasure for r, h in zip(refs, hyps)]
+    return float(sum(vals) / len(vals)) if vals else 0.0
+
+
+def accuracy(pairs: Sequence[tuple[str | None, str]]) -> float:
+    return float(sum(p == r for p, r in pairs) / len(pairs)) if pairs else 0.0
+
+
+def within_one(pairs: Sequence[tuple[str | None, str]]) -> float:
+    ok = 0
+    for p, r in pairs:
+        if p is not None and p.isdigit() and r.isdigit():
+            ok += abs(int(p) - int(r)) <= 1
+        else:
+            ok += p == r
+    return float(ok / len(pairs)) if pairs else 0.0

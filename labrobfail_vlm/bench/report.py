@@ -1,0 +1,62 @@
+"""Bench reports: the Markdown table in the paper's layout, confusion-matrix PNGs, the paper's reference rows."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+# Published results (paper, main table, seen environments): Q1-Q5 accuracy %, BLEU-1..4, ROUGE-L.
+PAPER_ROWS: dict[str, list[float]] = {
+    "Qwen3-VL-8B (paper)": [47.45, 59.50, 5.59, 47.84, 35.88, 0.2594, 0.1249, 0.0626, 0.0366, 0.2976],
+    "LLaVA-1.6-13B (paper)": [35.80, 52.96, 13.24, 33.53, 31.18, 0.2278, 0.0999, 0.0506, 0.0255, 0.2598],
+    "InternVL2.5-8B (paper)": [28.10, 47.04, 12.35, 18.24, 42.06, 0.1174, 0.0507, 0.0258, 0.0149, 0.1430],
+    "DeepSeek-VL2-small (paper)": [34.25, 47.51, 13.82, 48.82, 33.18, 0.1451, 0.0852, 0.0311, 0.0182, 0.1818],
+    "Gemini-2.0-flash (paper)": [26.98, 56.85, 6.76, 44.41, 36.89, 0.1161, 0.0540, 0.0282, 0.0160, 0.1440],
+    "Gemini-2.5-flash (paper)": [38.92, 57.13, 15.53, 48.84, 39.68, 0.1275, 0.0852, 0.0538, 0.0245, 0.1231],
+    "GPT-5.4 (paper)": [45.16, 52.34, 15.88, 47.06, 38.54, 0.1194, 0.0606, 0.0307, 0.0161, 0.1520],
+    "LabRobFail-VLM (paper)": [94.45, 90.83, 77.21, 83.18, 73.21, 0.7629, 0.7569, 0.7452, 0.7362, 0.7542],
+}
+HEADER = ["Method", "Q1", "Q2", "Q3", "Q4", "Q5", "BLEU-1", "BLEU-2", "BLEU-3", "BLEU-4", "ROUGE-L"]
+
+
+def row(res: dict[str, Any]) -> list[float]:
+    q6 = res["q6"]
+    return [res["q1"], res["q2"], res["q3"], res["q4"], res["q5"], q6["bleu1"], q6["bleu2"], q6["bleu3"], q6["bleu4"],
+            q6["rougeL"]]
+
+
+def markdown(rows: dict[str, list[float]], title: str) -> str:
+    lines = [f"### {title}", "", "| " + " | ".join(HEADER) + " |", "|" + "---|" * len(HEADER)]
+    for name, vals in rows.items():
+        cells = [f"{v:.2f}" if i < 5 else f"{v:.4f}" for i, v in enumerate(vals)]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def confusion_png(conf: list[list[Any]], title: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    labels = sorted({str(c[0]) for c in conf} | {str(c[1]) for c in conf})
+    idx = {k: i for i, k in enumerate(labels)}
+    m = np.zeros((len(labels), len(labels)), int)
+    for ref, pred, n in conf:
+        m[idx[str(ref)], idx[str(pred)]] += n
+    fig, ax = plt.subplots(figsize=(1 + 0.6 * len(labels), 1 + 0.6 * len(labels)))
+    ax.imshow(m, cmap="Blues")
+    ax.set_xticks(range(len(labels)), labels)
+    ax.set_yticks(range(len(labels)), labels)
+    ax.set_xlabel("predicted")
+    ax.set_ylabel("reference")
+    for i in range(len(labels)):
+        for j in range(len(labels)):
+            ax.text(j, i, str(m[i, j]), ha="center", va="center", fontsize=8)
+    ax.set_title(title)
+    fig.tight_layout()
+    tmp = path.with_name(path.stem + ".tmp.png")
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    tmp.replace(path)

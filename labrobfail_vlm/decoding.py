@@ -1,0 +1,115 @@
+"""Structured decoding of the six answers: closed sets by exact scoring, free text by greedy decoding.
+
+Closed-set answers (Yes/No; 1-4; 1-5; a frame within the grid; actions from the 8
+primitives) are chosen by comparing the model's log-likelihood of every admissible answer
+(followed by the end-of-turn token), so the reply is always one of the allowed strings.
+Q1 is built greedily one action at a time from the same 8 candidates. Q6 is free text.
+
+One-pass mode prefills the image and preamble once; each question then continues from that
+KV cache (cropped back after use) instead of re-encoding the image six times. The cached
+and uncached paths see the same token ids at the same positions, so they pick the same
+answers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import torch
+
+from labrobfail_vlm import questions as Q
+from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS
+
+
+@dataclass
+class Prefix:
+    """Model state after a token sequence: the cache and the logits of its last position."""
+
+    cache: Any
+    length: int
+    last_logits: torch.Tensor
+
+
+class Decoder:
+    def __init__(self, model: Any, processor: Any, max_new_tokens: int = 96):
+        self.model, self.proc = model, processor
+        self.tok = processor.tokenizer
+        self.eos = self.tok.convert_tokens_to_ids("<|im_end|>")
+        self.max_new_tokens = max_new_tokens
+        self.device = next(model.parameters()).device
+
+    # ---- low-level -------------------------------------------------------------------------------------
+    def encode_ids(self, text: str) -> list[int]:
+        return self.tok(text, add_special_tokens=False)["input_ids"]
+
+    @torch.no_grad()
+    def prefill(self, inputs: dict[str, torch.Tensor]) -> Prefix:
+        from transformers import DynamicCache
+
+        cache = DynamicCache()
+        inputs = {k: v.to(self.device) for k, v in inputs.items()}
+        out = self.model(**inputs, past_key_values=cache, use_cache=True)
+        return Prefix(out.past_key_values, int(inputs["input_ids"].shape[1]), out.logits[0, -1].float())
+
+    @torch.no_grad()
+    def extend(self, pre: Prefix, ids: Sequence[int]) -> tuple[Prefix, torch.Tensor]:
+        """Feed ids after `pre` (mutating its cache); returns the new prefix and logits for every fed position."""
+        if not ids:
+            return pre, pre.last_logits[None]
+        x = torch.tensor([list(ids)], device=self.device)
+        pos = torch.arange(pre.length, pre.length + len(ids), device=self.device)
+        out = self.model(input_ids=x, past_key_values=pre.cache, use_cache=True, cache_position=pos)
+        logits = out.logits[0].float()
+        return Prefix(out.past_key_values, pre.length + len(ids), logits[-1]), logits
+
+    def crop(self, pre: Prefix, length: int, last_logits: torch.Tensor) -> Prefix:
+        if pre.length > length:  # transformers 5: a negative count removes that many trailing tokens
+            pre.cache.crop(length - pre.length)
+        return Prefix(pre.cache, length, last_logits)
+
+    def score(self, pre: Prefix, ids: Sequence[int]) -> float:
+        """log p(ids | prefix); the cache is restored afterwards."""
+        length, last = pre.length, pre.last_logits
+        lp = torch.log_softmax(last, -1)[ids[0]].item()
+        if len(ids) > 1:
+            ext, logits = self.extend(pre, ids[:-1])
+            lps = torch.log_softmax(logits, -1)
+            lp += float(sum(lps[i, t] for i, t in enumerate(ids[1:])))
+            self.crop(ext, length, last)
+        return lp
+
+    # ---- answers ---------------------------------------------------------------------------------------
+    def choose(self, pre: Prefix, candidates: Sequence[str]) -> str:
+        scores = [self.score(pre, self.encode_ids(c) + [self.eos]) for c in candidates]
+        return candidates[max(range(len(candidates)), key=scores.__getitem__)]
+
+    def actions(self, pre: Prefix, max_actions: int = 12) -> str:
+        length, last = pre.length, pre.last_logits
+        chosen: list[str] = []
+        cur = pre
+        for _ in range(max_actions):
+            opts = [(", " if chosen else "") + a for a in ATOMIC_ACTIONS]
+            scores = [self.score(cur, self.encode_ids(o)) for o in opts]
+            if chosen:
+                scores.append(self.score(cur, [self.eos]))
+            best = max(range(len(scores)), key=scores.__getitem__)
+            if best == len(ATOMIC_ACTIONS):
+                break
+            chosen.append(ATOMIC_ACTIONS[best])
+            cur, _ = self.extend(cur, self.encode_ids(opts[best]))
+        self.crop(cur, length, last)
+        return Q.format_actions(chosen)
+
+    def free_text(self, pre: Prefix) -> str:
+        length, last = pre.length, pre.last_logits
+        out: list[int] = []
+        cur = pre
+        for _ in range(self.max_new_tokens):
+            t = int(cur.last_logits.argmax())
+            if t == self.eos:
+                break
+            out.append(t)
+            cur, _ = self.extend(cur, [t])
+        self.crop(cur, length, last)
+        return self.tok.decode(out, skip_special_tokens=True).strip()

@@ -1,0 +1,89 @@
+"""Score a model (or a predictions file) on LabRobFail-Bench and write results.json, results.md and PNGs.
+
+Run as:
+    python scripts/evaluate.py model=outputs/demo_train/final dataset_dir=outputs/demo_dataset split=test
+    python scripts/evaluate.py predictions=preds.jsonl dataset_dir=outputs/dataset split=object
+    python scripts/evaluate.py model=DIR dataset_dir=DIR external.enabled=true external.model=gpt-4o
+
+results.json: q1..q5 (top-1 %, Q1 exact ordered list, Q3 exact frame), q3_within1, q6 {bleu1..bleu4
+(nltk corpus_bleu, smoothing method1), rougeL (rouge-score, stemmer)}, breakdowns per category and task,
+confusion matrices; plus the same for each baseline. Defaults: configs/evaluate.yaml.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from labrobfail_vlm.config import ConfigError, cli_main, load_config  # noqa: E402
+
+
+def main(argv: list[str]) -> int:
+    from data.shards import atomic_write_bytes
+    from labrobfail_vlm.bench import evaluate as ev
+    from labrobfail_vlm.bench.report import PAPER_ROWS, confusion_png, markdown, row
+
+    cfg = load_config("evaluate.yaml", argv)
+    if (cfg.model is None) == (cfg.predictions is None):
+        raise ConfigError("model/predictions: give exactly one of model=DIR or predictions=FILE")
+    if cfg.dataset_dir is None:
+        raise ConfigError("dataset_dir: required")
+    recs, traj = ev.load_split(cfg.dataset_dir, cfg.split)
+    src = Path(cfg.model or cfg.predictions)
+    out = Path(cfg.out_dir or (src if src.is_dir() else src.parent) / f"eval_{cfg.split}")
+    out.mkdir(parents=True, exist_ok=True)
+    log_lines: list[str] = []
+    results: dict[str, dict] = {}
+    analyzer = None
+    if cfg.model is not None:
+        from labrobfail_vlm.analyzer import FailureAnalyzer
+        if not Path(cfg.model).is_dir():
+            raise ConfigError(f"model: no such directory {cfg.model!r}")
+        analyzer = FailureAnalyzer.from_pretrained(cfg.model)
+        preds = ev.model_predictions(analyzer, cfg.dataset_dir, recs, traj, progress=cfg.progress)
+        name = "LabRobFail-VLM (" + Path(cfg.model).name + ")"
+    else:
+        preds = ev.read_predictions(cfg.predictions)
+        name = Path(cfg.predictions).stem
+    atomic_write_bytes(out / "predictions.jsonl", "".join(json.dumps({"id": k, "prediction": v}) + "\n"
+                                                          for k, v in preds.items()).encode())
+    results[name] = ev.score(recs, preds, traj, log_lines.append)
+    for b in cfg.baselines:
+        if b == "majority":
+            train, _ = ev.load_split(cfg.dataset_dir, "train")
+            results["majority class"] = ev.score(recs, ev.majority_predictions(train, recs), traj)
+        elif b == "blind":
+            if analyzer is None:
+                continue  # needs a model to blindfold
+            results["blind (grey grid)"] = ev.score(
+                recs, ev.model_predictions(analyzer, cfg.dataset_dir, recs, traj, blind=True, progress=cfg.progress),
+                traj)
+        else:
+            raise ConfigError(f"baselines: unknown baseline {b!r}; known: majority, blind")
+    if cfg.external.enabled:
+        from labrobfail_vlm.llm_client import ChatClient
+        client = ChatClient(cfg.external.base_url, cfg.external.model, cfg.external.api_key_env, cfg.external.timeout_s)
+        ext = ev.external_predictions(client, cfg.dataset_dir, recs, cfg.progress, log_lines.append)
+        results[str(cfg.external.name)] = ev.score(recs, ext, traj, log_lines.append)
+    rows = {k: row(v) for k, v in results.items()}
+    if cfg.reference_rows:
+        rows.update(PAPER_ROWS)
+    md = markdown(rows, f"LabRobFail-Bench, split {cfg.split} ({len(recs)} records)")
+    main_res = results[name]
+    payload = {**main_res, "split": cfg.split, "method": name, "baselines": {k: v for k, v in results.items()
+                                                                              if k != name}}
+    atomic_write_bytes(out / "results.json", json.dumps(payload, indent=1).encode())
+    atomic_write_bytes(out / "results.md", md.encode())
+    atomic_write_bytes(out / "unparseable.log", "\n".join(log_lines).encode())
+    for d in ("Q2", "Q4", "Q5"):
+        if main_res["confusion"][d]:
+            confusion_png(main_res["confusion"][d], f"{d} confusion ({name})", out / f"confusion_{d.lower()}.png")
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    cli_main(main)

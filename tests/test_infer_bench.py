@@ -1,0 +1,155 @@
+"""infer.py, the structured decoder (one pass == six prompts), bad inputs, and the bench evaluator."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from conftest import ROOT
+from test_train import small_ds, tiny  # noqa: F401  (session fixtures)
+
+KEYS = {"task", "actions", "failure", "failure_frame", "severity", "severity_name", "category", "category_name",
+        "correction", "correction_strategy", "primitives", "raw"}
+
+
+def infer(*args):
+    return subprocess.run([sys.executable, "infer.py", *args], cwd=ROOT, capture_output=True, text=True, timeout=300)
+
+
+@pytest.fixture(scope="module")
+def grid(small_ds):  # noqa: F811
+    return next((small_ds / "images").glob("*.png"))
+
+
+def test_infer_prints_a_valid_diagnosis(tiny, grid, tmp_path):  # noqa: F811
+    r = infer("--grid", str(grid), "--model", str(tiny), "--task", "press the red button", "--json",
+              str(tmp_path / "d.json"))
+    assert r.returncode == 0, r.stderr
+    d = json.loads(r.stdout)
+    assert set(d) == KEYS and d == json.loads((tmp_path / "d.json").read_text())
+    assert set(d["actions"]) <= {"grasp", "place", "open", "close", "pour", "shake", "insert", "stir"}
+    assert d["raw"]["Q2"] in ("Yes", "No") and isinstance(d["failure"], bool)
+    if d["failure"]:
+        assert 1 <= d["failure_frame"] <= 16 and 1 <= d["severity"] <= 4 and 1 <= d["category"] <= 5
+    else:
+        assert d["failure_frame"] is None and d["raw"]["Q3"] == "None"
+
+
+def test_one_pass_matches_six_prompts(tiny, small_ds):  # noqa: F811
+    from labrobfail_vlm.analyzer import FailureAnalyzer
+    fa = FailureAnalyzer.from_pretrained(tiny)
+    for p in sorted((small_ds / "images").glob("*.png"))[:2]:
+        img = Image.open(p).convert("RGB")
+        assert fa.answers(img, "pick up the beaker", one_pass=True) == fa.answers(img, "pick up the beaker",
+                                                                                  one_pass=False)
+
+
+def test_frames_folder_builds_the_grid(tiny, tmp_path):  # noqa: F811
+    rng = np.random.default_rng(0)
+    for view in ("front", "side"):
+        (tmp_path / "f" / view).mkdir(parents=True)
+        for i in range(5):
+            Image.fromarray(rng.integers(0, 255, (64, 64, 3), dtype=np.uint8)).save(tmp_path / "f" / view / f"{i}.png")
+    r = infer("--frames", str(tmp_path / "f"), "--model", str(tiny))
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["failure_frame"] in (None, 1, 2, 3, 4, 5)
+
+
+def _bad_inputs(tmp, tiny):  # noqa: F811
+    (tmp / "notimg.png").write_text("hello, I am text")
+    (tmp / "corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(256)) * 4)
+    Image.new("RGB", (256, 128), (9, 9, 9)).save(tmp / "ok.png")
+    full = (tmp / "ok.png").read_bytes()
+    (tmp / "trunc.png").write_bytes(full[: len(full) // 2])
+    Image.new("RGB", (8, 8)).save(tmp / "tiny.png")
+    Image.new("1", (9000, 5000)).save(tmp / "bomb.png")
+    (tmp / "incomplete").mkdir()
+    (tmp / "incomplete" / "config.json").write_text("{}")
+    (tmp / "incomplete" / "tokenizer.json").write_text("{}")
+    for v, n in (("a", 3), ("b", 2)):
+        (tmp / "uneq" / v).mkdir(parents=True)
+        for i in range(n):
+            Image.new("RGB", (64, 64)).save(tmp / "uneq" / v / f"{i}.png")
+    m = ["--model", str(tiny)]
+    return [
+        (["--grid", str(tmp / "missing.png"), *m], "does not exist"),
+        (["--grid", str(tmp / "notimg.png"), *m], "not an image"),
+        (["--grid", str(tmp / "corrupt.png"), *m], "--grid"),
+        (["--grid", str(tmp / "trunc.png"), *m], "truncated"),
+        (["--grid", str(tmp), *m], "is a directory"),
+        (["--grid", str(tmp / "tiny.png"), *m], "at least 32 px"),
+        (["--grid", str(tmp / "bomb.png"), *m], "too large"),
+        (["--grid", str(tmp / "ok.png"), "--model", str(tmp / "nomodel")], "no such model directory"),
+        (["--grid", str(tmp / "ok.png"), "--model", str(tmp / "incomplete")], "no .safetensors weights"),
+        (["--frames", str(tmp / "uneq"), *m], "unequal numbers of frames"),
+        (["--frames", str(tmp / "ok.png"), *m], "not a directory"),
+        (["--grid"], "usage"),
+    ]
+
+
+def test_bad_inputs_are_one_line_errors(tiny, tmp_path):  # noqa: F811
+    for args, needle in _bad_inputs(tmp_path, tiny):
+        r = infer(*args)
+        assert r.returncode == 2, (args, r.stderr[-500:])
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 1 and "Traceback" not in r.stderr and needle in lines[0], (args, r.stderr[-500:])
+
+
+# ---- bench --------------------------------------------------------------------------------------------------
+def test_bleu_and_rouge_equal_the_reference_libraries():
+    from nltk.translate.bleu_score import SmoothingFunction, corpus_bleu
+    from rouge_score import rouge_scorer
+
+    from labrobfail_vlm.bench.metrics import bleu, rouge_l, tokens
+    refs = ["Keep the gripper closed and move the arm to the target area.", "Open the gripper to release it."]
+    hyps = ["Keep gripper closed, move the arm to the target.", "Close the gripper firmly."]
+    ours = bleu(refs, hyps)
+    for n in range(1, 5):
+        want = corpus_bleu([[tokens(r)] for r in refs], [tokens(h) for h in hyps], weights=tuple([1 / n] * n),
+                           smoothing_function=SmoothingFunction().method1)
+        assert ours[f"bleu{n}"] == pytest.approx(want, abs=1e-12)
+    sc = rouge_scorer.RougeScorer(["rougeL"], use_stemmer=True)
+    want = sum(sc.score(r, h)["rougeL"].fmeasure for r, h in zip(refs, hyps)) / 2
+    assert rouge_l(refs, hyps) == pytest.approx(want, abs=1e-12)
+    assert bleu(refs, refs)["bleu4"] == pytest.approx(1.0) and rouge_l(refs, refs) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("dim,reply,want", [
+    ("Q2", "Yes, the beaker slipped.", "Yes"), ("Q2", "No.", "No"), ("Q2", "Not at all, it went fine", "No"),
+    ("Q3", "The failure occurs at frame 7.", "7"), ("Q3", "None", "None"), ("Q3", "¯\\_(ツ)_/¯", None),
+    ("Q4", "(2) Dangerous Level", "2"), ("Q4", "Dangerous", "2"), ("Q4", "Management Incident", "4"),
+    ("Q5", "Grasping Failure", "2"), ("Q5", "4", "4"), ("Q5", "It is a motion failure.", "3"), ("Q5", "", None),
+    ("Q1", "Grasping, then placing.", "grasp, place"), ("Q1", "open, grasp, place, close", "open, grasp, place, close"),
+])
+def test_parse_free_form_replies(dim, reply, want):
+    from labrobfail_vlm.bench.parse import parse
+    assert parse(dim, reply) == want
+
+
+def test_evaluate_model_and_predictions_file(tiny, small_ds, tmp_path):  # noqa: F811
+    r = subprocess.run([sys.executable, "scripts/evaluate.py", f"model={tiny}", f"dataset_dir={small_ds}", "split=test",
+                        f"out_dir={tmp_path / 'e'}", "progress=false"], cwd=ROOT, capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    res = json.loads((tmp_path / "e" / "results.json").read_text())
+    for k in ("q1", "q2", "q3", "q4", "q5", "q3_within1"):
+        assert 0 <= res[k] <= 100
+    assert set(res["q6"]) == {"bleu1", "bleu2", "bleu3", "bleu4", "rougeL"}
+    assert {"majority class", "blind (grey grid)"} <= set(res["baselines"])
+    assert "| LabRobFail-VLM (paper) | 94.45" in (tmp_path / "e" / "results.md").read_text()
+    assert (tmp_path / "e" / "confusion_q2.png").is_file()
+    # the same predictions, scored from the file they were saved to, give the same numbers
+    r = subprocess.run([sys.executable, "scripts/evaluate.py", f"predictions={tmp_path / 'e' / 'predictions.jsonl'}",
+                        f"dataset_dir={small_ds}", f"out_dir={tmp_path / 'p'}", "baselines=[majority]"], cwd=ROOT,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    res2 = json.loads((tmp_path / "p" / "results.json").read_text())
+    assert {k: res2[k] for k in ("q1", "q2", "q3", "q4", "q5", "q6")} == {k: res[k] for k in ("q1", "q2", "q3", "q4",
+                                                                                              "q5", "q6")}
+    (tmp_path / "bad.jsonl").write_text("{not json}\n")
+    r = subprocess.run([sys.executable, "scripts/evaluate.py", f"predictions={tmp_path / 'bad.jsonl'}",
+                        f"dataset_dir={small_ds}"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "line 1" in r.stderr and "Traceback" not in r.stderr
