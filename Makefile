@@ -24,12 +24,18 @@ $(APT_STAMP): | $(STAMP)
 
 browser: $(APT_STAMP)
 
-# The main job on the embedded default: PyBullet on CPU -> labeled failure/success pairs -> shards,
-# then one keyframe strip per failure type found (outputs/demo_strips/*.png).
+# The main job on the embedded default, all on CPU: PyBullet episodes (success/failure pairs) -> keyframe strips
+# -> the VQA dataset (768x384 grids keep the tiny model fast) -> the tiny Qwen3-VL trained from scratch
+# -> the bench table with majority/blind baselines -> one diagnosis from infer.py.
+DEMO_EPISODES ?= 120
+DEMO_EPOCHS   ?= 8
 demo: $(STAMP)
-	$(PY) scripts/generate.py backend=pybullet num_episodes=48 out_dir=outputs/demo_shards seed=0 workers=2
+	$(PY) scripts/generate.py backend=pybullet num_episodes=$(DEMO_EPISODES) out_dir=outputs/demo_shards seed=0 workers=2
 	$(PY) scripts/render_strips.py outputs/demo_shards outputs/demo_strips
-	$(PY) scripts/build_dataset.py shards=outputs/demo_shards out_dir=outputs/demo_dataset
+	$(PY) scripts/build_dataset.py shards=outputs/demo_shards out_dir=outputs/demo_dataset grid.width=768 grid.height=384
+	$(PY) train.py preset=tiny dataset_dir=outputs/demo_dataset output_dir=outputs/demo_train epochs=$(DEMO_EPOCHS)
+	$(PY) scripts/evaluate.py model=outputs/demo_train/final dataset_dir=outputs/demo_dataset split=test
+	$(PY) infer.py --grid "$$(ls outputs/demo_dataset/images/*.png | head -1)" --task "a laboratory task"
 
 test: $(STAMP) $(APT_STAMP)
 	LABROBFAIL_REQUIRE_BROWSER=1 $(PY) -m pytest -q tests
@@ -37,6 +43,8 @@ test: $(STAMP) $(APT_STAMP)
 bench: $(STAMP)
 	$(PY) scripts/bench_grid.py
 	$(PY) scripts/bench_sim.py
+	$(PY) scripts/bench_train.py
+	$(PY) scripts/bench_infer.py
 
 clean:
 	rm -rf outputs

@@ -1,0 +1,84 @@
+"""Benchmark training throughput of the tiny preset on CPU (and Qwen3-VL-8B dimensions on a GPU when present).
+
+Run as:
+    python scripts/bench_train.py [--steps 6] [--out outputs/bench_train.json]
+
+Rows side by side in one run, same batch: hybrid vs full tuning, at the 1536x768 grid (1152 visual tokens)
+and a 768x384 grid (288). Reports samples/s, tokens/s and peak RSS. The GPU row (random weights with the
+real 8B dimensions) runs only where CUDA is available; CI and the CPU machines skip it and say so.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def step_rate(model, batch, steps: int) -> dict[str, float]:
+    import torch
+    opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-5)
+    model.train()
+    model(**batch).loss.backward()  # warm-up
+    opt.step()
+    opt.zero_grad()
+    t = time.perf_counter()
+    for _ in range(steps):
+        model(**batch).loss.backward()
+        opt.step()
+        opt.zero_grad()
+    dt = (time.perf_counter() - t) / steps
+    n, tok = batch["input_ids"].shape[0], int(batch["attention_mask"].sum())
+    return {"step_s": round(dt, 4), "samples_per_s": round(n / dt, 2), "tokens_per_s": round(tok / dt, 1)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--steps", type=int, default=6)
+    ap.add_argument("--batch", type=int, default=4)
+    ap.add_argument("--out", default="outputs/bench_train.json")
+    a = ap.parse_args()
+    import torch
+    from PIL import Image
+
+    from labrobfail_vlm.model.hybrid import apply_tuning
+    from labrobfail_vlm.model.loading import load_model, load_processor
+    from labrobfail_vlm.model.tiny import build_tiny
+    from labrobfail_vlm.train.data import Collator
+
+    torch.manual_seed(0)
+    tmp = Path(tempfile.mkdtemp())
+    path = build_tiny(tmp / "tiny")
+    proc = load_processor(path)
+    proc.tokenizer.padding_side = "right"
+    rows = {}
+    for w, h in ((1536, 768), (768, 384)):
+        img = tmp / f"g{w}.png"
+        Image.new("RGB", (w, h), (90, 120, 150)).save(img)
+        item = {"id": "x_Q6", "image": str(img), "question": "<image>\nThe image consists of a series of frames. "
+                "What is the correction solution for this failure?", "answer": "Keep the gripper closed to secure "
+                "the small beaker and move the robotic arm to the target area while maintaining orientation "
+                "horizontal."}
+        batch = Collator(proc, 4096)([item] * a.batch)
+        for mode in ("hybrid", "full"):
+            model = apply_tuning(load_model(path), mode, {"r": 32, "alpha": 64, "dropout": 0.0})
+            rows[f"tiny_{mode}_{w}x{h}"] = step_rate(model, batch, a.steps)
+    res = {"device": "cpu", "threads": torch.get_num_threads(), "batch": a.batch, "rows": rows,
+           "full_over_hybrid_step_ratio_1536": round(rows["tiny_full_1536x768"]["step_s"]
+                                                     / rows["tiny_hybrid_1536x768"]["step_s"], 3),
+           "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+           "gpu": "not measured: no CUDA device on this machine (the device tool lent none to this task)"
+           if not torch.cuda.is_available() else "see gpu_rows"}
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.out).write_text(json.dumps(res, indent=1))
+    print(json.dumps(res))
+
+
+if __name__ == "__main__":
+    main()
