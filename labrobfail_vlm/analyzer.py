@@ -96,8 +96,8 @@ class FailureAnalyzer:
             return d.actions(pre)
         if dim == "Q2":
             return d.choose(pre, ["Yes", "No"])
-        if dim == "Q6":
-            return d.free_text(pre)
+        if dim == "Q6":  # consistent with Q2: no correction after "no failure", a real one after a failure
+            return Q.NO_CORRECTION if failed is False else d.free_text(pre, avoid=Q.NO_CORRECTION if failed else None)
         if failed is False:
             return Q.NO_FAILURE
         hi = {"Q3": frames, "Q4": len(Severity), "Q5": len(Category)}[dim]

@@ -101,12 +101,17 @@ class Decoder:
         self.crop(cur, length, last)
         return Q.format_actions(chosen)
 
-    def free_text(self, pre: Prefix) -> str:
+    def free_text(self, pre: Prefix, avoid: str | None = None) -> str:
+        """Greedy text; `avoid`: a reply that must not be produced (its first token is barred at step one)."""
         length, last = pre.length, pre.last_logits
         out: list[int] = []
         cur = pre
+        barred = self.encode_ids(avoid)[:1] if avoid else []
         for _ in range(self.max_new_tokens):
-            t = int(cur.last_logits.argmax())
+            logits = cur.last_logits.clone()
+            if not out and barred:
+                logits[barred] = float("-inf")
+            t = int(logits.argmax())
             if t == self.eos:
                 break
             out.append(t)
