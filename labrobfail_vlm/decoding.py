@@ -68,20 +68,25 @@ class Decoder:
             pre.cache.crop(length - pre.length)
         return Prefix(pre.cache, length, last_logits)
 
-    def score(self, pre: Prefix, ids: Sequence[int]) -> float:
-        """log p(ids | prefix); the cache is restored afterwards."""
+    def score_many(self, pre: Prefix, seqs: Sequence[Sequence[int]]) -> list[float]:
+        """log p of each sequence, walking them as a trie: a shared prefix is fed to the model once."""
+        lps = torch.log_softmax(pre.last_logits, -1)
+        out = [float(lps[s[0]]) for s in seqs]
+        groups: dict[int, list[int]] = {}
+        for i, s in enumerate(seqs):
+            if len(s) > 1:
+                groups.setdefault(s[0], []).append(i)
         length, last = pre.length, pre.last_logits
-        lp = torch.log_softmax(last, -1)[ids[0]].item()
-        if len(ids) > 1:
-            ext, logits = self.extend(pre, ids[:-1])
-            lps = torch.log_softmax(logits, -1)
-            lp += float(sum(lps[i, t] for i, t in enumerate(ids[1:])))
-            self.crop(ext, length, last)
-        return lp
+        for first, idx in groups.items():
+            ext, _ = self.extend(pre, [first])
+            for i, v in zip(idx, self.score_many(ext, [seqs[i][1:] for i in idx])):
+                out[i] += v
+            pre = self.crop(ext, length, last)
+        return out
 
     # ---- answers ---------------------------------------------------------------------------------------
     def choose(self, pre: Prefix, candidates: Sequence[str]) -> str:
-        scores = [self.score(pre, self.encode_ids(c) + [self.eos]) for c in candidates]
+        scores = self.score_many(pre, [self.encode_ids(c) + [self.eos] for c in candidates])
         return candidates[max(range(len(candidates)), key=scores.__getitem__)]
 
     def actions(self, pre: Prefix, max_actions: int = 12) -> str:
@@ -90,9 +95,7 @@ class Decoder:
         cur = pre
         for _ in range(max_actions):
             opts = [(", " if chosen else "") + a for a in ATOMIC_ACTIONS]
-            scores = [self.score(cur, self.encode_ids(o)) for o in opts]
-            if chosen:
-                scores.append(self.score(cur, [self.eos]))
+            scores = self.score_many(cur, [self.encode_ids(o) for o in opts] + ([[self.eos]] if chosen else []))
             best = max(range(len(scores)), key=scores.__getitem__)
             if best == len(ATOMIC_ACTIONS):
                 break
