@@ -27,7 +27,7 @@ browser: $(APT_STAMP)
 # The main job on the embedded default, all on CPU: PyBullet episodes (success/failure pairs) -> keyframe strips
 # -> the VQA dataset (768x384 grids keep the tiny model fast) -> the tiny Qwen3-VL trained from scratch
 # -> the bench table with majority/blind baselines -> one diagnosis from infer.py.
-DEMO_EPISODES ?= 120
+DEMO_EPISODES ?= 200
 DEMO_EPOCHS   ?= 8
 demo: $(STAMP)
 	$(PY) scripts/generate.py backend=pybullet num_episodes=$(DEMO_EPISODES) out_dir=outputs/demo_shards seed=0 workers=2

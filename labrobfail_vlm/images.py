@@ -7,7 +7,6 @@ a grid cell, and decompression bombs (pixel count checked from the header before
 
 from __future__ import annotations
 
-import os
 import warnings
 from pathlib import Path
 
@@ -26,8 +25,11 @@ def load_image(path: str | Path, field: str = "--grid") -> Image.Image:
         raise ConfigError(f"{field}: {path} does not exist")
     if p.is_dir():
         raise ConfigError(f"{field}: {path} is a directory, expected an image file")
-    if not os.access(p, os.R_OK):
-        raise ConfigError(f"{field}: {path} is not readable")
+    try:  # a permission problem or an I/O error shows up here, before any decoding
+        with open(p, "rb") as f:
+            f.read(16)
+    except OSError as e:
+        raise ConfigError(f"{field}: {path} is not readable ({e.strerror or type(e).__name__})") from None
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error", Image.DecompressionBombWarning)

@@ -58,6 +58,18 @@ def test_frames_folder_builds_the_grid(tiny, tmp_path):  # noqa: F811
     assert json.loads(r.stdout)["failure_frame"] in (None, 1, 2, 3, 4, 5)
 
 
+def _unreadable(tmp):
+    """A file this process cannot read: mode 000 for a normal user; as root (which ignores modes) the
+    process's own /proc/self/mem, whose first page is unmapped, so reading it fails with EIO."""
+    import os
+    if os.geteuid() != 0:
+        p = tmp / "locked.png"
+        Image.new("RGB", (64, 64)).save(p)
+        p.chmod(0)
+        return str(p)
+    return "/proc/self/mem"
+
+
 def _bad_inputs(tmp, tiny):  # noqa: F811
     (tmp / "notimg.png").write_text("hello, I am text")
     (tmp / "corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(256)) * 4)
@@ -76,6 +88,7 @@ def _bad_inputs(tmp, tiny):  # noqa: F811
     m = ["--model", str(tiny)]
     return [
         (["--grid", str(tmp / "missing.png"), *m], "does not exist"),
+        (["--grid", _unreadable(tmp), *m], "not readable"),
         (["--grid", str(tmp / "notimg.png"), *m], "not an image"),
         (["--grid", str(tmp / "corrupt.png"), *m], "--grid"),
         (["--grid", str(tmp / "trunc.png"), *m], "truncated"),
