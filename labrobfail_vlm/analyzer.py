@@ -96,8 +96,10 @@ class FailureAnalyzer:
             return d.actions(pre)
         if dim == "Q2":
             return d.choose(pre, ["Yes", "No"])
-        if dim == "Q6":  # consistent with Q2: no correction after "no failure", a real one after a failure
-            return Q.NO_CORRECTION if failed is False else d.free_text(pre, avoid=Q.NO_CORRECTION if failed else None)
+        if dim == "Q6":  # consistent with Q2: no correction after "no failure"; after a failure an instruction,
+            # not the no-correction sentence nor a closed-set reply (Yes/No/None/a number)
+            closed = [Q.NO_CORRECTION, Q.NO_FAILURE, "Yes", "No", *map(str, range(10))]
+            return Q.NO_CORRECTION if failed is False else d.free_text(pre, avoid=closed if failed else ())
         if failed is False:
             return Q.NO_FAILURE
         hi = {"Q3": frames, "Q4": len(Severity), "Q5": len(Category)}[dim]

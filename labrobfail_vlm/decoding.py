@@ -104,12 +104,12 @@ class Decoder:
         self.crop(cur, length, last)
         return Q.format_actions(chosen)
 
-    def free_text(self, pre: Prefix, avoid: str | None = None) -> str:
-        """Greedy text; `avoid`: a reply that must not be produced (its first token is barred at step one)."""
+    def free_text(self, pre: Prefix, avoid: Sequence[str] = ()) -> str:
+        """Greedy text; `avoid`: replies that must not be produced (their first tokens are barred at step one)."""
         length, last = pre.length, pre.last_logits
         out: list[int] = []
         cur = pre
-        barred = self.encode_ids(avoid)[:1] if avoid else []
+        barred = sorted({self.encode_ids(a)[0] for a in avoid if a})
         for _ in range(self.max_new_tokens):
             logits = cur.last_logits.clone()
             if not out and barred:
