@@ -61,7 +61,7 @@ def main(argv: list[str]) -> int:
                       frames=a.num_frames)
     text = diag.to_json()
     if out is not None:
-        from data.shards import atomic_write_bytes
+        from labrobfail_vlm.io import atomic_write_bytes
         atomic_write_bytes(out, (text + "\n").encode())
     print(text)
     return 0

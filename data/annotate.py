@@ -134,7 +134,7 @@ def check_record(rec: Any, info: dict[str, Any]) -> str | None:
     if dim == "Q2":
         if a not in ("Yes", "No"):
             return "malformed"
-        v = next((i for i, var in enumerate(Q.VARIANTS["Q2"]) if var.text in q), None)
+        v = Q.q2_variant(q)
         if v is None:  # Q2 is never paraphrased: its wording decides what "Yes" means
             return "malformed"
         return None if a == Q.q2_answer(v, ok) else "inconsistent"

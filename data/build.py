@@ -26,10 +26,10 @@ from tqdm import tqdm
 
 from data.annotate import Annotated, annotate, check_record
 from data.paraphrase import Paraphraser
-from data.shards import atomic_write_bytes
 from data.splits import SEEN_SPLITS, UNSEEN_SPLITS, assign
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import GridConfig
+from labrobfail_vlm.io import atomic_write_bytes
 
 READ_COLUMNS = ["episode_id", "pair_id", "variant", "scenario", "success", "failure_type", "category", "severity",
                 "failure_keyframe", "evidence", "actions", "horizon", "images", "state_trace", "task_meta", "keyframes"]

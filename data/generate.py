@@ -20,7 +20,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.config import load_config as _load_config
-from data.shards import atomic_write_bytes, episode_row, manifest, read_labels, write_shard
+from data.shards import episode_row, manifest, read_labels, write_shard
+from labrobfail_vlm.io import atomic_write_bytes
 
 DEFAULTS = Path(__file__).resolve().parents[1] / "configs" / "generate.yaml"
 # Keys that define the data; changing any of them in an existing out_dir is refused.

@@ -11,18 +11,11 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from labrobfail_vlm.io import save_figure  # noqa: E402
 from labrobfail_vlm.taxonomy import FAILURE_TYPES, HORIZONS, Category  # noqa: E402
 
 COLORS = {Category.SAFETY: "#d62728", Category.LOGIC: "#9467bd", Category.MOTION: "#1f77b4",
           Category.GRASPING: "#ff7f0e", Category.PERCEPTION: "#2ca02c"}
-
-
-def _save(fig, path: Path) -> None:
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.tight_layout()
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
 
 
 def write_plots(traj: list[dict[str, Any]], out: Path) -> None:
@@ -32,7 +25,7 @@ def write_plots(traj: list[dict[str, Any]], out: Path) -> None:
     ax.bar(list(HORIZONS), [h.get(k, 0) for k in HORIZONS], color=["#8ecae6", "#219ebc", "#023047"])
     ax.set_title("Trajectories by task horizon")
     ax.set_ylabel("trajectories")
-    _save(fig, out / "horizon_distribution.png")
+    save_figure(fig, out / "horizon_distribution.png")
 
     # Success vs failure per task
     tasks = sorted({t["scenario"] for t in traj})
@@ -45,7 +38,7 @@ def write_plots(traj: list[dict[str, Any]], out: Path) -> None:
     ax.set_xlabel("trajectories")
     ax.set_title("Success vs failure per task")
     ax.legend(loc="lower right")
-    _save(fig, out / "success_failure_per_task.png")
+    save_figure(fig, out / "success_failure_per_task.png")
 
     # The 11 types grouped into the 5 categories
     ft = Counter(t["failure_type"] for t in traj if not t["success"])
@@ -58,4 +51,4 @@ def write_plots(traj: list[dict[str, Any]], out: Path) -> None:
     ax.legend(loc="lower right", fontsize=8)
     ax.set_xlabel("failure trajectories")
     ax.set_title("Failure types by category")
-    _save(fig, out / "failure_types_by_category.png")
+    save_figure(fig, out / "failure_types_by_category.png")

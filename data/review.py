@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from data.shards import atomic_write_bytes
+from labrobfail_vlm.io import atomic_write_bytes
 
 if TYPE_CHECKING:
     from data.annotate import Annotated

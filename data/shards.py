@@ -49,15 +49,6 @@ def episode_row(ep: Episode) -> dict[str, Any]:
     }
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
 def write_shard(path: Path, rows: list[dict[str, Any]]) -> None:
     """Write a shard as `<name>.tmp` then rename: a killed run never leaves a truncated shard."""
     tmp = path.with_name(path.name + ".tmp")

@@ -25,6 +25,7 @@ from PIL import Image
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.corrections import STRATEGIES
 from labrobfail_vlm.grid import GridConfig, build_grid, sample_keyframes
+from labrobfail_vlm.model.processor import expand_image_tokens
 from labrobfail_vlm.taxonomy import Category, Severity
 
 
@@ -114,19 +115,17 @@ class FailureAnalyzer:
         if one_pass:
             one = self.processor(text=[prompts["Q1"]], images=[image], return_tensors="pt")
             # Token ids of all six prompts without re-processing the image: expand its placeholder by hand.
-            pad = self.processor.image_token
-            n_img = int(one["image_grid_thw"][0].prod()) // self.processor.image_processor.merge_size ** 2
-            ids = [self.decoder.encode_ids(p.replace(pad, pad * n_img, 1)) for p in prompts.values()]
+            ids = [self.decoder.encode_ids(expand_image_tokens(self.processor, p, one["image_grid_thw"][0]))
+                   for p in prompts.values()]
             assert ids[0] == one["input_ids"][0].tolist(), "prompt tokenization differs from the processor's"
             n = min(len(x) for x in ids)
             lcp = next((i for i in range(n) if len({x[i] for x in ids}) > 1), n)
             text_cols = ("input_ids", "attention_mask", "mm_token_type_ids")
             pre = self.decoder.prefill({k: (v[:, :lcp] if k in text_cols else v) for k, v in one.items()})
-            base_len, base_last = pre.length, pre.last_logits
             for dim, seq in zip(Q.DIMENSIONS, ids):
                 q_pre, _ = self.decoder.extend(pre, seq[lcp:])
                 out[dim] = self._answer(dim, q_pre, failed, frames)
-                pre = self.decoder.crop(q_pre, base_len, base_last)
+                self.decoder.rewind(q_pre, pre)
                 if dim == "Q2":
                     failed = out[dim] == "Yes"
         else:

@@ -63,10 +63,11 @@ class Decoder:
         logits = out.logits[0].float()
         return Prefix(out.past_key_values, pre.length + len(ids), logits[-1]), logits
 
-    def crop(self, pre: Prefix, length: int, last_logits: torch.Tensor) -> Prefix:
-        if pre.length > length:  # transformers 5: a negative count removes that many trailing tokens
-            pre.cache.crop(length - pre.length)
-        return Prefix(pre.cache, length, last_logits)
+    def rewind(self, cur: Prefix, to: Prefix) -> Prefix:
+        """Cut the shared cache of `cur` back to the earlier state `to` (same cache, shorter)."""
+        if cur.length > to.length:  # transformers 5: a negative count removes that many trailing tokens
+            cur.cache.crop(to.length - cur.length)
+        return to
 
     def score_many(self, pre: Prefix, seqs: Sequence[Sequence[int]]) -> list[float]:
         """log p of each sequence, walking them as a trie: a shared prefix is fed to the model once."""
@@ -76,12 +77,11 @@ class Decoder:
         for i, s in enumerate(seqs):
             if len(s) > 1:
                 groups.setdefault(s[0], []).append(i)
-        length, last = pre.length, pre.last_logits
         for first, idx in groups.items():
             ext, _ = self.extend(pre, [first])
             for i, v in zip(idx, self.score_many(ext, [seqs[i][1:] for i in idx])):
                 out[i] += v
-            pre = self.crop(ext, length, last)
+            self.rewind(ext, pre)
         return out
 
     # ---- answers ---------------------------------------------------------------------------------------
@@ -90,7 +90,6 @@ class Decoder:
         return candidates[max(range(len(candidates)), key=scores.__getitem__)]
 
     def actions(self, pre: Prefix, max_actions: int = 12) -> str:
-        length, last = pre.length, pre.last_logits
         chosen: list[str] = []
         cur = pre
         for _ in range(max_actions):
@@ -101,12 +100,11 @@ class Decoder:
                 break
             chosen.append(ATOMIC_ACTIONS[best])
             cur, _ = self.extend(cur, self.encode_ids(opts[best]))
-        self.crop(cur, length, last)
+        self.rewind(cur, pre)
         return Q.format_actions(chosen)
 
     def free_text(self, pre: Prefix, avoid: Sequence[str] = ()) -> str:
         """Greedy text; `avoid`: replies that must not be produced (their first tokens are barred at step one)."""
-        length, last = pre.length, pre.last_logits
         out: list[int] = []
         cur = pre
         barred = sorted({self.encode_ids(a)[0] for a in avoid if a})
@@ -119,5 +117,5 @@ class Decoder:
                 break
             out.append(t)
             cur, _ = self.extend(cur, [t])
-        self.crop(cur, length, last)
+        self.rewind(cur, pre)
         return self.tok.decode(out, skip_special_tokens=True).strip()

@@ -106,6 +106,11 @@ def question_text(dim: str, variant: int, task_name: str, time_axis: str = "colu
     return f"<image>\n{preamble(task_name, time_axis)} {q}" + (f"\n{opts}" if opts else "")
 
 
+def q2_variant(question: str) -> int | None:
+    """Which Q2 variant a question text asks (None if none of them)."""
+    return next((i for i, v in enumerate(VARIANTS["Q2"]) if v.text in question), None)
+
+
 def q2_answer(dim_variant: int, success: bool) -> str:
     failed = not success
     if VARIANTS["Q2"][dim_variant].positive:

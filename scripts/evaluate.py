@@ -22,8 +22,8 @@ from labrobfail_vlm.config import ConfigError, cli_main, load_config  # noqa: E4
 
 
 def main(argv: list[str]) -> int:
-    from data.shards import atomic_write_bytes
     from labrobfail_vlm.bench import evaluate as ev
+    from labrobfail_vlm.io import atomic_write_bytes
     from labrobfail_vlm.bench.report import PAPER_ROWS, confusion_png, markdown, row
 
     cfg = load_config("evaluate.yaml", argv)

@@ -37,7 +37,6 @@ STILL = 0.005  # m: end-effector displacement between keyframes that counts as n
 HANDLE_MISS = 0.015  # m: gripper-to-handle/button offset that misses it
 
 
-
 def _kf_samples(trace: Trace, meta: Meta, names: set[str]) -> list[int]:
     """End-of-keyframe sample indices of the executed keyframes with these names."""
     return [trace["kf_end"][i] for i, n in enumerate(meta["executed"]) if n in names and i < len(trace["kf_end"])]

@@ -31,8 +31,9 @@ def traj_of(rid: str) -> str:
     return rid.rsplit("_", 1)[0]
 
 
-def positive_q2(question: str) -> bool:
-    return any(v.positive and v.text in question for v in Q.VARIANTS["Q2"])
+def q2_as_asked(question: str, failed: bool) -> str:
+    """The Q2 reply meaning `failed`, for the variant the record asks (variant 0 when unrecognised)."""
+    return Q.q2_answer(Q.q2_variant(question) or 0, success=not failed)
 
 
 def load_split(dataset_dir: str | Path, split: str) -> tuple[list[dict], dict[str, dict]]:
@@ -86,10 +87,7 @@ def model_predictions(analyzer: Any, dataset_dir: str | Path, recs: list[dict], 
         failed = ans["Q2"] == "Yes"
         for r in rs:
             d = dim_of(r["id"])
-            if d == "Q2" and positive_q2(r["conversations"][0]["value"]):
-                out[r["id"]] = "No" if failed else "Yes"
-            else:
-                out[r["id"]] = ans[d]
+            out[r["id"]] = q2_as_asked(r["conversations"][0]["value"], failed) if d == "Q2" else ans[d]
     return out
 
 
@@ -99,18 +97,14 @@ def majority_predictions(train: list[dict], recs: list[dict]) -> dict[str, str]:
     for r in train:
         d, a = dim_of(r["id"]), r["conversations"][1]["value"]
         if d == "Q2":
-            a = str((a == "Yes") != positive_q2(r["conversations"][0]["value"]))  # "True" = failed
+            a = str(a != q2_as_asked(r["conversations"][0]["value"], failed=False))  # "True" = failed
         counts[d][a] += 1
     top = {d: c.most_common(1)[0][0] for d, c in counts.items()}
     out = {}
     for r in recs:
         d = dim_of(r["id"])
-        if d == "Q2":
-            failed = top[d] == "True"
-            out[r["id"]] = ("No" if failed else "Yes") if positive_q2(r["conversations"][0]["value"]) else \
-                ("Yes" if failed else "No")
-        else:
-            out[r["id"]] = top.get(d, "")
+        q = r["conversations"][0]["value"]
+        out[r["id"]] = q2_as_asked(q, top[d] == "True") if d == "Q2" else top.get(d, "")
     return out
 
 

@@ -40,6 +40,8 @@ def confusion_png(conf: list[list[Any]], title: str, path: Path) -> None:
     import matplotlib.pyplot as plt
     import numpy as np
 
+    from labrobfail_vlm.io import save_figure
+
     labels = sorted({str(c[0]) for c in conf} | {str(c[1]) for c in conf})
     idx = {k: i for i, k in enumerate(labels)}
     m = np.zeros((len(labels), len(labels)), int)
@@ -55,8 +57,4 @@ def confusion_png(conf: list[list[Any]], title: str, path: Path) -> None:
         for j in range(len(labels)):
             ax.text(j, i, str(m[i, j]), ha="center", va="center", fontsize=8)
     ax.set_title(title)
-    fig.tight_layout()
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    tmp.replace(path)
+    save_figure(fig, path, dpi=100)

@@ -39,6 +39,13 @@ def image_processor(max_pixels: int = GRID_PIXELS, min_pixels: int = MIN_PIXELS)
                                     size={"shortest_edge": min_pixels, "longest_edge": max_pixels})
 
 
+def expand_image_tokens(processor: Any, text: str, grid_thw: Any) -> str:
+    """`text` with its image placeholder repeated once per visual token, as the processor does before
+    tokenizing: lets a caller tokenize a prompt without processing the image again."""
+    n = int(grid_thw.prod()) // processor.image_processor.merge_size ** 2
+    return text.replace(processor.image_token, processor.image_token * n, 1)
+
+
 def visual_tokens(width: int, height: int) -> int:
     """Visual tokens of an image that needs no resizing (both sides multiples of 32)."""
     return (width // 32) * (height // 32)

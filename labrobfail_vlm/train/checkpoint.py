@@ -29,14 +29,12 @@ _PEFT_PREFIX = "base_model.model."
 def save_trainable(model: Any, out: Path, state_dict: dict[str, torch.Tensor], base_model: str, tuning: str) -> None:
     """Write adapter + vision/merger (or full) weights from a state dict gathered on every rank."""
     out.mkdir(parents=True, exist_ok=True)
-    if tuning == "full":
-        model.save_pretrained(out, state_dict=state_dict, safe_serialization=True)
-    else:
-        model.save_pretrained(out, state_dict=state_dict, safe_serialization=True)  # peft keeps the lora_ keys
+    # Full model: every weight. PeftModel: it keeps only the lora_ keys of the state dict.
+    model.save_pretrained(out, state_dict=state_dict, safe_serialization=True)
+    if tuning == "hybrid":  # the fully trained vision encoder and merger, under the base model's names
         vis = {k.removeprefix(_PEFT_PREFIX): v.detach().cpu().contiguous() for k, v in state_dict.items()
                if group_of(k) in ("vision", "merger")}
-        if tuning == "hybrid":
-            save_file(vis, str(out / VISION_FILE), metadata={"format": "pt"})
+        save_file(vis, str(out / VISION_FILE), metadata={"format": "pt"})
     (out / MANIFEST).write_text(json.dumps({"base_model": str(base_model), "tuning": tuning}, indent=1))
 
 

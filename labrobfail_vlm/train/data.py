@@ -18,6 +18,7 @@ from PIL import Image
 from torch.utils.data import Dataset
 
 from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.model.processor import expand_image_tokens
 
 IGNORE = -100
 
@@ -72,13 +73,12 @@ class Collator:
         prompts = [proc.apply_chat_template(messages(b["question"]), tokenize=False, add_generation_prompt=True)
                    for b in batch]
         enc = proc(text=fulls, images=images, padding=True, return_tensors="pt")
-        merge = proc.image_processor.merge_size ** 2
         labels = enc["input_ids"].clone()
         labels[enc["attention_mask"] == 0] = IGNORE
         for i, (b, prompt) in enumerate(zip(batch, prompts)):
-            n_img = int(enc["image_grid_thw"][i].prod()) // merge
-            expanded = prompt.replace(self.image_token, self.image_token * n_img, 1)
+            expanded = expand_image_tokens(proc, prompt, enc["image_grid_thw"][i])
             p_ids = tok(expanded, add_special_tokens=False)["input_ids"]
+            n_img = expanded.count(self.image_token)
             length = int(enc["attention_mask"][i].sum())
             if length > self.max_length:
                 raise ValueError(f"sample {b['id']}: {length} tokens exceed max_length={self.max_length} "

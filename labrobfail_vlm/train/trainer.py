@@ -30,8 +30,7 @@ class HybridTrainer(Trainer):
             return
         out = Path(output_dir or self.args.output_dir)
         model = self.accelerator.unwrap_model(self.model)
-        if state_dict is None:
-            state_dict = {k: v for k, v in model.state_dict().items()}
-        save_trainable(model, out, state_dict, self.base_model, self.tuning)
+        save_trainable(model, out, model.state_dict() if state_dict is None else state_dict, self.base_model,
+                       self.tuning)
         if self.processing_class is not None:
             self.processing_class.save_pretrained(out)

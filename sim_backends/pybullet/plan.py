@@ -182,9 +182,9 @@ class Plan:
         oven's opening; the arm must go round its free edge, never through it.
         """
         o = self._obj(oven)
-        hinge_x = o.home[0] - 0.11
+        hinge_x = o.home[0] - o.dims["depth"] / 2
         free = assets.handle_position(o.home, assets.DOOR_OPEN)
-        x = min(free[0], hinge_x - 0.24) - 0.07
+        x = min(free[0], hinge_x - o.dims["width"]) - 0.07
         return [(x, free[1] - 0.10, z), (x, o.home[1], z)]
 
     def door(self, oven: str, to_open: bool, arc_points: int = 6) -> None:
