@@ -25,14 +25,15 @@ $(APT_STAMP): | $(STAMP)
 browser: $(APT_STAMP)
 
 # The main job on the embedded default, all on CPU: PyBullet episodes (success/failure pairs) -> keyframe strips
-# -> the VQA dataset (768x384 grids keep the tiny model fast) -> the tiny Qwen3-VL trained from scratch
-# -> the bench table with majority/blind baselines -> one diagnosis from infer.py.
+# -> the VQA dataset (512x512 grids of 8 keyframes, 128 px cells, 256 visual tokens, keep the tiny model fast)
+# -> the tiny Qwen3-VL trained from scratch -> the bench table with majority/blind baselines -> one infer.py diagnosis.
 DEMO_EPISODES ?= 200
-DEMO_EPOCHS   ?= 8
+DEMO_EPOCHS   ?= 10
+DEMO_GRID     := grid.width=512 grid.height=512 grid.max_frames=8 grid.columns=4
 demo: $(STAMP)
 	$(PY) scripts/generate.py backend=pybullet num_episodes=$(DEMO_EPISODES) out_dir=outputs/demo_shards seed=0 workers=2
 	$(PY) scripts/render_strips.py outputs/demo_shards outputs/demo_strips
-	$(PY) scripts/build_dataset.py shards=outputs/demo_shards out_dir=outputs/demo_dataset grid.width=768 grid.height=384
+	$(PY) scripts/build_dataset.py shards=outputs/demo_shards out_dir=outputs/demo_dataset $(DEMO_GRID)
 	$(PY) train.py preset=tiny dataset_dir=outputs/demo_dataset output_dir=outputs/demo_train epochs=$(DEMO_EPOCHS)
 	$(PY) scripts/evaluate.py model=outputs/demo_train/final dataset_dir=outputs/demo_dataset split=test
 	$(PY) infer.py --grid "$$(ls outputs/demo_dataset/images/*.png | head -1)" --task "a laboratory task"

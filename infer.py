@@ -35,7 +35,8 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--task", default="", help="the task in words (the {task_name} of the prompt)")
     ap.add_argument("--model", default=DEFAULT_MODEL, help="fine-tuned checkpoint, merged model or Qwen3-VL dir")
     ap.add_argument("--json", help="also write the diagnosis to this file (atomically)")
-    ap.add_argument("--num-frames", type=int, default=None, help="keyframes in the grid (default: 16)")
+    ap.add_argument("--num-frames", type=int, default=None,
+                    help="keyframes in the grid (default: the grid the model was trained on, else 16)")
     ap.add_argument("--six-prompts", action="store_true", help="encode the image once per question")
     a = ap.parse_args(argv)
 

@@ -27,14 +27,17 @@ def _world_size() -> int:
     return int(os.environ.get("WORLD_SIZE", "1"))
 
 
-def _check_dataset(cfg: Any) -> None:
+def _check_dataset(cfg: Any) -> dict[str, Any]:
+    """The dataset's grid config, after checking it matches the run."""
     stats = Path(cfg.dataset_dir or "") / "stats.json"
     if cfg.dataset_dir is None or not stats.is_file():
         raise ConfigError(f"dataset_dir: {cfg.dataset_dir!r} is not a dataset built by scripts/build_dataset.py")
-    drawn = json.loads(stats.read_text()).get("grid", {}).get("draw_index", True)
+    grid = json.loads(stats.read_text()).get("grid", {})
+    drawn = grid.get("draw_index", True)
     if bool(drawn) != bool(cfg.grid_index):
         raise ConfigError(f"grid_index: the dataset was built with grid.draw_index={drawn}, the run expects "
                           f"{cfg.grid_index} (the no_index preset needs a dataset built with grid.draw_index=false)")
+    return grid
 
 
 def run(cfg: Any) -> dict[str, Any]:
@@ -47,7 +50,9 @@ def run(cfg: Any) -> dict[str, Any]:
     from labrobfail_vlm.train.data import Collator, VQADataset
     from labrobfail_vlm.train.trainer import HybridTrainer
 
-    _check_dataset(cfg)
+    grid = _check_dataset(cfg)
+    if cfg.loss.mode not in ("token", "record"):
+        raise ConfigError(f"loss.mode: expected token or record, got {cfg.loss.mode!r}")
     if cfg.model.path is None:
         raise ConfigError("model.path: give a local Qwen3-VL directory (or use preset=tiny)")
     if cfg.preset == "tiny" and not Path(cfg.model.path).is_dir():
@@ -96,8 +101,10 @@ def run(cfg: Any) -> dict[str, Any]:
         print(json.dumps({"trainable_parameters": counts, "tuning": cfg.tuning, "preset": cfg.preset}), flush=True)
     train = VQADataset(cfg.dataset_dir, "train")
     trainer = HybridTrainer(model=model, args=args, train_dataset=train,
-                            data_collator=Collator(processor, int(cfg.max_length)), processing_class=processor,
-                            group_lrs=dict(cfg.lr), base_model=str(cfg.model.path), tuning=str(cfg.tuning))
+                            data_collator=Collator(processor, int(cfg.max_length), dict(cfg.loss.question_weights)
+                                                   if cfg.loss.mode == "record" else None),
+                            processing_class=processor, group_lrs=dict(cfg.lr), base_model=str(cfg.model.path),
+                            tuning=str(cfg.tuning), loss_mode=str(cfg.loss.mode), grid=grid)
     resume = None
     if cfg.resume is True:
         resume = get_last_checkpoint(str(cfg.output_dir))

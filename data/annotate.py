@@ -93,7 +93,7 @@ def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator
         v = int(rng.integers(len(Q.VARIANTS[dim])))
         ans = Q.q2_answer(v, success) if dim == "Q2" else answers[dim]
         records.append({
-            "id": f"{traj}_{dim}", "image": image, "images": [image],  # "images": LLaMA-Factory's column
+            "id": Q.record_id(traj, dim), "image": image, "images": [image],  # "images": LLaMA-Factory's column
             "conversations": [{"from": "human", "value": Q.question_text(dim, v, task_name, grid_cfg.time_axis)},
                               {"from": "gpt", "value": ans}],
         })

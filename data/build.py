@@ -13,6 +13,7 @@ Every file is written atomically; a trajectory is kept only with all six records
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 from collections import Counter
@@ -177,6 +178,5 @@ def dataset_stats(traj: list[dict[str, Any]], splits: dict[str, list], total_row
         "by_strategy": dict(Counter(t["strategy"] for t in fails).most_common()),
         "by_horizon": dict(Counter(t["horizon"] for t in traj)),
         "by_task": dict(sorted(Counter(t["scenario"] for t in traj).items())),
-        "grid": {"width": gcfg.width, "height": gcfg.height, "max_frames": gcfg.max_frames,
-                 "time_axis": gcfg.time_axis, "draw_index": gcfg.draw_index},
+        "grid": dataclasses.asdict(gcfg),
     }

@@ -64,13 +64,14 @@ def frames_to_grid(frames: Sequence[Sequence[Image.Image | np.ndarray]], cfg: Gr
 
 
 class FailureAnalyzer:
-    def __init__(self, model: Any, processor: Any, num_frames: int = 16, time_axis: str = "columns"):
+    def __init__(self, model: Any, processor: Any, grid: GridConfig = GridConfig()):
         from labrobfail_vlm.decoding import Decoder
 
         self.model, self.processor = model.eval(), processor
         self.processor.tokenizer.padding_side = "left"
         self.decoder = Decoder(self.model, processor)
-        self.num_frames, self.time_axis = num_frames, time_axis
+        self.grid = grid  # the layout the model was trained on: --frames grids and the Q3 range follow it
+        self.num_frames, self.time_axis = grid.max_frames, grid.time_axis
 
     @classmethod
     def from_pretrained(cls, path: str | Path, dtype: Any = None, device: str | None = None,
@@ -78,10 +79,13 @@ class FailureAnalyzer:
         import torch
 
         from labrobfail_vlm.model.loading import load_model, load_processor
-        from labrobfail_vlm.train.checkpoint import is_finetuned, load_finetuned
+        from labrobfail_vlm.train.checkpoint import is_finetuned, load_finetuned, trained_grid
 
         model = load_finetuned(path, dtype) if is_finetuned(path) else load_model(path, dtype)
         dev = device or ("cuda" if torch.cuda.is_available() else "cpu")
+        if "grid" not in kwargs and (grid := trained_grid(path)) is not None:
+            known = {f for f in GridConfig.__dataclass_fields__}
+            kwargs["grid"] = GridConfig(**{k: v for k, v in grid.items() if k in known})
         return cls(model.to(dev), load_processor(path), **kwargs)
 
     # ---- prompts -----------------------------------------------------------------------------------------
@@ -143,7 +147,7 @@ class FailureAnalyzer:
             img = grid_or_frames if isinstance(grid_or_frames, Image.Image) else Image.fromarray(grid_or_frames)
         else:
             frames = frames or min(len(grid_or_frames[0]), self.num_frames)
-            img = frames_to_grid(grid_or_frames)
+            img = frames_to_grid(grid_or_frames, self.grid)
         task = task or "a laboratory manipulation task"
         a = self.answers(img.convert("RGB"), task, one_pass, frames)
         failed = a["Q2"] == "Yes"

@@ -106,6 +106,19 @@ def question_text(dim: str, variant: int, task_name: str, time_axis: str = "colu
     return f"<image>\n{preamble(task_name, time_axis)} {q}" + (f"\n{opts}" if opts else "")
 
 
+def record_id(trajectory: str, dim: str) -> str:
+    """A VQA record's id: one record per trajectory and dimension."""
+    return f"{trajectory}_{dim}"
+
+
+def dim_of(rid: str) -> str:
+    return rid.rsplit("_", 1)[-1]
+
+
+def traj_of(rid: str) -> str:
+    return rid.rsplit("_", 1)[0]
+
+
 def q2_variant(question: str) -> int | None:
     """Which Q2 variant a question text asks (None if none of them)."""
     return next((i for i, v in enumerate(VARIANTS["Q2"]) if v.text in question), None)

@@ -48,6 +48,29 @@ def test_labels_cover_exactly_the_answer(tiny, small_ds):
     assert (b["input_ids"] == proc.image_token_id).sum() == 3 * 32  # 256x128 grid: 8x4 visual tokens each
 
 
+def test_record_loss_weights_each_record_equally(tiny, small_ds):
+    from labrobfail_vlm.model.loading import load_model
+    from labrobfail_vlm.train.data import Collator, VQADataset
+    from labrobfail_vlm.train.trainer import record_loss
+    proc, _ = batch(tiny, small_ds)
+    ds = VQADataset(small_ds, "train")
+    q2 = next(ds[i] for i in range(len(ds)) if ds[i]["id"].endswith("_Q2"))
+    q6 = next(ds[i] for i in range(len(ds)) if ds[i]["id"].endswith("_Q6"))
+    b = Collator(proc, 512, {"Q2": 3.0})([q2, q6])
+    assert b.pop("record_weight").tolist() == [3.0, 1.0]
+    model = load_model(tiny).eval()
+    with torch.no_grad():
+        alone = [model(**Collator(proc, 512)([r]), use_cache=False).loss for r in (q2, q6)]  # HF token mean
+        ours, _ = record_loss(model, {k: v for k, v in b.items() if k != "labels"}, b["labels"],
+                              torch.tensor([3.0, 1.0]))
+        token_mean = model(**b).loss
+    assert ours == pytest.approx(float(3 * alone[0] + alone[1]) / 2, rel=1e-4)
+    # HF's token mean lets the ~30-token correction outweigh the 3-token Yes/No answer; the record loss does not
+    n2, n6 = [int((Collator(proc, 512)([r])["labels"] != -100).sum()) for r in (q2, q6)]
+    assert n6 > 3 * n2
+    assert float(token_mean) == pytest.approx(float(n2 * alone[0] + n6 * alone[1]) / (n2 + n6), rel=1e-4)
+
+
 @pytest.mark.parametrize("mode,expect", [("hybrid", {"vision", "merger", "lora"}), ("frozen_vision", {"lora"}),
                                          ("full", {"vision", "merger", "text"})])
 def test_gradients_reach_exactly_the_intended_groups(tiny, small_ds, mode, expect):
@@ -88,7 +111,8 @@ def test_save_reload_identical_logits_and_merge(tiny, small_ds, tmp_path):
                              save_strategy="no", learning_rate=1e-3)
     tr = HybridTrainer(model=model, args=args, train_dataset=VQADataset(small_ds), data_collator=Collator(proc, 512),
                        processing_class=proc, group_lrs={"vision": 1e-3, "merger": 1e-3, "lora": 1e-3, "text": 0},
-                       base_model=str(tiny), tuning="hybrid")
+                       base_model=str(tiny), tuning="hybrid",
+                       grid=json.loads((small_ds / "stats.json").read_text())["grid"])
     assert [g["lr"] for g in tr.create_optimizer().param_groups] == [1e-3, 1e-3, 1e-3]
     tr.train()
     tr.save_model(str(tmp_path / "ck"))
@@ -107,12 +131,19 @@ def test_save_reload_identical_logits_and_merge(tiny, small_ds, tmp_path):
     with torch.no_grad():
         assert (merged(**b).logits - ref).abs().max() < 1e-5
     assert (tmp_path / "merged" / "chat_template.jinja").is_file()
+    # inference rebuilds the grid the checkpoint was trained on (SMALL_GRID: 8 keyframes, 4 per band)
+    from labrobfail_vlm.analyzer import FailureAnalyzer
+    from labrobfail_vlm.grid import GridConfig
+    g = FailureAnalyzer.from_pretrained(tmp_path / "ck").grid
+    assert g == GridConfig(width=256, height=128, max_frames=8, columns=4)
+    assert FailureAnalyzer.from_pretrained(tiny).grid == GridConfig()  # a base model: the paper's default
 
 
 def test_bad_train_config_is_one_line(small_ds, tmp_path):
     for args, field in [(["preset=huge"], "preset"), ([f"dataset_dir={tmp_path}"], "dataset_dir"),
                         (["preset=no_index", f"dataset_dir={small_ds}"], "grid_index"),
-                        (["model.path=/nonexistent", f"dataset_dir={small_ds}"], "model.path")]:
+                        (["model.path=/nonexistent", f"dataset_dir={small_ds}"], "model.path"),
+                        (["loss.mode=sum", f"dataset_dir={small_ds}"], "loss.mode")]:
         r = subprocess.run([sys.executable, "train.py", f"output_dir={tmp_path}/o", *args], cwd=ROOT,
                            capture_output=True, text=True, timeout=120)
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr

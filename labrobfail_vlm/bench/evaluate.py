@@ -23,14 +23,6 @@ SPLITS = {"test": "test", "val": "val", "train": "train", "object": "test_object
           "both": "test_both"}
 
 
-def dim_of(rid: str) -> str:
-    return rid.rsplit("_", 1)[-1]
-
-
-def traj_of(rid: str) -> str:
-    return rid.rsplit("_", 1)[0]
-
-
 def q2_as_asked(question: str, failed: bool) -> str:
     """The Q2 reply meaning `failed`, for the variant the record asks (variant 0 when unrecognised)."""
     return Q.q2_answer(Q.q2_variant(question) or 0, success=not failed)
@@ -76,7 +68,7 @@ def model_predictions(analyzer: Any, dataset_dir: str | Path, recs: list[dict], 
 
     by_traj: dict[str, list[dict]] = defaultdict(list)
     for r in recs:
-        by_traj[traj_of(r["id"])].append(r)
+        by_traj[Q.traj_of(r["id"])].append(r)
     out: dict[str, str] = {}
     for t, rs in tqdm(by_traj.items(), desc="blind" if blind else "model", disable=not progress):
         img = Image.open(Path(dataset_dir) / rs[0]["image"]).convert("RGB")
@@ -86,7 +78,7 @@ def model_predictions(analyzer: Any, dataset_dir: str | Path, recs: list[dict], 
         ans = analyzer.answers(img, info.get("task", ""), one_pass=True, frames=info.get("frames"))
         failed = ans["Q2"] == "Yes"
         for r in rs:
-            d = dim_of(r["id"])
+            d = Q.dim_of(r["id"])
             out[r["id"]] = q2_as_asked(r["conversations"][0]["value"], failed) if d == "Q2" else ans[d]
     return out
 
@@ -95,14 +87,14 @@ def majority_predictions(train: list[dict], recs: list[dict]) -> dict[str, str]:
     """The most frequent training answer per dimension (Q2 as the most frequent outcome, asked either way)."""
     counts: dict[str, Counter] = defaultdict(Counter)
     for r in train:
-        d, a = dim_of(r["id"]), r["conversations"][1]["value"]
+        d, a = Q.dim_of(r["id"]), r["conversations"][1]["value"]
         if d == "Q2":
             a = str(a != q2_as_asked(r["conversations"][0]["value"], failed=False))  # "True" = failed
         counts[d][a] += 1
     top = {d: c.most_common(1)[0][0] for d, c in counts.items()}
     out = {}
     for r in recs:
-        d = dim_of(r["id"])
+        d = Q.dim_of(r["id"])
         q = r["conversations"][0]["value"]
         out[r["id"]] = q2_as_asked(q, top[d] == "True") if d == "Q2" else top.get(d, "")
     return out
@@ -117,7 +109,7 @@ def score(recs: list[dict], preds: dict[str, str], traj: dict[str, dict],
     groups: dict[str, dict[str, list[bool]]] = defaultdict(lambda: defaultdict(list))
     confusion: dict[str, Counter] = {"Q2": Counter(), "Q4": Counter(), "Q5": Counter()}
     for r in recs:
-        d, ref = dim_of(r["id"]), r["conversations"][1]["value"]
+        d, ref = Q.dim_of(r["id"]), r["conversations"][1]["value"]
         reply = preds.get(r["id"])
         p = parse(d, reply) if reply is not None else None
         if p is None:
@@ -131,13 +123,17 @@ def score(recs: list[dict], preds: dict[str, str], traj: dict[str, dict],
         pairs[d].append((p, ref))
         if d in confusion:
             confusion[d][(ref, p or "?")] += 1
-        info = traj.get(traj_of(r["id"]), {})
+        info = traj.get(Q.traj_of(r["id"]), {})
         cat = str(info.get("category")) if not info.get("success", True) else "success"
         groups[f"category:{cat}"][d].append(p == ref)
         groups[f"task:{info.get('scenario', '?')}"][d].append(p == ref)
-    res: dict[str, Any] = {d.lower(): round(100 * accuracy(pairs[d]), 2) for d in ("Q1", "Q2", "Q3", "Q4", "Q5")}
-    res["q3_within1"] = round(100 * within_one(pairs["Q3"]), 2)
-    res["q6"] = {**{k: round(v, 4) for k, v in bleu(q6_ref, q6_hyp).items()}, "rougeL": round(rouge_l(q6_ref, q6_hyp), 4)}
+    # A dimension with no records in the split (e.g. a Q2-only probe) is null, not a misleading 0.
+    res: dict[str, Any] = {d.lower(): round(100 * accuracy(pairs[d]), 2) if pairs[d] else None
+                           for d in ("Q1", "Q2", "Q3", "Q4", "Q5")}
+    res["q3_within1"] = round(100 * within_one(pairs["Q3"]), 2) if pairs["Q3"] else None
+    res["q6"] = ({**{k: round(v, 4) for k, v in bleu(q6_ref, q6_hyp).items()},
+                  "rougeL": round(rouge_l(q6_ref, q6_hyp), 4)} if q6_ref else
+                 dict.fromkeys(("bleu1", "bleu2", "bleu3", "bleu4", "rougeL")))
     res["records"] = len(recs)
     res["unparseable"] = dict(unparseable)
     res["breakdown"] = {g: {d: round(100 * sum(v) / len(v), 2) for d, v in dims.items()}
@@ -165,7 +161,7 @@ def external_predictions(client: Any, dataset_dir: str | Path, recs: list[dict],
         hint = {"Q1": "Answer with the actions only, comma-separated.", "Q2": "Answer Yes or No.",
                 "Q3": "Answer with the frame number only, or None if nothing failed.",
                 "Q4": "Answer with the option number only, or None.", "Q5": "Answer with the option number only, "
-                "or None.", "Q6": "Answer with one instruction sentence."}[dim_of(r["id"])]
+                "or None.", "Q6": "Answer with one instruction sentence."}[Q.dim_of(r["id"])]
         msgs = [{"role": "user", "content": [{"type": "image_url", "image_url": {"url": cache[r["image"]]}},
                                              {"type": "text", "text": f"{q}\n{hint}"}]}]
         try:

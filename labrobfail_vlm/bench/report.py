@@ -19,16 +19,16 @@ PAPER_ROWS: dict[str, list[float]] = {
 HEADER = ["Method", "Q1", "Q2", "Q3", "Q4", "Q5", "BLEU-1", "BLEU-2", "BLEU-3", "BLEU-4", "ROUGE-L"]
 
 
-def row(res: dict[str, Any]) -> list[float]:
+def row(res: dict[str, Any]) -> list[float | None]:
     q6 = res["q6"]
     return [res["q1"], res["q2"], res["q3"], res["q4"], res["q5"], q6["bleu1"], q6["bleu2"], q6["bleu3"], q6["bleu4"],
             q6["rougeL"]]
 
 
-def markdown(rows: dict[str, list[float]], title: str) -> str:
+def markdown(rows: dict[str, list[float | None]], title: str) -> str:
     lines = [f"### {title}", "", "| " + " | ".join(HEADER) + " |", "|" + "---|" * len(HEADER)]
     for name, vals in rows.items():
-        cells = [f"{v:.2f}" if i < 5 else f"{v:.4f}" for i, v in enumerate(vals)]
+        cells = ["—" if v is None else f"{v:.2f}" if i < 5 else f"{v:.4f}" for i, v in enumerate(vals)]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

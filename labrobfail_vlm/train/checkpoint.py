@@ -4,7 +4,7 @@ Layout of a checkpoint directory:
   adapter_config.json, adapter_model.safetensors   the decoder's LoRA (peft format)
   vision_merger.safetensors                        model.visual.* weights (hybrid mode)
   model.safetensors + config.json                  full weights instead (full mode)
-  labrobfail.json                                  {"base_model": DIR, "tuning": mode}
+  labrobfail.json                                  {"base_model": DIR, "tuning": mode, "grid": {...}}
   processor files                                  tokenizer, chat template, image processor
 `load_finetuned` rebuilds the model from the base directory; scripts/merge.py writes a standalone model.
 """
@@ -26,8 +26,12 @@ VISION_FILE = "vision_merger.safetensors"
 _PEFT_PREFIX = "base_model.model."
 
 
-def save_trainable(model: Any, out: Path, state_dict: dict[str, torch.Tensor], base_model: str, tuning: str) -> None:
-    """Write adapter + vision/merger (or full) weights from a state dict gathered on every rank."""
+def save_trainable(model: Any, out: Path, state_dict: dict[str, torch.Tensor], base_model: str, tuning: str,
+                   grid: dict[str, Any] | None = None) -> None:
+    """Write adapter + vision/merger (or full) weights from a state dict gathered on every rank.
+
+    `grid` is the dataset's grid config; inference builds its grids (and bounds Q3) the same way.
+    """
     out.mkdir(parents=True, exist_ok=True)
     # Full model: every weight. PeftModel: it keeps only the lora_ keys of the state dict.
     model.save_pretrained(out, state_dict=state_dict, safe_serialization=True)
@@ -35,11 +39,21 @@ def save_trainable(model: Any, out: Path, state_dict: dict[str, torch.Tensor], b
         vis = {k.removeprefix(_PEFT_PREFIX): v.detach().cpu().contiguous() for k, v in state_dict.items()
                if group_of(k) in ("vision", "merger")}
         save_file(vis, str(out / VISION_FILE), metadata={"format": "pt"})
-    (out / MANIFEST).write_text(json.dumps({"base_model": str(base_model), "tuning": tuning}, indent=1))
+    (out / MANIFEST).write_text(json.dumps({"base_model": str(base_model), "tuning": tuning, "grid": grid},
+                                           indent=1))
 
 
 def is_finetuned(path: str | Path) -> bool:
     return (Path(path) / MANIFEST).is_file()
+
+
+def trained_grid(path: str | Path) -> dict[str, Any] | None:
+    """The grid config a checkpoint was trained on (None for a base model or an older checkpoint)."""
+    try:
+        grid = json.loads((Path(path) / MANIFEST).read_text()).get("grid")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return grid if isinstance(grid, dict) else None
 
 
 def load_finetuned(path: str | Path, dtype: Any = None):

@@ -17,6 +17,7 @@ import torch
 from PIL import Image
 from torch.utils.data import Dataset
 
+from labrobfail_vlm import questions as Q
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.model.processor import expand_image_tokens
 
@@ -61,10 +62,19 @@ class VQADataset(Dataset):
 
 
 class Collator:
-    def __init__(self, processor: Any, max_length: int = 2048):
+    """Batches for `model(**batch)`. With `question_weights` (dimension -> weight, default 1) each batch also
+    carries `record_weight`, which the trainer's record loss pops before the forward pass."""
+
+    def __init__(self, processor: Any, max_length: int = 2048, question_weights: dict[str, float] | None = None):
         self.processor = processor
         self.max_length = int(max_length)
         self.image_token = processor.image_token
+        self.weights: dict[str, float] | None = None
+        if question_weights is not None:
+            self.weights = {d: 1.0 for d in Q.DIMENSIONS} | {str(k): float(v) for k, v in question_weights.items()}
+            if set(self.weights) - set(Q.DIMENSIONS) or any(w < 0 for w in self.weights.values()):
+                raise ConfigError(f"loss.question_weights: expected non-negative weights for "
+                                  f"{', '.join(Q.DIMENSIONS)}, got {dict(question_weights)}")
 
     def __call__(self, batch: list[dict[str, Any]]) -> dict[str, torch.Tensor]:
         proc, tok = self.processor, self.processor.tokenizer
@@ -88,4 +98,6 @@ class Collator:
                                  "conversation; cannot mask labels")
             labels[i, :len(p_ids)] = IGNORE
         enc["labels"] = labels
+        if self.weights is not None:
+            enc["record_weight"] = torch.tensor([self.weights[Q.dim_of(b["id"])] for b in batch])
         return dict(enc)

@@ -1,4 +1,10 @@
-"""HybridTrainer: transformers' Trainer with one AdamW over per-group learning rates and LabRobFail checkpoints."""
+"""HybridTrainer: transformers' Trainer with one AdamW over per-group learning rates and LabRobFail checkpoints.
+
+Loss: `token` is the causal-LM mean over every answer token in the batch (transformers' default). `record`
+averages each record's answer tokens first, then takes the weighted mean over records. The closed-set
+answers (Yes/No, a digit) are one token while a Q6 correction is ~30, so under `token` the detection and
+classification questions get a few percent of the gradient; `record` gives each question its weight.
+"""
 
 from __future__ import annotations
 
@@ -6,16 +12,34 @@ from pathlib import Path
 from typing import Any
 
 import torch
+import torch.nn.functional as F
 from transformers import Trainer
 
 from labrobfail_vlm.model.hybrid import param_groups
 from labrobfail_vlm.train.checkpoint import save_trainable
+from labrobfail_vlm.train.data import IGNORE
+
+LOSS_MODES = ("token", "record")
 
 
 class HybridTrainer(Trainer):
-    def __init__(self, *args: Any, group_lrs: dict[str, float], base_model: str, tuning: str, **kwargs: Any):
+    def __init__(self, *args: Any, group_lrs: dict[str, float], base_model: str, tuning: str,
+                 loss_mode: str = "token", grid: dict[str, Any] | None = None, **kwargs: Any):
+        if loss_mode not in LOSS_MODES:
+            raise ValueError(f"loss.mode: expected one of {', '.join(LOSS_MODES)}, got {loss_mode!r}")
         super().__init__(*args, **kwargs)
-        self.group_lrs, self.base_model, self.tuning = group_lrs, base_model, tuning
+        self.group_lrs, self.base_model, self.tuning, self.loss_mode = group_lrs, base_model, tuning, loss_mode
+        self.grid = grid
+        if loss_mode == "record":
+            self.loss_is_scaled_for_ga = False  # a mean over this micro-batch's records: Trainer divides by GA
+
+    def compute_loss(self, model, inputs, return_outputs=False, num_items_in_batch=None):  # noqa: D102
+        weights = inputs.pop("record_weight", None)
+        if self.loss_mode == "token":
+            return super().compute_loss(model, inputs, return_outputs, num_items_in_batch)
+        labels = inputs.pop("labels")
+        loss, outputs = record_loss(model, inputs, labels, weights)
+        return (loss, outputs) if return_outputs else loss
 
     def create_optimizer(self, model=None):  # noqa: D102 - one optimizer, a learning rate per parameter group
         if self.optimizer is None:
@@ -31,6 +55,27 @@ class HybridTrainer(Trainer):
         out = Path(output_dir or self.args.output_dir)
         model = self.accelerator.unwrap_model(self.model)
         save_trainable(model, out, model.state_dict() if state_dict is None else state_dict, self.base_model,
-                       self.tuning)
+                       self.tuning, self.grid)
         if self.processing_class is not None:
             self.processing_class.save_pretrained(out)
+
+
+def record_loss(model: Any, inputs: dict[str, Any], labels: torch.Tensor,
+                weights: torch.Tensor | None = None) -> tuple[torch.Tensor, Any]:
+    """Weighted mean over records of each record's mean answer-token cross-entropy.
+
+    Logits are computed only where the next token is a label (`logits_to_keep` as a boolean mask), so the
+    vocabulary projection never runs over the image and prompt positions.
+    """
+    target = labels[:, 1:]
+    keep = torch.zeros_like(labels, dtype=torch.bool)
+    keep[:, :-1] = target != IGNORE
+    outputs = model(**inputs, logits_to_keep=keep)
+    tok = F.cross_entropy(outputs.logits.float().reshape(-1, outputs.logits.shape[-1]), target[target != IGNORE],
+                          reduction="none")
+    rows = keep.nonzero()[:, 0]
+    n = labels.shape[0]
+    per = torch.zeros(n, device=tok.device, dtype=tok.dtype).scatter_add_(0, rows, tok)
+    per = per / torch.bincount(rows, minlength=n).clamp(min=1).to(per.dtype)
+    w = torch.ones_like(per) if weights is None else weights.to(per.device, per.dtype)
+    return (w * per).sum() / n, outputs
