@@ -21,6 +21,7 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from labrobfail_vlm.config import ConfigError, cli_main, load_config  # noqa: E402
+from labrobfail_vlm.io import atomic_write_json  # noqa: E402
 
 
 def _world_size() -> int:
@@ -48,11 +49,10 @@ def run(cfg: Any) -> dict[str, Any]:
     from labrobfail_vlm.model.hybrid import apply_tuning, count_trainable
     from labrobfail_vlm.model.loading import load_model, load_processor
     from labrobfail_vlm.train.data import Collator, VQADataset
-    from labrobfail_vlm.train.trainer import HybridTrainer
+    from labrobfail_vlm.train.trainer import HybridTrainer, check_loss_mode
 
     grid = _check_dataset(cfg)
-    if cfg.loss.mode not in ("token", "record"):
-        raise ConfigError(f"loss.mode: expected token or record, got {cfg.loss.mode!r}")
+    check_loss_mode(str(cfg.loss.mode))  # before the model loads
     if cfg.model.path is None:
         raise ConfigError("model.path: give a local Qwen3-VL directory (or use preset=tiny)")
     if cfg.preset == "tiny" and not Path(cfg.model.path).is_dir():
@@ -121,7 +121,7 @@ def run(cfg: Any) -> dict[str, Any]:
                "first_loss": losses[0] if losses else None, "last_loss": losses[-1] if losses else None,
                "trainable_parameters": counts}
     if args.process_index == 0:
-        (Path(cfg.output_dir) / "train_summary.json").write_text(json.dumps(summary, indent=1))
+        atomic_write_json(Path(cfg.output_dir) / "train_summary.json", summary)
         print(json.dumps(summary), flush=True)
     return summary
 

@@ -30,14 +30,10 @@ from data.paraphrase import Paraphraser
 from data.splits import SEEN_SPLITS, UNSEEN_SPLITS, assign
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import GridConfig
-from labrobfail_vlm.io import atomic_write_bytes
+from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
 
 READ_COLUMNS = ["episode_id", "pair_id", "variant", "scenario", "success", "failure_type", "category", "severity",
                 "failure_keyframe", "evidence", "actions", "horizon", "images", "state_trace", "task_meta", "keyframes"]
-
-
-def write_json(path: Path, obj: Any) -> None:
-    atomic_write_bytes(path, json.dumps(obj, indent=1, ensure_ascii=False).encode())
 
 
 def _shard_files(cfg: DictConfig) -> list[Path]:
@@ -141,17 +137,17 @@ def build(cfg: DictConfig) -> dict[str, Any]:
         splits[split_of[a.group]].extend(a.records)
     for name, recs in splits.items():
         if name in SEEN_SPLITS or recs:
-            write_json(out / f"{name}.json", recs)
-    write_json(out / "dataset_info.json", {
+            atomic_write_json(out / f"{name}.json", recs)
+    atomic_write_json(out / "dataset_info.json", {
         f"labrobfail_{name}": {"file_name": f"{name}.json", "formatting": "sharegpt",
                                "columns": {"messages": "conversations", "images": "images"},
                                "tags": {"role_tag": "from", "content_tag": "value", "user_tag": "human",
                                         "assistant_tag": "gpt"}}
         for name, recs in splits.items() if name in SEEN_SPLITS or recs})
     trajectories = [a.meta for a in kept]
-    write_json(out / "trajectories.json", trajectories)
+    atomic_write_json(out / "trajectories.json", trajectories)
     stats = dataset_stats(trajectories, splits, total_rows, drops, para_stats, gcfg)
-    write_json(out / "stats.json", stats)
+    atomic_write_json(out / "stats.json", stats)
     from data.plots import write_plots
     from data.review import write_review_page
     write_plots(trajectories, out / "plots")

@@ -21,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.config import load_config as _load_config
 from data.shards import episode_row, manifest, read_labels, write_shard
-from labrobfail_vlm.io import atomic_write_bytes
+from labrobfail_vlm.io import atomic_write_json
 
 DEFAULTS = Path(__file__).resolve().parents[1] / "configs" / "generate.yaml"
 # Keys that define the data; changing any of them in an existing out_dir is refused.
@@ -207,7 +207,7 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
             raise ConfigError(f"{diff[0]}: out_dir {cfg.out_dir!r} holds a run with {diff[0]}={old.get(diff[0])!r}; "
                               "use a new out_dir (nothing was changed)")
     else:
-        atomic_write_bytes(run_file, json.dumps(identity, indent=2).encode())
+        atomic_write_json(run_file, identity, indent=2)
     for stale in out.glob("*.tmp"):  # leftovers of a killed run; their shard is simply redone
         stale.unlink()
     src = backend_spec(cfg.backend).cls(**{**kwargs, "render": False})
@@ -226,5 +226,5 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
     rows = read_labels(shards)
     man = manifest(rows, {"backend": cfg.backend, "variant": cfg.variant, "seed": int(cfg.seed),
                           "shards": [s.name for s in shards], "scenarios": scenarios})
-    atomic_write_bytes(out / "manifest.json", json.dumps(man, indent=2).encode())
+    atomic_write_json(out / "manifest.json", man, indent=2)
     return man

@@ -17,7 +17,7 @@ import difflib
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 from PIL import Image
@@ -84,8 +84,7 @@ class FailureAnalyzer:
         model = load_finetuned(path, dtype) if is_finetuned(path) else load_model(path, dtype)
         dev = device or ("cuda" if torch.cuda.is_available() else "cpu")
         if "grid" not in kwargs and (grid := trained_grid(path)) is not None:
-            known = {f for f in GridConfig.__dataclass_fields__}
-            kwargs["grid"] = GridConfig(**{k: v for k, v in grid.items() if k in known})
+            kwargs["grid"] = grid
         return cls(model.to(dev), load_processor(path), **kwargs)
 
     # ---- prompts -----------------------------------------------------------------------------------------
@@ -110,35 +109,37 @@ class FailureAnalyzer:
         hi = {"Q3": frames, "Q4": len(Severity), "Q5": len(Category)}[dim]
         return d.choose(pre, [str(i) for i in range(1, hi + 1)])
 
+    def _prefixes(self, image: Image.Image, prompts: dict[str, str], one_pass: bool) -> Iterator[tuple[str, Any]]:
+        """(dimension, model state after its prompt), in order. One pass shares the image+preamble prefix."""
+        if not one_pass:
+            for dim, p in prompts.items():
+                yield dim, self.decoder.prefill(dict(self.processor(text=[p], images=[image], return_tensors="pt")))
+            return
+        first = next(iter(prompts.values()))
+        one = self.processor(text=[first], images=[image], return_tensors="pt")
+        # Token ids of all six prompts without re-processing the image: expand its placeholder by hand.
+        ids = [self.decoder.encode_ids(expand_image_tokens(self.processor, p, one["image_grid_thw"][0]))
+               for p in prompts.values()]
+        assert ids[0] == one["input_ids"][0].tolist(), "prompt tokenization differs from the processor's"
+        n = min(len(x) for x in ids)
+        lcp = next((i for i in range(n) if len({x[i] for x in ids}) > 1), n)
+        text_cols = ("input_ids", "attention_mask", "mm_token_type_ids")
+        pre = self.decoder.prefill({k: (v[:, :lcp] if k in text_cols else v) for k, v in one.items()})
+        for dim, seq in zip(prompts, ids):
+            q_pre, _ = self.decoder.extend(pre, seq[lcp:])
+            yield dim, q_pre
+            self.decoder.rewind(q_pre, pre)  # after the caller has answered from it
+
     def answers(self, image: Image.Image, task: str, one_pass: bool = True, frames: int | None = None
                 ) -> dict[str, str]:
         frames = frames or self.num_frames
         prompts = {dim: self._prompt(dim, task) for dim in Q.DIMENSIONS}
         out: dict[str, str] = {}
         failed: bool | None = None
-        if one_pass:
-            one = self.processor(text=[prompts["Q1"]], images=[image], return_tensors="pt")
-            # Token ids of all six prompts without re-processing the image: expand its placeholder by hand.
-            ids = [self.decoder.encode_ids(expand_image_tokens(self.processor, p, one["image_grid_thw"][0]))
-                   for p in prompts.values()]
-            assert ids[0] == one["input_ids"][0].tolist(), "prompt tokenization differs from the processor's"
-            n = min(len(x) for x in ids)
-            lcp = next((i for i in range(n) if len({x[i] for x in ids}) > 1), n)
-            text_cols = ("input_ids", "attention_mask", "mm_token_type_ids")
-            pre = self.decoder.prefill({k: (v[:, :lcp] if k in text_cols else v) for k, v in one.items()})
-            for dim, seq in zip(Q.DIMENSIONS, ids):
-                q_pre, _ = self.decoder.extend(pre, seq[lcp:])
-                out[dim] = self._answer(dim, q_pre, failed, frames)
-                self.decoder.rewind(q_pre, pre)
-                if dim == "Q2":
-                    failed = out[dim] == "Yes"
-        else:
-            for dim in Q.DIMENSIONS:
-                pre = self.decoder.prefill(dict(self.processor(text=[prompts[dim]], images=[image],
-                                                               return_tensors="pt")))
-                out[dim] = self._answer(dim, pre, failed, frames)
-                if dim == "Q2":
-                    failed = out[dim] == "Yes"
+        for dim, pre in self._prefixes(image, prompts, one_pass):
+            out[dim] = self._answer(dim, pre, failed, frames)
+            if dim == "Q2":
+                failed = out[dim] == "Yes"
         return out
 
     def analyze(self, grid_or_frames: Image.Image | np.ndarray | Sequence[Sequence[Any]], task: str = "",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 from typing import Any
@@ -14,6 +15,10 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
+
+
+def atomic_write_json(path: Path, obj: Any, indent: int = 1) -> None:
+    atomic_write_bytes(Path(path), json.dumps(obj, indent=indent, ensure_ascii=False).encode())
 
 
 def save_figure(fig: Any, path: Path, dpi: int = 110) -> None:

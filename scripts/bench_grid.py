@@ -21,6 +21,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from labrobfail_vlm.grid import GridConfig, build_grid  # noqa: E402
+from labrobfail_vlm.io import atomic_write_json  # noqa: E402
 
 
 def timed(fn, repeats: int) -> dict[str, float]:
@@ -50,7 +51,7 @@ def main() -> None:
            "target_ms": 10.0, "meets_target": rows["with_index"]["p95_ms"] <= 10.0,
            "machine": platform.processor() or platform.machine()}
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(res, indent=1))
+    atomic_write_json(Path(a.out), res)
     print(json.dumps(res))
 
 

@@ -31,6 +31,7 @@ def main() -> None:
     from PIL import Image
 
     from labrobfail_vlm.analyzer import FailureAnalyzer
+    from labrobfail_vlm.io import atomic_write_json
 
     model = a.model
     if model is None:
@@ -52,7 +53,7 @@ def main() -> None:
            "device": str(next(fa.model.parameters()).device), "threads": torch.get_num_threads(), "rows": rows,
            "speedup_one_pass": round(rows["six_prompts"]["p50_s"] / rows["one_pass"]["p50_s"], 2), "target": 4.0}
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(res, indent=1))
+    atomic_write_json(Path(a.out), res)
     print(json.dumps(res))
 
 

@@ -23,6 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from omegaconf import OmegaConf  # noqa: E402
 
 from data.generate import generate, load_config, pair_seed, scenario_order  # noqa: E402
+from labrobfail_vlm.io import atomic_write_json  # noqa: E402
 from sim_backends.failure_generator import run_pair  # noqa: E402
 from sim_backends.registry import make_backend  # noqa: E402
 
@@ -72,7 +73,7 @@ def main(argv: list[str]) -> int:
         "peak_rss_mb_worker": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1),
     }
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=2))
+    atomic_write_json(out, res, indent=2)
     print(json.dumps(res, indent=2))
     return 0
 

@@ -50,6 +50,7 @@ def main() -> None:
     from labrobfail_vlm.model.hybrid import apply_tuning
     from labrobfail_vlm.model.loading import load_model, load_processor
     from labrobfail_vlm.model.tiny import build_tiny
+    from labrobfail_vlm.io import atomic_write_json
     from labrobfail_vlm.train.data import Collator
 
     torch.manual_seed(0)
@@ -76,7 +77,7 @@ def main() -> None:
            "gpu": "not measured: no CUDA device on this machine (the device tool lent none to this task)"
            if not torch.cuda.is_available() else "see gpu_rows"}
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(res, indent=1))
+    atomic_write_json(Path(a.out), res)
     print(json.dumps(res))
 
 

@@ -23,7 +23,7 @@ from labrobfail_vlm.config import ConfigError, cli_main, load_config  # noqa: E4
 
 def main(argv: list[str]) -> int:
     from labrobfail_vlm.bench import evaluate as ev
-    from labrobfail_vlm.io import atomic_write_bytes
+    from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
     from labrobfail_vlm.bench.report import PAPER_ROWS, confusion_png, markdown, row
 
     cfg = load_config("evaluate.yaml", argv)
@@ -75,7 +75,7 @@ def main(argv: list[str]) -> int:
     main_res = results[name]
     payload = {**main_res, "split": cfg.split, "method": name, "baselines": {k: v for k, v in results.items()
                                                                               if k != name}}
-    atomic_write_bytes(out / "results.json", json.dumps(payload, indent=1).encode())
+    atomic_write_json(out / "results.json", payload)
     atomic_write_bytes(out / "results.md", md.encode())
     atomic_write_bytes(out / "unparseable.log", "\n".join(log_lines).encode())
     for d in ("Q2", "Q4", "Q5"):

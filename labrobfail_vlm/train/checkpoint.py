@@ -19,6 +19,8 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.grid import GridConfig
+from labrobfail_vlm.io import atomic_write_json
 from labrobfail_vlm.model.hybrid import group_of
 
 MANIFEST = "labrobfail.json"
@@ -39,21 +41,22 @@ def save_trainable(model: Any, out: Path, state_dict: dict[str, torch.Tensor], b
         vis = {k.removeprefix(_PEFT_PREFIX): v.detach().cpu().contiguous() for k, v in state_dict.items()
                if group_of(k) in ("vision", "merger")}
         save_file(vis, str(out / VISION_FILE), metadata={"format": "pt"})
-    (out / MANIFEST).write_text(json.dumps({"base_model": str(base_model), "tuning": tuning, "grid": grid},
-                                           indent=1))
+    atomic_write_json(out / MANIFEST, {"base_model": str(base_model), "tuning": tuning, "grid": grid})
 
 
 def is_finetuned(path: str | Path) -> bool:
     return (Path(path) / MANIFEST).is_file()
 
 
-def trained_grid(path: str | Path) -> dict[str, Any] | None:
+def trained_grid(path: str | Path) -> GridConfig | None:
     """The grid config a checkpoint was trained on (None for a base model or an older checkpoint)."""
     try:
         grid = json.loads((Path(path) / MANIFEST).read_text()).get("grid")
     except (OSError, ValueError, AttributeError):
         return None
-    return grid if isinstance(grid, dict) else None
+    if not isinstance(grid, dict):
+        return None
+    return GridConfig(**{k: v for k, v in grid.items() if k in GridConfig.__dataclass_fields__})
 
 
 def load_finetuned(path: str | Path, dtype: Any = None):

@@ -15,6 +15,7 @@ import torch
 import torch.nn.functional as F
 from transformers import Trainer
 
+from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.model.hybrid import param_groups
 from labrobfail_vlm.train.checkpoint import save_trainable
 from labrobfail_vlm.train.data import IGNORE
@@ -22,13 +23,18 @@ from labrobfail_vlm.train.data import IGNORE
 LOSS_MODES = ("token", "record")
 
 
+def check_loss_mode(mode: str) -> str:
+    if mode not in LOSS_MODES:
+        raise ConfigError(f"loss.mode: expected one of {', '.join(LOSS_MODES)}, got {mode!r}")
+    return mode
+
+
 class HybridTrainer(Trainer):
     def __init__(self, *args: Any, group_lrs: dict[str, float], base_model: str, tuning: str,
                  loss_mode: str = "token", grid: dict[str, Any] | None = None, **kwargs: Any):
-        if loss_mode not in LOSS_MODES:
-            raise ValueError(f"loss.mode: expected one of {', '.join(LOSS_MODES)}, got {loss_mode!r}")
         super().__init__(*args, **kwargs)
-        self.group_lrs, self.base_model, self.tuning, self.loss_mode = group_lrs, base_model, tuning, loss_mode
+        self.group_lrs, self.base_model, self.tuning = group_lrs, base_model, tuning
+        self.loss_mode = check_loss_mode(loss_mode)
         self.grid = grid
         if loss_mode == "record":
             self.loss_is_scaled_for_ga = False  # a mean over this micro-batch's records: Trainer divides by GA
