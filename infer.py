@@ -4,6 +4,7 @@ Run as:
     python infer.py --grid frames.png [--task "pick up the beaker ..."] [--model DIR] [--json OUT]
     python infer.py --frames DIR --task "press the red button"      # DIR/<view>/<frame>.png -> grid
     python infer.py --grid frames.png --six-prompts                  # no shared-prefix KV cache
+    python infer.py --grid frames.png --task "..." --q6-mode template --objects "small beaker,target area"
 
 Without --model it uses the checkpoint `make demo` trains (outputs/demo_train/final). Any bad input
 (file, folder, model directory) gives one line on stderr and exit code 2.
@@ -38,6 +39,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--num-frames", type=int, default=None,
                     help="keyframes in the grid (default: the grid the model was trained on, else 16)")
     ap.add_argument("--six-prompts", action="store_true", help="encode the image once per question")
+    ap.add_argument("--q6-mode", choices=("free", "template"), default="free",
+                    help="Q6 as free text, or the most likely correction strategy of the paper's table")
+    ap.add_argument("--objects", default="", help="comma-separated object/place names of the scene (template mode)")
     a = ap.parse_args(argv)
 
     from labrobfail_vlm.images import load_frames, load_image
@@ -57,9 +61,9 @@ def main(argv: list[str]) -> int:
 
     from labrobfail_vlm.analyzer import FailureAnalyzer
 
-    fa = FailureAnalyzer.from_pretrained(a.model)
+    fa = FailureAnalyzer.from_pretrained(a.model, q6_mode=a.q6_mode)
     diag = fa.analyze(image if image is not None else frames, task=a.task, one_pass=not a.six_prompts,
-                      frames=a.num_frames)
+                      frames=a.num_frames, objects=[o.strip() for o in a.objects.split(",") if o.strip()])
     text = diag.to_json()
     if out is not None:
         from labrobfail_vlm.io import atomic_write_bytes

@@ -23,7 +23,7 @@ import numpy as np
 from PIL import Image
 
 from labrobfail_vlm import questions as Q
-from labrobfail_vlm.corrections import STRATEGIES
+from labrobfail_vlm.corrections import STRATEGIES, candidates
 from labrobfail_vlm.grid import GridConfig, build_grid, sample_keyframes
 from labrobfail_vlm.model.processor import expand_image_tokens
 from labrobfail_vlm.taxonomy import Category, Severity
@@ -63,10 +63,19 @@ def frames_to_grid(frames: Sequence[Sequence[Image.Image | np.ndarray]], cfg: Gr
     return build_grid([[v[i] for i in picks] for v in frames], cfg, visible=visible)
 
 
+Q6_MODES = ("free", "template")
+
+
 class FailureAnalyzer:
-    def __init__(self, model: Any, processor: Any, grid: GridConfig = GridConfig()):
+    """`q6_mode`: "free" (greedy text) or "template" (the most likely entry of the paper's correction-strategy
+    table, placeholders filled from the `objects` given to `analyze`, so every correction maps to primitives)."""
+
+    def __init__(self, model: Any, processor: Any, grid: GridConfig = GridConfig(), q6_mode: str = "free"):
         from labrobfail_vlm.decoding import Decoder
 
+        if q6_mode not in Q6_MODES:
+            raise ValueError(f"q6_mode: expected one of {', '.join(Q6_MODES)}, got {q6_mode!r}")
+        self.q6_mode = q6_mode
         self.model, self.processor = model.eval(), processor
         self.processor.tokenizer.padding_side = "left"
         self.decoder = Decoder(self.model, processor)
@@ -94,7 +103,7 @@ class FailureAnalyzer:
         q = Q.question_text(dim, 0, task, self.time_axis)
         return self.processor.apply_chat_template(messages(q), tokenize=False, add_generation_prompt=True)
 
-    def _answer(self, dim: str, pre: Any, failed: bool | None, frames: int) -> str:
+    def _answer(self, dim: str, pre: Any, failed: bool | None, frames: int, objects: Sequence[str] = ()) -> str:
         d = self.decoder
         if dim == "Q1":
             return d.actions(pre)
@@ -102,8 +111,12 @@ class FailureAnalyzer:
             return d.choose(pre, ["Yes", "No"])
         if dim == "Q6":  # consistent with Q2: no correction after "no failure"; after a failure an instruction,
             # not the no-correction sentence nor a closed-set reply (Yes/No/None/a number)
+            if failed is False:
+                return Q.NO_CORRECTION
+            if self.q6_mode == "template":
+                return d.choose(pre, [text for _, text in candidates(objects)])
             closed = [Q.NO_CORRECTION, Q.NO_FAILURE, "Yes", "No", *map(str, range(10))]
-            return Q.NO_CORRECTION if failed is False else d.free_text(pre, avoid=closed if failed else ())
+            return d.free_text(pre, avoid=closed if failed else ())
         if failed is False:
             return Q.NO_FAILURE
         hi = {"Q3": frames, "Q4": len(Severity), "Q5": len(Category)}[dim]
@@ -130,27 +143,28 @@ class FailureAnalyzer:
             yield dim, q_pre
             self.decoder.rewind(q_pre, pre)  # after the caller has answered from it
 
-    def answers(self, image: Image.Image, task: str, one_pass: bool = True, frames: int | None = None
-                ) -> dict[str, str]:
+    def answers(self, image: Image.Image, task: str, one_pass: bool = True, frames: int | None = None,
+                objects: Sequence[str] = ()) -> dict[str, str]:
         frames = frames or self.num_frames
         prompts = {dim: self._prompt(dim, task) for dim in Q.DIMENSIONS}
         out: dict[str, str] = {}
         failed: bool | None = None
         for dim, pre in self._prefixes(image, prompts, one_pass):
-            out[dim] = self._answer(dim, pre, failed, frames)
+            out[dim] = self._answer(dim, pre, failed, frames, objects)
             if dim == "Q2":
                 failed = out[dim] == "Yes"
         return out
 
     def analyze(self, grid_or_frames: Image.Image | np.ndarray | Sequence[Sequence[Any]], task: str = "",
-                one_pass: bool = True, frames: int | None = None) -> Diagnosis:
+                one_pass: bool = True, frames: int | None = None, objects: Sequence[str] = ()) -> Diagnosis:
+        """`objects`: the scene's object and place names (used by q6_mode="template")."""
         if isinstance(grid_or_frames, (Image.Image, np.ndarray)):
             img = grid_or_frames if isinstance(grid_or_frames, Image.Image) else Image.fromarray(grid_or_frames)
         else:
             frames = frames or min(len(grid_or_frames[0]), self.num_frames)
             img = frames_to_grid(grid_or_frames, self.grid)
         task = task or "a laboratory manipulation task"
-        a = self.answers(img.convert("RGB"), task, one_pass, frames)
+        a = self.answers(img.convert("RGB"), task, one_pass, frames, objects)
         failed = a["Q2"] == "Yes"
         sev = int(a["Q4"]) if failed and a["Q4"].isdigit() else None
         cat = int(a["Q5"]) if failed and a["Q5"].isdigit() else None

@@ -19,7 +19,10 @@ on the atomic action that failed):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import itertools
+import string
+from dataclasses import dataclass, replace
+from typing import Sequence
 
 STRATEGIES: dict[str, tuple[str, str]] = {  # id -> (category of the paper's table, instruction)
     "S1": ("Safety", "Keep the robotic arm position unchanged, maintain gripper state, and keep the arm horizontal "
@@ -118,3 +121,28 @@ def correction(ctx: Context) -> tuple[str, str]:
     """(strategy id, filled instruction) for a failure."""
     sid = choose(ctx)
     return sid, instruction(sid, ctx)
+
+
+# Places a correction may name besides the scene's objects (failure_context's fallbacks).
+GENERIC_DESTINATIONS = ("its original position", "target position")
+
+
+def candidates(names: Sequence[str]) -> list[tuple[str, str]]:
+    """Every (strategy id, instruction) the template-constrained Q6 decoder may choose, with the placeholders
+    filled from `names` (the scene's object and place labels; generic fallbacks are always included)."""
+    from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS
+
+    names = list(dict.fromkeys(n for n in names if n)) or ["object"]
+    choices = {"target": names, "source": names, "destination": [*names, *GENERIC_DESTINATIONS],
+               "action": list(ATOMIC_ACTIONS), "opening": [True, False]}
+    out: list[tuple[str, str]] = []
+    for sid, (_, text) in STRATEGIES.items():
+        fields = {f for _, f, _, _ in string.Formatter().parse(text) if f}
+        # direction/open_closed/open_close all follow whether a door is being opened
+        keys = sorted({"opening" if f in ("direction", "open_closed", "open_close") else
+                       "omitted" if f == "action" else f for f in fields})
+        pools = [choices["action" if k == "omitted" else k] for k in keys]
+        for combo in itertools.product(*pools):
+            ctx = replace(Context(failure_type="", action=""), **dict(zip(keys, combo)))
+            out.append((sid, instruction(sid, ctx)))
+    return list(dict.fromkeys(out))

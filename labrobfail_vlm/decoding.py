@@ -3,7 +3,9 @@
 Closed-set answers (Yes/No; 1-4; 1-5; a frame within the grid; actions from the 8
 primitives) are chosen by comparing the model's log-likelihood of every admissible answer
 (followed by the end-of-turn token), so the reply is always one of the allowed strings.
-Q1 is built greedily one action at a time from the same 8 candidates. Q6 is free text.
+Q1 is built greedily one action at a time from the same 8 candidates. Q6 is free text (greedy, no repeated
+3-gram, stops at the end of turn), or in template mode the most likely of the paper's correction strategies
+with their placeholders filled from the scene's object names (labrobfail_vlm.corrections.candidates).
 
 One-pass mode prefills the image and preamble once; each question then continues from that
 KV cache (cropped back after use) instead of re-encoding the image six times. The cached
@@ -32,8 +34,9 @@ class Prefix:
 
 
 class Decoder:
-    def __init__(self, model: Any, processor: Any, max_new_tokens: int = 96):
+    def __init__(self, model: Any, processor: Any, max_new_tokens: int = 96, no_repeat_ngram: int = 3):
         self.model, self.proc = model, processor
+        self.no_repeat_ngram = no_repeat_ngram
         self.tok = processor.tokenizer
         self.eos = self.tok.convert_tokens_to_ids("<|im_end|>")
         self.max_new_tokens = max_new_tokens
@@ -70,24 +73,45 @@ class Decoder:
         return to
 
     def score_many(self, pre: Prefix, seqs: Sequence[Sequence[int]]) -> list[float]:
-        """log p of each sequence, walking them as a trie: a shared prefix is fed to the model once."""
-        lps = torch.log_softmax(pre.last_logits, -1)
-        out = [float(lps[s[0]]) for s in seqs]
-        groups: dict[int, list[int]] = {}
-        for i, s in enumerate(seqs):
-            if len(s) > 1:
-                groups.setdefault(s[0], []).append(i)
-        for first, idx in groups.items():
-            ext, _ = self.extend(pre, [first])
-            for i, v in zip(idx, self.score_many(ext, [seqs[i][1:] for i in idx])):
-                out[i] += v
-            self.rewind(ext, pre)
+        """log p of each (non-empty) sequence after `pre`, walking them as a trie: a shared prefix is fed to
+        the model once, and a run of tokens without a branch in one forward call."""
+        out = [0.0] * len(seqs)
+        self._walk(pre, [(i, list(s)) for i, s in enumerate(seqs)], out)
         return out
+
+    def _walk(self, pre: Prefix, items: list[tuple[int, list[int]]], out: list[float]) -> None:
+        lps = torch.log_softmax(pre.last_logits, -1)
+        groups: dict[int, list[tuple[int, list[int]]]] = {}
+        for i, s in items:
+            out[i] += float(lps[s[0]])
+            if len(s) > 1:
+                groups.setdefault(s[0], []).append((i, s[1:]))
+        for first, group in groups.items():
+            rests = [r for _, r in group]
+            k = 0  # tokens every sequence of the group shares after `first`
+            while all(len(r) > k for r in rests) and len({r[k] for r in rests}) == 1:
+                k += 1
+            run = [first, *rests[0][:k]]
+            ext, logits = self.extend(pre, run)
+            idx = torch.tensor(run[1:], device=logits.device)[:, None]
+            shared = float(torch.log_softmax(logits[:k], -1).gather(1, idx).sum()) if k else 0.0
+            left = []
+            for i, r in group:
+                out[i] += shared
+                if len(r) > k:
+                    left.append((i, r[k:]))
+            if left:
+                self._walk(ext, left, out)
+            self.rewind(ext, pre)
 
     # ---- answers ---------------------------------------------------------------------------------------
     def choose(self, pre: Prefix, candidates: Sequence[str]) -> str:
+        """The candidate (followed by the end of turn) with the highest log-likelihood."""
+        return candidates[self.best(pre, candidates)]
+
+    def best(self, pre: Prefix, candidates: Sequence[str]) -> int:
         scores = self.score_many(pre, [self.encode_ids(c) + [self.eos] for c in candidates])
-        return candidates[max(range(len(candidates)), key=scores.__getitem__)]
+        return max(range(len(candidates)), key=scores.__getitem__)
 
     def actions(self, pre: Prefix, max_actions: int = 12) -> str:
         chosen: list[str] = []
@@ -104,14 +128,22 @@ class Decoder:
         return Q.format_actions(chosen)
 
     def free_text(self, pre: Prefix, avoid: Sequence[str] = ()) -> str:
-        """Greedy text; `avoid`: replies that must not be produced (their first tokens are barred at step one)."""
+        """Greedy text until the end of turn; `avoid`: replies that must not be produced (their first tokens are
+        barred at step one). No n-gram of `no_repeat_ngram` tokens is produced twice (a small model's greedy
+        text otherwise loops: "...to secure the gripper to secure the gripper...")."""
         out: list[int] = []
         cur = pre
         barred = sorted({self.encode_ids(a)[0] for a in avoid if a})
+        n = self.no_repeat_ngram
         for _ in range(self.max_new_tokens):
             logits = cur.last_logits.clone()
             if not out and barred:
                 logits[barred] = float("-inf")
+            if n and len(out) >= n - 1:
+                tail = out[len(out) - n + 1:]
+                seen = [out[i + n - 1] for i in range(len(out) - n + 1) if out[i:i + n - 1] == tail]
+                if seen:
+                    logits[seen] = float("-inf")
             t = int(logits.argmax())
             if t == self.eos:
                 break

@@ -45,16 +45,27 @@ def main(argv: list[str]) -> int:
         analyzer = FailureAnalyzer.from_pretrained(cfg.model)
         preds = ev.model_predictions(analyzer, cfg.dataset_dir, recs, traj, progress=cfg.progress)
         name = "LabRobFail-VLM (" + Path(cfg.model).name + ")"
+        if cfg.q6_template:  # the same model, Q6 chosen among the correction-strategy table's filled templates
+            analyzer.q6_mode = "template"
+            results[name + ", Q6 template"] = ev.score(recs, ev.model_predictions(
+                analyzer, cfg.dataset_dir, recs, traj, progress=cfg.progress), traj)
+            analyzer.q6_mode = "free"
     else:
         preds = ev.read_predictions(cfg.predictions)
         name = Path(cfg.predictions).stem
     atomic_write_bytes(out / "predictions.jsonl", "".join(json.dumps({"id": k, "prediction": v}) + "\n"
                                                           for k, v in preds.items()).encode())
-    results[name] = ev.score(recs, preds, traj, log_lines.append)
+    results = {name: ev.score(recs, preds, traj, log_lines.append), **results}
     for b in cfg.baselines:
-        if b == "majority":
-            train, _ = ev.load_split(cfg.dataset_dir, "train")
-            results["majority class"] = ev.score(recs, ev.majority_predictions(train, recs), traj)
+        if b == "majority":  # needs training answers: this dataset's train split, or majority_train=DIR's
+            train_dir = cfg.majority_train or cfg.dataset_dir
+            try:
+                train, _ = ev.load_split(train_dir, "train")
+                results["majority class"] = ev.score(recs, ev.majority_predictions(train, recs), traj)
+            except ConfigError as e:
+                note = f"majority baseline skipped: {e} (give majority_train=DATASET_DIR with a train split)"
+                print(note, file=sys.stderr)
+                log_lines.append(note)
         elif b == "blind":
             if analyzer is None:
                 continue  # needs a model to blindfold

@@ -75,7 +75,8 @@ def model_predictions(analyzer: Any, dataset_dir: str | Path, recs: list[dict], 
         if blind:
             img = Image.new("RGB", img.size, (128, 128, 128))
         info = traj.get(t, {})
-        ans = analyzer.answers(img, info.get("task", ""), one_pass=True, frames=info.get("frames"))
+        ans = analyzer.answers(img, info.get("task", ""), one_pass=True, frames=info.get("frames"),
+                               objects=info.get("objects", ()))
         failed = ans["Q2"] == "Yes"
         for r in rs:
             d = Q.dim_of(r["id"])
@@ -84,7 +85,9 @@ def model_predictions(analyzer: Any, dataset_dir: str | Path, recs: list[dict], 
 
 
 def majority_predictions(train: list[dict], recs: list[dict]) -> dict[str, str]:
-    """The most frequent training answer per dimension (Q2 as the most frequent outcome, asked either way)."""
+    """The most frequent training answer per dimension (Q2 as the most frequent outcome, asked either way).
+
+    Needs training answers for every dimension the split asks: a one-line ConfigError names the missing ones."""
     counts: dict[str, Counter] = defaultdict(Counter)
     for r in train:
         d, a = Q.dim_of(r["id"]), r["conversations"][1]["value"]
@@ -92,6 +95,9 @@ def majority_predictions(train: list[dict], recs: list[dict]) -> dict[str, str]:
             a = str(a != q2_as_asked(r["conversations"][0]["value"], failed=False))  # "True" = failed
         counts[d][a] += 1
     top = {d: c.most_common(1)[0][0] for d, c in counts.items()}
+    missing = sorted({Q.dim_of(r["id"]) for r in recs} - set(top))
+    if missing:
+        raise ConfigError(f"majority baseline: the training split has no answers for {', '.join(missing)}")
     out = {}
     for r in recs:
         d = Q.dim_of(r["id"])
@@ -127,6 +133,8 @@ def score(recs: list[dict], preds: dict[str, str], traj: dict[str, dict],
         cat = str(info.get("category")) if not info.get("success", True) else "success"
         groups[f"category:{cat}"][d].append(p == ref)
         groups[f"task:{info.get('scenario', '?')}"][d].append(p == ref)
+        # per failure type (Q2 here is the recall of that type), so a type the model cannot see shows up
+        groups[f"type:{info.get('failure_type') or 'success'}"][d].append(p == ref)
     # A dimension with no records in the split (e.g. a Q2-only probe) is null, not a misleading 0.
     res: dict[str, Any] = {d.lower(): round(100 * accuracy(pairs[d]), 2) if pairs[d] else None
                            for d in ("Q1", "Q2", "Q3", "Q4", "Q5")}
