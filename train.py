@@ -20,6 +20,8 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from omegaconf import OmegaConf  # noqa: E402
+
 from labrobfail_vlm.config import ConfigError, cli_main, load_config  # noqa: E402
 from labrobfail_vlm.io import atomic_write_json  # noqa: E402
 
@@ -48,6 +50,7 @@ def run(cfg: Any) -> dict[str, Any]:
 
     from labrobfail_vlm.model.hybrid import apply_tuning, count_trainable
     from labrobfail_vlm.model.loading import load_model, load_processor
+    from labrobfail_vlm.train.curriculum import PolarityWarmup, Rewording
     from labrobfail_vlm.train.data import Collator, VQADataset
     from labrobfail_vlm.train.trainer import HybridTrainer, check_loss_mode
 
@@ -56,8 +59,11 @@ def run(cfg: Any) -> dict[str, Any]:
     if cfg.model.path is None:
         raise ConfigError("model.path: give a local Qwen3-VL directory (or use preset=tiny)")
     if cfg.preset == "tiny" and not Path(cfg.model.path).is_dir():
-        from labrobfail_vlm.model.tiny import build_tiny
-        build_tiny(cfg.model.path, seed=int(cfg.seed))
+        from labrobfail_vlm.model.tiny import build_tiny, dataset_texts
+        # The vocabulary comes from this dataset's training text (task descriptions, object names).
+        build_tiny(cfg.model.path, seed=int(cfg.seed), texts=dataset_texts(cfg.dataset_dir),
+                   vision=OmegaConf.to_container(cfg.tiny_arch.vision),  # type: ignore[arg-type]
+                   text=OmegaConf.to_container(cfg.tiny_arch.text))  # type: ignore[arg-type]
     dtype = {"bfloat16": torch.bfloat16, "float32": torch.float32}.get(cfg.model.dtype)
     if dtype is None:
         raise ConfigError(f"model.dtype: expected bfloat16 or float32, got {cfg.model.dtype!r}")
@@ -100,11 +106,16 @@ def run(cfg: Any) -> dict[str, Any]:
     if args.process_index == 0:
         print(json.dumps({"trainable_parameters": counts, "tuning": cfg.tuning, "preset": cfg.preset}), flush=True)
     train = VQADataset(cfg.dataset_dir, "train")
+    pairs, warm = bool(cfg.curriculum.pairs), float(cfg.curriculum.polarity_warmup)
+    if not 0.0 <= warm <= 1.0:
+        raise ConfigError(f"curriculum.polarity_warmup: a fraction of the steps in [0, 1], got {warm}")
+    rewording = Rewording(train.group_of, pairs) if pairs or warm > 0 else None
     trainer = HybridTrainer(model=model, args=args, train_dataset=train,
                             data_collator=Collator(processor, int(cfg.max_length), dict(cfg.loss.question_weights)
-                                                   if cfg.loss.mode == "record" else None),
+                                                   if cfg.loss.mode == "record" else None, rewording),
                             processing_class=processor, group_lrs=dict(cfg.lr), base_model=str(cfg.model.path),
-                            tuning=str(cfg.tuning), loss_mode=str(cfg.loss.mode), grid=grid)
+                            tuning=str(cfg.tuning), loss_mode=str(cfg.loss.mode), grid=grid, pair_batches=pairs,
+                            callbacks=[PolarityWarmup(rewording, warm)] if rewording is not None and warm > 0 else None)
     resume = None
     if cfg.resume is True:
         resume = get_last_checkpoint(str(cfg.output_dir))

@@ -98,15 +98,17 @@ def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator
                               {"from": "gpt", "value": ans}],
         })
     info = {
-        "trajectory": traj, "scenario": row["scenario"], "task": task_name, "variant": row["variant"],
+        "trajectory": traj, "group": f"{row['variant']}-{row['pair_id']}", "scenario": row["scenario"], "task": task_name, "variant": row["variant"],
         "success": success, "failure_type": row["failure_type"], "category": row["category"],
         "severity": row["severity"], "failure_keyframe": row["failure_keyframe"], "frame": frame,
         "frames": len(picks), "sampled_keyframes": picks, "horizon": row["horizon"], "actions": list(row["actions"]),
         "evidence": row["evidence"], "strategy": correction(ctx)[0] if ctx else None,
+        # the scene's object and place names: what a robot stack knows, and what Q6's template mode fills in
+        "objects": sorted(set(meta.get("labels", {}).values())),
         # names a (reworded) correction must keep: the objects it acts on, as filled from metadata
         "q6_keep": [w for w in ((ctx.target, ctx.destination, ctx.source) if ctx else ()) if w in answers["Q6"]],
     }
-    return Annotated(traj, f"{row['variant']}-{row['pair_id']}", row["variant"], image, grid, records, info)
+    return Annotated(traj, info["group"], row["variant"], image, grid, records, info)
 
 
 # ---- the rule-based filter -------------------------------------------------------------------------------

@@ -119,9 +119,30 @@ def traj_of(rid: str) -> str:
     return rid.rsplit("_", 1)[0]
 
 
+def variant_of(dim: str, question: str) -> int | None:
+    """Which variant of `dim` a question text asks (None if none of them)."""
+    return next((i for i, v in enumerate(VARIANTS[dim]) if v.text in question), None)
+
+
 def q2_variant(question: str) -> int | None:
     """Which Q2 variant a question text asks (None if none of them)."""
-    return next((i for i, v in enumerate(VARIANTS["Q2"]) if v.text in question), None)
+    return variant_of("Q2", question)
+
+
+def reask(dim: str, question: str, answer: str, variant: int) -> tuple[str, str]:
+    """The same record asked in another of its dimension's wordings: (question, answer).
+
+    Only Q2's answer depends on the wording (the "successfully"/"without issues" variants flip Yes/No);
+    a question in no known wording (e.g. paraphrased) is returned unchanged.
+    """
+    old = variant_of(dim, question)
+    if old is None or old == variant:
+        return question, answer
+    new_q = question.replace(VARIANTS[dim][old].text, VARIANTS[dim][variant].text, 1)
+    if dim != "Q2":
+        return new_q, answer
+    failed = (answer == "Yes") != VARIANTS["Q2"][old].positive
+    return new_q, q2_answer(variant, not failed)
 
 
 def q2_answer(dim_variant: int, success: bool) -> str:

@@ -5,13 +5,15 @@ same path as a real checkpoint (labrobfail_vlm.model.loading), so CPU tests and 
 exercise the real Qwen3-VL classes. Special tokens and the chat template follow Qwen's.
 
 Run as:
-    python -m labrobfail_vlm.model.tiny outputs/tiny_qwen3vl
+    python -m labrobfail_vlm.model.tiny outputs/tiny_qwen3vl [DATASET_DIR]
 """
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
+from typing import Any, Iterable
 
 from tokenizers import Tokenizer, decoders, models, pre_tokenizers, trainers
 
@@ -41,23 +43,29 @@ TINY_TEXT = {"hidden_size": 128, "intermediate_size": 256, "num_hidden_layers": 
                                  "mrope_interleaved": True}}
 
 
-def corpus() -> list[str]:
-    """Every string the model must read or write: questions, options, answers, corrections, task words."""
+def corpus(texts: Iterable[str] = ()) -> list[str]:
+    """Every string the model must read or write: the questions, options, answers and corrections of
+    labrobfail_vlm.questions/corrections, plus `texts` (a dataset's own records: task descriptions and object
+    names come from there, so the model core never reads a simulator's scene module)."""
     from labrobfail_vlm import corrections, questions
     from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, FAILURE_TYPES
-    from sim_backends.pybullet.scene import KIND_LABELS, OBJECT_LABELS
 
-    texts = [questions.PREAMBLE, questions.PREAMBLE_TIME_ROWS, questions.NO_CORRECTION, questions.NO_FAILURE,
-             *questions.OPTIONS.values(), *(v.text for vs in questions.VARIANTS.values() for v in vs),
-             *(t for _, t in corrections.STRATEGIES.values()), *(f.description for f in FAILURE_TYPES.values()),
-             ", ".join(ATOMIC_ACTIONS), "Yes No", " ".join(str(i) for i in range(0, 64)),
-             *OBJECT_LABELS.values(), *KIND_LABELS.values(), "open the door of the drying oven, pick up, place it on, "
-             "insert it into, press the red green button, pour the liquid from into, stir the solution with, shake "
-             "and put it back, take out, put inside and close, then, its original position, hole of the"]
-    return texts * 4
+    base = [questions.PREAMBLE, questions.PREAMBLE_TIME_ROWS, questions.NO_CORRECTION, questions.NO_FAILURE,
+            *questions.OPTIONS.values(), *(v.text for vs in questions.VARIANTS.values() for v in vs),
+            *(t for _, t in corrections.STRATEGIES.values()), *(f.description for f in FAILURE_TYPES.values()),
+            ", ".join(ATOMIC_ACTIONS), "Yes No", " ".join(str(i) for i in range(0, 64))]
+    return base * 4 + list(texts)
 
 
-def train_tokenizer(vocab_size: int = 1024):
+def dataset_texts(dataset_dir: str | Path, split: str = "train") -> list[str]:
+    """The human and gpt turns of one split of a dataset built by scripts/build_dataset.py (the training split by
+    default: test-only words, such as unseen objects' names, stay out of the vocabulary, as they would for a
+    real checkpoint's tokenizer; byte-level BPE still encodes them)."""
+    recs = json.loads((Path(dataset_dir) / f"{split}.json").read_text())
+    return [str(t["value"]) for r in recs for t in r["conversations"]]
+
+
+def train_tokenizer(texts: Iterable[str] = (), vocab_size: int = 1024):
     from transformers import PreTrainedTokenizerFast
 
     tok = Tokenizer(models.BPE(unk_token=None))
@@ -65,26 +73,31 @@ def train_tokenizer(vocab_size: int = 1024):
     tok.decoder = decoders.ByteLevel()
     trainer = trainers.BpeTrainer(vocab_size=vocab_size, special_tokens=SPECIAL, show_progress=False,
                                   initial_alphabet=pre_tokenizers.ByteLevel.alphabet())
-    tok.train_from_iterator(corpus(), trainer)
+    tok.train_from_iterator(corpus(texts), trainer)
     fast = PreTrainedTokenizerFast(tokenizer_object=tok, eos_token="<|im_end|>", pad_token="<|endoftext|>",
                                    additional_special_tokens=SPECIAL[1:])
     fast.chat_template = CHAT_TEMPLATE
     return fast
 
 
-def build_tiny(out_dir: str | Path, seed: int = 0) -> Path:
-    """Write a tiny random Qwen3-VL checkpoint (weights as safetensors, tokenizer, processor, template)."""
+def build_tiny(out_dir: str | Path, seed: int = 0, texts: Iterable[str] = (), vision: dict[str, Any] | None = None,
+               text: dict[str, Any] | None = None) -> Path:
+    """Write a tiny random Qwen3-VL checkpoint (weights as safetensors, tokenizer, processor, template).
+
+    `texts`: extra tokenizer corpus (a dataset's records); `vision`/`text`: overrides of TINY_VISION/TINY_TEXT.
+    """
     import torch
     from transformers import GenerationConfig, Qwen3VLConfig, Qwen3VLForConditionalGeneration
 
     from labrobfail_vlm.model.processor import LabRobFailProcessor, image_processor
 
     out = Path(out_dir)
-    tok = train_tokenizer()
+    tok = train_tokenizer(texts)
+    vis, txt = {**TINY_VISION, **(vision or {})}, {**TINY_TEXT, **(text or {})}
     ids = {t: tok.convert_tokens_to_ids(t) for t in SPECIAL}
     cfg = Qwen3VLConfig(
-        text_config={**TINY_TEXT, "vocab_size": len(tok), "pad_token_id": ids["<|endoftext|>"]},
-        vision_config={**TINY_VISION, "out_hidden_size": TINY_TEXT["hidden_size"]},
+        text_config={**txt, "vocab_size": len(tok), "pad_token_id": ids["<|endoftext|>"]},
+        vision_config={**vis, "out_hidden_size": txt["hidden_size"]},
         image_token_id=ids["<|image_pad|>"], video_token_id=ids["<|video_pad|>"],
         vision_start_token_id=ids["<|vision_start|>"], vision_end_token_id=ids["<|vision_end|>"])
     torch.manual_seed(seed)
@@ -99,4 +112,5 @@ def build_tiny(out_dir: str | Path, seed: int = 0) -> Path:
 
 
 if __name__ == "__main__":
-    print(build_tiny(sys.argv[1] if len(sys.argv) > 1 else "outputs/tiny_qwen3vl"))
+    print(build_tiny(sys.argv[1] if len(sys.argv) > 1 else "outputs/tiny_qwen3vl",
+                     texts=dataset_texts(sys.argv[2]) if len(sys.argv) > 2 else ()))

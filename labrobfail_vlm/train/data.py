@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import torch
 from PIL import Image
@@ -48,6 +48,10 @@ class VQADataset(Dataset):
         for r in self.records[:1]:
             if not {"id", "image", "conversations"} <= set(r):
                 raise ConfigError(f"dataset_dir: {path} records lack id/image/conversations")
+        # trajectory -> its success/failure pair (the curriculum's pair batches); absent in older datasets
+        meta = self.root / "trajectories.json"
+        self.group_of: dict[str, str] = {t["trajectory"]: t["group"] for t in json.loads(meta.read_text())
+                                         if "group" in t} if meta.is_file() else {}
 
     def __len__(self) -> int:
         return len(self.records)
@@ -65,8 +69,10 @@ class Collator:
     """Batches for `model(**batch)`. With `question_weights` (dimension -> weight, default 1) each batch also
     carries `record_weight`, which the trainer's record loss pops before the forward pass."""
 
-    def __init__(self, processor: Any, max_length: int = 2048, question_weights: dict[str, float] | None = None):
+    def __init__(self, processor: Any, max_length: int = 2048, question_weights: dict[str, float] | None = None,
+                 rewording: Callable[[list[dict[str, Any]]], list[dict[str, Any]]] | None = None):
         self.processor = processor
+        self.rewording = rewording  # labrobfail_vlm.train.curriculum.Rewording
         self.max_length = int(max_length)
         self.image_token = processor.image_token
         self.weights: dict[str, float] | None = None
@@ -76,8 +82,64 @@ class Collator:
                 raise ConfigError(f"loss.question_weights: expected non-negative weights for "
                                   f"{', '.join(Q.DIMENSIONS)}, got {dict(question_weights)}")
 
-    def __call__(self, batch: list[dict[str, Any]]) -> dict[str, torch.Tensor]:
+    def _ids(self, text: str, grid_thw: torch.Tensor) -> list[int]:
+        return self.processor.tokenizer(expand_image_tokens(self.processor, text, grid_thw),
+                                        add_special_tokens=False)["input_ids"]
+
+    def packed(self, items: list[list[dict[str, Any]]]) -> dict[str, torch.Tensor]:
+        """Items of labrobfail_vlm.train.packing.TrajectoryDataset -> one packed row per trajectory."""
+        from labrobfail_vlm.train.packing import lcp, pack_rows
+
+        proc = self.processor
+        flat = [r for recs in items for r in recs]
+        if self.rewording is not None:  # over the whole batch, so twins in different rows share a wording
+            flat = self.rewording(flat)
+        rows, pixels, thws, weights = [], [], [], []
+        image_id = proc.tokenizer.convert_tokens_to_ids(self.image_token)
+        at = 0
+        for recs in items:
+            recs, at = flat[at:at + len(recs)], at + len(recs)
+            fulls = [proc.apply_chat_template(messages(b["question"], b["answer"]), tokenize=False) for b in recs]
+            prompts = [proc.apply_chat_template(messages(b["question"]), tokenize=False, add_generation_prompt=True)
+                       for b in recs]
+            enc = proc(text=fulls[:1], images=[Image.open(recs[0]["image"]).convert("RGB")], return_tensors="pt")
+            thw = enc["image_grid_thw"][0]
+            f_ids = [self._ids(f, thw) for f in fulls]
+            p_len = [len(self._ids(p, thw)) for p in prompts]
+            if f_ids[0] != enc["input_ids"][0].tolist():
+                raise ValueError(f"sample {recs[0]['id']}: tokenization differs from the processor's")
+            k = lcp(f_ids)
+            row: dict[str, list[int]] = {"ids": f_ids[0][:k], "labels": [IGNORE] * k, "seg": [0] * k,
+                                         "shift": [0] * k, "slots": [-1] * k}
+            for j, (b, f, pl) in enumerate(zip(recs, f_ids, p_len), 1):
+                if pl <= k or f[:pl] != self._ids(prompts[j - 1], thw):
+                    raise ValueError(f"sample {b['id']}: its prompt is not a proper prefix of the packed branch")
+                branch, start, slot = f[k:], len(row["ids"]), len(weights)
+                row["ids"] += branch
+                row["seg"] += [j] * len(branch)
+                row["shift"] += [start - k] * len(branch)
+                row["labels"] += [IGNORE] * (pl - k) + branch[pl - k:]
+                row["slots"] += [-1] * (pl - k) + [slot] * (len(f) - pl)
+                weights.append(self.weights[Q.dim_of(b["id"])] if self.weights else 1.0)
+            if len(row["ids"]) > self.max_length:
+                raise ValueError(f"sample {recs[0]['id']}: {len(row['ids'])} packed tokens exceed max_length="
+                                 f"{self.max_length}; raise max_length or shrink the grid")
+            row["types"] = [int(t == image_id) for t in row["ids"]]
+            row["mask"] = [1] * len(row["ids"])
+            rows.append(row)
+            pixels.append(enc["pixel_values"])
+            thws.append(thw)
+        batch = pack_rows(rows, int(proc.tokenizer.pad_token_id))
+        batch.update(pixel_values=torch.cat(pixels), image_grid_thw=torch.stack(thws),
+                     record_weight=torch.tensor(weights))
+        return batch
+
+    def __call__(self, batch: list[Any]) -> dict[str, torch.Tensor]:
+        if batch and isinstance(batch[0], list):  # trajectories: shared-prefix packing
+            return self.packed(batch)
         proc, tok = self.processor, self.processor.tokenizer
+        if self.rewording is not None:
+            batch = self.rewording(batch)
         images = [Image.open(b["image"]).convert("RGB") for b in batch]
         fulls = [proc.apply_chat_template(messages(b["question"], b["answer"]), tokenize=False) for b in batch]
         prompts = [proc.apply_chat_template(messages(b["question"]), tokenize=False, add_generation_prompt=True)

@@ -18,7 +18,9 @@ from transformers import Trainer
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.model.hybrid import param_groups
 from labrobfail_vlm.train.checkpoint import save_trainable
+from labrobfail_vlm.train.curriculum import PairSampler
 from labrobfail_vlm.train.data import IGNORE
+from labrobfail_vlm.train.packing import prepare_packed
 
 LOSS_MODES = ("token", "record")
 
@@ -31,9 +33,11 @@ def check_loss_mode(mode: str) -> str:
 
 class HybridTrainer(Trainer):
     def __init__(self, *args: Any, group_lrs: dict[str, float], base_model: str, tuning: str,
-                 loss_mode: str = "token", grid: dict[str, Any] | None = None, **kwargs: Any):
+                 loss_mode: str = "token", grid: dict[str, Any] | None = None, pair_batches: bool = False,
+                 **kwargs: Any):
         super().__init__(*args, **kwargs)
         self.group_lrs, self.base_model, self.tuning = group_lrs, base_model, tuning
+        self.pair_batches = pair_batches
         self.loss_mode = check_loss_mode(loss_mode)
         self.grid = grid
         if loss_mode == "record":
@@ -41,11 +45,21 @@ class HybridTrainer(Trainer):
 
     def compute_loss(self, model, inputs, return_outputs=False, num_items_in_batch=None):  # noqa: D102
         weights = inputs.pop("record_weight", None)
+        slots = inputs.pop("label_slot", None)
+        if "segment_ids" in inputs:  # shared-prefix packed rows (labrobfail_vlm/train/packing.py)
+            inputs = prepare_packed(model, inputs)
         if self.loss_mode == "token":
             return super().compute_loss(model, inputs, return_outputs, num_items_in_batch)
         labels = inputs.pop("labels")
-        loss, outputs = record_loss(model, inputs, labels, weights)
+        loss, outputs = record_loss(model, inputs, labels, weights, slots)
         return (loss, outputs) if return_outputs else loss
+
+    def _get_train_sampler(self, train_dataset=None):  # noqa: D102 - curriculum: twins in one micro-batch
+        ds = train_dataset if train_dataset is not None else self.train_dataset
+        if not self.pair_batches:
+            return super()._get_train_sampler(train_dataset)
+        ids = ds.ids() if hasattr(ds, "ids") else [r["id"] for r in ds.records]
+        return PairSampler(ids, ds.group_of, self.args.per_device_train_batch_size, self.args.seed)
 
     def create_optimizer(self, model=None):  # noqa: D102 - one optimizer, a learning rate per parameter group
         if self.optimizer is None:
@@ -66,12 +80,13 @@ class HybridTrainer(Trainer):
             self.processing_class.save_pretrained(out)
 
 
-def record_loss(model: Any, inputs: dict[str, Any], labels: torch.Tensor,
-                weights: torch.Tensor | None = None) -> tuple[torch.Tensor, Any]:
+def record_loss(model: Any, inputs: dict[str, Any], labels: torch.Tensor, weights: torch.Tensor | None = None,
+                slots: torch.Tensor | None = None) -> tuple[torch.Tensor, Any]:
     """Weighted mean over records of each record's mean answer-token cross-entropy.
 
-    Logits are computed only where the next token is a label (`logits_to_keep` as a boolean mask), so the
-    vocabulary projection never runs over the image and prompt positions.
+    A record is a row, or with packed rows the `slots` id of its label tokens. Logits are computed only where
+    the next token is a label (`logits_to_keep` as a boolean mask), so the vocabulary projection never runs
+    over the image and prompt positions.
     """
     target = labels[:, 1:]
     keep = torch.zeros_like(labels, dtype=torch.bool)
@@ -79,8 +94,11 @@ def record_loss(model: Any, inputs: dict[str, Any], labels: torch.Tensor,
     outputs = model(**inputs, logits_to_keep=keep)
     tok = F.cross_entropy(outputs.logits.float().reshape(-1, outputs.logits.shape[-1]), target[target != IGNORE],
                           reduction="none")
-    rows = keep.nonzero()[:, 0]
-    n = labels.shape[0]
+    if slots is None:
+        rows, n = keep.nonzero()[:, 0], labels.shape[0]
+    else:
+        rows = slots[:, 1:][target != IGNORE].to(tok.device)
+        n = int(weights.numel()) if weights is not None else int(rows.max()) + 1
     per = torch.zeros(n, device=tok.device, dtype=tok.dtype).scatter_add_(0, rows, tok)
     per = per / torch.bincount(rows, minlength=n).clamp(min=1).to(per.dtype)
     w = torch.ones_like(per) if weights is None else weights.to(per.device, per.dtype)
