@@ -75,12 +75,12 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
     return kwargs
 
 
-def _identity_diff(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
-    """Identity keys whose value differs between a stored run.json and this run."""
-    if "backend_kwargs" not in old:  # written before backend_kwargs existed: its PyBullet keys were top-level
-        legacy = {k: old.get(k) for k in ("wrist", "custom_objects", "custom_scene")}
-        old = {**old, "backend_kwargs": {**(new["backend_kwargs"] or {}), **legacy}}
-    return [k for k in IDENTITY_KEYS if old.get(k) != new[k]]
+def _upgrade_identity(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
+    """A run.json written before `backend_kwargs` existed kept its PyBullet keys top level: move them there."""
+    if "backend_kwargs" in old:
+        return old
+    legacy = {k: old.get(k) for k in ("wrist", "custom_objects", "custom_scene")}
+    return {**old, "backend_kwargs": {**(new["backend_kwargs"] or {}), **legacy}}
 
 
 def scenario_order(scenarios: list[str], seed: int, pairs: int) -> list[str]:
@@ -181,8 +181,8 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
     identity = {k: OmegaConf.to_container(cfg, resolve=True)[k] for k in IDENTITY_KEYS}
     run_file = out / "run.json"
     if run_file.exists():
-        old = json.loads(run_file.read_text())
-        diff = _identity_diff(old, identity)
+        old = _upgrade_identity(json.loads(run_file.read_text()), identity)
+        diff = [k for k in IDENTITY_KEYS if old.get(k) != identity[k]]
         if diff:
             raise ConfigError(f"{diff[0]}: out_dir {cfg.out_dir!r} holds a run with {diff[0]}={old.get(diff[0])!r}; "
                               "use a new out_dir (nothing was changed)")
