@@ -22,6 +22,7 @@ from labrobfail_vlm.corrections import Context, correction
 from labrobfail_vlm.grid import GridConfig, build_grid, frame_for_keyframe, sample_keyframes
 from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, Category, Severity
 from sim_backends.goals import object_fell
+from sim_backends.schema import TaskMeta
 
 
 @dataclass
@@ -35,15 +36,12 @@ class Annotated:
     meta: dict[str, Any] = field(default_factory=dict)  # what the review page and stats show
 
 
-def _step_of(name: str) -> int:
-    return int(name.split("_", 1)[0][1:])
-
-
 def failure_context(row: dict[str, Any], meta: dict[str, Any], trace: dict[str, list]) -> Context:
     """Fill the correction placeholders from task metadata (which step failed, on what, towards where)."""
-    steps, labels, executed = meta["steps"], meta.get("labels", {}), meta["executed"]
-    kf = min(int(row["failure_keyframe"] or 0), len(executed) - 1)
-    st = steps[_step_of(executed[kf])] if executed else steps[0]
+    steps, labels = meta["steps"], meta.get("labels", {})
+    ran = TaskMeta.from_dict(meta).executed_steps()  # step index (Keyframe.segment) of each executed keyframe
+    kf = min(int(row["failure_keyframe"] or 0), len(ran) - 1)
+    st = steps[ran[kf]] if ran else steps[0]
     word = lambda role: labels.get(role, str(role).replace("_", " "))  # noqa: E731
     obj = st.get("object")
     kind = meta["objects"].get(obj, {}).get("kind", "")
@@ -55,7 +53,7 @@ def failure_context(row: dict[str, Any], meta: dict[str, Any], trace: dict[str, 
                                   None)
     destination = "its original position" if dest is not None and dest == obj else word(dest or "target")
     pour = next((s for s in steps if s["action"] == "pour"), None)
-    done = {_step_of(n) for n in executed}
+    done = set(ran)
     omitted = next((s["action"] for s in steps if s["index"] not in done), st["action"])
     return Context(failure_type=row["failure_type"], action=st["action"], device=device,
                    fell=object_fell(trace, meta), fatal=row["severity"] == int(Severity.FATAL),

@@ -27,7 +27,8 @@ from tqdm import tqdm
 
 from data.annotate import Annotated, annotate, check_record
 from data.paraphrase import Paraphraser
-from data.splits import SEEN_SPLITS, UNSEEN_SPLITS, assign
+from data.splits import assign
+from labrobfail_vlm.taxonomy import SEEN_SPLITS, UNSEEN_SPLITS
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import GridConfig
 from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json

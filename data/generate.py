@@ -22,35 +22,24 @@ from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.config import load_config as _load_config
 from data.shards import episode_row, manifest, read_labels, write_shard
 from labrobfail_vlm.io import atomic_write_json
+from labrobfail_vlm.taxonomy import SCENE_VARIANTS
 
 DEFAULTS = Path(__file__).resolve().parents[1] / "configs" / "generate.yaml"
 # Keys that define the data; changing any of them in an existing out_dir is refused.
 IDENTITY_KEYS = ("backend", "num_episodes", "seed", "episodes_per_shard", "variant", "scenarios", "image_size",
-                 "cameras", "wrist", "custom_objects", "custom_scene")
+                 "cameras", "backend_kwargs")
 
 
 def load_config(dotlist: list[str]) -> DictConfig:
     return _load_config(DEFAULTS, dotlist)
 
 
-def _load_yaml_file(field: str, path: str | None) -> Any:
-    if path is None:
-        return None
-    pth = Path(path)
-    if not pth.is_file():
-        raise ConfigError(f"{field}: no such file {path!r}")
-    try:
-        data = OmegaConf.to_container(OmegaConf.load(pth), resolve=True)
-    except Exception as e:
-        raise ConfigError(f"{field}: {path} is not valid YAML ({str(e).splitlines()[0]})") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"{field}: {path} must hold a mapping")
-    return data
-
-
 def validate(cfg: DictConfig) -> dict[str, Any]:
-    """Check every field before anything is written; returns backend kwargs."""
-    from sim_backends.pybullet.scene import VARIANTS
+    """Check every field before anything is written; returns the backend's constructor kwargs.
+
+    Generic keys are checked here; the backend checks its own `backend_kwargs` section
+    (`FailureSource.prepare_kwargs`), so nothing here knows which simulator runs.
+    """
     from sim_backends.registry import available_backends, backend_spec
 
     if cfg.backend not in available_backends():
@@ -63,24 +52,13 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
         raise ConfigError("episodes_per_shard: must be even (a shard holds whole success/failure pairs)")
     if cfg.executor not in ("process", "ray"):
         raise ConfigError(f"executor: must be 'process' or 'ray', got {cfg.executor!r}")
-    if cfg.variant not in VARIANTS:
-        raise ConfigError(f"variant: unknown variant {cfg.variant!r}; expected one of {', '.join(VARIANTS)}")
-    objs = _load_yaml_file("custom_objects", cfg.custom_objects)
-    if objs is not None:
-        for name, spec in objs.items():
-            if not isinstance(spec, dict) or spec.get("kind") not in ("vessel", "rod"):
-                raise ConfigError(f"custom_objects: object {name!r} needs kind: vessel or rod")
-            need = ("radius", "height", "rgba") if spec["kind"] == "vessel" else ("radius", "length", "rgba")
-            for k in need:
-                if k not in spec:
-                    raise ConfigError(f"custom_objects: object {name!r} is missing {k!r}")
-            if spec["kind"] == "vessel" and not 0.01 <= float(spec["radius"]) <= 0.038:
-                raise ConfigError(f"custom_objects: object {name!r} radius must be 0.01-0.038 m (the gripper opens 8 cm)")
-    scene = _load_yaml_file("custom_scene", cfg.custom_scene)
-    if scene is not None:
-        for k in ("bench", "floor", "light"):
-            if k not in scene:
-                raise ConfigError(f"custom_scene: missing {k!r}")
+    if cfg.variant not in SCENE_VARIANTS:
+        raise ConfigError(f"variant: unknown variant {cfg.variant!r}; expected one of {', '.join(SCENE_VARIANTS)}")
+    spec = backend_spec(cfg.backend)
+    try:
+        own = spec.cls.prepare_kwargs(OmegaConf.to_container(cfg.backend_kwargs, resolve=True) or {})
+    except ValueError as e:
+        raise ConfigError(f"backend_kwargs.{e}") from None
     out = Path(cfg.out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -89,17 +67,20 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
         probe.unlink()
     except OSError as e:
         raise ConfigError(f"out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
-    kwargs = {"image_size": cfg.image_size, "cameras": list(cfg.cameras), "wrist": cfg.wrist, "egl": cfg.egl,
-              "custom_objects": objs, "custom_scene": scene}
-    spec = backend_spec(cfg.backend)
-    probe_src = spec.cls(**{**kwargs, "render": False}) if cfg.backend == "pybullet" else None
-    if probe_src is not None:
-        known = probe_src.scenarios()
-        probe_src.close()
-        for s in cfg.scenarios or []:
-            if s not in known:
-                raise ConfigError(f"scenarios: unknown task scenario {s!r}")
+    kwargs = {"image_size": cfg.image_size, "cameras": list(cfg.cameras), **own}
+    known = spec.cls.list_scenarios(**kwargs)
+    for s in cfg.scenarios or []:
+        if s not in known:
+            raise ConfigError(f"scenarios: unknown task scenario {s!r}")
     return kwargs
+
+
+def _upgrade_identity(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
+    """A run.json written before `backend_kwargs` existed kept its PyBullet keys top level: move them there."""
+    if "backend_kwargs" in old:
+        return old
+    legacy = {k: old.get(k) for k in ("wrist", "custom_objects", "custom_scene")}
+    return {**old, "backend_kwargs": {**(new["backend_kwargs"] or {}), **legacy}}
 
 
 def scenario_order(scenarios: list[str], seed: int, pairs: int) -> list[str]:
@@ -129,7 +110,6 @@ def shard_jobs(cfg: DictConfig, scenarios: list[str]) -> list[dict[str, Any]]:
 def run_shard(job: dict[str, Any], backend: str, kwargs: dict[str, Any], variant: str, out_dir: str) -> int:
     """Generate one shard's episodes and write it atomically. Returns the number of episodes."""
     from sim_backends.failure_generator import run_pair
-    from sim_backends.registry import make_backend
 
     src = _worker_source(backend, kwargs)
     rows = []
@@ -201,7 +181,7 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
     identity = {k: OmegaConf.to_container(cfg, resolve=True)[k] for k in IDENTITY_KEYS}
     run_file = out / "run.json"
     if run_file.exists():
-        old = json.loads(run_file.read_text())
+        old = _upgrade_identity(json.loads(run_file.read_text()), identity)
         diff = [k for k in IDENTITY_KEYS if old.get(k) != identity[k]]
         if diff:
             raise ConfigError(f"{diff[0]}: out_dir {cfg.out_dir!r} holds a run with {diff[0]}={old.get(diff[0])!r}; "
@@ -210,9 +190,7 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
         atomic_write_json(run_file, identity, indent=2)
     for stale in out.glob("*.tmp"):  # leftovers of a killed run; their shard is simply redone
         stale.unlink()
-    src = backend_spec(cfg.backend).cls(**{**kwargs, "render": False})
-    scenarios = list(cfg.scenarios) if cfg.scenarios else src.scenarios()
-    src.close()
+    scenarios = list(cfg.scenarios) if cfg.scenarios else backend_spec(cfg.backend).cls.list_scenarios(**kwargs)
     jobs = shard_jobs(cfg, scenarios)
     todo = [j for j in jobs if not (out / f"shard-{j['shard']:05d}.parquet").exists()]
     done_eps = sum(j["hi"] - j["lo"] for j in jobs) - sum(j["hi"] - j["lo"] for j in todo)

@@ -42,7 +42,7 @@ def episode_row(ep: Episode) -> dict[str, Any]:
         "actions": ep.actions, "horizon": ep.horizon, "num_keyframes": len(ep.executed_keyframes),
         "camera_names": ep.camera_names, "images": ep.images,
         "state_trace": json.dumps(ep.state_trace, separators=(",", ":")),
-        "task_meta": json.dumps(ep.task_meta, separators=(",", ":")),
+        "task_meta": ep.task_meta.to_json(),
         "keyframes": json.dumps([k.to_dict() for k in ep.executed_keyframes]),
         "nominal_keyframes": json.dumps([k.to_dict() for k in ep.nominal_keyframes]),
         "perturbation": json.dumps(ep.perturbation),

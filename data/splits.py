@@ -11,8 +11,9 @@ from __future__ import annotations
 import hashlib
 from typing import Iterable
 
-UNSEEN_SPLITS = {"unseen_object": "test_object", "unseen_scene": "test_scene", "unseen_both": "test_both"}
-SEEN_SPLITS = ("train", "val", "test")
+from labrobfail_vlm.taxonomy import SCENE_VARIANTS, SEEN_SPLITS, UNSEEN_SPLITS
+
+__all__ = ["SCENE_VARIANTS", "SEEN_SPLITS", "UNSEEN_SPLITS", "assign"]
 
 
 def _key(group: str, seed: int) -> str:
@@ -27,7 +28,7 @@ def assign(groups: Iterable[tuple[str, str]], seed: int = 0, ratios: tuple[float
     for g, variant in dict.fromkeys(groups):
         if variant in UNSEEN_SPLITS:
             out[g] = UNSEEN_SPLITS[variant]
-        elif variant == "seen":
+        elif variant == SCENE_VARIANTS[0]:  # "seen"
             seen.append(g)
         else:
             raise ValueError(f"split: unknown variant {variant!r} in group {g!r}")

@@ -130,3 +130,11 @@ def category_of(failure_type: str) -> Category:
         return FAILURE_TYPES[failure_type].category
     except KeyError:
         raise ValueError(f"unknown failure type {failure_type!r}; expected one of {', '.join(FAILURE_TYPE_NAMES)}") from None
+
+
+# Scene variants (paper: seen / unseen object / unseen scene / both) and the dataset split each one feeds.
+# The one home of these names: the simulator backends, the generator, the split logic and the bench import them.
+SCENE_VARIANTS: tuple[str, ...] = ("seen", "unseen_object", "unseen_scene", "unseen_both")
+SEEN_SPLITS: tuple[str, ...] = ("train", "val", "test")  # the seen variant is cut 8:1:1 into these
+UNSEEN_SPLITS: dict[str, str] = {"unseen_object": "test_object", "unseen_scene": "test_scene",
+                                 "unseen_both": "test_both"}  # each unseen variant is a test set of its own

@@ -11,7 +11,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-Trace = dict[str, list]
+from sim_backends.schema import Trace
 Meta = dict[str, Any]
 
 UPRIGHT_TILT = 0.35  # rad; beyond this a vessel counts as tipped over

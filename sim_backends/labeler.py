@@ -1,7 +1,8 @@
 """Labels derived from a recorded state trace, never from the injected perturbation.
 
-Inputs are the episode's state trace (40 Hz columns) and task metadata (the
-nominal plan, its steps and goals, object geometry). The controller's
+Inputs are the episode's state trace (columns sampled at the trace's own
+`rate_hz`) and task metadata (`TaskMeta` or its JSON dict: the nominal plan, its
+steps and goals, object geometry; schema in sim_backends/schema.py). The controller's
 program counter (which step the arm executes) is part of the recorded state,
 as in a real robot log. Decision, in order:
 
@@ -16,16 +17,16 @@ Thresholds are module constants so that tests and docs can quote them.
 
 from __future__ import annotations
 
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Optional, Union
 
 import numpy as np
 
 from labrobfail_vlm.taxonomy import Severity, category_of
 from sim_backends.goals import OFF_BENCH, UPRIGHT_TILT, failed_goals, rod_in_vessel, stir_samples, tilt
+from sim_backends.schema import TaskMeta, Trace, meta_dict, samples_in
 from sim_backends.types import Labels, quat_to_matrix, rotation_angle
 
-Trace = dict[str, list]
-Meta = dict[str, Any]
+Meta = dict[str, Any]  # TaskMeta.to_dict(): what a shard stores, so labels re-derive from a shard alone
 Event = tuple[int, str, str]  # (sample index, failure type, evidence)
 
 MISALIGN_XY = 0.012  # m: gripper-to-object lateral offset at closure that counts as a misaligned grasp
@@ -35,6 +36,7 @@ POSE_ERR = 0.3  # rad: end-effector orientation error against the plan
 WRONG_PLACE = 0.08  # m: release this far from the planned spot = put somewhere else entirely
 STILL = 0.005  # m: end-effector displacement between keyframes that counts as not moving
 HANDLE_MISS = 0.015  # m: gripper-to-handle/button offset that misses it
+RELEASE_LEAD = 0.2  # s: slip checks stop this long before the release keyframe ends (the fingers open)
 
 
 def _kf_samples(trace: Trace, meta: Meta, names: set[str]) -> list[int]:
@@ -116,7 +118,7 @@ def detect_slip(trace: Trace, meta: Meta) -> Optional[Event]:
         ends = _kf_samples(trace, meta, set(rel))
         j1 = min([e for e in ends if e > j0], default=len(trace["t"]) - 1)
         # The release keyframe opens the fingers: stop before its motion starts.
-        j1 = max(j0, j1 - 1 - int(0.2 * 40))
+        j1 = max(j0, j1 - 1 - samples_in(trace, RELEASE_LEAD))
         d0 = _in_gripper(trace, obj, j0)
         for j in range(j0, j1):
             d = _in_gripper(trace, obj, j)
@@ -262,7 +264,8 @@ def severity(trace: Trace, meta: Meta, failure_type: str) -> Severity:
     return Severity.DANGEROUS
 
 
-def derive_labels(trace: Trace, meta: Meta) -> Labels:
+def derive_labels(trace: Trace, meta: Union[TaskMeta, Meta]) -> Labels:
+    meta = meta_dict(meta)
     bad = failed_goals(trace, meta)
     if not bad:
         return Labels(success=True, evidence="all goals hold")

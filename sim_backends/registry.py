@@ -8,6 +8,8 @@ for a PyBullet user and vice versa).
 from __future__ import annotations
 
 import importlib
+import inspect
+import json
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -25,27 +27,56 @@ class Spec:
 
 
 BACKENDS: dict[str, Spec] = {}
-TASK_TEMPLATES: dict[str, Spec] = {}
+# Task templates are keyed by (backend, name): a template builds a plan in its backend's own terms
+# (PyBullet's `Plan`), so two backends may each have a "pick_place" that share nothing but the name.
+TASK_TEMPLATES: dict[tuple[str, str], Spec] = {}
 
 
-def _register(table: dict[str, Spec], kind: str, name: str, kwargs: dict[str, Any]) -> Callable:
-    def deco(obj: Any) -> Any:
-        if name in table:
-            raise KeyError(f"{kind} {name!r} is already registered")
-        table[name] = Spec(name, obj, dict(kwargs))
-        return obj
+def _json_kwargs(kind: str, name: str, kwargs: dict[str, Any]) -> dict[str, Any]:
+    """Default kwargs must survive a JSON round trip: they go into run records and worker processes."""
+    try:
+        json.dumps(kwargs)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{kind} {name!r}: default kwargs must be JSON-serialisable ({e})") from None
+    return dict(kwargs)
+
+
+def register_backend(name: str, **default_kwargs: Any) -> Callable:
+    """Class decorator: make a `FailureSource` subclass selectable by `backend=name`, with JSON-serialisable
+    default kwargs."""
+    kwargs = _json_kwargs("backend", name, default_kwargs)
+
+    def deco(cls: Any) -> Any:
+        from sim_backends.source import FailureSource
+
+        if not (inspect.isclass(cls) and issubclass(cls, FailureSource)):
+            raise ValueError(f"backend {name!r}: {cls!r} is not a FailureSource subclass")
+        if name in BACKENDS:
+            raise ValueError(f"backend {name!r} is already registered")
+        BACKENDS[name] = Spec(name, cls, kwargs)
+        return cls
 
     return deco
 
 
-def register_backend(name: str, **default_kwargs: Any) -> Callable:
-    """Class decorator: make a `FailureSource` implementation selectable by `backend=name`."""
-    return _register(BACKENDS, "backend", name, default_kwargs)
+def register_task(name: str, backend: str, **default_kwargs: Any) -> Callable:
+    """Decorator for one backend's task template (keyframe program + success goals)."""
+    kwargs = _json_kwargs("task template", name, default_kwargs)
+
+    def deco(fn: Any) -> Any:
+        if not callable(fn):
+            raise ValueError(f"task template {name!r}: {fn!r} is not callable")
+        if (backend, name) in TASK_TEMPLATES:
+            raise ValueError(f"task template {name!r} is already registered for backend {backend!r}")
+        TASK_TEMPLATES[(backend, name)] = Spec(name, fn, kwargs)
+        return fn
+
+    return deco
 
 
-def register_task(name: str, **default_kwargs: Any) -> Callable:
-    """Decorator for a task template (keyframe generator + success predicate)."""
-    return _register(TASK_TEMPLATES, "task template", name, default_kwargs)
+def task_templates(backend: str) -> dict[str, Spec]:
+    """The task templates registered for one backend, by name."""
+    return {n: s for (b, n), s in TASK_TEMPLATES.items() if b == backend}
 
 
 def available_backends() -> list[str]:

@@ -1,41 +1,100 @@
-"""The `FailureSource` interface that every simulator backend implements.
+"""The `FailureSource` interface that every simulator backend implements: a stepping contract.
 
-The generator (data/generate.py) drives a backend only through this API:
+An episode is driven step by step, so that a policy, a supervisor or a correction can act
+between steps (closed-loop supervision):
 
     src = make_backend("pybullet", cameras=..., image_size=...)
-    src.reset(scenario, seed, variant)          # task variant from a seed
+    src.reset(scenario, seed, variant)          # initial state: a pure function of the three
     nominal = src.scripted_keyframes()          # the task's keyframes
-    ep = src.execute(keyframes, physics_events) # run, render, label
+    src.begin(physics_events)                   # start recording the trace
+    for kf in nominal:
+        src.step(kf)                            # move from the current state to kf; images at its end
+        obs = src.observe()                     # per-view images + the latest state sample, any time
+        trace = src.trace_so_far()              # the state trace recorded so far
+    ep = src.finish()                           # settle, then label once from the recorded trace
     src.close()
 
-`reset` must make the initial state a pure function of (scenario, seed,
-variant) so that a failure episode and its paired success episode start from
-the identical state.
+`execute(keyframes, events)` is exactly that loop. A correction is more keyframes stepped
+from wherever the arm is (`step` never resets); a low-level action (a pose delta) becomes a
+Keyframe relative to `observe().state["ee_pos"]`/`["ee_quat"]`. Labels are derived once, here in
+`finish()`, from the recorded trace and the backend's `TaskMeta`; backends never label.
 """
 
 from __future__ import annotations
 
+import io
 from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
 from typing import Any, Sequence
 
+import numpy as np
+from PIL import Image
+
+from labrobfail_vlm.taxonomy import SCENE_VARIANTS, horizon_of
+from sim_backends.labeler import derive_labels
 from sim_backends.perturbations.physics import PhysicsEvent
+from sim_backends.schema import TaskMeta, Trace
 from sim_backends.types import Episode, Keyframe
+
+
+def png_bytes(img: np.ndarray) -> bytes:
+    """PNG of an HxWx3 uint8 image (fast compression: shards are zstd-compressed again anyway)."""
+    buf = io.BytesIO()
+    Image.fromarray(img).save(buf, format="PNG", compress_level=1)
+    return buf.getvalue()
+
+
+@dataclass
+class Observation:
+    """What a policy or supervisor sees at one moment: one image per camera view and the state."""
+
+    images: dict[str, np.ndarray]  # view name -> HxWx3 uint8
+    state: dict[str, Any]  # the latest trace sample: column -> value (ee_pos, width, <obj>.pos, ...)
+    keyframe: int  # number of keyframes executed so far
+
+
+@dataclass
+class _Run:
+    """Book-keeping of the episode being recorded (between `begin` and `finish`)."""
+
+    events: list[PhysicsEvent]
+    executed: list[Keyframe] = field(default_factory=list)
+    images: list[list[bytes]] = field(default_factory=list)  # [view][keyframe] PNG bytes
+    last: list[np.ndarray] | None = None  # images rendered at the end of the last step
 
 
 class FailureSource(ABC):
     name: str = "abstract"
 
+    def __init__(self) -> None:
+        self._key: tuple[str, int, str] = ("", 0, "")
+        self._fresh = False
+        self._run: _Run | None = None
+
+    # ---- configuration (class level: checked before any simulator starts) ---------------------------
+    @classmethod
+    def prepare_kwargs(cls, kwargs: dict[str, Any]) -> dict[str, Any]:
+        """Check and resolve the backend's own config section (`backend_kwargs`); raise ValueError
+        "<key>: <problem>" on a bad value. The default accepts the section as it is."""
+        return dict(kwargs)
+
+    @classmethod
+    def list_scenarios(cls, **kwargs: Any) -> list[str]:
+        """Scenario names, without starting a simulator when the backend can (default: start one)."""
+        src = cls(**kwargs)
+        try:
+            return src.scenarios()
+        finally:
+            src.close()
+
+    # ---- task description --------------------------------------------------------------------------
     @abstractmethod
     def scenarios(self) -> list[str]:
         """Names of the task scenarios this backend can run."""
 
     @abstractmethod
     def scenario_info(self, scenario: str) -> dict[str, Any]:
-        """Template, atomic actions, horizon and perturbation spec of a scenario."""
-
-    @abstractmethod
-    def reset(self, scenario: str, seed: int, variant: str = "seen") -> None:
-        """Build the scene of `scenario` with objects/layout drawn from `seed`."""
+        """Template, perturbation spec and substitutes of a scenario."""
 
     @abstractmethod
     def scripted_keyframes(self) -> list[Keyframe]:
@@ -45,9 +104,110 @@ class FailureSource(ABC):
     def object_positions(self) -> dict[str, tuple[float, float, float]]:
         """Named object/zone positions, for semantic target substitution."""
 
+    @property
     @abstractmethod
+    def camera_names(self) -> list[str]:
+        """Views that `render` returns, in order (empty when the backend does not render)."""
+
+    # ---- backend primitives (what a backend implements) --------------------------------------------
+    @abstractmethod
+    def _reset(self, scenario: str, seed: int, variant: str) -> None:
+        """Build the scene of `scenario` with objects/layout drawn from `seed`."""
+
+    @abstractmethod
+    def _begin(self) -> None:
+        """Start a new trace with the sample of the current (initial) state."""
+
+    @abstractmethod
+    def _apply_physics(self, event: PhysicsEvent) -> None:
+        """Change a physical parameter now (Phi_phy), from the current state."""
+
+    @abstractmethod
+    def _move(self, kf: Keyframe, index: int) -> None:
+        """Drive to `kf` from the current state, sampling the trace with program counter `index`;
+        end with one sample at the reached pose and append its index to the trace's `kf_end`."""
+
+    @abstractmethod
+    def _settle(self) -> None:
+        """Let the scene come to rest after the last keyframe (still sampling the trace)."""
+
+    @abstractmethod
+    def render(self) -> list[np.ndarray]:
+        """One HxWx3 uint8 image per camera view of the current state."""
+
+    @abstractmethod
+    def trace_so_far(self) -> Trace:
+        """The state trace recorded since `begin` (a copy: columns, `kf_end`, `rate_hz`)."""
+
+    @abstractmethod
+    def task_meta(self, executed: Sequence[Keyframe]) -> TaskMeta:
+        """The task metadata of the current scene, for an episode that executed `executed`."""
+
+    # ---- the stepping contract ---------------------------------------------------------------------
+    def reset(self, scenario: str, seed: int, variant: str = "seen") -> None:
+        if variant not in SCENE_VARIANTS:
+            raise ValueError(f"variant: unknown variant {variant!r}; expected one of {', '.join(SCENE_VARIANTS)}")
+        self._run = None
+        self._reset(scenario, seed, variant)
+        self._fresh = True
+        self._key = (scenario, seed, variant)
+
+    def begin(self, physics_events: Sequence[PhysicsEvent] = ()) -> None:
+        """Start recording an episode from the state `reset` built; `physics_events` fire before the
+        keyframe whose index they name."""
+        if not self._fresh:
+            raise RuntimeError("begin() needs a fresh reset(): every episode starts from the seeded initial state")
+        self._fresh = False
+        self._run = _Run(list(physics_events), images=[[] for _ in self.camera_names])
+        self._begin()
+
+    def step(self, kf: Keyframe) -> None:
+        """Execute one keyframe from the current state; render every view at its end."""
+        run = self._active()
+        i = len(run.executed)
+        for ev in run.events:
+            if ev.at_keyframe == i:
+                self._apply_physics(ev)
+        self._move(kf, i)
+        run.executed.append(kf)
+        run.last = self.render() if self.camera_names else []
+        for v, img in enumerate(run.last):
+            run.images[v].append(png_bytes(img))
+
+    def observe(self) -> Observation:
+        """Images and state now; right after a step, its keyframe images (rendered once)."""
+        run = self._active()
+        imgs = run.last if run.last is not None else (self.render() if self.camera_names else [])
+        trace = self.trace_so_far()
+        state = {k: v[-1] for k, v in trace.items() if k not in ("kf_end", "rate_hz")}
+        return Observation(dict(zip(self.camera_names, imgs)), state, len(run.executed))
+
+    def finish(self) -> Episode:
+        """Settle the scene, then derive the labels once from the recorded trace and the task metadata."""
+        run = self._active()
+        self._settle()
+        self._run = None
+        trace = self.trace_so_far()
+        meta = self.task_meta(run.executed)
+        nominal = self.scripted_keyframes()
+        scenario, seed, variant = self._key
+        return Episode(
+            episode_id="", backend=self.name, task=self.scenario_info(scenario)["template"], scenario=scenario,
+            variant=variant, seed=seed, pair_id="", role="", actions=meta.actions, horizon=horizon_of(len(nominal)),
+            nominal_keyframes=nominal, executed_keyframes=list(run.executed), camera_names=list(self.camera_names),
+            images=run.images, state_trace=trace, labels=derive_labels(trace, meta), task_meta=meta)
+
     def execute(self, keyframes: Sequence[Keyframe], physics_events: Sequence[PhysicsEvent] = ()) -> Episode:
-        """Run keyframes from the state set by the last `reset`, render and label."""
+        """Run keyframes from the state set by the last `reset`, render and label (open loop)."""
+        self.begin(physics_events)
+        for kf in keyframes:
+            self.step(kf)
+        return self.finish()
+
+    def _active(self) -> _Run:
+        if self._run is None:
+            raise RuntimeError("no episode is being recorded: reset() then begin() first")
+        return self._run
 
     def close(self) -> None:  # noqa: B027 - optional hook
         pass

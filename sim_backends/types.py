@@ -4,7 +4,7 @@ A manipulation skill is a sequence of sparse keyframes tau = {(T_i, g_i, o_i)}
 (paper, LabRobFail-Sim): T_i in SE(3) is the end-effector target pose, g_i in
 {0, 1} the gripper command (1 = closed) and o_i the interaction target.
 An `Episode` is what a backend returns after executing keyframes: images at
-every executed keyframe from every camera, a state trace sampled at 30-60 Hz,
+every executed keyframe from every camera, a state trace sampled at its own rate,
 and labels derived from that trace.
 """
 
@@ -15,6 +15,8 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
+
+from sim_backends.schema import TaskMeta
 
 
 def quat_to_matrix(q: tuple[float, float, float, float]) -> np.ndarray:
@@ -116,7 +118,7 @@ class Episode:
     executed_keyframes: list[Keyframe]
     camera_names: list[str]
     images: list[list[bytes]]  # [view][keyframe] PNG bytes
-    state_trace: dict[str, list]  # column name -> samples (30-60 Hz)
+    state_trace: dict[str, Any]  # column name -> samples, plus kf_end and rate_hz (sim_backends/schema.py)
     labels: Labels
+    task_meta: TaskMeta  # what the labeler needs besides the trace (JSON in a shard: TaskMeta.to_json())
     perturbation: dict[str, Any] = field(default_factory=dict)  # provenance only
-    task_meta: dict[str, Any] = field(default_factory=dict)  # what the labeler needs besides the trace

@@ -29,7 +29,8 @@ def test_manifest_and_pairs(run6):
         assert a["pair_id"] == b["pair_id"] and a["seed"] == b["seed"] and a["scenario"] == b["scenario"]
         # Identical initial state: the first trace sample matches.
         ta, tb = json.loads(a["state_trace"]), json.loads(b["state_trace"])
-        assert {k: v[0] for k, v in ta.items() if k != "kf_end"} == {k: v[0] for k, v in tb.items() if k != "kf_end"}
+        first = lambda t: {k: v[0] for k, v in t.items() if k not in ("kf_end", "rate_hz")}  # noqa: E731
+        assert first(ta) == first(tb) and ta["rate_hz"] == tb["rate_hz"] > 0
 
 
 def test_labels_rederived_from_recorded_state(run6):
@@ -68,7 +69,8 @@ def test_resume_after_sigkill_gives_identical_data(run6, tmp_path):
 @pytest.mark.parametrize("arg, field", [
     ("backend=gazebo", "backend"), ("num_episodes=-3", "num_episodes"), ("variant=unseen_moon", "variant"),
     ("scenarios=[fly_to_moon]", "scenarios"), ("workers=0", "workers"), ("bogus_key=1", "bogus_key"),
-    ("custom_objects=tests/data/bad_objects.yaml", "custom_objects"),
+    ("backend_kwargs.custom_objects=tests/data/bad_objects.yaml", "backend_kwargs.custom_objects"),
+    ("backend_kwargs.custom_scene=nowhere.yaml", "backend_kwargs.custom_scene"),
 ])
 def test_bad_config_is_one_line(tmp_path, arg, field):
     r = gen(tmp_path / "c", "num_episodes=2", arg, check=False)

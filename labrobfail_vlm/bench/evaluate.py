@@ -18,9 +18,11 @@ from labrobfail_vlm import questions as Q
 from labrobfail_vlm.bench.metrics import accuracy, bleu, rouge_l, within_one
 from labrobfail_vlm.bench.parse import parse
 from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.taxonomy import SEEN_SPLITS, UNSEEN_SPLITS
 
-SPLITS = {"test": "test", "val": "val", "train": "train", "object": "test_object", "scene": "test_scene",
-          "both": "test_both"}
+# CLI split name -> file stem: the seen splits by name, each unseen variant by its suffix ("object" -> test_object).
+SPLITS = {**{s: s for s in reversed(SEEN_SPLITS)},
+          **{v.removeprefix("unseen_"): s for v, s in UNSEEN_SPLITS.items()}}
 
 
 def q2_as_asked(question: str, failed: bool) -> str:

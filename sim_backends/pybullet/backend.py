@@ -10,29 +10,48 @@ import numpy as np
 import pybullet as p
 from omegaconf import OmegaConf
 
-from labrobfail_vlm.taxonomy import horizon_of
-from sim_backends.labeler import derive_labels
 from sim_backends.perturbations.physics import PhysicsEvent
 from sim_backends.pybullet import assets, scene as scene_mod
 from sim_backends.pybullet import templates  # noqa: F401 - registers the task templates
 from sim_backends.pybullet.plan import Plan
-from sim_backends.pybullet.render import Renderer, png_bytes
+from sim_backends.pybullet.render import Renderer
 from sim_backends.pybullet.robot import DT
-from sim_backends.registry import TASK_TEMPLATES, register_backend
+from sim_backends.registry import register_backend, task_templates
+from sim_backends.schema import NominalKeyframe, ObjectInfo, TaskMeta
 from sim_backends.source import FailureSource
-from sim_backends.types import Episode, Keyframe
+from sim_backends.types import Keyframe
 
 TASKS_FILE = Path(__file__).resolve().parents[2] / "configs" / "tasks" / "pybullet.yaml"
 TRACE_EVERY = 6  # physics steps per trace sample: 240 Hz / 6 = 40 Hz
+TRACE_RATE_HZ = round(1.0 / (DT * TRACE_EVERY), 6)  # recorded in every trace as `rate_hz`; the labeler reads it there
 
 
 def load_task_config(path: str | Path = TASKS_FILE) -> dict[str, Any]:
     cfg = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
     assert isinstance(cfg, dict)
+    known = task_templates(PyBulletSource.name)
     for name, sc in cfg["scenarios"].items():
-        if sc.get("template") not in TASK_TEMPLATES:
+        if sc.get("template") not in known:
             raise ValueError(f"scenario {name}: unknown template {sc.get('template')!r}")
     return cfg
+
+
+def _yaml_mapping(key: str, path: str | None) -> dict[str, Any] | None:
+    """A YAML file holding a mapping, or None when no file is named."""
+    if path is None:
+        return None
+    if isinstance(path, dict):  # already loaded (kwargs handed on to a worker)
+        return path
+    pth = Path(path)
+    if not pth.is_file():
+        raise ValueError(f"{key}: no such file {path!r}")
+    try:
+        data = OmegaConf.to_container(OmegaConf.load(pth), resolve=True)
+    except Exception as e:
+        raise ValueError(f"{key}: {path} is not valid YAML ({str(e).splitlines()[0]})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{key}: {path} must hold a mapping")
+    return data
 
 
 @register_backend("pybullet", image_size=224, cameras=["front", "side"], wrist=False, egl=False)
@@ -43,6 +62,7 @@ class PyBulletSource(FailureSource):
                  egl: bool = False, render: bool = True, tasks_file: str | Path | None = None,
                  custom_objects: dict[str, dict[str, Any]] | None = None,
                  custom_scene: dict[str, Any] | None = None):
+        super().__init__()
         self.cfg = load_task_config(tasks_file or TASKS_FILE)
         self.cid = p.connect(p.DIRECT)
         if egl:
@@ -56,8 +76,34 @@ class PyBulletSource(FailureSource):
         self.custom_scene = custom_scene
         self.scene: scene_mod.Scene | None = None
         self.plan: Plan | None = None
-        self._fresh = False
-        self._key: tuple[str, int, str] = ("", 0, "")
+        self._trace: _Trace | None = None
+        self._steps = 0
+
+    # -- configuration (no simulator needed) ----------------------------------------------------------
+    @classmethod
+    def prepare_kwargs(cls, kwargs: dict[str, Any]) -> dict[str, Any]:
+        """Load and check the `custom_objects` / `custom_scene` YAML files named in `backend_kwargs`."""
+        out = dict(kwargs)
+        objs = out["custom_objects"] = _yaml_mapping("custom_objects", kwargs.get("custom_objects"))
+        for name, spec in (objs or {}).items():
+            if not isinstance(spec, dict) or spec.get("kind") not in ("vessel", "rod"):
+                raise ValueError(f"custom_objects: object {name!r} needs kind: vessel or rod")
+            need = ("radius", "height", "rgba") if spec["kind"] == "vessel" else ("radius", "length", "rgba")
+            for k in need:
+                if k not in spec:
+                    raise ValueError(f"custom_objects: object {name!r} is missing {k!r}")
+            # The Panda's fingers open to 8 cm: a wider vessel cannot be grasped at all.
+            if spec["kind"] == "vessel" and not 0.01 <= float(spec["radius"]) <= 0.038:
+                raise ValueError(f"custom_objects: object {name!r} radius must be 0.01-0.038 m (the gripper opens 8 cm)")
+        scene = out["custom_scene"] = _yaml_mapping("custom_scene", kwargs.get("custom_scene"))
+        for k in ("bench", "floor", "light"):
+            if scene is not None and k not in scene:
+                raise ValueError(f"custom_scene: missing {k!r}")
+        return out
+
+    @classmethod
+    def list_scenarios(cls, **kwargs: Any) -> list[str]:
+        return list(load_task_config(kwargs.get("tasks_file") or TASKS_FILE)["scenarios"])
 
     # -- FailureSource ------------------------------------------------------------------------------
     def scenarios(self) -> list[str]:
@@ -74,9 +120,7 @@ class PyBulletSource(FailureSource):
             raise ValueError(f"task: unknown scenario {scenario!r}")
         return self.cfg["scenarios"][scenario]
 
-    def reset(self, scenario: str, seed: int, variant: str = "seen") -> None:
-        if variant not in scene_mod.VARIANTS:
-            raise ValueError(f"variant: unknown variant {variant!r}; expected one of {', '.join(scene_mod.VARIANTS)}")
+    def _reset(self, scenario: str, seed: int, variant: str) -> None:
         sc = self._scenario(scenario)
         cid = self.cid
         p.resetSimulation(physicsClientId=cid)
@@ -90,9 +134,7 @@ class PyBulletSource(FailureSource):
         for _ in range(60):  # let liquid and glassware settle before anything is planned
             p.stepSimulation(physicsClientId=cid)
         self.plan = Plan(self.scene)
-        TASK_TEMPLATES[sc["template"]].cls(self.plan, dict(sc.get("params", {})))
-        self._fresh = True
-        self._key = (scenario, seed, variant)
+        task_templates(self.name)[sc["template"]].cls(self.plan, dict(sc.get("params", {})))
 
     def scripted_keyframes(self) -> list[Keyframe]:
         assert self.plan is not None, "reset() first"
@@ -104,48 +146,43 @@ class PyBulletSource(FailureSource):
         out.update(self.scene.zones)
         return out
 
-    def execute(self, keyframes: Sequence[Keyframe], physics_events: Sequence[PhysicsEvent] = ()) -> Episode:
-        if not self._fresh or self.scene is None or self.plan is None:
-            raise RuntimeError("execute() needs a fresh reset(): every episode starts from the seeded initial state")
-        self._fresh = False
-        scene, robot = self.scene, self.scene.robot
-        trace = _Trace(scene)
-        counter = [0]
+    # -- stepping primitives ---------------------------------------------------------------------------
+    def _begin(self) -> None:
+        assert self.scene is not None
+        self._trace = _Trace(self.scene)
+        self._steps = 0  # physics steps since begin(): the trace clock
+        self._trace.sample(0.0, 0)
 
-        def step() -> None:
-            p.stepSimulation(physicsClientId=self.cid)
-            counter[0] += 1
-            if counter[0] % TRACE_EVERY == 0:
-                trace.sample(counter[0] * DT, kf_index[0])
+    def _physics_step(self, kf_index: int) -> None:
+        p.stepSimulation(physicsClientId=self.cid)
+        self._steps += 1
+        if self._steps % TRACE_EVERY == 0:
+            self._trace.sample(self._steps * DT, kf_index)
 
-        kf_index = [0]
-        images: list[list[bytes]] = [[] for _ in (self.renderer.views if self.renderer else [])]
-        trace.sample(0.0, 0)
-        for i, kf in enumerate(keyframes):
-            kf_index[0] = i
-            for ev in physics_events:
-                if ev.at_keyframe == i:
-                    self._apply_physics(ev)
-            robot.set_gripper(kf.gripper)
-            robot.move_to(kf.pos, kf.quat, kf.speed, step, settle_steps=kf.settle_steps)
-            trace.sample(counter[0] * DT, i)
-            trace.kf_end.append(len(trace.cols["t"]) - 1)
-            if self.renderer is not None:
-                for v, img in enumerate(self.renderer.render(robot.id)):
-                    images[v].append(png_bytes(img))
-        # Let things come to rest so that final-state goals are judged on a settled scene.
+    def _move(self, kf: Keyframe, index: int) -> None:
+        assert self.scene is not None
+        robot = self.scene.robot
+        robot.set_gripper(kf.gripper)
+        robot.move_to(kf.pos, kf.quat, kf.speed, lambda: self._physics_step(index), settle_steps=kf.settle_steps)
+        self._trace.sample(self._steps * DT, index)
+        self._trace.kf_end.append(len(self._trace.cols["t"]) - 1)
+
+    def _settle(self) -> None:
+        # Samples keep the last keyframe's program counter, as the controller still holds it.
+        last = max(0, len(self._trace.kf_end) - 1)
         for _ in range(90):
-            step()
-        meta = self._task_meta(keyframes)
-        data = trace.to_dict()
-        labels = derive_labels(data, meta)
-        scenario, seed, variant = self._key
-        return Episode(
-            episode_id="", backend=self.name, task=self._scenario(scenario)["template"], scenario=scenario,
-            variant=variant, seed=seed, pair_id="", role="", actions=self.plan.actions,
-            horizon=horizon_of(len(self.plan.keyframes)), nominal_keyframes=list(self.plan.keyframes),
-            executed_keyframes=list(keyframes), camera_names=list(self.renderer.views if self.renderer else []),
-            images=images, state_trace=data, labels=labels, task_meta=meta)
+            self._physics_step(last)
+
+    def render(self) -> list[np.ndarray]:
+        assert self.scene is not None
+        return self.renderer.render(self.scene.robot.id) if self.renderer is not None else []
+
+    @property
+    def camera_names(self) -> list[str]:
+        return list(self.renderer.views) if self.renderer is not None else []
+
+    def trace_so_far(self) -> dict[str, Any]:
+        return self._trace.to_dict()
 
     def close(self) -> None:
         if self.cid is not None and p.isConnected(self.cid):
@@ -175,23 +212,17 @@ class PyBulletSource(FailureSource):
         elif ev.param == "mass":
             p.changeDynamics(body, -1, mass=info[0] * ev.scale, physicsClientId=cid)
 
-    def _task_meta(self, executed: Sequence[Keyframe]) -> dict[str, Any]:
+    def task_meta(self, executed: Sequence[Keyframe]) -> TaskMeta:
         scene, plan = self.scene, self.plan
         assert scene is not None and plan is not None
-        places = {k: list(v) for k, v in self.object_positions().items()}
-        return {
-            "steps": plan.steps,
-            "goals": plan.goals,
-            "objects": {k: {"kind": o.kind, "dims": o.dims, "home": list(o.home)} for k, o in scene.objects.items()},
-            "places": places,
-            "nominal": [{"name": k.name, "pos": list(k.pos), "quat": list(k.quat), "gripper": k.gripper,
-                         "segment": k.segment} for k in plan.keyframes],
-            "executed": [k.name for k in executed],
-            "bench_top": assets.BENCH_TOP,
-            "liquid_total": {k: len(v) for k, v in scene.particles.items()},
-            "labels": scene.labels,
-            "description": self._describe(),
-        }
+        return TaskMeta(
+            steps=plan.steps, goals=plan.goals,
+            objects={k: ObjectInfo(o.kind, o.dims, list(o.home)) for k, o in scene.objects.items()},
+            places={k: list(v) for k, v in self.object_positions().items()},
+            nominal=[NominalKeyframe(k.name, list(k.pos), list(k.quat), k.gripper, k.segment) for k in plan.keyframes],
+            executed=[k.name for k in executed], bench_top=assets.BENCH_TOP,
+            liquid_total={k: len(v) for k, v in scene.particles.items()}, labels=scene.labels,
+            description=self._describe())
 
     def _describe(self) -> str:
         """The task in words (the `{task_name}` of the VQA preamble), from the template's description."""
@@ -248,5 +279,6 @@ class _Trace:
                 c.setdefault(f"liquid.{k}", []).append(v)
             c.setdefault("liquid.outside", []).append(free)
 
-    def to_dict(self) -> dict[str, list]:
-        return {**self.cols, "kf_end": self.kf_end}
+    def to_dict(self) -> dict[str, Any]:
+        # Copies, so that a trace handed out mid-episode (supervision) does not grow under its reader.
+        return {**{k: list(v) for k, v in self.cols.items()}, "kf_end": list(self.kf_end), "rate_hz": TRACE_RATE_HZ}

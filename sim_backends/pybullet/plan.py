@@ -3,7 +3,7 @@
 A template composes skills into steps; every step is one atomic action of
 the paper's vocabulary and becomes one keyframe segment. The builder also
 records what the labeler needs to check the step from state (`steps`) and
-the task's goals (`goals`), all plain JSON.
+the task's goals (`goals`) as the typed `Step`/`Goal` of sim_backends/schema.py.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import pybullet as p
 from sim_backends.pybullet import assets
 from sim_backends.pybullet.robot import SIDE, TOP_DOWN
 from sim_backends.pybullet.scene import Scene
+from sim_backends.schema import Goal, Step
 from sim_backends.types import Keyframe
 
 SAFE_Z = 0.26  # transport height of the end effector
@@ -38,31 +39,36 @@ def _roll(quat, angle: float) -> tuple:
 class Plan:
     scene: Scene
     keyframes: list[Keyframe] = field(default_factory=list)
-    steps: list[dict[str, Any]] = field(default_factory=list)
-    goals: list[dict[str, Any]] = field(default_factory=list)
+    steps: list[Step] = field(default_factory=list)
+    goals: list[Goal] = field(default_factory=list)
 
     # -- builder primitives ---------------------------------------------------------------------------
     def step(self, action: str, **info: Any) -> None:
-        self.steps.append({"index": len(self.steps), "action": action, **info})
+        self.steps.append(Step(len(self.steps), action, **info))
 
     def kf(self, name: str, pos, quat, gripper: int, target: str, speed: float = 0.45, settle: int = 0) -> str:
         st = self.steps[-1]
-        full = f"s{st['index']}_{name}"
+        full = f"s{st.index}_{name}"
         self.keyframes.append(Keyframe(full, tuple(float(v) for v in pos), tuple(float(v) for v in quat),
-                                       int(gripper), target, st["index"], st["action"], speed, settle))
-        st.setdefault("keyframes", []).append(full)
+                                       int(gripper), target, st.index, st.action, speed, settle))
+        st.keyframes.append(full)
         return full
+
+    def _update(self, **info: Any) -> None:
+        """Set what the labeler needs about the current step once its keyframes exist."""
+        for k, v in info.items():
+            setattr(self.steps[-1], k, v)
 
     @property
     def actions(self) -> list[str]:
-        return [s["action"] for s in self.steps]
+        return [s.action for s in self.steps]
 
     def _obj(self, name: str):
         return self.scene.objects[name]
 
     def _grip(self, obj: str) -> list[float]:
         """Offset of the end effector from the object's frame in the grasp that holds `obj`."""
-        return next(s["grip_offset"] for s in reversed(self.steps) if s.get("object") == obj and "grip_offset" in s)
+        return next(s.grip_offset for s in reversed(self.steps) if s.object == obj and s.grip_offset is not None)
 
     # -- skills ---------------------------------------------------------------------------------------
     def grasp(self, obj: str, inside: bool = False) -> None:
@@ -83,7 +89,7 @@ class Plan:
                 self.kf("withdraw", (x - 0.25, y, zg + 0.02), SIDE, 1, obj, speed=0.25)
             else:
                 self.kf("lift", (x - 0.005, y, zg + 0.12), SIDE, 1, obj, speed=0.3)
-            self.steps[-1].update(close_kf=close, grip_offset=[-0.005, 0.0, zg - z], width=2 * o.dims["radius"] + 0.004)
+            self._update(close_kf=close, grip_offset=[-0.005, 0.0, zg - z], width=2 * o.dims["radius"] + 0.004)
         else:
             top = z + o.dims["length"] / 2
             zg = top - 0.035
@@ -91,7 +97,7 @@ class Plan:
             self.kf("reach", (x, y, zg), TOP_DOWN, 0, obj, speed=0.25)
             close = self.kf("close", (x, y, zg), TOP_DOWN, 1, obj, settle=50)
             self.kf("lift", (x, y, zg + o.dims["length"] * 0.75 + 0.02), TOP_DOWN, 1, obj, speed=0.3)
-            self.steps[-1].update(close_kf=close, grip_offset=[0.0, 0.0, zg - z], width=2 * o.dims["radius"])
+            self._update(close_kf=close, grip_offset=[0.0, 0.0, zg - z], width=2 * o.dims["radius"])
 
     def place(self, obj: str, dest: str, returning: bool = False, inside: bool = False) -> None:
         """Carry the held object to a zone (or back home) and release it there.
@@ -113,7 +119,7 @@ class Plan:
         rel = self.kf("release", (dx + g[0], dy + g[1], zr), quat, 0, dest, settle=40)
         back = (-0.12, 0, 0) if o.kind == "vessel" else (0, 0, 0.1)
         self.kf("retreat", (dx + g[0] + back[0], dy + g[1], zr + back[2]), quat, 0, dest, speed=0.3)
-        self.steps[-1]["release_kf"] = rel
+        self.steps[-1].release_kf = rel
 
     def pour(self, src: str, dest: str, side: float = -1.0) -> None:
         """Bring the held vessel beside `dest` and roll it progressively until the liquid has run out."""
@@ -210,7 +216,7 @@ class Plan:
         if to_open:  # end in front of the opening, ready to reach inside
             for i, wp in enumerate(self._door_bypass(oven, h1[2])):
                 self.kf(f"bypass{i}", wp, SIDE, 0, oven)
-        self.steps[-1].update(contact_kf=f"s{self.steps[-1]['index']}_grip", contact_point=[float(v) for v in h0])
+        self._update(contact_kf=f"s{self.steps[-1].index}_grip", contact_point=[float(v) for v in h0])
 
     def press(self, button: str) -> None:
         o = self._obj(button)
@@ -221,13 +227,13 @@ class Plan:
         self.kf("touch", (x, y, top + 0.015), TOP_DOWN, 1, button, speed=0.2)
         self.kf("press", (x, y, top - 0.004), TOP_DOWN, 1, button, speed=0.05, settle=30)
         self.kf("release", (x, y, top + 0.08), TOP_DOWN, 1, button, speed=0.2)
-        self.steps[-1].update(contact_kf=f"s{self.steps[-1]['index']}_press", contact_point=[x, y, top - 0.004])
+        self._update(contact_kf=f"s{self.steps[-1].index}_press", contact_point=[x, y, top - 0.004])
 
     def home(self) -> None:
         """A neutral pose between sub-tasks (part of the previous step)."""
         st = self.steps[-1]
-        self.kf("home", (0.4, 0.0, SAFE_Z + 0.05), SIDE if st["action"] != "insert" else TOP_DOWN,
+        self.kf("home", (0.4, 0.0, SAFE_Z + 0.05), SIDE if st.action != "insert" else TOP_DOWN,
                 self.keyframes[-1].gripper, self.keyframes[-1].target)
 
     def goal(self, kind: str, **kw: Any) -> None:
-        self.goals.append({"kind": kind, **kw})
+        self.goals.append(Goal(kind, dict(kw)))

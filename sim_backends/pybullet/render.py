@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import io
 from typing import Sequence
 
 import numpy as np
 import pybullet as p
-from PIL import Image
 
 from sim_backends.pybullet.robot import EE_LINK
 
@@ -47,8 +45,3 @@ class Renderer:
             out.append(np.asarray(rgb, np.uint8).reshape(self.size, self.size, 4)[:, :, :3])
         return out
 
-
-def png_bytes(img: np.ndarray) -> bytes:
-    buf = io.BytesIO()
-    Image.fromarray(img).save(buf, format="PNG", compress_level=1)
-    return buf.getvalue()

@@ -50,9 +50,6 @@ UNSEEN_SCENES: list[dict[str, Any]] = [
     {"bench": [0.55, 0.40, 0.28, 1], "floor": [0.15, 0.20, 0.35, 1], "light": [-1.0, 1.2, 1.2], "checker": True},
 ]
 
-VARIANTS = ("seen", "unseen_object", "unseen_scene", "unseen_both")
-
-
 @dataclass
 class SceneObject:
     name: str  # role name in the task: "obj", "src", "dest_vessel", ...

@@ -12,7 +12,7 @@ from sim_backends.pybullet.plan import Plan
 from sim_backends.registry import register_task
 
 
-@register_task("pick_place")
+@register_task("pick_place", backend="pybullet")
 def pick_place(plan: Plan, p: dict[str, Any]) -> None:
     plan.grasp("obj")
     plan.place("obj", "target")
@@ -21,7 +21,7 @@ def pick_place(plan: Plan, p: dict[str, Any]) -> None:
     plan.goal("released", object="obj")
 
 
-@register_task("insert_tube")
+@register_task("insert_tube", backend="pybullet")
 def insert_tube(plan: Plan, p: dict[str, Any]) -> None:
     hole = p.get("hole", "rack_hole1")
     plan.grasp("tube")
@@ -30,25 +30,25 @@ def insert_tube(plan: Plan, p: dict[str, Any]) -> None:
     plan.goal("below", object="tube", z=0.06, what="bottom")
 
 
-@register_task("press_button")
+@register_task("press_button", backend="pybullet")
 def press_button(plan: Plan, p: dict[str, Any]) -> None:
     plan.press("button")
     plan.goal("button", object="button", min_travel=0.007)
 
 
-@register_task("open_oven")
+@register_task("open_oven", backend="pybullet")
 def open_oven(plan: Plan, p: dict[str, Any]) -> None:
     plan.door("oven", to_open=True)
     plan.goal("door", object="oven", min=1.1)
 
 
-@register_task("close_oven")
+@register_task("close_oven", backend="pybullet")
 def close_oven(plan: Plan, p: dict[str, Any]) -> None:
     plan.door("oven", to_open=False)
     plan.goal("door", object="oven", max=0.12)
 
 
-@register_task("pour")
+@register_task("pour", backend="pybullet")
 def pour(plan: Plan, p: dict[str, Any]) -> None:
     plan.grasp("src")
     plan.pour("src", "dest", side=float(p.get("side", -1.0)))
@@ -58,7 +58,7 @@ def pour(plan: Plan, p: dict[str, Any]) -> None:
     plan.goal("upright", object="src")
 
 
-@register_task("stir")
+@register_task("stir", backend="pybullet")
 def stir(plan: Plan, p: dict[str, Any]) -> None:
     plan.grasp("rod")
     plan.insert("rod", "vessel")
@@ -68,7 +68,7 @@ def stir(plan: Plan, p: dict[str, Any]) -> None:
     plan.goal("held", object="rod")
 
 
-@register_task("shake")
+@register_task("shake", backend="pybullet")
 def shake(plan: Plan, p: dict[str, Any]) -> None:
     plan.grasp("obj")
     plan.shake("obj")
@@ -78,7 +78,7 @@ def shake(plan: Plan, p: dict[str, Any]) -> None:
     plan.goal("released", object="obj")
 
 
-@register_task("retrieve_from_oven")
+@register_task("retrieve_from_oven", backend="pybullet")
 def retrieve_from_oven(plan: Plan, p: dict[str, Any]) -> None:
     plan.door("oven", to_open=True)
     plan.grasp("obj", inside=True)
@@ -89,7 +89,7 @@ def retrieve_from_oven(plan: Plan, p: dict[str, Any]) -> None:
     plan.goal("door", object="oven", max=0.12)
 
 
-@register_task("load_oven")
+@register_task("load_oven", backend="pybullet")
 def load_oven(plan: Plan, p: dict[str, Any]) -> None:
     plan.door("oven", to_open=True)
     plan.grasp("obj")
@@ -100,7 +100,7 @@ def load_oven(plan: Plan, p: dict[str, Any]) -> None:
     plan.goal("door", object="oven", max=0.12)
 
 
-@register_task("pour_and_stir")
+@register_task("pour_and_stir", backend="pybullet")
 def pour_and_stir(plan: Plan, p: dict[str, Any]) -> None:
     plan.grasp("src")
     plan.pour("src", "dest", side=float(p.get("side", -1.0)))

@@ -1,0 +1,195 @@
+"""Labeler detectors on small synthetic traces: one case per failure type (11) plus successes.
+
+The traces come from a few lines of kinematics instead of a simulator: the end effector moves
+linearly to each executed keyframe, an object is held when the fingers close on its grasp point,
+and each case bends exactly the signal its detector reads. Real-episode checks are in
+tests/test_pybullet_episodes.py; these pin every state signature down without physics.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+
+from labrobfail_vlm.taxonomy import FAILURE_TYPE_NAMES, category_of
+from sim_backends.labeler import derive_labels
+from sim_backends.schema import Goal, NominalKeyframe, ObjectInfo, Step, TaskMeta, check_trace
+
+Q0 = (0.0, 0.0, 0.0, 1.0)
+HOME, TARGET = (0.5, 0.0, 0.0), (0.5, 0.25, 0.0)
+GRIP = (0.0, 0.0, 0.05)  # end effector above the object's base when it holds it
+PER_KF = 10  # samples per keyframe
+RATE = 40.0
+
+
+def _twist(angle: float) -> tuple[float, ...]:
+    """A rotation of `angle` rad about x, as an (x, y, z, w) quaternion."""
+    return (math.sin(angle / 2), 0.0, 0.0, math.cos(angle / 2))
+
+
+def _pick_place_plan(dest=TARGET, returning=False) -> list[tuple[str, tuple, int]]:
+    x, y, z = HOME
+    dx, dy, _ = dest
+    return [("s0_pre", (x - 0.1, y, 0.05), 0), ("s0_reach", (x, y, 0.05), 0), ("s0_close", (x, y, 0.05), 1),
+            ("s0_lift", (x, y, 0.17), 1), ("s1_carry", (dx, dy, 0.17), 1), ("s1_lower", (dx, dy, 0.05), 1),
+            ("s1_release", (dx, dy, 0.05), 0), ("s1_retreat", (dx - 0.1, dy, 0.05), 0)]
+
+
+def _pick_place_meta(executed: list[str], returning: bool = False) -> TaskMeta:
+    dest = HOME if returning else TARGET
+    plan = _pick_place_plan(dest)
+    steps = [Step(0, "grasp", object="obj", keyframes=[n for n, *_ in plan[:4]], close_kf="s0_close",
+                  grip_offset=list(GRIP), width=0.054),
+             Step(1, "place", object="obj", dest="obj" if returning else "target", dest_xy=list(dest[:2]),
+                  returning=returning, keyframes=[n for n, *_ in plan[4:]], release_kf="s1_release")]
+    goals = [Goal("at", {"object": "obj", "xy": "obj" if returning else "target", "tol": 0.04}),
+             Goal("upright", {"object": "obj"}), Goal("released", {"object": "obj"})]
+    return TaskMeta(steps=steps, goals=goals,
+                    objects={"obj": ObjectInfo("vessel", {"radius": 0.025, "height": 0.09, "neck": 0.0}, list(HOME))},
+                    places={"obj": list(HOME), "target": list(TARGET)},
+                    nominal=[NominalKeyframe(n, list(p), list(Q0), g, int(n[1])) for n, p, g in plan],
+                    executed=executed, bench_top=0.0, liquid_total={}, labels={"obj": "beaker"}, description="test")
+
+
+def _simulate(meta: TaskMeta, shift: dict[str, tuple] | None = None, twist: dict[str, float] | None = None,
+              stuck_open: bool = False, drop_during: str | None = None, freeze_after: str | None = None,
+              spill_into: str | None = None) -> dict[str, Any]:
+    """A pick-and-place trace of meta.executed at 40 Hz; the keyword arguments bend one signal each."""
+    plan = {k.name: (np.asarray(k.pos), k.gripper) for k in meta.nominal}
+    shift, twist = shift or {}, twist or {}
+    tr: dict[str, Any] = {c: [] for c in ("t", "kf", "ee_pos", "ee_quat", "width", "grip_cmd", "obj.pos", "obj.quat",
+                                          "obj.contacts")}
+    if spill_into:
+        tr.update({"liquid.obj": [], "liquid.dest": [], f"liquid.{spill_into}": [], "liquid.outside": []})
+    ee, quat, obj, held = np.array([0.4, 0.0, 0.3]), Q0, np.asarray(HOME, float), False
+    frozen: tuple | None = None
+
+    def sample(i: int, g: int, spill: int) -> None:
+        tr["t"].append(round(len(tr["t"]) / RATE, 4)); tr["kf"].append(i)
+        tr["ee_pos"].append([round(float(v), 4) for v in ee]); tr["ee_quat"].append(list(quat))
+        tr["width"].append(0.08 if (stuck_open or not g) else 0.054 if held else 0.0); tr["grip_cmd"].append(g)
+        tr["obj.pos"].append([round(float(v), 4) for v in obj])
+        tr["obj.quat"].append(list(quat) if held else list(obj_quat))
+        tr["obj.contacts"].append(2 if held else 0)
+        if spill_into:
+            tr["liquid.obj"].append(10 - spill); tr["liquid.dest"].append(0)
+            tr[f"liquid.{spill_into}"].append(spill); tr["liquid.outside"].append(0)
+
+    obj_quat, spill = Q0, 0
+    sample(0, 0, 0)
+    tr["kf_end"] = []
+    for i, name in enumerate(meta.executed):
+        goal, g = plan[name]
+        goal = goal + np.asarray(shift.get(name, (0, 0, 0)))
+        if frozen is not None:
+            goal, g = frozen
+        start, q = ee.copy(), _twist(twist[name]) if name in twist else Q0
+        for s in range(1, PER_KF + 1):
+            ee = start + (goal - start) * s / PER_KF
+            quat = q
+            if held and name == drop_during and s == PER_KF // 2:  # the object slips out mid-move
+                held, obj = False, np.array([obj[0], obj[1], 0.0])
+            # The fingers close on the grasp point by the end of a closing keyframe.
+            if s == PER_KF and g and not held and not stuck_open and np.linalg.norm(ee - obj - GRIP) < 0.012:
+                held = True
+            if held:
+                obj = ee - np.asarray(GRIP)
+            if spill_into and name == "s1_carry":
+                spill = min(3, spill + 1)
+            sample(i, g, spill)
+        if not g and held:
+            held, obj, obj_quat = False, np.array([obj[0], obj[1], 0.0]), quat
+        tr["kf_end"].append(len(tr["t"]) - 1)
+        if name == freeze_after:
+            frozen = (ee.copy(), g)
+    tr["rate_hz"] = RATE
+    return tr
+
+
+def _button_case(miss: float) -> tuple[dict[str, Any], TaskMeta]:
+    x, y, top = 0.5, 0.1, 0.05
+    plan = [("s0_above", (x, y, top + 0.08)), ("s0_touch", (x, y, top + 0.015)), ("s0_press", (x, y, top - 0.004)),
+            ("s0_release", (x, y, top + 0.08))]
+    meta = TaskMeta(
+        steps=[Step(0, "close", object="button", keyframes=[n for n, _ in plan], contact_kf="s0_press",
+                    contact_point=[x, y, top - 0.004])],
+        goals=[Goal("button", {"object": "button", "min_travel": 0.007})],
+        objects={"button": ObjectInfo("button", {"travel": 0.012, "top": top}, [x, y, 0.0])},
+        places={"button": [x, y, 0.0]}, nominal=[NominalKeyframe(n, list(p), list(Q0), 1, 0) for n, p in plan],
+        executed=[n for n, _ in plan], bench_top=0.0, liquid_total={}, labels={}, description="press")
+    tr: dict[str, Any] = {c: [] for c in ("t", "kf", "ee_pos", "ee_quat", "width", "grip_cmd", "button.q")}
+    tr["kf_end"], ee = [], np.array([0.4, 0.0, 0.3])
+    for i, (name, pos) in enumerate(plan):
+        goal, start = np.asarray(pos) + (np.array([miss, 0, 0]) if name in ("s0_touch", "s0_press") else 0), ee
+        for s in range(1, PER_KF + 1):
+            ee = start + (goal - start) * s / PER_KF
+            pressed = np.linalg.norm(ee[:2] - [x, y]) < 0.01 and ee[2] < top
+            for c, v in (("t", len(tr["t"]) / RATE), ("kf", i), ("ee_pos", [float(v) for v in ee]), ("ee_quat", list(Q0)),
+                         ("width", 0.0), ("grip_cmd", 1), ("button.q", 0.01 if pressed else 0.0)):
+                tr[c].append(v)
+        tr["kf_end"].append(len(tr["t"]) - 1)
+    tr["rate_hz"] = RATE
+    return tr, meta
+
+
+NOMINAL = [n for n, *_ in _pick_place_plan()]
+S0, S1 = NOMINAL[:4], NOMINAL[4:]
+
+
+def _case(kind: str) -> tuple[dict[str, Any], TaskMeta]:
+    if kind == "operation_position_error":
+        return _button_case(miss=0.03)
+    if kind == "button_success":
+        return _button_case(miss=0.0)
+    executed = {"step_omission": S1, "sequence_reversal": S1 + S0}.get(kind, NOMINAL)
+    meta = _pick_place_meta(list(executed), returning=kind == "improper_handling")
+    if kind == "protocol_violation":  # the held vessel's liquid lands in a bystander vessel
+        meta.goals.append(Goal("liquid", {"into": "dest", "min_fraction": 0.5, "source": "obj"}))
+        meta.liquid_total = {"obj": 10}
+    bend: dict[str, Any] = {
+        "gripper_control_failure": {"stuck_open": True},
+        "grasp_target_misalignment": {"shift": {"s0_reach": (0, 0.03, 0), "s0_close": (0, 0.03, 0)}},
+        "object_slippage": {"drop_during": "s1_carry"},
+        "pose_control_error": {"twist": {"s1_lower": 0.5, "s1_release": 0.5}},
+        "improper_handling": {"shift": {n: (0, 0.15, 0) for n in S1[1:]}},
+        "target_positioning_deviation": {"shift": {n: (0, 0.06, 0) for n in S1[1:]}},
+        "protocol_violation": {"spill_into": "bystander"},
+        "incomplete_trajectory": {"freeze_after": "s0_lift"},
+    }.get(kind, {})
+    return _simulate(meta, **bend), meta
+
+
+@pytest.mark.parametrize("kind", ["success", "button_success"])
+def test_success_when_every_goal_holds(kind):
+    tr, meta = _case(kind)
+    assert check_trace(tr, meta) == []
+    lab = derive_labels(tr, meta)
+    assert lab.success and lab.failure_type is None, lab.evidence
+
+
+@pytest.mark.parametrize("kind", FAILURE_TYPE_NAMES)
+def test_each_failure_type_has_its_detector(kind):
+    tr, meta = _case(kind)
+    assert check_trace(tr, meta) == []
+    lab = derive_labels(tr, meta)
+    assert not lab.success and lab.failure_type == kind, lab.evidence
+    assert lab.category == int(category_of(kind)) and 0 <= lab.failure_keyframe < len(meta.executed)
+    assert derive_labels(tr, meta.to_dict()) == lab  # the JSON form a shard stores labels the same
+
+
+def test_slip_window_follows_the_trace_rate():
+    """The 0.2 s release lead is converted with rate_hz: at 4x the rate the window spans 4x the samples."""
+    from sim_backends.schema import samples_in
+
+    assert samples_in({"rate_hz": 40.0}, 0.2) == 8 and samples_in({"rate_hz": 160.0}, 0.2) == 32
+    assert samples_in({}, 0.2) == 8  # traces from before the rate was recorded were 40 Hz
+
+
+def test_keyframe_of_a_failure_is_where_it_shows():
+    tr, meta = _case("grasp_target_misalignment")
+    assert derive_labels(tr, meta).failure_keyframe == meta.executed.index("s0_close")
+    tr, meta = _case("incomplete_trajectory")
+    assert derive_labels(tr, meta).failure_keyframe == meta.executed.index("s0_lift") + 1
