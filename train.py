@@ -52,7 +52,8 @@ def run(cfg: Any) -> dict[str, Any]:
     from labrobfail_vlm.model.loading import load_model, load_processor
     from labrobfail_vlm.train.curriculum import PolarityWarmup, Rewording
     from labrobfail_vlm.train.data import Collator, VQADataset
-    from labrobfail_vlm.train.trainer import HybridTrainer, check_loss_mode
+    from labrobfail_vlm.train.packing import TrajectoryDataset
+    from labrobfail_vlm.train.trainer import HybridTrainer, ProgressLog, check_loss_mode
 
     grid = _check_dataset(cfg)
     check_loss_mode(str(cfg.loss.mode))  # before the model loads
@@ -87,7 +88,8 @@ def run(cfg: Any) -> dict[str, Any]:
         gradient_accumulation_steps=int(cfg.global_batch) // (per_dev * world),
         num_train_epochs=float(cfg.epochs), max_steps=int(cfg.max_steps), lr_scheduler_type=str(cfg.scheduler),
         warmup_steps=float(cfg.warmup_ratio), learning_rate=float(cfg.lr.lora), weight_decay=float(cfg.weight_decay),
-        logging_steps=int(cfg.logging_steps), save_steps=int(cfg.save_steps), save_total_limit=int(cfg.save_total_limit),
+        logging_steps=int(cfg.logging_steps), save_steps=int(cfg.save_steps),
+        save_total_limit=None if cfg.save_total_limit is None else int(cfg.save_total_limit),
         save_strategy="steps", report_to=["wandb"] if cfg.wandb.enabled else "none", seed=int(cfg.seed),
         bf16=dtype == torch.bfloat16 and torch.cuda.is_available(), remove_unused_columns=False,
         dataloader_num_workers=0, deepspeed=cfg.deepspeed, disable_tqdm=not cfg.progress,
@@ -105,7 +107,9 @@ def run(cfg: Any) -> dict[str, Any]:
     counts = count_trainable(model)
     if args.process_index == 0:
         print(json.dumps({"trainable_parameters": counts, "tuning": cfg.tuning, "preset": cfg.preset}), flush=True)
-    train = VQADataset(cfg.dataset_dir, "train")
+    # packing: a trajectory's records share one row and one image encoding (labrobfail_vlm/train/packing.py);
+    # per_device_batch and global_batch then count trajectories
+    train = TrajectoryDataset(cfg.dataset_dir, "train") if cfg.packing else VQADataset(cfg.dataset_dir, "train")
     pairs, warm = bool(cfg.curriculum.pairs), float(cfg.curriculum.polarity_warmup)
     if not 0.0 <= warm <= 1.0:
         raise ConfigError(f"curriculum.polarity_warmup: a fraction of the steps in [0, 1], got {warm}")
@@ -115,7 +119,8 @@ def run(cfg: Any) -> dict[str, Any]:
                                                    if cfg.loss.mode == "record" else None, rewording),
                             processing_class=processor, group_lrs=dict(cfg.lr), base_model=str(cfg.model.path),
                             tuning=str(cfg.tuning), loss_mode=str(cfg.loss.mode), grid=grid, pair_batches=pairs,
-                            callbacks=[PolarityWarmup(rewording, warm)] if rewording is not None and warm > 0 else None)
+                            callbacks=[ProgressLog(Path(cfg.output_dir), len(train.records) / len(train) if cfg.packing else 1.0),
+                                       *([PolarityWarmup(rewording, warm)] if rewording is not None and warm else [])])
     resume = None
     if cfg.resume is True:
         resume = get_last_checkpoint(str(cfg.output_dir))

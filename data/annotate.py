@@ -21,6 +21,7 @@ from labrobfail_vlm import questions as Q
 from labrobfail_vlm.corrections import Context, correction
 from labrobfail_vlm.grid import GridConfig, build_grid, frame_for_keyframe, sample_keyframes
 from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, Category, Severity
+from data.facts import aux_records, frame_facts
 from sim_backends.goals import object_fell
 from sim_backends.schema import TaskMeta
 
@@ -34,6 +35,8 @@ class Annotated:
     grid: Image.Image
     records: list[dict[str, Any]]
     meta: dict[str, Any] = field(default_factory=dict)  # what the review page and stats show
+    prefixes: list["Annotated"] = field(default_factory=list)  # prefix grids of the first k keyframes
+    aux: list[dict[str, Any]] = field(default_factory=list)  # per-frame fact records (training split only)
 
 
 def failure_context(row: dict[str, Any], meta: dict[str, Any], trace: dict[str, list]) -> Context:
@@ -66,12 +69,17 @@ def decode_views(images: list[list[bytes]], picks: list[int]) -> list[list[Image
     return [[Image.open(io.BytesIO(view[i])).convert("RGB") for i in picks] for view in images]
 
 
-def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator) -> Annotated:
+def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator, prefix_cuts: int = 0,
+             prefix_rng: np.random.Generator | None = None, aux: int = 0) -> Annotated:
+    """`prefix_cuts` > 0 adds that many prefix grids, each with a Q2 and a Q3 record (`prefix_records`); `aux` > 0
+    that many per-frame fact records (data/facts.py). Both draw from `prefix_rng`, so the six main records are the
+    same with or without them."""
     meta = json.loads(row["task_meta"])
     trace = json.loads(row["state_trace"])
     kfs = json.loads(row["keyframes"])
     picks = sample_keyframes([k["segment"] for k in kfs], grid_cfg.max_frames)
-    grid = build_grid(decode_views(row["images"], picks), grid_cfg)
+    views = decode_views(row["images"], picks)
+    grid = build_grid(views, grid_cfg)
     traj = f"{row['variant']}-{row['episode_id']}"
     image = f"images/{traj}.png"
     task_name = meta.get("description") or row["scenario"].replace("_", " ")
@@ -96,7 +104,8 @@ def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator
                               {"from": "gpt", "value": ans}],
         })
     info = {
-        "trajectory": traj, "group": f"{row['variant']}-{row['pair_id']}", "scenario": row["scenario"], "task": task_name, "variant": row["variant"],
+        "trajectory": traj, "group": f"{row['variant']}-{row['pair_id']}", "scenario": row["scenario"],
+        "task": task_name, "variant": row["variant"],
         "success": success, "failure_type": row["failure_type"], "category": row["category"],
         "severity": row["severity"], "failure_keyframe": row["failure_keyframe"], "frame": frame,
         "frames": len(picks), "sampled_keyframes": picks, "horizon": row["horizon"], "actions": list(row["actions"]),
@@ -106,7 +115,53 @@ def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator
         # names a (reworded) correction must keep: the objects it acts on, as filled from metadata
         "q6_keep": [w for w in ((ctx.target, ctx.destination, ctx.source) if ctx else ()) if w in answers["Q6"]],
     }
-    return Annotated(traj, info["group"], row["variant"], image, grid, records, info)
+    ann = Annotated(traj, info["group"], row["variant"], image, grid, records, info)
+    if prefix_cuts > 0:
+        ann.prefixes = prefix_records(ann, views, grid_cfg, prefix_cuts, prefix_rng or rng)
+    if aux > 0:
+        ann.aux = aux_records(traj, image, Q.preamble(task_name, grid_cfg.time_axis), frame_facts(trace, meta, picks),
+                              aux, prefix_rng or rng)
+    return ann
+
+
+def prefix_cut_points(frames: int, failure_frame: int | None, n: int, rng: np.random.Generator) -> list[int]:
+    """Up to n prefix lengths k in [1, frames - 1]. For a failure, one cut before its frame and one at or after
+    it come first (when they exist; with n = 1, one of the two at random), so prefixes teach "not yet" and "now"."""
+    cuts = list(range(1, frames))
+    first: list[int] = []
+    if failure_frame is not None:
+        for side in ([k for k in cuts if k < failure_frame], [k for k in cuts if k >= failure_frame]):
+            if side:
+                first.append(int(rng.choice(side)))
+    if len(first) > n:  # fewer cuts than sides: a fair draw of which side
+        first = [first[int(rng.integers(len(first)))]]
+    rest = [k for k in cuts if k not in first]
+    more = [int(k) for k in rng.permutation(rest)] if rest else []
+    return sorted((first + more)[:n])
+
+
+def prefix_records(ann: Annotated, views: list[list[Image.Image]], grid_cfg: GridConfig, n: int,
+                   rng: np.random.Generator) -> list[Annotated]:
+    """Prefix grids for online supervision: the first k keyframes shown, later cells blank. Q2 asks whether a
+    failure has shown up yet (the labeled failure frame is <= k), Q3 the frame when it has, else None."""
+    info, out = ann.meta, []
+    for k in prefix_cut_points(info["frames"], info["frame"], n, rng):
+        failed = info["frame"] is not None and info["frame"] <= k
+        traj = f"{ann.trajectory}-p{k}"
+        image = f"images/{traj}.png"
+        records = []
+        for dim in ("Q2", "Q3"):
+            v = int(rng.integers(len(Q.VARIANTS[dim])))
+            ans = Q.q2_answer(v, not failed) if dim == "Q2" else str(info["frame"]) if failed else Q.NO_FAILURE
+            records.append({"id": Q.record_id(traj, dim), "image": image, "images": [image], "conversations": [
+                {"from": "human", "value": Q.question_text(dim, v, info["task"], grid_cfg.time_axis)},
+                {"from": "gpt", "value": ans}]})
+        meta = {**info, "trajectory": traj, "prefix_of": ann.trajectory, "visible": k, "success": not failed,
+                "frame": info["frame"] if failed else None, "failure_type": info["failure_type"] if failed else None,
+                "category": info["category"] if failed else None, "severity": info["severity"] if failed else None}
+        out.append(Annotated(traj, ann.group, ann.variant, image, build_grid(views, grid_cfg, visible=k), records,
+                             meta))
+    return out
 
 
 # ---- the rule-based filter -------------------------------------------------------------------------------
@@ -128,6 +183,8 @@ def check_record(rec: Any, info: dict[str, Any]) -> str | None:
         return "malformed"
     dim = rid.rsplit("_", 1)[-1]
     ok = info["success"]
+    if Q.is_aux(dim):  # a per-frame fact (data/facts.py), derived from the trace
+        return None if a in ("Yes", "No") and q.endswith("(Yes/No)") else "malformed"
     if dim == "Q1":
         acts = [s.strip() for s in a.split(",")]
         return None if acts == info["actions"] and set(acts) <= set(ATOMIC_ACTIONS) else "inconsistent"

@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
+import zlib
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -28,10 +29,11 @@ from tqdm import tqdm
 from data.annotate import Annotated, annotate, check_record
 from data.paraphrase import Paraphraser
 from data.splits import assign
-from labrobfail_vlm.taxonomy import SEEN_SPLITS, UNSEEN_SPLITS
+from labrobfail_vlm import questions as Q
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import GridConfig
 from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
+from labrobfail_vlm.taxonomy import SCENE_VARIANTS, SEEN_SPLITS, UNSEEN_SPLITS
 
 READ_COLUMNS = ["episode_id", "pair_id", "variant", "scenario", "success", "failure_type", "category", "severity",
                 "failure_keyframe", "evidence", "actions", "horizon", "images", "state_trace", "task_meta", "keyframes"]
@@ -105,9 +107,12 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     n_total = sum(pq.ParquetFile(f).metadata.num_rows for f in files)
     for row in tqdm(_rows(files), total=n_total, desc="annotate", unit="traj", disable=not cfg.progress):
         total_rows += 1
-        if row["variant"] not in ("seen", *UNSEEN_SPLITS):
+        if row["variant"] not in SCENE_VARIANTS:
             raise ConfigError(f"shards: row {row['episode_id']} has unknown variant {row['variant']!r}")
-        ann = annotate(row, gcfg, rng)
+        # prefix cuts draw from their own stream: the main records are the same with or without them
+        traj_key = zlib.crc32(f"{row['variant']}-{row['episode_id']}".encode())
+        ann = annotate(row, gcfg, rng, int(cfg.prefix.cuts), np.random.default_rng([int(cfg.seed), traj_key]),
+                       int(cfg.aux.per_trajectory))
         if marks.get(ann.trajectory) == "reject":
             drops["review_rejected"] += 1
             continue
@@ -122,13 +127,15 @@ def build(cfg: DictConfig) -> dict[str, Any]:
                     para_stats["accepted"] += 1
                 else:
                     para_stats["rejected"] += 1
-        reasons = [r for rec in ann.records if (r := check_record(rec, ann.meta))]
+        reasons = [r for a in (ann, *ann.prefixes) for rec in a.records if (r := check_record(rec, a.meta))]
+        reasons += [r for rec in ann.aux if (r := check_record(rec, ann.meta))]
         if reasons:
             drops.update(reasons)
             continue
-        buf = io.BytesIO()
-        ann.grid.save(buf, format="PNG", optimize=False, compress_level=3)
-        atomic_write_bytes(out / ann.image_name, buf.getvalue())
+        for a in (ann, *ann.prefixes):
+            buf = io.BytesIO()
+            a.grid.save(buf, format="PNG", optimize=False, compress_level=3)
+            atomic_write_bytes(out / a.image_name, buf.getvalue())
         kept.append(ann)
 
     split_of = assign([(a.group, a.variant) for a in kept], int(cfg.seed), tuple(cfg.ratios))
@@ -136,6 +143,12 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     for a in kept:
         a.meta["split"] = split_of[a.group]
         splits[split_of[a.group]].extend(a.records)
+        if a.meta["split"] == "train":  # facts are a training signal; the benchmark never asks them
+            splits["train"].extend(a.aux)
+        for p in a.prefixes:  # training prefixes train with the rest; evaluation ones are scored separately
+            p.meta["split"] = split_of[a.group]
+            name = "train" if p.meta["split"] == "train" else f"{p.meta['split']}_prefix"
+            splits.setdefault(name, []).extend(p.records)
     for name, recs in splits.items():
         if name in SEEN_SPLITS or recs:
             atomic_write_json(out / f"{name}.json", recs)
@@ -146,8 +159,11 @@ def build(cfg: DictConfig) -> dict[str, Any]:
                                         "assistant_tag": "gpt"}}
         for name, recs in splits.items() if name in SEEN_SPLITS or recs})
     trajectories = [a.meta for a in kept]
-    atomic_write_json(out / "trajectories.json", trajectories)
+    atomic_write_json(out / "trajectories.json", trajectories + [p.meta for a in kept for p in a.prefixes])
     stats = dataset_stats(trajectories, splits, total_rows, drops, para_stats, gcfg)
+    stats["prefix"] = {"cuts": int(cfg.prefix.cuts), "grids": sum(len(a.prefixes) for a in kept)}
+    stats["aux"] = {"per_trajectory": int(cfg.aux.per_trajectory),
+                    "records": sum(len(a.aux) for a in kept if a.meta["split"] == "train")}
     atomic_write_json(out / "stats.json", stats)
     from data.plots import write_plots
     from data.review import write_review_page
@@ -166,8 +182,8 @@ def dataset_stats(traj: list[dict[str, Any]], splits: dict[str, list], total_row
         "filter": {"dropped_trajectories": total_rows - len(traj), "by_reason": dict(drops),
                    "drop_rate": round((total_rows - len(traj)) / total_rows, 4) if total_rows else 0.0},
         "paraphrase": dict(para),
-        "splits": {k: {"records": len(v), "trajectories": len(v) // 6} for k, v in splits.items() if v or k in
-                   SEEN_SPLITS},
+        "splits": {k: {"records": len(v), "trajectories": len({Q.traj_of(r["id"]) for r in v})}
+                   for k, v in splits.items() if v or k in SEEN_SPLITS},
         "by_outcome": {"success": len(traj) - len(fails), "failure": len(fails)},
         "by_failure_type": dict(Counter(t["failure_type"] for t in fails).most_common()),
         "by_category": dict(sorted(Counter(str(t["category"]) for t in fails).items())),

@@ -25,7 +25,7 @@ from PIL import Image
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.corrections import STRATEGIES, candidates
 from labrobfail_vlm.grid import GridConfig, build_grid, sample_keyframes
-from labrobfail_vlm.model.processor import expand_image_tokens
+from labrobfail_vlm.model.processor import common_prefix_len, expand_image_tokens
 from labrobfail_vlm.taxonomy import Category, Severity
 
 
@@ -134,8 +134,7 @@ class FailureAnalyzer:
         ids = [self.decoder.encode_ids(expand_image_tokens(self.processor, p, one["image_grid_thw"][0]))
                for p in prompts.values()]
         assert ids[0] == one["input_ids"][0].tolist(), "prompt tokenization differs from the processor's"
-        n = min(len(x) for x in ids)
-        lcp = next((i for i in range(n) if len({x[i] for x in ids}) > 1), n)
+        lcp = common_prefix_len(ids)
         text_cols = ("input_ids", "attention_mask", "mm_token_type_ids")
         pre = self.decoder.prefill({k: (v[:, :lcp] if k in text_cols else v) for k, v in one.items()})
         for dim, seq in zip(prompts, ids):
@@ -144,9 +143,10 @@ class FailureAnalyzer:
             self.decoder.rewind(q_pre, pre)  # after the caller has answered from it
 
     def answers(self, image: Image.Image, task: str, one_pass: bool = True, frames: int | None = None,
-                objects: Sequence[str] = ()) -> dict[str, str]:
+                objects: Sequence[str] = (), dims: Sequence[str] = Q.DIMENSIONS) -> dict[str, str]:
+        """The replies to `dims` (Q2 is always asked: the others follow its verdict)."""
         frames = frames or self.num_frames
-        prompts = {dim: self._prompt(dim, task) for dim in Q.DIMENSIONS}
+        prompts = {dim: self._prompt(dim, task) for dim in Q.DIMENSIONS if dim in dims or dim == "Q2"}
         out: dict[str, str] = {}
         failed: bool | None = None
         for dim, pre in self._prefixes(image, prompts, one_pass):

@@ -128,8 +128,12 @@ class Decoder:
         return Q.format_actions(chosen)
 
     def free_text(self, pre: Prefix, avoid: Sequence[str] = ()) -> str:
-        """Greedy text until the end of turn; `avoid`: replies that must not be produced (their first tokens are
-        barred at step one). No n-gram of `no_repeat_ngram` tokens is produced twice (a small model's greedy
+        """Greedy text until the end of turn (see `free_tokens`)."""
+        return self.tok.decode(self.free_tokens(pre, avoid), skip_special_tokens=True).strip()
+
+    def free_tokens(self, pre: Prefix, avoid: Sequence[str] = ()) -> list[int]:
+        """Greedy token ids until the end of turn; `avoid`: replies that must not be produced (their first tokens
+        are barred at step one). No n-gram of `no_repeat_ngram` tokens is produced twice (a small model's greedy
         text otherwise loops: "...to secure the gripper to secure the gripper...")."""
         out: list[int] = []
         cur = pre
@@ -150,4 +154,4 @@ class Decoder:
             out.append(t)
             cur, _ = self.extend(cur, [t])
         self.rewind(cur, pre)
-        return self.tok.decode(out, skip_special_tokens=True).strip()
+        return out

@@ -27,6 +27,9 @@ DIMENSIONS = ("Q1", "Q2", "Q3", "Q4", "Q5", "Q6")
 DIMENSION_NAMES = {"Q1": "Task Understanding", "Q2": "Failure Detection", "Q3": "Temporal Localization",
                    "Q4": "Severity Assessment", "Q5": "Failure Classification", "Q6": "Correction Strategy"}
 
+# Auxiliary training records (data/facts.py: per-frame state facts) end in _A<i>; the benchmark never asks them.
+AUX_PREFIX = "A"
+
 NO_FAILURE = "None"
 NO_CORRECTION = "No correction is needed; the task was completed successfully."
 
@@ -115,6 +118,10 @@ def dim_of(rid: str) -> str:
     return rid.rsplit("_", 1)[-1]
 
 
+def is_aux(dim: str) -> bool:
+    return dim.startswith(AUX_PREFIX) and dim[len(AUX_PREFIX):].isdigit()
+
+
 def traj_of(rid: str) -> str:
     return rid.rsplit("_", 1)[0]
 
@@ -135,7 +142,7 @@ def reask(dim: str, question: str, answer: str, variant: int) -> tuple[str, str]
     Only Q2's answer depends on the wording (the "successfully"/"without issues" variants flip Yes/No);
     a question in no known wording (e.g. paraphrased) is returned unchanged.
     """
-    old = variant_of(dim, question)
+    old = variant_of(dim, question) if dim in VARIANTS else None
     if old is None or old == variant:
         return question, answer
     new_q = question.replace(VARIANTS[dim][old].text, VARIANTS[dim][variant].text, 1)

@@ -24,7 +24,7 @@ from labrobfail_vlm.config import ConfigError, cli_main, load_config  # noqa: E4
 def main(argv: list[str]) -> int:
     from labrobfail_vlm.bench import evaluate as ev
     from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
-    from labrobfail_vlm.bench.report import PAPER_ROWS, confusion_png, markdown, row
+    from labrobfail_vlm.bench.report import PAPER_ROWS, PAPER_UNSEEN_ROWS, confusion_png, markdown, row
 
     cfg = load_config("evaluate.yaml", argv)
     if (cfg.model is None) == (cfg.predictions is None):
@@ -45,7 +45,8 @@ def main(argv: list[str]) -> int:
         analyzer = FailureAnalyzer.from_pretrained(cfg.model)
         preds = ev.model_predictions(analyzer, cfg.dataset_dir, recs, traj, progress=cfg.progress)
         name = "LabRobFail-VLM (" + Path(cfg.model).name + ")"
-        if cfg.q6_template:  # the same model, Q6 chosen among the correction-strategy table's filled templates
+        if cfg.q6_template and any(r["id"].endswith("_Q6") for r in recs):
+            # the same model, Q6 chosen among the correction-strategy table's filled templates
             analyzer.q6_mode = "template"
             results[name + ", Q6 template"] = ev.score(recs, ev.model_predictions(
                 analyzer, cfg.dataset_dir, recs, traj, progress=cfg.progress), traj)
@@ -80,8 +81,10 @@ def main(argv: list[str]) -> int:
         ext = ev.external_predictions(client, cfg.dataset_dir, recs, cfg.progress, log_lines.append)
         results[str(cfg.external.name)] = ev.score(recs, ext, traj, log_lines.append)
     rows = {k: row(v) for k, v in results.items()}
-    if cfg.reference_rows:
-        rows.update(PAPER_ROWS)
+    if cfg.reference_rows and cfg.split in ("test", *PAPER_UNSEEN_ROWS):
+        # the paper's rows for the same setting (its unseen table has LabRobFail-VLM only)
+        rows.update({"LabRobFail-VLM (paper)": PAPER_UNSEEN_ROWS[cfg.split]} if cfg.split in PAPER_UNSEEN_ROWS
+                    else PAPER_ROWS)
     md = markdown(rows, f"LabRobFail-Bench, split {cfg.split} ({len(recs)} records)")
     main_res = results[name]
     payload = {**main_res, "split": cfg.split, "method": name, "baselines": {k: v for k, v in results.items()

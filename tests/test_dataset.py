@@ -223,3 +223,53 @@ def test_paraphrase_through_openai_compatible_endpoint(run6, tmp_path, mode):
         assert stats["paraphrase"]["accepted"] > 0 and "Rephrased: " in text
     else:  # Q6 answers that lose the object names are rejected; the originals stay
         assert stats["paraphrase"].get("rejected", 0) > 0 and stats["trajectories_kept"] == 6
+
+
+def test_prefix_records_follow_the_failure_frame(run6, ds, tmp_path):
+    from data.annotate import prefix_cut_points
+    out = tmp_path / "p"
+    r = build(run6, out, "prefix.cuts=2", "grid.width=256", "grid.height=128", "grid.max_frames=8", "grid.columns=4")
+    assert r.returncode == 0, r.stderr
+    traj = {t["trajectory"]: t for t in load(out, "trajectories")}
+    prefixes = [t for t in traj.values() if "prefix_of" in t]
+    assert prefixes and all(t["visible"] < traj[t["prefix_of"]]["frames"] for t in prefixes)
+    recs = load(out, "train") + sum((load(out, f"{s}_prefix") for s in ("val", "test")
+                                     if (out / f"{s}_prefix.json").is_file()), [])
+    seen_before = seen_after = 0
+    for rec in recs:
+        t = traj[Q.traj_of(rec["id"])]
+        if "prefix_of" not in t:
+            continue
+        full = traj[t["prefix_of"]]
+        failed_yet = full["frame"] is not None and full["frame"] <= t["visible"]
+        seen_before += full["frame"] is not None and not failed_yet
+        seen_after += failed_yet
+        ans = rec["conversations"][1]["value"]
+        if Q.dim_of(rec["id"]) == "Q2":
+            assert ans == Q.q2_answer(Q.q2_variant(rec["conversations"][0]["value"]), not failed_yet)
+        else:
+            assert Q.dim_of(rec["id"]) == "Q3" and ans == (str(full["frame"]) if failed_yet else Q.NO_FAILURE)
+        assert check_record(rec, t) is None
+    assert seen_before and seen_after  # a failure gets cuts both before and at/after its frame
+    # the first hidden time step is blank in every view, the last shown one is not
+    g = GridConfig(width=256, height=128, max_frames=8, columns=4)
+    for t in prefixes[:6]:
+        img = np.asarray(Image.open(out / "images" / f"{t['trajectory']}.png"))
+        rows, cols = g.shape(2)
+        h, w = 128 // rows, 256 // cols
+        for k in range(2):
+            r_, c_ = g.cell(t["visible"], k, 2)
+            assert (img[r_ * h:(r_ + 1) * h, c_ * w:(c_ + 1) * w] == BLANK[0]).all()
+            r_, c_ = g.cell(t["visible"] - 1, k, 2)
+            assert not (img[r_ * h:(r_ + 1) * h, c_ * w:(c_ + 1) * w] == BLANK[0]).all()
+    # the main records are the same with and without prefixes; evaluation prefixes stay out of test.json
+    base = tmp_path / "b"
+    assert build(run6, base, "grid.width=256", "grid.height=128", "grid.max_frames=8", "grid.columns=4").returncode == 0
+    assert load(base, "test") == load(out, "test")
+    assert [x for x in load(out, "train") if "-p" not in Q.traj_of(x["id"])] == load(base, "train")
+    # cut points: in range, distinct, both sides of the failure frame first
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        cuts = prefix_cut_points(8, 5, 2, rng)
+        assert len(cuts) == 2 and cuts[0] < 5 <= cuts[1]
+    assert prefix_cut_points(1, None, 2, rng) == []

@@ -6,6 +6,7 @@ import sys
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 from conftest import ROOT
@@ -166,3 +167,74 @@ def test_evaluate_model_and_predictions_file(tiny, small_ds, tmp_path):  # noqa:
     r = subprocess.run([sys.executable, "scripts/evaluate.py", f"predictions={tmp_path / 'bad.jsonl'}",
                         f"dataset_dir={small_ds}"], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "line 1" in r.stderr and "Traceback" not in r.stderr
+
+
+def _q6_prefix(fa, img, task):
+    prompts = {"Q6": fa._prompt("Q6", task)}
+    return next(fa._prefixes(img, prompts, one_pass=False))[1]
+
+
+def test_q6_free_text_never_repeats_a_trigram(tiny, grid):  # noqa: F811
+    from labrobfail_vlm.analyzer import FailureAnalyzer
+    fa = FailureAnalyzer.from_pretrained(tiny)
+    img = Image.open(grid).convert("RGB")
+    d = fa.decoder
+    d.max_new_tokens = 48
+
+    def tokens(n):
+        d.no_repeat_ngram = n
+        return d.free_tokens(_q6_prefix(fa, img, "pick up the beaker"))
+
+    def repeats(ids):
+        grams = [tuple(ids[i:i + 3]) for i in range(len(ids) - 2)]
+        return len(grams) - len(set(grams))
+
+    assert repeats(tokens(0)) > 0  # an untrained model's greedy text loops ...
+    assert repeats(tokens(3)) == 0  # ... the guard stops that
+
+
+def test_score_many_equals_scoring_each_sequence_alone(tiny, grid):  # noqa: F811
+    from labrobfail_vlm.analyzer import FailureAnalyzer
+    fa = FailureAnalyzer.from_pretrained(tiny)
+    pre = _q6_prefix(fa, Image.open(grid).convert("RGB"), "pick up the beaker")
+    d = fa.decoder
+    seqs = [d.encode_ids(t) for t in ("Move the robotic arm to the beaker", "Move the robotic arm to the flask",
+                                      "Keep the gripper closed", "Move")]
+    together = d.score_many(pre, seqs)
+    for s, got in zip(seqs, together):
+        _, logits = d.extend(pre, s)
+        lps = torch.log_softmax(torch.cat([pre.last_logits[None], logits[:-1]]), -1)
+        d.rewind(_, pre)
+        assert got == pytest.approx(float(lps[torch.arange(len(s)), torch.tensor(s)].sum()), abs=1e-4)
+
+
+def test_q6_template_mode_picks_a_filled_strategy(tiny, grid):  # noqa: F811
+    from labrobfail_vlm.analyzer import FailureAnalyzer, nearest_strategy
+    from labrobfail_vlm.corrections import candidates
+    fa = FailureAnalyzer.from_pretrained(tiny, q6_mode="template")
+    names = ["small beaker", "target area"]
+    reply = fa._answer("Q6", _q6_prefix(fa, Image.open(grid).convert("RGB"), "pick up the small beaker"), True, 8,
+                       names)
+    cands = dict((text, sid) for sid, text in candidates(names))
+    assert reply in cands and nearest_strategy(reply) == cands[reply]
+    assert all("{" not in text for text in cands)  # every placeholder filled
+    with pytest.raises(ValueError, match="q6_mode"):
+        FailureAnalyzer.from_pretrained(tiny, q6_mode="beam")
+
+
+def test_evaluate_reports_types_template_row_and_skips_majority_without_train(tiny, small_ds, tmp_path):  # noqa: F811
+    import shutil
+    ds = tmp_path / "unseen_only"
+    shutil.copytree(small_ds, ds)
+    (ds / "train.json").unlink()
+    r = subprocess.run([sys.executable, "scripts/evaluate.py", f"model={tiny}", f"dataset_dir={ds}", "split=test",
+                        f"out_dir={tmp_path / 'e'}", "progress=false", "baselines=[majority]"], cwd=ROOT,
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr[-2000:]
+    assert "majority baseline skipped" in r.stderr
+    res = json.loads((tmp_path / "e" / "results.json").read_text())
+    assert "majority class" not in res["baselines"]
+    assert any(k.endswith("Q6 template") for k in res["baselines"])
+    traj = json.loads((ds / "trajectories.json").read_text())
+    types = {t["failure_type"] for t in traj if t["split"] == "test" and not t["success"]}
+    assert {f"type:{t}" for t in types} <= set(res["breakdown"])

@@ -173,3 +173,70 @@ def test_deepspeed_two_cpu_ranks_train_save_resume(tiny, small_ds, tmp_path):
     summary = json.loads((out / "train_summary.json").read_text())
     assert summary["global_step"] == 3
     assert (out / "final" / "adapter_model.safetensors").is_file()
+
+
+def test_packed_row_loss_equals_the_six_records_alone(tiny, small_ds):
+    """Shared-prefix packing: same per-record losses as unpacked records, the grid encoded once per row."""
+    from labrobfail_vlm.model.loading import load_model, load_processor
+    from labrobfail_vlm.train.data import Collator
+    from labrobfail_vlm.train.packing import TrajectoryDataset, prepare_packed
+    from labrobfail_vlm.train.trainer import record_loss
+    proc = load_processor(tiny)
+    proc.tokenizer.padding_side = "right"
+    td = TrajectoryDataset(small_ds, "train")
+    items = [td[0], td[1]]
+    assert [len(i) for i in items] == [6, 6]
+    col = Collator(proc, 1024, {"Q2": 2.0, "Q6": 0.5})
+    packed = col(items)
+    assert packed["pixel_values"].shape[0] == 2 * 32 * 4  # one image per row: 32 visual tokens x 2x2 patches
+    assert packed["record_weight"].numel() == 12
+    unpacked = col([r for i in items for r in i])
+    model = load_model(tiny).eval()
+    with torch.no_grad():
+        w, slots, labels = packed.pop("record_weight"), packed.pop("label_slot"), packed.pop("labels")
+        got, _ = record_loss(model, prepare_packed(model, packed), labels, w, slots)
+        uw, ulabels = unpacked.pop("record_weight"), unpacked.pop("labels")
+        want, _ = record_loss(model, unpacked, ulabels, uw)
+    assert float(got) == pytest.approx(float(want), rel=1e-5)
+    # a branch cannot see another: with the Q1 records weighted 0, rewriting Q1's answer tokens changes nothing
+    packed = col(items)
+    w, slots, labels = packed.pop("record_weight"), packed.pop("label_slot"), packed.pop("labels")
+    w[[0, 6]] = 0.0
+    q1 = (slots == 0) | (slots == 6)
+    with torch.no_grad():
+        before, _ = record_loss(model, prepare_packed(model, dict(packed)), labels, w, slots)
+        packed["input_ids"] = packed["input_ids"].masked_fill(q1, int(proc.tokenizer.pad_token_id))
+        after, _ = record_loss(model, prepare_packed(model, dict(packed)), labels, w, slots)
+    assert float(before) == pytest.approx(float(after), rel=1e-6)
+
+
+def test_rewording_and_pair_sampler(small_ds):
+    from labrobfail_vlm import questions as Q
+    from labrobfail_vlm.train.curriculum import PairSampler, Rewording
+    from labrobfail_vlm.train.data import VQADataset
+    ds = VQADataset(small_ds, "train")
+    assert ds.group_of and len(set(ds.group_of.values())) < len(ds.group_of)  # pairs share a group
+    # the polarity flips the Q2 answer; other dimensions keep theirs
+    q2 = next(ds[i] for i in range(len(ds)) if ds[i]["id"].endswith("_Q2"))
+    pos = next(i for i, v in enumerate(Q.VARIANTS["Q2"]) if v.positive)
+    neg = next(i for i, v in enumerate(Q.VARIANTS["Q2"]) if not v.positive)
+    (qa, aa), (qb, ab) = Q.reask("Q2", q2["question"], q2["answer"], pos), Q.reask("Q2", q2["question"], q2["answer"], neg)
+    assert Q.VARIANTS["Q2"][pos].text in qa and Q.VARIANTS["Q2"][neg].text in qb and {aa, ab} == {"Yes", "No"}
+    rw = Rewording(ds.group_of, pairs=True)
+    rw.negative_only = True
+    recs = [ds[i] for i in range(len(ds))]
+    out = rw(recs)
+    assert all(not Q.VARIANTS["Q2"][Q.q2_variant(r["question"])].positive for r in out if r["id"].endswith("_Q2"))
+    # twins asked the same wording in one batch
+    by = {}
+    for r in out:
+        by.setdefault((ds.group_of[Q.traj_of(r["id"])], Q.dim_of(r["id"])), set()).add(r["question"])
+    assert all(len(v) == 1 for v in by.values())
+    # the sampler keeps both records of a (pair, question) unit inside one micro-batch of 4
+    order = list(PairSampler([r["id"] for r in ds.records], ds.group_of, 4, seed=1))
+    assert sorted(order) == list(range(len(ds)))
+    keys = [(ds.group_of[Q.traj_of(ds.records[i]["id"])], Q.dim_of(ds.records[i]["id"])) for i in order]
+    where = {}
+    for pos_, k in enumerate(keys):
+        where.setdefault(k, set()).add(pos_ // 4)
+    assert sum(len(v) > 1 for v in where.values()) <= 1  # at most the tail straddles

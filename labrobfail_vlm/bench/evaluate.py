@@ -22,7 +22,8 @@ from labrobfail_vlm.taxonomy import SEEN_SPLITS, UNSEEN_SPLITS
 
 # CLI split name -> file stem: the seen splits by name, each unseen variant by its suffix ("object" -> test_object).
 SPLITS = {**{s: s for s in reversed(SEEN_SPLITS)},
-          **{v.removeprefix("unseen_"): s for v, s in UNSEEN_SPLITS.items()}}
+          **{v.removeprefix("unseen_"): s for v, s in UNSEEN_SPLITS.items()},
+          "prefix": "test_prefix"}  # prefix grids of the seen test split (dataset built with prefix.cuts > 0)
 
 
 def q2_as_asked(question: str, failed: bool) -> str:
@@ -65,7 +66,8 @@ def read_predictions(path: str | Path) -> dict[str, str]:
 # ---- prediction sources -----------------------------------------------------------------------------------
 def model_predictions(analyzer: Any, dataset_dir: str | Path, recs: list[dict], traj: dict[str, dict],
                       blind: bool = False, progress: bool = True) -> dict[str, str]:
-    """Run the analyzer once per trajectory (one pass, six answers); `blind` blanks the grid."""
+    """Run the analyzer once per trajectory (one pass over the dimensions its records ask); `blind` blanks
+    the grid."""
     from tqdm import tqdm
 
     by_traj: dict[str, list[dict]] = defaultdict(list)
@@ -78,7 +80,7 @@ def model_predictions(analyzer: Any, dataset_dir: str | Path, recs: list[dict], 
             img = Image.new("RGB", img.size, (128, 128, 128))
         info = traj.get(t, {})
         ans = analyzer.answers(img, info.get("task", ""), one_pass=True, frames=info.get("frames"),
-                               objects=info.get("objects", ()))
+                               objects=info.get("objects", ()), dims={Q.dim_of(r["id"]) for r in rs})
         failed = ans["Q2"] == "Yes"
         for r in rs:
             d = Q.dim_of(r["id"])

@@ -16,6 +16,12 @@ PAPER_ROWS: dict[str, list[float]] = {
     "GPT-5.4 (paper)": [45.16, 52.34, 15.88, 47.06, 38.54, 0.1194, 0.0606, 0.0307, 0.0161, 0.1520],
     "LabRobFail-VLM (paper)": [94.45, 90.83, 77.21, 83.18, 73.21, 0.7629, 0.7569, 0.7452, 0.7362, 0.7542],
 }
+# Paper, unseen-environment table: LabRobFail-VLM per setting (same columns).
+PAPER_UNSEEN_ROWS: dict[str, list[float]] = {
+    "object": [91.53, 79.15, 60.22, 53.05, 59.86, 0.4876, 0.4536, 0.3974, 0.3492, 0.4668],
+    "scene": [93.42, 85.56, 74.39, 63.51, 72.63, 0.6793, 0.6276, 0.5805, 0.5229, 0.6604],
+    "both": [89.09, 71.02, 41.41, 46.02, 48.72, 0.3981, 0.3875, 0.3735, 0.3269, 0.3894],
+}
 HEADER = ["Method", "Q1", "Q2", "Q3", "Q4", "Q5", "BLEU-1", "BLEU-2", "BLEU-3", "BLEU-4", "ROUGE-L"]
 
 

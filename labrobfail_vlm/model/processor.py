@@ -34,8 +34,10 @@ class LabRobFailProcessor(Qwen3VLProcessor):
         return cls(image_processor=ip, tokenizer=tok, chat_template=tok.chat_template)
 
 
-def image_processor(max_pixels: int = GRID_PIXELS, min_pixels: int = MIN_PIXELS) -> Qwen2VLImageProcessorPil:
-    return Qwen2VLImageProcessorPil(patch_size=16, temporal_patch_size=2, merge_size=2,
+def image_processor(max_pixels: int = GRID_PIXELS, min_pixels: int = MIN_PIXELS,
+                    temporal_patch_size: int = 2) -> Qwen2VLImageProcessorPil:
+    """`temporal_patch_size` must match the vision tower's (Qwen3-VL: 2, an image is fed as two equal frames)."""
+    return Qwen2VLImageProcessorPil(patch_size=16, temporal_patch_size=temporal_patch_size, merge_size=2,
                                     size={"shortest_edge": min_pixels, "longest_edge": max_pixels})
 
 
@@ -44,6 +46,12 @@ def expand_image_tokens(processor: Any, text: str, grid_thw: Any) -> str:
     tokenizing: lets a caller tokenize a prompt without processing the image again."""
     n = int(grid_thw.prod()) // processor.image_processor.merge_size ** 2
     return text.replace(processor.image_token, processor.image_token * n, 1)
+
+
+def common_prefix_len(seqs: list[list[int]]) -> int:
+    """Length of the longest common prefix of token sequences (the image and preamble that prompts share)."""
+    n = min(len(s) for s in seqs)
+    return next((i for i in range(n) if len({s[i] for s in seqs}) > 1), n)
 
 
 def visual_tokens(width: int, height: int) -> int:

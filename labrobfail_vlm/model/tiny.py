@@ -106,8 +106,8 @@ def build_tiny(out_dir: str | Path, seed: int = 0, texts: Iterable[str] = (), vi
     model.generation_config = GenerationConfig(eos_token_id=ids["<|im_end|>"], pad_token_id=ids["<|endoftext|>"],
                                                do_sample=False)
     model.save_pretrained(out, safe_serialization=True)
-    LabRobFailProcessor(image_processor=image_processor(), tokenizer=tok, chat_template=CHAT_TEMPLATE
-                        ).save_pretrained(out)
+    ip = image_processor(temporal_patch_size=vis["temporal_patch_size"])
+    LabRobFailProcessor(image_processor=ip, tokenizer=tok, chat_template=CHAT_TEMPLATE).save_pretrained(out)
     return out
 
 

@@ -88,8 +88,8 @@ class Rewording:
         out = []
         for b in batch:
             dim, traj = Q.dim_of(b["id"]), Q.traj_of(b["id"])
-            v = Q.variant_of(dim, b["question"])
-            if v is None:
+            v = Q.variant_of(dim, b["question"]) if dim in Q.VARIANTS else None
+            if v is None:  # an auxiliary fact, or a wording of no known variant
                 out.append(b)
                 continue
             key = (self.group_of.get(traj, traj), dim)

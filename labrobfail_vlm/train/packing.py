@@ -48,11 +48,6 @@ class TrajectoryDataset(Dataset):
         return [self.records.records[idx[0]]["id"] for idx in self.items]
 
 
-def lcp(seqs: list[list[int]]) -> int:
-    n = min(len(s) for s in seqs)
-    return next((i for i in range(n) if len({s[i] for s in seqs}) > 1), n)
-
-
 def pack_rows(rows: list[dict[str, Any]], pad_id: int) -> dict[str, torch.Tensor]:
     """Right-pad packed rows ({ids, labels, types, seg, shift, slots}) into batch tensors.
 

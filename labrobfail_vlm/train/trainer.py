@@ -8,12 +8,14 @@ classification questions get a few percent of the gradient; `record` gives each 
 
 from __future__ import annotations
 
+import json
+import time
 from pathlib import Path
 from typing import Any
 
 import torch
 import torch.nn.functional as F
-from transformers import Trainer
+from transformers import Trainer, TrainerCallback
 
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.model.hybrid import param_groups
@@ -103,3 +105,40 @@ def record_loss(model: Any, inputs: dict[str, Any], labels: torch.Tensor, weight
     per = per / torch.bincount(rows, minlength=n).clamp(min=1).to(per.dtype)
     w = torch.ones_like(per) if weights is None else weights.to(per.device, per.dtype)
     return (w * per).sum() / n, outputs
+
+
+class ProgressLog(TrainerCallback):
+    """At every checkpoint: optimizer step, training examples seen (records), wall and CPU seconds so far, into
+    output_dir/progress.json; scripts/learning_curve.py turns the checkpoints into accuracy curves."""
+
+    def __init__(self, out: Path, records_per_item: float = 1.0):
+        self.out, self.per_item = Path(out), float(records_per_item)
+        self.rows: list[dict[str, float]] = []
+        self.t0 = self.c0 = 0.0
+
+    def on_train_begin(self, args, state, control, **kwargs):  # noqa: D102
+        from labrobfail_vlm.io import atomic_write_json
+
+        self.t0, self.c0 = time.perf_counter(), time.process_time()
+        if not state.is_world_process_zero:  # one writer: ranks would race on the same file
+            return
+        self.out.mkdir(parents=True, exist_ok=True)
+        path = self.out / "progress.json"
+        self.rows = [r for r in (json.loads(path.read_text()) if path.is_file() else [])
+                     if r["step"] <= state.global_step]  # a resumed run keeps the rows up to its checkpoint
+        if self.rows:  # continue the clocks where the checkpoint left them
+            self.t0 -= self.rows[-1]["wall_s"]
+            self.c0 -= self.rows[-1]["cpu_s"]
+        atomic_write_json(path, self.rows)
+
+    def on_save(self, args, state, control, **kwargs):  # noqa: D102
+        from labrobfail_vlm.io import atomic_write_json
+
+        if not state.is_world_process_zero:
+            return
+        items = state.global_step * args.per_device_train_batch_size * args.gradient_accumulation_steps * \
+            args.world_size
+        self.rows.append({"step": state.global_step, "examples": round(items * self.per_item),
+                          "wall_s": round(time.perf_counter() - self.t0, 1),
+                          "cpu_s": round(time.process_time() - self.c0, 1)})
+        atomic_write_json(self.out / "progress.json", self.rows)
