@@ -26,26 +26,28 @@ browser: $(APT_STAMP)
 
 # The main job on the embedded default, all on CPU: PyBullet episodes (success/failure pairs) rendered at the
 # grid's cell size -> keyframe strips -> the VQA dataset (512x512 grids of 8 keyframes, 128 px cells, 256 visual
-# tokens; per-frame state facts for training) -> the tiny Qwen3-VL trained from scratch (preset tiny: packed rows,
-# pair batches, polarity warm-up) -> the bench with majority/blind baselines -> one failure diagnosed.
+# tokens) -> the tiny Qwen3-VL trained from scratch (preset tiny: packed rows, pair batches, polarity warm-up)
+# -> the bench with majority/blind baselines -> one failure diagnosed (Q6 from the strategy table).
 DEMO_EPISODES ?= 200
 DEMO_EPOCHS   ?= 16
 DEMO_GRID     := grid.width=512 grid.height=512 grid.max_frames=8 grid.columns=4
 demo: $(STAMP)
 	$(PY) scripts/generate.py backend=pybullet num_episodes=$(DEMO_EPISODES) out_dir=outputs/demo_shards seed=0 workers=2 image_size=128
 	$(PY) scripts/render_strips.py outputs/demo_shards outputs/demo_strips
-	$(PY) scripts/build_dataset.py shards=outputs/demo_shards out_dir=outputs/demo_dataset $(DEMO_GRID) aux.per_trajectory=16
+	$(PY) scripts/build_dataset.py shards=outputs/demo_shards out_dir=outputs/demo_dataset $(DEMO_GRID)
 	$(PY) train.py preset=tiny dataset_dir=outputs/demo_dataset output_dir=outputs/demo_train epochs=$(DEMO_EPOCHS)
 	$(PY) scripts/evaluate.py model=outputs/demo_train/final dataset_dir=outputs/demo_dataset split=test
 	$(PY) scripts/demo_diagnosis.py outputs/demo_dataset outputs/demo_train/final
 
-# The from-scratch recipe at full size (docs/RESULTS.md, about 80 min on 2 CPU cores): seen and unseen
-# (object, scene, both) data, prefix grids, the tiny model, every split's bench, the learning curve.
+# The from-scratch recipe at full size (docs/RESULTS.md, about 70 min on 2 CPU cores): seen and unseen
+# (object, scene, both) data, one prefix grid per trajectory, the tiny model, every split's bench with
+# baselines, the learning curve.
 # Resumable: generation resumes its shards; delete outputs/reproduce to start over.
-R              := outputs/reproduce
-REPRO_SEEN     ?= 1000
-REPRO_UNSEEN   ?= 80
+R              ?= outputs/reproduce
+REPRO_SEEN     ?= 1200
+REPRO_UNSEEN   ?= 60
 REPRO_EPOCHS   ?= 12
+RESULTS        ?= docs/RESULTS.md
 REPRO_GEN      := backend=pybullet seed=0 workers=2 image_size=128 progress=false
 stamp           = echo "$(1) $$(date +%s)" >> $(R)/timeline.txt
 reproduce: $(STAMP)
@@ -55,17 +57,17 @@ reproduce: $(STAMP)
 	  $(PY) scripts/generate.py $(REPRO_GEN) num_episodes=$(REPRO_UNSEEN) variant=$$v out_dir=$(R)/shards/$$v || exit 1; done
 	$(call stamp,dataset)
 	$(PY) scripts/build_dataset.py 'shards=[$(R)/shards/seen,$(R)/shards/unseen_object,$(R)/shards/unseen_scene,$(R)/shards/unseen_both]' \
-	  out_dir=$(R)/dataset $(DEMO_GRID) prefix.cuts=2 aux.per_trajectory=16 progress=false
+	  out_dir=$(R)/dataset $(DEMO_GRID) prefix.cuts=1 progress=false
 	$(call stamp,train)
 	$(PY) train.py preset=tiny dataset_dir=$(R)/dataset output_dir=$(R)/train epochs=$(REPRO_EPOCHS) \
-	  save_steps=400 save_total_limit=null progress=false
+	  save_steps=720 save_total_limit=null progress=false
 	$(call stamp,evaluate)
 	for s in test object scene both prefix; do \
 	  $(PY) scripts/evaluate.py model=$(R)/train/final dataset_dir=$(R)/dataset split=$$s progress=false || exit 1; done
 	$(call stamp,learning_curve)
 	$(PY) scripts/learning_curve.py run_dir=$(R)/train dataset_dir=$(R)/dataset split=val progress=false
 	$(call stamp,done)
-	$(PY) scripts/write_results.py $(R) docs/RESULTS.md
+	$(PY) scripts/write_results.py $(R) $(RESULTS)
 
 test: $(STAMP) $(APT_STAMP)
 	LABROBFAIL_REQUIRE_BROWSER=1 $(PY) -m pytest -q tests
