@@ -107,11 +107,8 @@ class Decoder:
     # ---- answers ---------------------------------------------------------------------------------------
     def choose(self, pre: Prefix, candidates: Sequence[str]) -> str:
         """The candidate (followed by the end of turn) with the highest log-likelihood."""
-        return candidates[self.best(pre, candidates)]
-
-    def best(self, pre: Prefix, candidates: Sequence[str]) -> int:
         scores = self.score_many(pre, [self.encode_ids(c) + [self.eos] for c in candidates])
-        return max(range(len(candidates)), key=scores.__getitem__)
+        return candidates[max(range(len(candidates)), key=scores.__getitem__)]
 
     def actions(self, pre: Prefix, max_actions: int = 12) -> str:
         chosen: list[str] = []

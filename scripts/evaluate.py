@@ -45,11 +45,13 @@ def main(argv: list[str]) -> int:
         analyzer = FailureAnalyzer.from_pretrained(cfg.model)
         preds = ev.model_predictions(analyzer, cfg.dataset_dir, recs, traj, progress=cfg.progress)
         name = "LabRobFail-VLM (" + Path(cfg.model).name + ")"
-        if cfg.q6_template and any(r["id"].endswith("_Q6") for r in recs):
-            # the same model, Q6 chosen among the correction-strategy table's filled templates
+        q6 = [r for r in recs if r["id"].endswith("_Q6")]
+        if cfg.q6_template and q6:
+            # the same model, Q6 chosen among the correction-strategy table's filled templates; the other
+            # answers do not depend on the Q6 mode, so only Q6 (and the Q2 verdict it follows) is asked again
             analyzer.q6_mode = "template"
-            results[name + ", Q6 template"] = ev.score(recs, ev.model_predictions(
-                analyzer, cfg.dataset_dir, recs, traj, progress=cfg.progress), traj)
+            tmpl = ev.model_predictions(analyzer, cfg.dataset_dir, q6, traj, progress=cfg.progress)
+            results[name + ", Q6 template"] = ev.score(recs, {**preds, **tmpl}, traj)
             analyzer.q6_mode = "free"
     else:
         preds = ev.read_predictions(cfg.predictions)
