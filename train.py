@@ -57,6 +57,9 @@ def run(cfg: Any) -> dict[str, Any]:
 
     grid = _check_dataset(cfg)
     check_loss_mode(str(cfg.loss.mode))  # before the model loads
+    pairs, warm = bool(cfg.curriculum.pairs), float(cfg.curriculum.polarity_warmup)
+    if not 0.0 <= warm <= 1.0:
+        raise ConfigError(f"curriculum.polarity_warmup: a fraction of the steps in [0, 1], got {warm}")
     if cfg.model.path is None:
         raise ConfigError("model.path: give a local Qwen3-VL directory (or use preset=tiny)")
     if cfg.preset == "tiny" and not Path(cfg.model.path).is_dir():
@@ -110,17 +113,16 @@ def run(cfg: Any) -> dict[str, Any]:
     # packing: a trajectory's records share one row and one image encoding (labrobfail_vlm/train/packing.py);
     # per_device_batch and global_batch then count trajectories
     train = TrajectoryDataset(cfg.dataset_dir, "train") if cfg.packing else VQADataset(cfg.dataset_dir, "train")
-    pairs, warm = bool(cfg.curriculum.pairs), float(cfg.curriculum.polarity_warmup)
-    if not 0.0 <= warm <= 1.0:
-        raise ConfigError(f"curriculum.polarity_warmup: a fraction of the steps in [0, 1], got {warm}")
     rewording = Rewording(train.group_of, pairs) if pairs or warm > 0 else None
+    records_per_item = len(train.records) / len(train) if cfg.packing else 1.0
+    callbacks = [ProgressLog(Path(cfg.output_dir), records_per_item),
+                 *([PolarityWarmup(rewording, warm)] if rewording is not None and warm else [])]
     trainer = HybridTrainer(model=model, args=args, train_dataset=train,
                             data_collator=Collator(processor, int(cfg.max_length), dict(cfg.loss.question_weights)
                                                    if cfg.loss.mode == "record" else None, rewording),
                             processing_class=processor, group_lrs=dict(cfg.lr), base_model=str(cfg.model.path),
                             tuning=str(cfg.tuning), loss_mode=str(cfg.loss.mode), grid=grid, pair_batches=pairs,
-                            callbacks=[ProgressLog(Path(cfg.output_dir), len(train.records) / len(train) if cfg.packing else 1.0),
-                                       *([PolarityWarmup(rewording, warm)] if rewording is not None and warm else [])])
+                            callbacks=callbacks)
     resume = None
     if cfg.resume is True:
         resume = get_last_checkpoint(str(cfg.output_dir))
