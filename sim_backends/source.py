@@ -87,6 +87,11 @@ class FailureSource(ABC):
         finally:
             src.close()
 
+    @classmethod
+    def scenario_repeats(cls, **kwargs: Any) -> dict[str, int]:
+        """How many times each scenario appears per generation cycle (oversampling; default once each)."""
+        return {s: 1 for s in cls.list_scenarios(**kwargs)}
+
     # ---- task description --------------------------------------------------------------------------
     @abstractmethod
     def scenarios(self) -> list[str]:
