@@ -29,7 +29,7 @@ from sim_backends.types import Episode, Keyframe, rotation_angle
 from supervision.base import Supervisor, live_grid
 from labrobfail_vlm.grid import GridConfig
 
-REACH_POS, REACH_ROT, CLOSED_STILL = 0.02, 0.25, 0.002  # m, rad, m of finger motion per step
+REACH_POS, REACH_ROT = 0.02, 0.25  # m, rad: a target this close to a plan keyframe is that keyframe
 
 
 @dataclass
@@ -68,35 +68,41 @@ class TaskFamily:
         return not failed_goals(ep.state_trace, {**ep.task_meta.to_dict(), "goals": self.goals})
 
 
+def _matches(pos: Any, quat: Any, grip: int, k: Keyframe) -> bool:
+    return float(np.linalg.norm(np.asarray(pos) - np.asarray(k.pos))) < REACH_POS \
+        and rotation_angle(tuple(quat), k.quat) < REACH_ROT and int(grip) == k.gripper
+
+
 class PhaseTracker:
-    """Names the steps of a policy that does not know the plan (ACT, OpenVLA): a step carries the name of
-    the last plan keyframe the arm has reached (pose within 2 cm / 0.25 rad, the same gripper command, and
-    closed fingers at rest), so the labeler's program counter and the grid follow the task's progress."""
+    """Names the steps of a policy that does not know the plan (ACT, OpenVLA) after the plan keyframe they
+    head for, so the labeler's program counter and the grid follow the task's progress. A target that
+    matches one of the next three plan keyframes (2 cm, 0.25 rad, same gripper command) takes its name and
+    moves the progress there; one that matches the current keyframe keeps it (holding, settling); any other
+    target is on its way to the next keyframe. A gripper change gets settling time, as the plan's grasp and
+    release keyframes have."""
 
     def __init__(self, nominal: list[Keyframe]):
         self.nominal = nominal
-        self.p = -1
-        self.width: float | None = None
+        self.c = -1  # the plan keyframe commanded last
 
-    def keyframe(self, a: Action) -> Keyframe:
-        if a.name is not None:
-            base = next((k for k in self.nominal if k.name == a.name), self.nominal[max(self.p, 0)])
+    def keyframe(self, a: Action, state: dict[str, Any] | None = None) -> Keyframe:
+        settle = int(a.settle)
+        named = [i for i, k in enumerate(self.nominal) if k.name == a.name] if a.name is not None else []
+        if named:
+            i = named[0]
         else:
-            base = self.nominal[max(self.p, 0)]
+            ahead = range(self.c + 1, min(self.c + 4, len(self.nominal)))
+            i = next((q for q in ahead if _matches(a.pos, a.quat, a.gripper, self.nominal[q])), -1)
+            if i < 0:
+                i = self.c if self.c >= 0 and _matches(a.pos, a.quat, a.gripper, self.nominal[self.c]) else \
+                    min(self.c + 1, len(self.nominal) - 1)
+            if state is not None and not settle and int(a.gripper) != int(state["grip_cmd"]):
+                settle = 50 if a.gripper else 40
+        if named or _matches(a.pos, a.quat, a.gripper, self.nominal[i]):
+            self.c = max(self.c, i)
+        base = self.nominal[i]
         return Keyframe(base.name, tuple(map(float, a.pos)), tuple(map(float, a.quat)), int(a.gripper), base.target,
-                        base.segment, base.action, float(a.speed), int(a.settle))
-
-    def update(self, state: dict[str, Any]) -> None:
-        width = float(state["width"])
-        moving = self.width is not None and abs(width - self.width) > CLOSED_STILL
-        self.width = width
-        for q in range(self.p + 1, min(self.p + 3, len(self.nominal))):  # the next keyframe, or the one after
-            k = self.nominal[q]
-            near = float(np.linalg.norm(np.asarray(state["ee_pos"]) - np.asarray(k.pos))) < REACH_POS
-            if near and rotation_angle(tuple(state["ee_quat"]), k.quat) < REACH_ROT \
-                    and int(state["grip_cmd"]) == k.gripper and not (k.gripper and moving):
-                self.p = q
-                return
+                        base.segment, base.action, float(a.speed), settle)
 
 
 class RunLog:
@@ -160,11 +166,10 @@ def run_trial(src: FailureSource, policy: Policy, supervisor: Supervisor, family
             break
         if a is None:
             break
-        kf = tracker.keyframe(a)
+        kf = tracker.keyframe(a, obs.state)
         src.step(kf)
         steps += 1
         obs = src.observe()
-        tracker.update(obs.state)
         due = steps % cfg.query_every == 0 if cfg.query_every else (a.name is not None or kf.name != prev_name)
         prev_name = kf.name
         if due and not _query(src, policy, supervisor, executor, cfg, log, trial, t, obs, grid_cfg, ctx):
@@ -172,7 +177,7 @@ def run_trial(src: FailureSource, policy: Policy, supervisor: Supervisor, family
     if not src.executed_so_far():  # nothing ran (a policy that failed at once): hold still, so the episode has
         # a keyframe to label
         s = src.observe().state
-        src.step(tracker.keyframe(Action(tuple(s["ee_pos"]), tuple(s["ee_quat"]), int(s["grip_cmd"]))))
+        src.step(tracker.keyframe(Action(tuple(s["ee_pos"]), tuple(s["ee_quat"]), int(s["grip_cmd"]), name=tracker.nominal[0].name)))
     if cfg.final_query and t.stopped is None:
         _query(src, policy, supervisor, executor, cfg, log, trial, t, src.observe(), grid_cfg, ctx, final=True)
     ep = src.finish()
