@@ -15,7 +15,7 @@ import numpy as np
 
 def _default(obj: Any) -> Any:
     if isinstance(obj, (np.ndarray, np.generic)):
-        a = np.ascontiguousarray(obj)
+        a = np.asarray(obj, order="C")  # (ascontiguousarray would turn a 0-d array into 1-d)
         return {"__numpy__": base64.b64encode(a.tobytes()).decode("ascii"),
                 "dtype": np.lib.format.dtype_to_descr(a.dtype), "shape": list(a.shape)}
     raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
