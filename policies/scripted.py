@@ -23,6 +23,15 @@ from sim_backends.perturbations.physics import PhysicsEvent
 from sim_backends.source import Observation
 
 
+def resume_index(plan: list, state: dict[str, Any]) -> int:
+    """Where a plan goes on after a correction: the keyframe after the one nearest to the arm (position, plus
+    5 cm for a different gripper command; of near ties the later one: a grasp's reach and close coincide)."""
+    ee, grip = np.asarray(state["ee_pos"], float), int(state["grip_cmd"])
+    cost = [float(np.linalg.norm(np.asarray(k.pos) - ee)) + 0.05 * (k.gripper != grip) for k in plan]
+    best = min(cost)
+    return max(j for j, c in enumerate(cost) if c <= best + 0.005) + 1
+
+
 def spec_applies(spec: dict[str, Any], names: set[str], steps: int) -> bool:
     """Whether a perturbation spec acts on the given keyframes / first `steps` steps."""
     if spec.get("level") == "physics":
@@ -71,11 +80,7 @@ class ScriptedPolicy(Policy):
     def after_correction(self, obs: Observation) -> None:
         if self.resume == "queue" or not self.nominal:
             return
-        ee, grip = np.asarray(obs.state["ee_pos"], float), int(obs.state["grip_cmd"])
-        cost = [float(np.linalg.norm(np.asarray(k.pos) - ee)) + 0.05 * (k.gripper != grip) for k in self.nominal]
-        best = min(cost)
-        i = max(j for j, c in enumerate(cost) if c <= best + 0.005)  # ties (a grasp's reach and close): the later
-        self.queue, self.i = self.nominal[i + 1:], 0
+        self.queue, self.i = self.nominal[resume_index(self.nominal, obs.state):], 0
 
     def info(self) -> dict[str, Any]:
         return {"perturbation": self.perturbation}

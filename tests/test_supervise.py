@@ -59,7 +59,7 @@ def test_supervision_helps_and_runs_repeat_exactly(tmp_path):
 def test_vlm_supervisor_queries_the_analyzer_on_prefix_grids(tmp_path, tiny):  # noqa: F811
     out = tmp_path / "vlm"
     supervise("supervisor=vlm", f"vlm.model={tiny}", "baseline=false", "task=open_oven_center", "trials=1",
-              "loop.grids=all", "loop.budget=1", f"out_dir={out}")
+              "loop.grids=all", "loop.budget=1", "loop.query_every=5", f"out_dir={out}")
     qs = [x for x in records(out) if x["event"] == "query"]
     assert qs and all((out / q["grid"]).is_file() for q in qs)
     assert all(set(q["diagnosis"]) >= {"failure", "correction", "primitives"} for q in qs)

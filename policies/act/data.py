@@ -19,7 +19,7 @@ from torch.utils.data import Dataset
 
 from policies.act.configuration_act import ACTConfig
 from sim_backends.source import FailureSource
-from sim_backends.types import Keyframe, matrix_to_quat, quat_to_matrix, rotation_angle
+from sim_backends.types import Keyframe, quat_to_matrix, rotation_angle
 
 HOLD_STEPS = 12  # physics steps one hold tick stands for (a tick is >= 8 steps)
 
