@@ -80,8 +80,9 @@ class Policy(ABC):
     def act(self, obs: Observation) -> Action | None:
         """The next target, or None when the policy is done."""
 
-    def after_correction(self, obs: Observation) -> None:  # noqa: B027 - optional hook
-        """Called when a correction has run and control returns to the policy."""
+    def after_correction(self, obs: Observation, executed: bool = True) -> None:  # noqa: B027 - optional hook
+        """Called when a correction has run (`executed`: all of it; else it stopped early or was refused) and
+        control returns to the policy."""
 
     def info(self) -> dict[str, Any]:
         """What the log records about this episode's policy (e.g. the injected perturbation)."""

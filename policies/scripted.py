@@ -5,10 +5,12 @@ The controlled baseline of the supervision experiments. The perturbation is draw
 restricted to the specs that touch the steps the task family runs (e.g. "pick": the grasp only); a
 trial is perturbed with probability `inject_prob`.
 
-After a correction (`resume: replan`, the default) the policy re-plans: it goes on with the nominal plan
-after the plan keyframe nearest to where the correction left the arm, so an intervention clears the
-injected control or semantic fault (a physics change persists: it is in the world). `resume: queue` keeps
-its own remaining keyframes instead (a stalled controller stays stalled and undoes the correction).
+After a correction that ran in full (`resume: replan`, the default) the policy re-plans: it goes on with the
+nominal plan after the plan keyframe nearest to where the correction left the arm, so an intervention clears
+the injected control or semantic fault (a physics change persists: it is in the world). Note that this also
+restarts a stalled (truncated) controller whatever the correction said. `resume: queue` keeps its own
+remaining keyframes instead (a stalled controller stays stalled and undoes the correction): the stricter
+measure of what the corrections themselves achieve.
 """
 
 from __future__ import annotations
@@ -77,8 +79,8 @@ class ScriptedPolicy(Policy):
         self.i += 1
         return Action.from_keyframe(self.queue[self.i - 1])
 
-    def after_correction(self, obs: Observation) -> None:
-        if self.resume == "queue" or not self.nominal:
+    def after_correction(self, obs: Observation, executed: bool = True) -> None:
+        if self.resume == "queue" or not self.nominal or not executed:  # a refused correction changes nothing
             return
         self.queue, self.i = self.nominal[resume_index(self.nominal, obs.state):], 0
 

@@ -211,7 +211,7 @@ def _query(src: FailureSource, policy: Policy, sup: Supervisor, executor: Correc
         res = executor.run(v.primitives)
         t.interventions += 1
         sup.handled(src)
-        policy.after_correction(src.observe())
+        policy.after_correction(src.observe(), res.executed)
         rec["outcome"] = res.to_dict()
         if res.manual and cfg.on_manual == "stop":
             t.stopped, go_on = "manual correction", False

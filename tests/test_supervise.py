@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from labrobfail_vlm.actions import PRIMITIVES
+
 from test_train import tiny  # noqa: F401  (session fixture: a tiny Qwen3-VL checkpoint)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -63,6 +65,8 @@ def test_vlm_supervisor_queries_the_analyzer_on_prefix_grids(tmp_path, tiny):  #
     qs = [x for x in records(out) if x["event"] == "query"]
     assert qs and all((out / q["grid"]).is_file() for q in qs)
     assert all(set(q["diagnosis"]) >= {"failure", "correction", "primitives"} for q in qs)
+    for d in (q["diagnosis"] for q in qs if q["diagnosis"]["failure"]):  # template Q6: always executable
+        assert d["primitives"] and all(p["op"] in PRIMITIVES for p in d["primitives"]), d
     lat = json.loads((out / "results.json").read_text())["tasks"]["open_oven_center"]["vlm"]
     assert lat["latency_p50_s"] > 0 and lat["latency_p95_s"] >= lat["latency_p50_s"]
 
