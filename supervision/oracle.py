@@ -62,12 +62,14 @@ def live_failure(trace: Trace, meta: TaskMeta, after_sample: int) -> Event | Non
 
 
 def unmet_goal(trace: Trace, meta: TaskMeta, goals: list[dict[str, Any]] | None) -> Event | None:
-    """The labeler's fallback once the policy is done: the first goal that fails names the failure type."""
+    """Once the policy is done, a goal that fails with no detector signature: named by the labeler's
+    goal -> type fallback where the labeler has one; a labeler that never guesses leaves it unexplained (None)."""
     md = meta.to_dict()
     bad = failed_goals(trace, {**md, "goals": goals} if goals is not None else md)
-    if not bad:
+    fallback = getattr(labeler, "FALLBACK", {})
+    if not bad or bad[0]["kind"] not in fallback:
         return None
-    return len(trace["t"]) - 1, labeler.FALLBACK[bad[0]["kind"]], f"goal {bad[0]['kind']!r} fails at the end"
+    return len(trace["t"]) - 1, fallback[bad[0]["kind"]], f"goal {bad[0]['kind']!r} fails at the end"
 
 
 @register_supervisor("oracle")
