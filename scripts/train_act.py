@@ -22,15 +22,21 @@ from labrobfail_vlm.config import cli_main, load_config  # noqa: E402
 
 
 def main(argv: list[str]) -> int:
+    from labrobfail_vlm.config import ConfigError
     from policies.act.train import train
-    from sim_backends.registry import backend_spec
-    from supervision.experiment import families, resolve_tasks
+    from sim_backends.registry import available_backends, make_backend
+    from supervision.experiment import families, resolve_tasks, scenario_templates
 
     cfg = load_config("act.yaml", argv)
-    fams = families(load_config("supervise.yaml", []))
-    tasks = resolve_tasks(str(cfg.task), fams, backend_spec(cfg.backend).cls.list_scenarios())
+    if cfg.backend not in available_backends():
+        raise ConfigError(f"backend: unknown backend {cfg.backend!r}; available: {', '.join(available_backends())}")
+    src = make_backend(cfg.backend, render=False)  # only its scenario catalogue
+    try:
+        templates = scenario_templates(src)
+    finally:
+        src.close()
+    tasks = resolve_tasks(str(cfg.task), families(load_config("supervise.yaml", []), templates), list(templates))
     if len(tasks) != 1:
-        from labrobfail_vlm.config import ConfigError
         raise ConfigError("task: name one task family or scenario")
     summary = train(cfg, tasks[0])
     print(json.dumps({k: v for k, v in summary.items() if k != "curve"}))

@@ -43,6 +43,8 @@ from sim_backends.types import Keyframe, matrix_to_quat, quat_to_matrix, rotatio
 SPEED = 0.3  # m/s of correction moves (the plan's skills use 0.2-0.45)
 SLOW = 0.15  # final approaches, presses, door pulls
 UNTIL_STEP = 0.02  # m per increment of a conditional move
+MISS_POS, MISS_ROT = 0.01, 0.1  # m, rad: a move that ends further off than this is commanded again, once
+TURN_SETTLE = 60  # physics steps after a turn in place: the controller converges on position, not orientation
 RETREAT = 0.08  # m backed off along the approach axis before re-approaching an object
 TRANSPORT_CLEARANCE = 0.10  # m above the higher of start and goal while carrying
 AXES = {"x": np.array([1.0, 0, 0]), "y": np.array([0, 1.0, 0]), "z": np.array([0, 0, 1.0])}
@@ -143,10 +145,17 @@ class CorrectionExecutor:
         self.pos = np.asarray(pos, float)
         self.rot = self.rot if rot is None else rot
         self.grip = self.grip if grip is None else int(grip)
-        self.src.step(dataclasses.replace(base, pos=tuple(float(v) for v in self.pos),
-                                          quat=matrix_to_quat(self.rot), gripper=self.grip, speed=speed,
-                                          settle_steps=settle))
+        target = dataclasses.replace(base, pos=tuple(float(v) for v in self.pos), quat=matrix_to_quat(self.rot),
+                                     gripper=self.grip, speed=speed, settle_steps=settle)
+        self.src.step(target)
         self.count += 1
+        s = self._state()
+        if float(np.linalg.norm(np.asarray(s["ee_pos"]) - self.pos)) > MISS_POS \
+                or rotation_angle(tuple(s["ee_quat"]), target.quat) > MISS_ROT:
+            # the joint controller can end a move short or past (after a long hold the arm's null space
+            # has drifted); closed loop, the executor commands the same target once more
+            self.src.step(dataclasses.replace(target, speed=SLOW, settle_steps=max(settle, 30)))
+            self.count += 1
 
     def _approach_axis(self) -> np.ndarray:
         return self.rot[:, 2]  # the gripper's z axis points along the fingers
@@ -394,7 +403,7 @@ class CorrectionExecutor:
         first = self._nominal(st.keyframes[0]) if st is not None and st.keyframes else self.nominal[0]
         rot = yaw_aligned(quat_to_matrix(first.quat), self.rot)
         rot = so3_exp(AXES["y"] * float(pitch)) @ so3_exp(AXES["x"] * float(roll)) @ rot
-        self._go(self.pos, rot, speed=SLOW)
+        self._go(self.pos, rot, speed=SLOW, settle=TURN_SETTLE)
 
     def _hold_orientation(self) -> None:
         self.note = "orientation kept"
@@ -402,7 +411,7 @@ class CorrectionExecutor:
     def _rotate(self, axis: str, angle: float) -> None:
         if axis not in AXES:
             raise PrimitiveError(f"unknown axis {axis!r}")
-        self._go(self.pos, so3_exp(AXES[axis] * float(angle)) @ self.rot, speed=SLOW)
+        self._go(self.pos, so3_exp(AXES[axis] * float(angle)) @ self.rot, speed=SLOW, settle=TURN_SETTLE)
 
     def _tilt_pour(self, angle: float, v: float) -> None:
         """Roll the held vessel the way the plan pours (its axis and sense, in the gripper frame), in three

@@ -22,11 +22,22 @@ from supervision.base import SUPERVISORS, Supervisor, make_supervisor
 from supervision.loop import LoopConfig, RunLog, TaskFamily, run_trial
 
 
-def families(cfg: DictConfig) -> dict[str, TaskFamily]:
+def families(cfg: DictConfig, templates: dict[str, str]) -> dict[str, TaskFamily]:
+    """The task families of the config; `templates`: scenario -> its task template (the backend's catalogue).
+    A family lists its scenarios or takes every scenario of its `template`, in catalogue order."""
     out = {}
     for name, f in OmegaConf.to_container(cfg.families, resolve=True).items():  # type: ignore[union-attr]
-        out[name] = TaskFamily(name, list(f["scenarios"]), f.get("steps"), f.get("goals"))
+        scenarios = list(f.get("scenarios") or [s for s, t in templates.items() if t == f.get("template")])
+        bad = [s for s in scenarios if s not in templates]
+        if bad or not scenarios:
+            raise ConfigError(f"families.{name}: " + (f"unknown scenario {bad[0]!r}" if bad else
+                                                      f"no scenario of template {f.get('template')!r}"))
+        out[name] = TaskFamily(name, scenarios, f.get("steps"), f.get("goals"))
     return out
+
+
+def scenario_templates(src: Any) -> dict[str, str]:
+    return {s: src.scenario_info(s)["template"] for s in src.scenarios()}
 
 
 def resolve_tasks(task: str, fams: dict[str, TaskFamily], scenarios: list[str]) -> list[TaskFamily]:
@@ -39,10 +50,6 @@ def resolve_tasks(task: str, fams: dict[str, TaskFamily], scenarios: list[str]) 
             out.append(TaskFamily(n, [n]))
         else:
             raise ConfigError(f"task: unknown task {n!r}; families: {', '.join(fams)} (or a scenario name)")
-    for f in out:
-        bad = [s for s in f.scenarios if s not in scenarios]
-        if bad:
-            raise ConfigError(f"families.{f.name}: unknown scenario {bad[0]!r}")
     return out
 
 
@@ -100,18 +107,23 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     except ValueError as e:
         raise ConfigError(f"backend_kwargs.{e}") from None
     kwargs = {"image_size": cfg.image_size, "cameras": list(cfg.cameras), **own}
-    tasks = resolve_tasks(cfg.task, families(cfg), spec.cls.list_scenarios(**kwargs))
     sups = (["none"] if cfg.baseline and cfg.supervisor != "none" else []) + [cfg.supervisor]
-    # everything that can be refused is built before the first trial runs
-    policy = build_policy(cfg)
-    supervisors = {n: build_supervisor(cfg, n) for n in sups}
-    out = Path(cfg.out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ConfigError(f"out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
-    log = RunLog(out)
     src = make_backend(cfg.backend, **kwargs)
+    try:
+        templates = scenario_templates(src)
+        tasks = resolve_tasks(cfg.task, families(cfg, templates), list(templates))
+        # everything that can be refused is built before the first trial runs
+        policy = build_policy(cfg)
+        supervisors = {n: build_supervisor(cfg, n) for n in sups}
+        out = Path(cfg.out_dir)
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise ConfigError(f"out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
+    except BaseException:
+        src.close()
+        raise
+    log = RunLog(out)
     results: dict[str, Any] = {}
     try:
         total = len(tasks) * len(sups) * cfg.trials
