@@ -3,7 +3,8 @@
 Request (json-numpy, policies/json_numpy.py): `{"image": uint8 HxWx3, "instruction": str, "unnorm_key"?}` or
 the `{"encoded": "<json-numpy string>"}` form (`encoded: true`). The plain form also carries the project's
 extras, which OpenVLA's server ignores and scripts/serve_policy.py uses: `images` (every view), `proprio`
-(ee_pos, ee_quat, width, grip_cmd) and `episode` (scenario, seed, variant: a new episode resets the policy).
+(ee_pos, ee_quat, width, grip_cmd) and `episode` (scenario, seed, variant and a fresh id per episode: a new
+episode resets the served policy).
 
 Reply: a json-numpy 7-D action (delta position in metres, delta rotation as roll/pitch/yaw in radians, both
 in the robot base frame, and the gripper in OpenVLA's convention, 1 = open, 0 = closed), or the JSON
@@ -22,6 +23,7 @@ import math
 import socket
 import urllib.error
 import urllib.request
+import uuid
 from typing import Any
 from urllib.parse import urlparse
 
@@ -94,6 +96,7 @@ class OpenVLAClient(Policy):
 
     def reset(self, ctx: EpisodeContext) -> list:
         self.ctx, self.idle = ctx, 0
+        self.episode_token = uuid.uuid4().hex  # two trials of one scenario and seed are still two episodes
         return []
 
     def request(self, payload: dict[str, Any]) -> np.ndarray:
@@ -128,7 +131,7 @@ class OpenVLAClient(Policy):
                            proprio=proprio_vector(obs.state))
             if self.ctx is not None:
                 payload["episode"] = {"backend": self.ctx.backend, "scenario": self.ctx.scenario,
-                                      "seed": self.ctx.seed, "variant": self.ctx.variant}
+                                      "seed": self.ctx.seed, "variant": self.ctx.variant, "id": self.episode_token}
         a = self.request(payload)
         target = action_to_target(a, obs.state)
         idle = float(np.linalg.norm(a[:3])) < IDLE_POS and float(np.linalg.norm(a[3:6])) < IDLE_ROT \

@@ -43,7 +43,7 @@ from sim_backends.types import Keyframe, matrix_to_quat, quat_to_matrix, rotatio
 SPEED = 0.3  # m/s of correction moves (the plan's skills use 0.2-0.45)
 SLOW = 0.15  # final approaches, presses, door pulls
 UNTIL_STEP = 0.02  # m per increment of a conditional move
-MISS_POS, MISS_ROT = 0.01, 0.1  # m, rad: a move that ends further off than this is commanded again, once
+MISS_POS, MISS_ROT = 0.01, 0.05  # m, rad: a move that ends further off than this is commanded again, once
 TURN_SETTLE = 60  # physics steps after a turn in place: the controller converges on position, not orientation
 RETREAT = 0.08  # m backed off along the approach axis before re-approaching an object
 TRANSPORT_CLEARANCE = 0.10  # m above the higher of start and goal while carrying
