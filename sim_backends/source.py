@@ -209,6 +209,15 @@ class FailureSource(ABC):
             self.step(kf)
         return self.finish()
 
+    # ---- supervision hooks (closed loop: a supervisor and a correction executor read the episode so far) --
+    def executed_so_far(self) -> list[Keyframe]:
+        """The keyframes stepped since `begin`, in order (a copy)."""
+        return list(self._active().executed)
+
+    def images_so_far(self) -> list[list[bytes]]:
+        """PNG bytes of every view at the end of every keyframe stepped so far: `[view][keyframe]` (a copy)."""
+        return [list(v) for v in self._active().images]
+
     def _active(self) -> _Run:
         if self._run is None:
             raise RuntimeError("no episode is being recorded: reset() then begin() first")
