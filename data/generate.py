@@ -137,7 +137,7 @@ def shard_jobs(cfg: DictConfig, scenarios: list[str], repeats: dict[str, int] | 
     jobs = []
     for k in range(math.ceil(n / per)):
         lo, hi = k * per, min(n, (k + 1) * per)
-        pairs = [(j, order[j], pair_seed(int(cfg.seed), j)) for j in range(lo // 2, math.ceil(hi / 2))]
+        pairs = [(j, order[j]) for j in range(lo // 2, math.ceil(hi / 2))]  # seeds: labelable_pair draws them
         jobs.append({"shard": k, "lo": lo, "hi": hi, "pairs": pairs, "seed": int(cfg.seed)})
     return jobs
 
@@ -146,7 +146,7 @@ def run_shard(job: dict[str, Any], backend: str, kwargs: dict[str, Any], variant
     """Generate one shard's episodes and write it atomically. Returns the number of episodes."""
     src = _worker_source(backend, kwargs)
     rows, records = [], []
-    for j, scenario, s in job["pairs"]:
+    for j, scenario in job["pairs"]:
         nominal, injected, recs = labelable_pair(src, scenario, job["seed"], j, variant)
         records.extend(recs)
         if nominal is None:
