@@ -75,6 +75,28 @@ class Ask:
     options: tuple[str, ...] = ()
 
 
+def plan_reply(dim: str, failed: bool | None, frames: int, objects: Sequence[str] = (), q6_mode: str = "free"
+               ) -> str | Ask:
+    """The reply to `dim` when the Q2 verdict (`failed`; None before Q2) already settles it, else what the model
+    must decode. Shared by the local decoder and the endpoint path, so both ask the same things."""
+    if dim == "Q1":
+        return Ask("actions")
+    if dim == "Q2":
+        return Ask("choose", ("Yes", "No"))
+    if dim == "Q6":  # consistent with Q2: no correction after "no failure"; after a failure an instruction,
+        # not the no-correction sentence nor a closed-set reply (Yes/No/None/a number)
+        if failed is False:
+            return Q.NO_CORRECTION
+        if q6_mode == "template":
+            return Ask("choose", tuple(text for _, text in candidates(objects)))
+        closed = (Q.NO_CORRECTION, Q.NO_FAILURE, "Yes", "No", *map(str, range(10)))
+        return Ask("free", closed if failed else ())
+    if failed is False:
+        return Q.NO_FAILURE
+    hi = {"Q3": frames, "Q4": len(Severity), "Q5": len(Category)}[dim]
+    return Ask("choose", tuple(str(i) for i in range(1, hi + 1)))
+
+
 @dataclass
 class DiagnosisRequest:
     """One grid (or per-view keyframe lists) for `analyze_batch`, with the arguments `analyze` takes."""
@@ -123,25 +145,6 @@ class FailureAnalyzer:
         q = Q.question_text(dim, 0, task, self.time_axis)
         return self.processor.apply_chat_template(messages(q), tokenize=False, add_generation_prompt=True)
 
-    def _plan(self, dim: str, failed: bool | None, frames: int, objects: Sequence[str] = ()) -> str | Ask:
-        """The reply when the Q2 verdict already settles it, else what the model must decode."""
-        if dim == "Q1":
-            return Ask("actions")
-        if dim == "Q2":
-            return Ask("choose", ("Yes", "No"))
-        if dim == "Q6":  # consistent with Q2: no correction after "no failure"; after a failure an instruction,
-            # not the no-correction sentence nor a closed-set reply (Yes/No/None/a number)
-            if failed is False:
-                return Q.NO_CORRECTION
-            if self.q6_mode == "template":
-                return Ask("choose", tuple(text for _, text in candidates(objects)))
-            closed = (Q.NO_CORRECTION, Q.NO_FAILURE, "Yes", "No", *map(str, range(10)))
-            return Ask("free", closed if failed else ())
-        if failed is False:
-            return Q.NO_FAILURE
-        hi = {"Q3": frames, "Q4": len(Severity), "Q5": len(Category)}[dim]
-        return Ask("choose", tuple(str(i) for i in range(1, hi + 1)))
-
     def _decode(self, pre: Any, plans: Sequence[str | Ask | None]) -> list[str | None]:
         """Carry out one plan per row of `pre`, one kind of answer at a time (its rows decoded in lockstep)."""
         d = self.decoder
@@ -163,7 +166,7 @@ class FailureAnalyzer:
         return out
 
     def _answer(self, dim: str, pre: Any, failed: bool | None, frames: int, objects: Sequence[str] = ()) -> str:
-        return str(self._decode(pre, [self._plan(dim, failed, frames, objects)])[0])
+        return str(self._decode(pre, [plan_reply(dim, failed, frames, objects, self.q6_mode)])[0])
 
     def _prefixes(self, image: Image.Image, prompts: dict[str, str]) -> Iterator[tuple[str, Any]]:
         """Six-prompt mode (the reference path): (dimension, model state after its whole prompt, image included)."""
@@ -232,7 +235,7 @@ class FailureAnalyzer:
         out: list[dict[str, str]] = [{} for _ in images]
         failed: list[bool | None] = [None] * len(images)
         for dim in Q.DIMENSIONS:
-            plans = [self._plan(dim, failed[i], frames[i], objects[i]) if dim in ids[i] else None
+            plans = [plan_reply(dim, failed[i], frames[i], objects[i], self.q6_mode) if dim in ids[i] else None
                      for i in range(len(images))]
             replies: list[str | None] = [p if isinstance(p, str) else None for p in plans]
             rows = [i for i, p in enumerate(plans) if isinstance(p, Ask)]
