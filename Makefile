@@ -77,6 +77,7 @@ bench: $(STAMP)
 	$(PY) scripts/bench_sim.py
 	$(PY) scripts/bench_train.py
 	$(PY) scripts/bench_infer.py
+	$(PY) scripts/bench_serve.py
 
 clean:
 	rm -rf outputs
