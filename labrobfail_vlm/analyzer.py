@@ -4,6 +4,7 @@
     fa = FailureAnalyzer.from_pretrained("outputs/demo_train/final")
     diagnosis = fa.analyze(grid_image, task="pick up the small beaker and place it on the target area")
     print(diagnosis.to_json())
+    diagnoses = fa.analyze_batch([grid_a, grid_b, DiagnosisRequest(frames, task="...")])  # same answers, batched
 
 Accepts a fine-tuned checkpoint (labrobfail.json: base + adapter + vision weights), a merged
 model, or any local Qwen3-VL directory. Answers are decoded under constraints

@@ -115,8 +115,8 @@ class Decoder:
         for i, r in enumerate(rows):
             ids[i, n - len(r):] = torch.tensor(list(r), dtype=torch.long)
             mask[i, n - len(r):] = 1
-        return self.prefill({"input_ids": ids, "attention_mask": mask, "mm_token_type_ids": (ids == self.image_id).int(),
-                             "pixel_values": pixel_values, "image_grid_thw": image_grid_thw})
+        return self.prefill({"input_ids": ids, "attention_mask": mask, "pixel_values": pixel_values,
+                             "mm_token_type_ids": (ids == self.image_id).int(), "image_grid_thw": image_grid_thw})
 
     @torch.no_grad()
     def _forward(self, pre: Prefix, chunks: Sequence[Sequence[int]], parents: Sequence[Sequence[int]] | None = None

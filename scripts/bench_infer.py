@@ -3,9 +3,12 @@ batched diagnosis (analyze_batch) against one grid at a time.
 
 Run as:
     python scripts/bench_infer.py [--model DIR] [--repeats 7] [--batch 8] [--out outputs/bench_infer.json]
+    python scripts/bench_infer.py --dataset outputs/demo_dataset --split test   # + evaluate.py's predictions
 
 Tiny model on CPU by default (built on the fly if --model is not given); the same script on a GPU
 machine measures whatever checkpoint it is pointed at. Target (issue 5): one pass >= 4x faster.
+With --dataset, the bench's model predictions for a split (what scripts/evaluate.py runs) are timed with
+batch_size 1 and --batch, and must be equal.
 The two modes alternate repeat by repeat, so a burst of load from other processes on a shared machine
 hits both alike; wall and CPU seconds are both reported, with the load average before and after.
 scripts/profile_infer.py shows where the one-pass time goes.
@@ -31,11 +34,31 @@ def stats(ts: list[float]) -> dict[str, float]:
             "min_s": round(min(ts), 4)}
 
 
+def evaluate_rows(fa: object, dataset: str, split: str, batch: int) -> dict[str, object]:
+    """scripts/evaluate.py's model predictions for one split, one trajectory at a time and `batch` at a time."""
+    from labrobfail_vlm.bench import evaluate as ev
+
+    recs, traj = ev.load_split(dataset, split)
+    times, preds = {}, {}
+    for b in (1, batch):
+        t = time.perf_counter()
+        preds[b] = ev.model_predictions(fa, dataset, recs, traj, progress=False, batch_size=b)
+        times[b] = time.perf_counter() - t
+    assert preds[1] == preds[batch], "batched predictions differ"
+    n = len({r["id"].rsplit("_", 1)[0] for r in recs})
+    failed = sum(v != "None" for k, v in preds[1].items() if k.endswith("_Q3"))  # Q3 is a frame after "failed"
+    return {"dataset": dataset, "split": split, "trajectories": n, "records": len(recs),
+            "batch_1_s": round(times[1], 2), f"batch_{batch}_s": round(times[batch], 2),
+            "speedup": round(times[1] / times[batch], 2), "failure_verdicts": failed}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--model", default=None)
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--batch", type=int, default=8, help="grids per analyze_batch call in the batching rows")
+    ap.add_argument("--dataset", default=None, help="also time evaluate.py's predictions on this dataset")
+    ap.add_argument("--split", default="test")
     ap.add_argument("--out", default="outputs/bench_infer.json")
     a = ap.parse_args()
     import torch
@@ -83,6 +106,9 @@ def main() -> None:
                      "analyze_batch_s_per_grid": round(t_batch / a.batch, 4),
                      "speedup": round(t_single / t_batch, 2)},
            "load_average": [round(load_start, 2), round(os.getloadavg()[0], 2)]}
+    if a.dataset:
+        res["evaluate"] = evaluate_rows(fa, a.dataset, a.split, a.batch)
+        res["load_average"][1] = round(os.getloadavg()[0], 2)
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(Path(a.out), res)
     print(json.dumps(res))

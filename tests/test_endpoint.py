@@ -85,7 +85,8 @@ def test_infer_through_the_endpoint(fake, local, grids, tmp_path):  # noqa: F811
     r = _run("infer.py", "--grid", str(tmp_path / "g.png"), "--task", "pick up the small beaker", "--endpoint",
              fake.url, "--num-frames", "8", env={"OPENAI_API_KEY": KEY})
     assert r.returncode == 0, r.stderr[-2000:]
-    got, want = json.loads(r.stdout), json.loads(local.analyze(grids[0], "pick up the small beaker", frames=8).to_json())
+    got = json.loads(r.stdout)
+    want = json.loads(local.analyze(grids[0], "pick up the small beaker", frames=8).to_json())
     assert got["failure"] is want["failure"] is True
     assert {k: got[k] for k in ("actions", "failure_frame", "severity", "category")} == \
         {k: want[k] for k in ("actions", "failure_frame", "severity", "category")}
