@@ -64,7 +64,7 @@ def main() -> None:
     import torch
     from PIL import Image
 
-    from labrobfail_vlm.analyzer import FailureAnalyzer
+    from labrobfail_vlm.analyzer import DiagnosisRequest, FailureAnalyzer
     from labrobfail_vlm.io import atomic_write_json
 
     load_start = os.getloadavg()[0]
@@ -89,12 +89,13 @@ def main() -> None:
     rows = {k: {**stats(v), "cpu_p50_s": round(float(np.percentile(cpu[k], 50)), 4)} for k, v in wall.items()}
     # batching: the same number of distinct grids one at a time and in one analyze_batch call
     grids = [Image.fromarray(rng.integers(0, 255, (768, 1536, 3), dtype=np.uint8)) for _ in range(a.batch)]
-    fa.analyze_batch(grids[:2])  # warm-up
+    reqs = [DiagnosisRequest(g, task) for g in grids]
+    fa.analyze_batch(reqs[:2])  # warm-up
     t = time.perf_counter()
     one_by_one = [fa.analyze(g, task) for g in grids]
     t_single = time.perf_counter() - t
     t = time.perf_counter()
-    together = fa.analyze_batch(grids, max_batch=a.batch)
+    together = fa.analyze_batch(reqs, max_batch=a.batch)
     t_batch = time.perf_counter() - t
     assert [d.raw for d in together] == [d.raw for d in one_by_one], "batched answers differ"
     res = {"model": "tiny (random)" if a.model is None else a.model, "grid": "1536x768",

@@ -3,16 +3,18 @@ encoder, the language-model prefill, the six question suffixes, answer decoding 
 and the rest (Python overhead).
 
 Run as:
-    python scripts/profile_infer.py [--model DIR] [--repeats 5] [--out outputs/profile_infer.json]
+    python scripts/profile_infer.py [--model DIR] [--grid 1536x768] [--batch 8] [--repeats 5]
+                                    [--out outputs/profile_infer.json]
 
 Wall-clock timers wrap the analyzer's own components on this instance only (no profiler overhead), in one
-pass and in six-prompt mode; a batch of grids (`analyze_batch`) is timed too. Same grid as bench_infer.
+pass, in six-prompt mode and per grid of a batch (`answers_batch` of --batch grids). Same grid as bench_infer.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -84,6 +86,8 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--model", default=None)
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--grid", default="1536x768", help="grid size WxH")
+    ap.add_argument("--batch", type=int, default=8, help="grids per answers_batch call in the batch row")
     ap.add_argument("--out", default="outputs/profile_infer.json")
     a = ap.parse_args()
     import torch
@@ -97,22 +101,29 @@ def main() -> None:
         model = str(build_tiny(Path(tempfile.mkdtemp()) / "tiny"))
     fa = FailureAnalyzer.from_pretrained(model)
     from PIL import Image
-    grid = Image.fromarray(np.random.default_rng(0).integers(0, 255, (768, 1536, 3), dtype=np.uint8))
+    w, h = (int(x) for x in a.grid.lower().split("x"))
+    rng = np.random.default_rng(0)
+    grid = Image.fromarray(rng.integers(0, 255, (h, w, 3), dtype=np.uint8))
+    batch = [Image.fromarray(rng.integers(0, 255, (h, w, 3), dtype=np.uint8)) for _ in range(a.batch)]
     task = "pick up the small beaker"
-    res: dict[str, Any] = {"model": "tiny (random)" if a.model is None else a.model, "grid": "1536x768",
-                           "threads": torch.get_num_threads(), "modes": {}}
+    res: dict[str, Any] = {"model": "tiny (random)" if a.model is None else a.model, "grid": f"{w}x{h}",
+                           "threads": torch.get_num_threads(), "load_average": os.getloadavg()[0], "modes": {}}
     s = Sections()
     instrument(fa, s)
-    for mode, one in (("one_pass", True), ("six_prompts", False)):
-        fa.answers(grid, task, one_pass=one)  # warm-up
+    runs = {"one_pass": (lambda: [fa.answers(grid, task)], 1),
+            "six_prompts": (lambda: [fa.answers(grid, task, one_pass=False)], 1),
+            f"batch_{a.batch}_per_grid": (lambda: fa.answers_batch(batch, [task] * a.batch), a.batch)}
+    for mode, (run, n) in runs.items():
+        run()  # warm-up
         s.total.clear()
         t = time.perf_counter()
         for _ in range(a.repeats):
             with s("other (python)"):
-                ans = fa.answers(grid, task, one_pass=one)
-        wall = (time.perf_counter() - t) / a.repeats
-        per = {k: round(v / a.repeats * 1000, 1) for k, v in sorted(s.total.items(), key=lambda kv: -kv[1])}
-        res["modes"][mode] = {"wall_ms": round(wall * 1000, 1), "sections_ms": per, "q2": ans["Q2"]}
+                ans = run()
+        k = a.repeats * n
+        per = {x: round(v / k * 1000, 1) for x, v in sorted(s.total.items(), key=lambda kv: -kv[1])}
+        res["modes"][mode] = {"wall_ms": round((time.perf_counter() - t) / k * 1000, 1), "sections_ms": per,
+                              "q2": [x["Q2"] for x in ans]}
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(Path(a.out), res)
     print(json.dumps(res, indent=1))
