@@ -83,46 +83,84 @@ def _upgrade_identity(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any
     return {**old, "backend_kwargs": {**(new["backend_kwargs"] or {}), **legacy}}
 
 
-def scenario_order(scenarios: list[str], seed: int, pairs: int) -> list[str]:
-    """Round-robin over a seeded permutation per cycle: every scenario appears before any repeats."""
+def scenario_order(scenarios: list[str], seed: int, pairs: int, repeats: dict[str, int] | None = None) -> list[str]:
+    """Round-robin over a seeded permutation per cycle: every scenario appears (`repeats[s]` times, to
+    oversample longer tasks) before the next cycle starts."""
     rng = np.random.default_rng([seed, 0x5CE7])
+    cycle = [s for s in scenarios for _ in range((repeats or {}).get(s, 1))]
     out: list[str] = []
     while len(out) < pairs:
-        out.extend(scenarios[i] for i in rng.permutation(len(scenarios)))
+        out.extend(cycle[i] for i in rng.permutation(len(cycle)))
     return out[:pairs]
 
 
-def pair_seed(seed: int, pair: int) -> int:
-    return int(np.random.SeedSequence([seed, pair]).generate_state(1)[0])
+def pair_seed(seed: int, pair: int, draw: int = 0) -> int:
+    """Seed of pair `pair`'s initial state; `draw` > 0 is a redraw after a nominal plan failed."""
+    return int(np.random.SeedSequence([seed, pair] + ([draw] if draw else [])).generate_state(1)[0])
 
 
-def shard_jobs(cfg: DictConfig, scenarios: list[str]) -> list[dict[str, Any]]:
+MAX_DRAWS = 8  # initial states (and perturbations per state) tried for one pair before it is given up
+
+
+def labelable_pair(src, scenario: str, seed: int, j: int, variant: str) -> tuple[Any, Any, list[dict[str, Any]]]:
+    """A (nominal, injected) pair whose nominal plan succeeds and whose failure, if any, a detector explains.
+
+    A nominal plan that fails is redrawn from a new initial state; an injected failure no detector explains
+    is left out and the perturbation redrawn. Both are returned as records for the manifest. Deterministic:
+    the draws follow from (seed, pair). Returns (None, None, records) if no draw works.
+    """
+    from sim_backends.failure_generator import run_injected, run_nominal
+
+    records: list[dict[str, Any]] = []
+    for a in range(MAX_DRAWS):
+        s = pair_seed(seed, j, a)
+        nominal = run_nominal(src, scenario, s, variant)
+        if not nominal.labels.success:
+            records.append({"kind": "nominal_redraw", "pair": j, "scenario": scenario, "seed": s,
+                            "reason": nominal.labels.failure_type or "unexplained",
+                            "evidence": nominal.labels.evidence})
+            continue
+        for d in range(MAX_DRAWS):
+            injected = run_injected(src, scenario, s, variant, d)
+            if injected.labels.explained:
+                return nominal, injected, records
+            records.append({"kind": "left_out", "pair": j, "scenario": scenario, "seed": s, "draw": d,
+                            "perturbation": injected.perturbation, "evidence": injected.labels.evidence})
+        break
+    records.append({"kind": "given_up", "pair": j, "scenario": scenario})
+    return None, None, records
+
+
+def shard_jobs(cfg: DictConfig, scenarios: list[str], repeats: dict[str, int] | None = None) -> list[dict[str, Any]]:
     n, per = int(cfg.num_episodes), int(cfg.episodes_per_shard)
-    order = scenario_order(scenarios, int(cfg.seed), math.ceil(n / 2))
+    order = scenario_order(scenarios, int(cfg.seed), math.ceil(n / 2), repeats)
     jobs = []
     for k in range(math.ceil(n / per)):
         lo, hi = k * per, min(n, (k + 1) * per)
         pairs = [(j, order[j], pair_seed(int(cfg.seed), j)) for j in range(lo // 2, math.ceil(hi / 2))]
-        jobs.append({"shard": k, "lo": lo, "hi": hi, "pairs": pairs})
+        jobs.append({"shard": k, "lo": lo, "hi": hi, "pairs": pairs, "seed": int(cfg.seed)})
     return jobs
 
 
 def run_shard(job: dict[str, Any], backend: str, kwargs: dict[str, Any], variant: str, out_dir: str) -> int:
     """Generate one shard's episodes and write it atomically. Returns the number of episodes."""
-    from sim_backends.failure_generator import run_pair
-
     src = _worker_source(backend, kwargs)
-    rows = []
+    rows, records = [], []
     for j, scenario, s in job["pairs"]:
-        nominal, injected = run_pair(src, scenario, s, variant)
+        nominal, injected, recs = labelable_pair(src, scenario, job["seed"], j, variant)
+        records.extend(recs)
+        if nominal is None:
+            continue
         for role_i, ep in enumerate((nominal, injected)):
             i = 2 * j + role_i
             if not job["lo"] <= i < job["hi"]:
                 continue
             ep.episode_id, ep.pair_id, ep.role = f"ep{i:07d}", f"pair{j:07d}", ("nominal", "injected")[role_i]
             rows.append(episode_row(ep))
+    # The shard's redraw/left-out records first: a shard file on disk always has its records beside it.
+    atomic_write_json(Path(out_dir) / f"shard-{job['shard']:05d}.rejects.json", records)
     write_shard(Path(out_dir) / f"shard-{job['shard']:05d}.parquet", rows)
-    return len(rows)
+    return job["hi"] - job["lo"]
 
 
 _SOURCES: dict[str, Any] = {}
@@ -191,7 +229,7 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
     for stale in out.glob("*.tmp"):  # leftovers of a killed run; their shard is simply redone
         stale.unlink()
     scenarios = list(cfg.scenarios) if cfg.scenarios else backend_spec(cfg.backend).cls.list_scenarios(**kwargs)
-    jobs = shard_jobs(cfg, scenarios)
+    jobs = shard_jobs(cfg, scenarios, backend_spec(cfg.backend).cls.scenario_repeats(**kwargs))
     todo = [j for j in jobs if not (out / f"shard-{j['shard']:05d}.parquet").exists()]
     done_eps = sum(j["hi"] - j["lo"] for j in jobs) - sum(j["hi"] - j["lo"] for j in todo)
     bar = tqdm(total=int(cfg.num_episodes), initial=done_eps, unit="ep", disable=not cfg.progress,
@@ -202,7 +240,9 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
     bar.close()
     shards = sorted(out.glob("shard-*.parquet"))
     rows = read_labels(shards)
+    records = [r for s in shards for r in json.loads(s.with_suffix(".rejects.json").read_text())
+               ] if all(s.with_suffix(".rejects.json").exists() for s in shards) else None
     man = manifest(rows, {"backend": cfg.backend, "variant": cfg.variant, "seed": int(cfg.seed),
-                          "shards": [s.name for s in shards], "scenarios": scenarios})
+                          "shards": [s.name for s in shards], "scenarios": scenarios}, records)
     atomic_write_json(out / "manifest.json", man, indent=2)
     return man

@@ -29,7 +29,7 @@ SCHEMA = pa.schema([
     ("keyframes", pa.string()), ("nominal_keyframes", pa.string()), ("perturbation", pa.string()),
 ])
 LABEL_COLUMNS = ["episode_id", "pair_id", "role", "scenario", "task", "success", "failure_type", "category",
-                 "severity", "actions", "horizon"]
+                 "severity", "actions", "horizon", "evidence"]
 
 
 def episode_row(ep: Episode) -> dict[str, Any]:
@@ -65,7 +65,24 @@ def read_labels(paths: Iterable[Path]) -> list[dict[str, Any]]:
     return rows
 
 
-def manifest(rows: list[dict[str, Any]], extra: dict[str, Any]) -> dict[str, Any]:
+def draw_summary(records: list[dict[str, Any]] | None) -> dict[str, Any]:
+    """Nominal redraws and left-out failures of a run (the generator's per-shard records)."""
+    if records is None:  # shards written before the records existed
+        return {"nominal_redraws": None, "left_out": None}
+    red = [r for r in records if r["kind"] == "nominal_redraw"]
+    out = [r for r in records if r["kind"] == "left_out"]
+    return {
+        "nominal_redraws": {"count": len(red), "by_reason": dict(Counter(r["reason"] for r in red)),
+                            "by_scenario": dict(sorted(Counter(r["scenario"] for r in red).items()))},
+        "left_out": {"count": len(out), "by_scenario": dict(sorted(Counter(r["scenario"] for r in out).items())),
+                     "records": [{k: r[k] for k in ("pair", "scenario", "seed", "draw", "perturbation", "evidence")}
+                                 for r in out]},
+        "pairs_given_up": sum(r["kind"] == "given_up" for r in records),
+    }
+
+
+def manifest(rows: list[dict[str, Any]], extra: dict[str, Any],
+             records: list[dict[str, Any]] | None = None) -> dict[str, Any]:
     fails = [r for r in rows if not r["success"]]
     by_type = {t: 0 for t in FAILURE_TYPE_NAMES}
     by_type.update(Counter(r["failure_type"] for r in fails))
@@ -88,4 +105,8 @@ def manifest(rows: list[dict[str, Any]], extra: dict[str, Any]) -> dict[str, Any
         "by_action": by_action,
         "by_horizon": by_h,
         "by_task": dict(sorted(Counter(r["scenario"] for r in rows).items())),
+        "scenario_count": len({r["scenario"] for r in rows}),
+        # A label is a guess when no detector explained it; the labeler no longer makes them (must stay 0).
+        "guessed_labels": sum(1 for r in fails if r["failure_type"] is None or "no earlier signature" in (r["evidence"] or "")),
+        **draw_summary(records),
     }

@@ -24,6 +24,7 @@ import numpy as np
 from PIL import Image
 
 from labrobfail_vlm import questions as Q
+from labrobfail_vlm.actions import to_primitives
 from labrobfail_vlm.corrections import STRATEGIES, candidates
 from labrobfail_vlm.grid import GridConfig, build_grid, sample_keyframes
 from labrobfail_vlm.model.processor import common_prefix_len
@@ -42,7 +43,7 @@ class Diagnosis:
     category_name: str | None
     correction: str
     correction_strategy: str | None  # nearest entry of the paper's correction-strategy table
-    primitives: list[dict[str, Any]] | None = None  # filled once the action dictionary exists (supervision)
+    primitives: list[dict[str, Any]] | None = None  # the correction through the action dictionary (actions.py)
     raw: dict[str, str] = field(default_factory=dict)  # the six decoded answers
 
     def to_json(self) -> str:
@@ -294,4 +295,5 @@ class FailureAnalyzer:
             failure_frame=int(a["Q3"]) if failed and a["Q3"].isdigit() else None,
             severity=sev, severity_name=Severity(sev).title if sev else None,
             category=cat, category_name=Category(cat).title if cat else None,
-            correction=a["Q6"], correction_strategy=nearest_strategy(a["Q6"]) if failed else None, raw=a)
+            correction=a["Q6"], correction_strategy=nearest_strategy(a["Q6"]) if failed else None,
+            primitives=to_primitives(a["Q6"], objects) if failed else [], raw=a)

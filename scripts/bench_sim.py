@@ -1,12 +1,13 @@
 """Benchmark LabRobFail-Sim throughput on this machine and write JSON.
 
 Run as:
-    python scripts/bench_sim.py [episodes=16] [out=outputs/bench_sim.json]
+    python scripts/bench_sim.py [backend=pybullet] [episodes=48] [image_size=192] [out=outputs/bench_sim.json]
 
-Measures, on the same scenario mix and seeds, side by side in one run:
-physics-only episodes/hour/core, with two 224x224 views rendered at keyframes,
-end to end into shards with 1 worker and with 2 workers (speed-up = ratio),
-and peak memory per worker process.
+Every row runs the same episodes: the generator's own pair plan for seed 0 (the same scenario mix,
+short, medium and long, with its oversampling), so rows compare side by side in one run:
+physics only (no camera), two rendered views with each rendering variant the backend offers
+(PyBullet: the stock Panda meshes against the low-poly ones), and end to end into shards with
+1 worker and with 2 workers (speed-up = ratio). Peak memory of the main process and of a worker.
 """
 
 from __future__ import annotations
@@ -22,32 +23,34 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from omegaconf import OmegaConf  # noqa: E402
 
-from data.generate import generate, load_config, pair_seed, scenario_order  # noqa: E402
+from data.generate import generate, labelable_pair, load_config, scenario_order  # noqa: E402
 from labrobfail_vlm.io import atomic_write_json  # noqa: E402
-from sim_backends.failure_generator import run_pair  # noqa: E402
-from sim_backends.registry import make_backend  # noqa: E402
+from sim_backends.registry import backend_spec, make_backend  # noqa: E402
+
+# Rendering variants compared per backend (backend kwargs); the first is the backend's default.
+RENDER_VARIANTS = {"pybullet": {"lowpoly_robot": {"lowpoly_robot": True}, "stock_meshes": {"lowpoly_robot": False}}}
 
 
 def per_hour(n: int, seconds: float) -> float:
     return round(3600.0 * n / seconds, 1)
 
 
-def in_process(render: bool, pairs: int) -> float:
-    src = make_backend("pybullet", render=render)
-    # The generator's own pair plan (seed 0), so these rows run the same scenarios as the end-to-end ones.
-    order = scenario_order(src.scenarios(), 0, pairs)
+def in_process(backend: str, pairs: int, **kwargs) -> float:
+    """Episodes/hour of the generator's pairs (redraws included) in this process."""
+    src = make_backend(backend, **kwargs)
+    order = scenario_order(src.scenarios(), 0, pairs, backend_spec(backend).cls.scenario_repeats(**kwargs))
     t = time.perf_counter()
     for j, scenario in enumerate(order):
-        run_pair(src, scenario, pair_seed(0, j), "seen")
+        labelable_pair(src, scenario, 0, j, "seen")
     dt = time.perf_counter() - t
     src.close()
     return per_hour(2 * pairs, dt)
 
 
-def end_to_end(workers: int, n: int) -> float:
+def end_to_end(backend: str, workers: int, n: int, image_size: int) -> float:
     with tempfile.TemporaryDirectory() as d:
-        cfg = load_config([f"out_dir={d}/s", f"num_episodes={n}", f"workers={workers}", "progress=false",
-                           "episodes_per_shard=2", "seed=0"])
+        cfg = load_config([f"backend={backend}", f"out_dir={d}/s", f"num_episodes={n}", f"workers={workers}",
+                           "progress=false", "episodes_per_shard=2", "seed=0", f"image_size={image_size}"])
         t = time.perf_counter()
         generate(cfg)
         return time.perf_counter() - t
@@ -55,23 +58,26 @@ def end_to_end(workers: int, n: int) -> float:
 
 def main(argv: list[str]) -> int:
     args = OmegaConf.from_dotlist(argv)
-    n = int(args.get("episodes", 24))
-    out = Path(args.get("out", "outputs/bench_sim.json"))
-    physics = in_process(False, n // 2)
-    rendered = in_process(True, n // 2)
-    t1 = end_to_end(1, n)
-    t2 = end_to_end(2, n)
-    res = {
-        "episodes": n,
-        "scenario_mix": "round-robin over all scenarios (short, medium and long horizon)",
-        "physics_only_episodes_per_hour_per_core": physics,
-        "rendered_2x224_episodes_per_hour_per_core": rendered,
+    backend = str(args.get("backend", "pybullet"))
+    n = int(args.get("episodes", 48))
+    size = int(args.get("image_size", 192))
+    out = Path(args.get("out", f"outputs/bench_sim_{backend}.json"))
+    pairs = n // 2
+    res: dict = {"backend": backend, "episodes": n, "image_size": size,
+                 "scenario_mix": "the generator's pair plan for seed 0 (all scenarios, oversampled by horizon)",
+                 "physics_only_episodes_per_hour_per_core": in_process(backend, pairs, cameras=[])}
+    for name, kw in RENDER_VARIANTS.get(backend, {"default": {}}).items():
+        res[f"rendered_2x{size}_{name}_episodes_per_hour_per_core"] = in_process(backend, pairs, image_size=size,
+                                                                                  **kw)
+    t1 = end_to_end(backend, 1, n, size)
+    t2 = end_to_end(backend, 2, n, size)
+    res.update({
         "end_to_end_episodes_per_hour_per_core": per_hour(n, t1),
         "end_to_end_2_workers_episodes_per_hour": per_hour(n, t2),
         "speedup_2_workers": round(t1 / t2, 2),
         "peak_rss_mb_main_process": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
         "peak_rss_mb_worker": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1),
-    }
+    })
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out, res, indent=2)
     print(json.dumps(res, indent=2))

@@ -6,10 +6,13 @@ Run as:
     python scripts/evaluate.py model=DIR dataset_dir=DIR external.enabled=true external.model=gpt-4o
     python scripts/evaluate.py endpoint=http://127.0.0.1:8000/v1 dataset_dir=outputs/dataset split=test
     python scripts/evaluate.py model=DIR dataset_dir=DIR batch_size=16      # grids decoded together
+    python scripts/evaluate.py model=DIR dataset_dir=DIR executable.enabled=true executable.shards=SHARDS_DIR
 
 results.json: q1..q5 (top-1 %, Q1 exact ordered list, Q3 exact frame), q3_within1, q6 {bleu1..bleu4
 (nltk corpus_bleu, smoothing method1), rougeL (rouge-score, stemmer)}, breakdowns per category and task,
-confusion matrices; plus the same for each baseline. Defaults: configs/evaluate.yaml.
+confusion matrices; plus the same for each baseline. With `executable.enabled`, `q6_executable`: the share
+of failures that the model's (and the gold) corrections fix when run in the simulator
+(supervision/executable.py). Defaults: configs/evaluate.yaml.
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ def main(argv: list[str]) -> int:
     log_lines: list[str] = []
     results: dict[str, dict] = {}
     analyzer = None
+    tmpl: dict[str, str] = {}  # Q6 in template mode (model and endpoint runs)
     if cfg.model is not None or cfg.endpoint is not None:
         if cfg.endpoint is not None:
             from labrobfail_vlm.endpoint import EndpointAnalyzer
@@ -97,6 +101,12 @@ def main(argv: list[str]) -> int:
         client = ChatClient(cfg.external.base_url, cfg.external.model, cfg.external.api_key_env, cfg.external.timeout_s)
         ext = ev.external_predictions(client, cfg.dataset_dir, recs, cfg.progress, log_lines.append)
         results[str(cfg.external.name)] = ev.score(recs, ext, traj, log_lines.append)
+    executable_rows = {}
+    if cfg.executable.enabled:
+        executable_rows = q6_executable(cfg, recs, traj, {name: preds, **({name + ", Q6 template": tmpl} if tmpl else {})})
+        for k, v in executable_rows.items():
+            if k in results:
+                results[k]["q6_executable"] = v
     rows = {k: row(v) for k, v in results.items()}
     if cfg.reference_rows and cfg.split in ("test", *PAPER_UNSEEN_ROWS):
         # the paper's rows for the same setting (its unseen table has LabRobFail-VLM only)
@@ -106,6 +116,12 @@ def main(argv: list[str]) -> int:
     main_res = results[name]
     payload = {**main_res, "split": cfg.split, "method": name, "baselines": {k: v for k, v in results.items()
                                                                               if k != name}}
+    if executable_rows:
+        payload["q6_executable_gold"] = executable_rows["gold corrections"]
+        md += "\nExecutable correction accuracy (simulated: replay to the failure, run the correction, finish)\n\n" \
+              "| Corrections | Fixed | Failures | Accuracy (%) | Mapped (%) |\n|---|---|---|---|---|\n" + "".join(
+                  f"| {k} | {v['success']} | {v['failures']} | {v['accuracy']} | {v['mapped']} |\n"
+                  for k, v in executable_rows.items())
     atomic_write_json(out / "results.json", payload)
     atomic_write_bytes(out / "results.md", md.encode())
     atomic_write_bytes(out / "unparseable.log", "\n".join(log_lines).encode())
@@ -114,6 +130,32 @@ def main(argv: list[str]) -> int:
             confusion_png(main_res["confusion"][d], f"{d} confusion ({name})", out / f"confusion_{d.lower()}.png")
     print(md)
     return 0
+
+
+def q6_executable(cfg, recs: list[dict], traj: dict[str, dict], predictions: dict[str, dict[str, str]]) -> dict:
+    """Executable correction accuracy of each prediction set and of the gold corrections."""
+    from sim_backends.registry import available_backends, make_backend
+    from supervision.executable import executable_accuracy, q6_texts, shard_index
+
+    if not cfg.executable.shards:
+        raise ConfigError("executable.shards: name the shard folder(s) the dataset was built from")
+    if cfg.executable.backend not in available_backends():
+        raise ConfigError(f"executable.backend: unknown backend {cfg.executable.backend!r}")
+    dirs = [cfg.executable.shards] if isinstance(cfg.executable.shards, str) else list(cfg.executable.shards)
+    for d in dirs:
+        if not Path(d).is_dir():
+            raise ConfigError(f"executable.shards: no such folder {d!r}")
+    shards = shard_index(dirs)
+    texts = {k: q6_texts(recs, p) for k, p in predictions.items()}
+    texts["gold corrections"] = q6_texts(recs)
+    try:
+        src = make_backend(cfg.executable.backend, render=False)  # no cameras needed
+    except TypeError:
+        src = make_backend(cfg.executable.backend)
+    try:
+        return executable_accuracy(src, shards, traj, texts, cfg.executable.limit)
+    finally:
+        src.close()
 
 
 if __name__ == "__main__":

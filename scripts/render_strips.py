@@ -1,4 +1,4 @@
-"""Write one keyframe strip per failure type (and one success) from generated shards, to look at.
+"""Write one keyframe strip per failure type and four random successes from generated shards, to look at.
 
 Run as:
     python scripts/render_strips.py outputs/demo_shards outputs/demo_strips
@@ -23,8 +23,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from labrobfail_vlm.taxonomy import FAILURE_TYPE_NAMES  # noqa: E402
 
 
+CELL = 128  # px: cells are shown at most this wide (a 50-keyframe strip at 192 px would be 9,600 px wide)
+
+
 def strip(row: dict, mark: int | None) -> Image.Image:
     views = [[Image.open(io.BytesIO(b)).convert("RGB") for b in v] for v in row["images"]]
+    views = [[im.resize((CELL, CELL)) if im.width > CELL else im for im in v] for v in views]
     w, h = views[0][0].size
     n = len(views[0])
     out = Image.new("RGB", (w * n, h * len(views) + 18), "white")
@@ -67,6 +71,11 @@ def main(shards: str, out_dir: str) -> int:
             canvas.paste(b, (0, a.height + 6))
             a = canvas
         a.save(out / f"{ftype}.png")
+        written += 1
+    successes = [r for r in rows if r["success"]]
+    rng = np.random.default_rng(0)
+    for k, i in enumerate(rng.choice(len(successes), size=min(4, len(successes)), replace=False)):
+        strip(successes[int(i)], None).save(out / f"success_{k}.png")
         written += 1
     print(f"wrote {written} strips to {out}")
     return 0

@@ -34,8 +34,8 @@ def apply_spec(spec: dict[str, Any], kfs: Sequence[Keyframe], positions: dict, r
             raise ValueError(f"perturbation: unknown control op {op!r}")
         return out, [], {"level": level, **prov}
     if level == "physics":
-        ev, prov = physics.sample_event(kfs, spec["param"], spec["target"], spec["at"], spec["delta"], rng)
-        return list(kfs), [ev], {"level": level, **prov}
+        evs, prov = physics.sample_events(kfs, spec, rng)
+        return list(kfs), evs, {"level": level, **prov}
     if level == "semantic":
         if op == "permute":
             out, prov = semantic.permute(kfs, *spec["steps"])
@@ -49,18 +49,33 @@ def apply_spec(spec: dict[str, Any], kfs: Sequence[Keyframe], positions: dict, r
     raise ValueError(f"perturbation: unknown level {level!r}; expected control, physics or semantic")
 
 
-def run_pair(src: FailureSource, scenario: str, seed: int, variant: str) -> tuple[Episode, Episode]:
-    """Nominal and injected episodes of one task instance (same seed, so the same initial state)."""
-    rng = np.random.default_rng([seed, 0xFA11])
+def run_nominal(src: FailureSource, scenario: str, seed: int, variant: str) -> Episode:
+    """The unperturbed plan from the seeded initial state."""
     src.reset(scenario, seed, variant)
-    nominal = src.execute(src.scripted_keyframes())
+    ep = src.execute(src.scripted_keyframes())
+    ep.perturbation = {"level": "none"}
+    return ep
+
+
+def draw_spec(specs: Sequence[dict[str, Any]], rng: np.random.Generator) -> dict[str, Any]:
+    """One perturbation of the scenario's list, with probability proportional to its `weight` (default 1)."""
+    w = np.asarray([float(s.get("weight", 1.0)) for s in specs])
+    return specs[int(rng.choice(len(specs), p=w / w.sum()))]
+
+
+def run_injected(src: FailureSource, scenario: str, seed: int, variant: str, draw: int = 0) -> Episode:
+    """The same initial state under one perturbation; `draw` > 0 draws another perturbation."""
+    rng = np.random.default_rng([seed, 0xFA11] + ([draw] if draw else []))
     specs = src.scenario_info(scenario)["perturbations"]
     src.reset(scenario, seed, variant)
     kfs, events, prov = src.scripted_keyframes(), [], {"level": "none"}
     if specs:
-        spec = specs[int(rng.integers(len(specs)))]
-        kfs, events, prov = apply_spec(spec, kfs, src.object_positions(), rng)
+        kfs, events, prov = apply_spec(draw_spec(specs, rng), kfs, src.object_positions(), rng)
     injected = src.execute(kfs, events)
     injected.perturbation = prov
-    nominal.perturbation = {"level": "none"}
-    return nominal, injected
+    return injected
+
+
+def run_pair(src: FailureSource, scenario: str, seed: int, variant: str) -> tuple[Episode, Episode]:
+    """Nominal and injected episodes of one task instance (same seed, so the same initial state)."""
+    return run_nominal(src, scenario, seed, variant), run_injected(src, scenario, seed, variant)

@@ -10,7 +10,10 @@ as in a real robot log. Decision, in order:
 2. otherwise each detector scans the trace for its state signature and
    reports the sample where it first shows; the earliest wins (ties broken by
    the order below), giving the failure type and the first failure keyframe;
-3. severity from the final state (see `severity`).
+3. severity from the trace and final state (the rule table in `severity` and docs/ARCHITECTURE.md).
+
+A failure no detector explains gets no type (`Labels.explained` is False): it is never given a
+default type; the generator leaves it out of the dataset and counts it in the manifest.
 
 Thresholds are module constants so that tests and docs can quote them.
 """
@@ -35,8 +38,11 @@ SLIP_DRIFT = 0.04  # m: object-to-gripper drift while held, measured in the grip
 POSE_ERR = 0.3  # rad: end-effector orientation error against the plan
 WRONG_PLACE = 0.08  # m: release this far from the planned spot = put somewhere else entirely
 STILL = 0.005  # m: end-effector displacement between keyframes that counts as not moving
+INSERT_MISS = 0.015  # m: a rod/tube this far from its hole or vessel axis at the end of an insertion
 HANDLE_MISS = 0.015  # m: gripper-to-handle/button offset that misses it
 RELEASE_LEAD = 0.2  # s: slip checks stop this long before the release keyframe ends (the fingers open)
+SPILL_PARTICLES = 5  # liquid particles newly outside every vessel that make a spill (nominal pours lose up to 4)
+BREAK_SPEED = 1.2  # m/s: glassware that hits something this fast (a fall of ~8 cm or more) counts as broken
 
 
 def _kf_samples(trace: Trace, meta: Meta, names: set[str]) -> list[int]:
@@ -117,12 +123,19 @@ def detect_slip(trace: Trace, meta: Meta) -> Optional[Event]:
         rel = [k for s in meta["steps"] if s.get("object") == obj and "release_kf" in s for k in [s["release_kf"]]]
         ends = _kf_samples(trace, meta, set(rel))
         j1 = min([e for e in ends if e > j0], default=len(trace["t"]) - 1)
-        # The release keyframe opens the fingers: stop before its motion starts.
-        j1 = max(j0, j1 - 1 - samples_in(trace, RELEASE_LEAD))
+        # The release keyframe opens the fingers: stop before it starts (by the program counter) and
+        # RELEASE_LEAD before its end, whichever is earlier.
+        rel_i = trace["kf"][j1]
+        start = next((k for k in range(j0, j1 + 1) if trace["kf"][k] == rel_i), j1)
+        j1 = max(j0, min(start, j1 - 1 - samples_in(trace, RELEASE_LEAD)))
         d0 = _in_gripper(trace, obj, j0)
         for j in range(j0, j1):
             d = _in_gripper(trace, obj, j)
             if float(np.linalg.norm(d - d0)) > SLIP_DRIFT:
+                # Fingers commanded open before the release keyframe: the object was let go, not lost.
+                opened = next((k for k in range(j0, j + 1) if trace["grip_cmd"][k] == 0), None)
+                if opened is not None:
+                    return opened, "gripper_control_failure", f"the gripper opened while carrying {obj}, before its release"
                 return j, "object_slippage", f"{obj} drifted {np.linalg.norm(d - d0):.3f} m from the gripper while held"
     return None
 
@@ -155,13 +168,15 @@ def detect_operation(trace: Trace, meta: Meta) -> Optional[Event]:
         k0 = trace["kf_end"][max(0, i - 2)]
         if i > 0 and float(np.linalg.norm(np.asarray(trace["ee_pos"][j]) - np.asarray(trace["ee_pos"][k0]))) < STILL:
             continue  # the arm never moved in to make contact: an incomplete trajectory, not a miss
-        if meta["objects"][obj]["kind"] == "oven" and trace["width"][j] >= OPEN_WIDTH:
-            return j, "gripper_control_failure", f"fingers stayed open on the {obj}'s handle"
-        off = float(np.linalg.norm(np.asarray(trace["ee_pos"][j]) - np.asarray(st["contact_point"])))
         q = trace[f"{obj}.q"]
         moved = max(abs(v - q[j]) for v in q[j:]) if meta["objects"][obj]["kind"] == "oven" else max(q[j:])
         needed = 0.5 if meta["objects"][obj]["kind"] == "oven" else 0.006
-        if moved < needed and off > HANDLE_MISS:
+        if moved >= needed:
+            continue  # the door or button moved: this operation worked
+        if meta["objects"][obj]["kind"] == "oven" and trace["width"][j] >= OPEN_WIDTH:
+            return j, "gripper_control_failure", f"fingers stayed open on the {obj}'s handle"
+        off = float(np.linalg.norm(np.asarray(trace["ee_pos"][j]) - np.asarray(st["contact_point"])))
+        if off > HANDLE_MISS:
             return j, "operation_position_error", f"gripper {off:.3f} m off the {obj}'s handle/button; it did not move"
     return None
 
@@ -209,6 +224,22 @@ def detect_place(trace: Trace, meta: Meta) -> Optional[Event]:
     return None
 
 
+def detect_insert(trace: Trace, meta: Meta) -> Optional[Event]:
+    """A tube lowered beside its rack hole: at the end of the insertion it is off the hole. (A rod that misses
+    the vessel it should stir is the stirring detector's protocol violation.)"""
+    for st in meta["steps"]:
+        if st["action"] != "insert" or "dest_xy" not in st or st.get("dest") in meta["objects"]:
+            continue
+        ends = _kf_samples(trace, meta, set(st["keyframes"][-1:]))
+        if not ends:
+            continue
+        j, obj = ends[0], st["object"]
+        off = float(np.linalg.norm(np.asarray(trace[f"{obj}.pos"][j])[:2] - np.asarray(st["dest_xy"])))
+        if off > INSERT_MISS:
+            return j, "target_positioning_deviation", f"{obj} went in {off:.3f} m beside its target {st['dest']}"
+    return None
+
+
 def detect_liquid(trace: Trace, meta: Meta) -> Optional[Event]:
     goals = [g for g in meta["goals"] if g["kind"] == "liquid"]
     for g in goals:
@@ -223,6 +254,25 @@ def detect_liquid(trace: Trace, meta: Meta) -> Optional[Event]:
     return None
 
 
+def spilled(trace: Trace, j: int = -1) -> int:
+    """Liquid particles outside every vessel at sample j, beyond those outside at the start."""
+    col = trace.get("liquid.outside")
+    return int(col[j] - col[0]) if col else 0
+
+
+def detect_spill(trace: Trace, meta: Meta) -> Optional[Event]:
+    """Liquid ended up outside every vessel (poured beside the target, or flung out) and too little of it
+    reached the destination. A pour that delivers enough despite a few drops outside did not fail there."""
+    col = trace.get("liquid.outside")
+    goals = [g for g in meta["goals"] if g["kind"] == "liquid"]
+    if not col or not goals or not any(g in failed_goals(trace, meta) for g in goals):
+        return None
+    j = next((j for j in range(len(col)) if col[j] - col[0] >= SPILL_PARTICLES), None)
+    if j is None:
+        return None
+    return j, "target_positioning_deviation", f"{spilled(trace)} liquid particles landed outside every vessel (spill)"
+
+
 def detect_stir(trace: Trace, meta: Meta) -> Optional[Event]:
     goal = next((g for g in meta["goals"] if g["kind"] == "stirred"), None)
     js = stir_samples(trace, meta)
@@ -235,27 +285,31 @@ def detect_stir(trace: Trace, meta: Meta) -> Optional[Event]:
 
 # Order breaks ties between detectors firing at the same sample (causes before effects).
 DETECTORS: list[Callable[[Trace, Meta], Optional[Event]]] = [
-    detect_logic, detect_grasp, detect_operation, detect_slip, detect_place, detect_liquid, detect_stir,
-    detect_incomplete,
+    detect_logic, detect_grasp, detect_operation, detect_slip, detect_place, detect_insert, detect_liquid, detect_spill,
+    detect_stir, detect_incomplete,
 ]
 
-FALLBACK = {"at": "target_positioning_deviation", "upright": "pose_control_error", "released": "pose_control_error",
-            "door": "operation_position_error", "button": "operation_position_error",
-            "liquid": "target_positioning_deviation", "stirred": "protocol_violation", "still": "pose_control_error",
-            "held": "object_slippage", "below": "target_positioning_deviation"}
+
+def impact_speed(trace: Trace, obj: str) -> float:
+    """Fastest downward speed of an object between two trace samples (m/s)."""
+    z = [p[2] for p in trace[f"{obj}.pos"]]
+    rate = float(trace.get("rate_hz", 40.0))
+    return max((max(0.0, (z[j - 1] - z[j]) * rate) for j in range(1, len(z))), default=0.0)
 
 
 def severity(trace: Trace, meta: Meta, failure_type: str) -> Severity:
-    """Fatal: glassware knocked off the bench. Risk: glassware dropped or tipped over, or liquid spilled.
-    Management incident: an oven door left open, equipment not returned. Dangerous: anything else
-    (the task cannot proceed without someone stepping in)."""
+    """The severity rule table (first match wins; docs/ARCHITECTURE.md quotes it):
+
+    Fatal: glassware knocked off the bench, or falling fast enough to break (>= BREAK_SPEED).
+    Risk: glassware tipped over or slipping, or liquid spilled outside every vessel.
+    Management incident: an oven door left open, equipment not returned.
+    Dangerous: anything else (the task cannot proceed without someone stepping in)."""
     movables = [k for k, o in meta["objects"].items() if o["kind"] in ("vessel", "rod")]
-    if any(trace[f"{m}.pos"][-1][2] < meta["bench_top"] + OFF_BENCH for m in movables):
+    if any(trace[f"{m}.pos"][-1][2] < meta["bench_top"] + OFF_BENCH for m in movables) \
+            or any(impact_speed(trace, m) >= BREAK_SPEED for m in movables):
         return Severity.FATAL
     vessels = [m for m in movables if meta["objects"][m]["kind"] == "vessel"]
-    spilled = trace.get("liquid.outside", [0])[-1]
-    total = sum(meta["liquid_total"].values())
-    if any(tilt(trace[f"{m}.quat"][-1]) > UPRIGHT_TILT for m in vessels) or (total and spilled > 0.25 * total) \
+    if any(tilt(trace[f"{m}.quat"][-1]) > UPRIGHT_TILT for m in vessels) or spilled(trace) >= SPILL_PARTICLES \
             or failure_type == "object_slippage":
         return Severity.RISK
     ovens = [k for k, o in meta["objects"].items() if o["kind"] == "oven"]
@@ -270,13 +324,11 @@ def derive_labels(trace: Trace, meta: Union[TaskMeta, Meta]) -> Labels:
     if not bad:
         return Labels(success=True, evidence="all goals hold")
     events = [(e, rank) for rank, d in enumerate(DETECTORS) if (e := d(trace, meta)) is not None]
-    if events:
-        (j, ftype, why), _ = min(events, key=lambda er: (er[0][0], er[1]))
-    else:
-        ftype = FALLBACK[bad[0]["kind"]]
-        j = trace["kf_end"][-1]
-        why = f"goal '{bad[0]['kind']}' failed with no earlier signature"
+    failed = ", ".join(g["kind"] for g in bad)
+    if not events:  # never guessed: the episode is left out of the dataset and counted
+        return Labels(success=False, evidence=f"unexplained: no detector fired; failed goals: {failed}")
+    (j, ftype, why), _ = min(events, key=lambda er: (er[0][0], er[1]))
     kf = next((i for i, e in enumerate(trace["kf_end"]) if e >= j), len(trace["kf_end"]) - 1)
     return Labels(success=False, failure_type=ftype, category=int(category_of(ftype)),
                   severity=int(severity(trace, meta, ftype)), failure_keyframe=kf,
-                  evidence=f"{why}; failed goals: {', '.join(g['kind'] for g in bad)}")
+                  evidence=f"{why}; failed goals: {failed}")

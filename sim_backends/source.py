@@ -87,6 +87,11 @@ class FailureSource(ABC):
         finally:
             src.close()
 
+    @classmethod
+    def scenario_repeats(cls, **kwargs: Any) -> dict[str, int]:
+        """How many times each scenario appears per generation cycle (oversampling; default once each)."""
+        return {s: 1 for s in cls.list_scenarios(**kwargs)}
+
     # ---- task description --------------------------------------------------------------------------
     @abstractmethod
     def scenarios(self) -> list[str]:
@@ -203,6 +208,15 @@ class FailureSource(ABC):
         for kf in keyframes:
             self.step(kf)
         return self.finish()
+
+    # ---- supervision hooks (closed loop: a supervisor and a correction executor read the episode so far) --
+    def executed_so_far(self) -> list[Keyframe]:
+        """The keyframes stepped since `begin`, in order (a copy)."""
+        return list(self._active().executed)
+
+    def images_so_far(self) -> list[list[bytes]]:
+        """PNG bytes of every view at the end of every keyframe stepped so far: `[view][keyframe]` (a copy)."""
+        return [list(v) for v in self._active().images]
 
     def _active(self) -> _Run:
         if self._run is None:

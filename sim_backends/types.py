@@ -96,6 +96,11 @@ class Labels:
     failure_keyframe: int | None = None  # 0-based index into the executed keyframes
     evidence: str = ""  # the state signal that decided the label, for auditing
 
+    @property
+    def explained(self) -> bool:
+        """False for a failure that no detector explains (it has no type and never enters a dataset)."""
+        return self.success or self.failure_type is not None
+
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 

@@ -193,3 +193,37 @@ def test_keyframe_of_a_failure_is_where_it_shows():
     assert derive_labels(tr, meta).failure_keyframe == meta.executed.index("s0_close")
     tr, meta = _case("incomplete_trajectory")
     assert derive_labels(tr, meta).failure_keyframe == meta.executed.index("s0_lift") + 1
+
+
+def test_a_failure_no_detector_explains_is_not_given_a_type():
+    """The object stands where the plan put it, but the goal asks for another spot: no state signature
+    explains the failed goal, so the label says so instead of guessing a type."""
+    tr, meta = _case("success")
+    meta.places["target"] = [0.2, -0.3, 0.0]
+    lab = derive_labels(tr, meta)
+    assert not lab.success and lab.failure_type is None and not lab.explained
+    assert lab.evidence.startswith("unexplained") and "at" in lab.evidence
+
+
+def test_a_spill_is_detected_as_a_spill_with_risk_severity():
+    from labrobfail_vlm.taxonomy import Severity
+    from sim_backends.labeler import SPILL_PARTICLES
+
+    tr, meta = _case("protocol_violation")
+    tr["liquid.bystander"] = [0] * len(tr["t"])  # nothing reaches another vessel: it lands on the bench
+    j = meta.executed.index("s1_carry")
+    tr["liquid.outside"] = [0 if k < tr["kf_end"][j] else SPILL_PARTICLES + 1 for k in range(len(tr["t"]))]
+    lab = derive_labels(tr, meta)
+    assert lab.failure_type == "target_positioning_deviation" and "spill" in lab.evidence
+    assert lab.failure_keyframe == j and lab.severity == int(Severity.RISK)  # shows at the end of s1_carry
+
+
+def test_glassware_falling_fast_is_fatal():
+    from labrobfail_vlm.taxonomy import Severity
+    from sim_backends.labeler import BREAK_SPEED, impact_speed
+
+    tr, meta = _case("object_slippage")  # dropped from carry height: it hits the bench at once
+    assert impact_speed(tr, "obj") >= BREAK_SPEED
+    assert derive_labels(tr, meta).severity == int(Severity.FATAL)
+    tr, meta = _case("target_positioning_deviation")  # set down gently, only in the wrong place
+    assert impact_speed(tr, "obj") < BREAK_SPEED and derive_labels(tr, meta).severity != int(Severity.FATAL)

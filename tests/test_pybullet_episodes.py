@@ -45,6 +45,15 @@ def test_gripper_fault_is_seen_in_the_fingers(src):
     assert derive_labels(ep.state_trace, ep.task_meta) == ep.labels
 
 
+def test_gripper_opening_mid_carry_drops_and_breaks_the_glass(src):
+    """Opening the fingers while carrying: a gripper control failure (the object was let go, not lost), and
+    the fall from carry height is fast enough to count as broken glassware (Fatal)."""
+    rng = np.random.default_rng(0)
+    ep = _run(src, "pick_place_bottle", 1, lambda k: control.corrupt_gripper(k, ["s1_carry"], 1.0, rng))
+    assert ep.labels.failure_type == "gripper_control_failure", ep.labels.evidence
+    assert "opened while carrying" in ep.labels.evidence and ep.labels.severity == 3  # Fatal
+
+
 def test_same_seed_same_episode(src):
     a = _run(src, "open_oven_center", 5)
     b = _run(src, "open_oven_center", 5)

@@ -15,7 +15,7 @@ import numpy as np
 
 from sim_backends.types import Keyframe
 
-PHYSICS_PARAMS = ("friction", "mass", "grip_force", "liquid_viscosity", "liquid_mass")
+PHYSICS_PARAMS = ("friction", "mass", "grip_force", "liquid_viscosity", "liquid_mass", "liquid_friction")
 
 
 @dataclass(frozen=True)
@@ -29,8 +29,32 @@ class PhysicsEvent:
         return asdict(self)
 
 
+def delta_range(p: dict[str, Any]) -> tuple[float, float]:
+    """`alpha: a` is the paper's U(-a, a); `delta: [lo, hi]` an explicit range."""
+    if "alpha" in p:
+        a = float(p["alpha"])
+        return -a, a
+    if "delta" in p:
+        return float(p["delta"][0]), float(p["delta"][1])
+    raise ValueError(f"physics perturbation of {p.get('param')!r} needs alpha or delta")
+
+
+def sample_events(kfs: Sequence[Keyframe], spec: dict[str, Any], rng: np.random.Generator
+                  ) -> tuple[list[PhysicsEvent], dict]:
+    """One or several parameters (`params: [{param, target, alpha|delta}, ...]`) changed at one keyframe."""
+    params = spec.get("params") or [spec]
+    events, deltas = [], []
+    at = None
+    for prm in params:
+        ev, prov = sample_event(kfs, prm["param"], prm["target"], spec["at"], delta_range(prm), rng, at)
+        at = ev.at_keyframe  # every parameter changes at the same moment
+        events.append(ev)
+        deltas.append(prov)
+    return events, {"op": "physics", "events": deltas}
+
+
 def sample_event(kfs: Sequence[Keyframe], param: str, target: str, at: Sequence[str], delta: Sequence[float],
-                 rng: np.random.Generator) -> tuple[PhysicsEvent, dict]:
+                 rng: np.random.Generator, at_index: int | None = None) -> tuple[PhysicsEvent, dict]:
     if param not in PHYSICS_PARAMS:
         raise ValueError(f"physics perturbation: unknown parameter {param!r}; expected one of {', '.join(PHYSICS_PARAMS)}")
     lo, hi = float(delta[0]), float(delta[1])
@@ -41,5 +65,5 @@ def sample_event(kfs: Sequence[Keyframe], param: str, target: str, at: Sequence[
     if not where:
         raise ValueError(f"physics perturbation names keyframes {list(at)} that the task does not have")
     d = float(rng.uniform(lo, hi))
-    ev = PhysicsEvent(param, target, 1.0 + d, int(rng.choice(where)))
+    ev = PhysicsEvent(param, target, 1.0 + d, int(rng.choice(where)) if at_index is None else at_index)
     return ev, {"op": "physics", **ev.to_dict(), "delta": round(d, 5)}

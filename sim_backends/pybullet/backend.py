@@ -22,13 +22,30 @@ from sim_backends.source import FailureSource
 from sim_backends.types import Keyframe
 
 TASKS_FILE = Path(__file__).resolve().parents[2] / "configs" / "tasks" / "pybullet.yaml"
+SOLVER_ITERATIONS = 50  # contact solver iterations per physics step (grasps need them; see bench_sim.py)
 TRACE_EVERY = 6  # physics steps per trace sample: 240 Hz / 6 = 40 Hz
 TRACE_RATE_HZ = round(1.0 / (DT * TRACE_EVERY), 6)  # recorded in every trace as `rate_hz`; the labeler reads it there
+
+
+def expand_scenarios(scenarios: dict[str, Any]) -> dict[str, Any]:
+    """`expand: {role: [object, ...]}` turns one YAML entry into one scenario per object, named
+    `<entry>_<object>` (the same layout and perturbations with another piece of glassware)."""
+    out: dict[str, Any] = {}
+    for name, sc in scenarios.items():
+        if "expand" not in sc:
+            out[name] = sc
+            continue
+        (role, objects), = sc["expand"].items()
+        for obj in objects:
+            layout = {**sc["layout"], role: {**sc["layout"][role], "object": obj}}
+            out[f"{name}_{obj}"] = {k: v for k, v in sc.items() if k != "expand"} | {"layout": layout}
+    return out
 
 
 def load_task_config(path: str | Path = TASKS_FILE) -> dict[str, Any]:
     cfg = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
     assert isinstance(cfg, dict)
+    cfg["scenarios"] = expand_scenarios(cfg["scenarios"])
     known = task_templates(PyBulletSource.name)
     for name, sc in cfg["scenarios"].items():
         if sc.get("template") not in known:
@@ -54,15 +71,18 @@ def _yaml_mapping(key: str, path: str | None) -> dict[str, Any] | None:
     return data
 
 
-@register_backend("pybullet", image_size=224, cameras=["front", "side"], wrist=False, egl=False)
+@register_backend("pybullet", image_size=224, cameras=["front", "side"], wrist=False, egl=False, camera_jitter=True,
+                  max_distractors=scene_mod.MAX_DISTRACTORS, lowpoly_robot=True)
 class PyBulletSource(FailureSource):
     name = "pybullet"
 
     def __init__(self, image_size: int = 224, cameras: Sequence[str] = ("front", "side"), wrist: bool = False,
                  egl: bool = False, render: bool = True, tasks_file: str | Path | None = None,
                  custom_objects: dict[str, dict[str, Any]] | None = None,
-                 custom_scene: dict[str, Any] | None = None):
+                 custom_scene: dict[str, Any] | None = None, camera_jitter: bool = True,
+                 max_distractors: int = scene_mod.MAX_DISTRACTORS, lowpoly_robot: bool = True):
         super().__init__()
+        self.camera_jitter, self.max_distractors, self.lowpoly_robot = camera_jitter, int(max_distractors), lowpoly_robot
         self.cfg = load_task_config(tasks_file or TASKS_FILE)
         self.cid = p.connect(p.DIRECT)
         if egl:
@@ -95,6 +115,8 @@ class PyBulletSource(FailureSource):
             # The Panda's fingers open to 8 cm: a wider vessel cannot be grasped at all.
             if spec["kind"] == "vessel" and not 0.01 <= float(spec["radius"]) <= 0.038:
                 raise ValueError(f"custom_objects: object {name!r} radius must be 0.01-0.038 m (the gripper opens 8 cm)")
+        if not isinstance(out.get("max_distractors", 0), int) or out.get("max_distractors", 0) < 0:
+            raise ValueError(f"max_distractors: must be a non-negative integer, got {out.get('max_distractors')!r}")
         scene = out["custom_scene"] = _yaml_mapping("custom_scene", kwargs.get("custom_scene"))
         for k in ("bench", "floor", "light"):
             if scene is not None and k not in scene:
@@ -105,6 +127,12 @@ class PyBulletSource(FailureSource):
     def list_scenarios(cls, **kwargs: Any) -> list[str]:
         return list(load_task_config(kwargs.get("tasks_file") or TASKS_FILE)["scenarios"])
 
+    @classmethod
+    def scenario_repeats(cls, **kwargs: Any) -> dict[str, int]:
+        cfg = load_task_config(kwargs.get("tasks_file") or TASKS_FILE)
+        return {name: int(sc.get("repeat", cfg["templates"].get(sc["template"], {}).get("repeat", 1)))
+                for name, sc in cfg["scenarios"].items()}
+
     # -- FailureSource ------------------------------------------------------------------------------
     def scenarios(self) -> list[str]:
         return list(self.cfg["scenarios"])
@@ -113,7 +141,7 @@ class PyBulletSource(FailureSource):
         sc = self._scenario(scenario)
         tmpl = self.cfg["templates"].get(sc["template"], {})
         return {"template": sc["template"], "perturbations": sc.get("perturbations", tmpl.get("perturbations", [])),
-                "substitutes": sc.get("substitutes", {})}
+                "substitutes": sc.get("substitutes", {}), "repeat": int(sc.get("repeat", tmpl.get("repeat", 1)))}
 
     def _scenario(self, scenario: str) -> dict[str, Any]:
         if scenario not in self.cfg["scenarios"]:
@@ -124,13 +152,14 @@ class PyBulletSource(FailureSource):
         sc = self._scenario(scenario)
         cid = self.cid
         p.resetSimulation(physicsClientId=cid)
-        p.setPhysicsEngineParameter(deterministicOverlappingPairs=1, numSolverIterations=50, fixedTimeStep=DT,
+        p.setPhysicsEngineParameter(deterministicOverlappingPairs=1, numSolverIterations=SOLVER_ITERATIONS, fixedTimeStep=DT,
                                     physicsClientId=cid)
         p.setGravity(0, 0, -9.81, physicsClientId=cid)
         rng = np.random.default_rng(seed)
-        self.scene = scene_mod.build(cid, sc["layout"], variant, rng, self.custom_objects, self.custom_scene)
+        self.scene = scene_mod.build(cid, sc["layout"], variant, rng, self.custom_objects, self.custom_scene,
+                                     max_distractors=self.max_distractors, lowpoly=self.lowpoly_robot)
         if self.renderer is not None:
-            self.renderer.light = tuple(self.scene.appearance["light"])
+            self.renderer.set_episode(self.scene.appearance, rng if self.camera_jitter else None)
         for _ in range(60):  # let liquid and glassware settle before anything is planned
             p.stepSimulation(physicsClientId=cid)
         self.plan = Plan(self.scene)
@@ -197,12 +226,14 @@ class PyBulletSource(FailureSource):
             scene.robot.grip_force *= ev.scale
             scene.robot.set_gripper(scene.robot.gripper_cmd)
             return
-        if ev.param in ("liquid_viscosity", "liquid_mass"):
+        if ev.param.startswith("liquid_"):
             for b in scene.particles.get(ev.target, []):
+                info = p.getDynamicsInfo(b, -1, physicsClientId=cid)
                 if ev.param == "liquid_mass":
-                    m = p.getDynamicsInfo(b, -1, physicsClientId=cid)[0]
-                    p.changeDynamics(b, -1, mass=m * ev.scale, physicsClientId=cid)
-                else:
+                    p.changeDynamics(b, -1, mass=info[0] * ev.scale, physicsClientId=cid)
+                elif ev.param == "liquid_friction":
+                    p.changeDynamics(b, -1, lateralFriction=info[1] * ev.scale, physicsClientId=cid)
+                else:  # liquid_viscosity: the particles' viscous drag stands in for the liquid's viscosity
                     p.changeDynamics(b, -1, linearDamping=assets.LIQUID_DAMPING * ev.scale, physicsClientId=cid)
             return
         body = scene.body(ev.target)

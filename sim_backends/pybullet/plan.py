@@ -41,6 +41,7 @@ class Plan:
     keyframes: list[Keyframe] = field(default_factory=list)
     steps: list[Step] = field(default_factory=list)
     goals: list[Goal] = field(default_factory=list)
+    moved: dict[str, tuple[float, float, float]] = field(default_factory=dict)  # where earlier steps put objects
 
     # -- builder primitives ---------------------------------------------------------------------------
     def step(self, action: str, **info: Any) -> None:
@@ -66,6 +67,10 @@ class Plan:
     def _obj(self, name: str):
         return self.scene.objects[name]
 
+    def _at(self, name: str) -> tuple[float, float, float]:
+        """Where an object stands when this step starts: its home, or where an earlier step placed it."""
+        return self.moved.get(name, self.scene.objects[name].home)
+
     def _grip(self, obj: str) -> list[float]:
         """Offset of the end effector from the object's frame in the grasp that holds `obj`."""
         return next(s.grip_offset for s in reversed(self.steps) if s.object == obj and s.grip_offset is not None)
@@ -77,7 +82,7 @@ class Plan:
         `inside`: the object stands in the oven, so lift only a little and withdraw horizontally.
         """
         o = self._obj(obj)
-        x, y, z = o.home
+        x, y, z = self._at(obj)
         self.step("grasp", object=obj)
         if o.kind == "vessel":
             zg = z + min(0.6 * o.dims["height"], 0.048)  # low grasps near the base trap the IK
@@ -120,6 +125,7 @@ class Plan:
         back = (-0.12, 0, 0) if o.kind == "vessel" else (0, 0, 0.1)
         self.kf("retreat", (dx + g[0] + back[0], dy + g[1], zr + back[2]), quat, 0, dest, speed=0.3)
         self.steps[-1].release_kf = rel
+        self.moved[obj] = (dx, dy, o.home[2] if dest not in self.scene.zones else self.scene.zones[dest][2])
 
     def pour(self, src: str, dest: str, side: float = -1.0) -> None:
         """Bring the held vessel beside `dest` and roll it progressively until the liquid has run out."""
@@ -140,14 +146,14 @@ class Plan:
                     settle=40)
         self.kf("upright", (x + g[0], ay, zc + 0.04), SIDE, 1, dest, speed=0.3)
 
-    def shake(self, obj: str, amp: float = 0.05, n: int = 3) -> None:
+    def shake(self, obj: str, amp: float = 0.05, n: int = 3, speed: float = 0.6) -> None:
         o = self._obj(obj)
         x, y, _ = o.home
         self.step("shake", object=obj)
         zc = SAFE_Z - 0.06
         for i in range(n):
-            self.kf(f"left{i}", (x - 0.005, y - amp, zc), SIDE, 1, obj, speed=0.6)
-            self.kf(f"right{i}", (x - 0.005, y + amp, zc), SIDE, 1, obj, speed=0.6)
+            self.kf(f"left{i}", (x - 0.005, y - amp, zc), SIDE, 1, obj, speed=speed)
+            self.kf(f"right{i}", (x - 0.005, y + amp, zc), SIDE, 1, obj, speed=speed)
 
     def _ee_z_for_bottom(self, obj: str, bottom: float) -> float:
         """End-effector height that puts the lower end of a held rod at `bottom`."""
@@ -161,7 +167,7 @@ class Plan:
         """
         if into in self.scene.objects:  # a vessel: stop 1.5 cm above its floor
             v = self.scene.objects[into]
-            x, y, z = v.home
+            x, y, z = self._at(into)
             bottom, top = z + 0.015, z + v.dims["height"]
         else:  # a rack hole: stand on the rack's base plate
             x, y, z = self.scene.zones[into]
@@ -172,7 +178,7 @@ class Plan:
 
     def stir(self, obj: str, vessel: str, amp: float = 0.01, n: int = 3) -> None:
         v = self.scene.objects[vessel]
-        x, y, z = v.home
+        x, y, z = self._at(vessel)
         zc = self._ee_z_for_bottom(obj, z + 0.015)
         self.step("stir", object=obj, dest=vessel)
         for i in range(n):

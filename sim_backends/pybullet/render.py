@@ -1,4 +1,4 @@
-"""Fixed cameras (front, side) and an optional wrist view; TinyRenderer by default, EGL optional."""
+"""Cameras (front, side) jittered per episode, an optional wrist view; TinyRenderer by default, EGL optional."""
 
 from __future__ import annotations
 
@@ -16,6 +16,11 @@ CAMERAS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float],
 }
 
 
+EYE_JITTER = 0.04  # m, per axis: each episode's cameras stand somewhere around their nominal pose
+TARGET_JITTER = 0.02  # m, per axis, for the point they look at
+FOV_JITTER = 3.0  # degrees
+
+
 class Renderer:
     def __init__(self, cid: int, views: Sequence[str], size: int, wrist: bool = False, egl: bool = False):
         unknown = [v for v in views if v not in CAMERAS]
@@ -25,8 +30,24 @@ class Renderer:
         self.views = list(views) + (["wrist"] if wrist else [])
         self.proj = p.computeProjectionMatrixFOV(50.0, 1.0, 0.02, 4.0)
         self.view_mats = {v: p.computeViewMatrix(CAMERAS[v][0], CAMERAS[v][1], (0, 0, 1)) for v in views}
+        self.projs = {v: self.proj for v in views}
         self.renderer = p.ER_BULLET_HARDWARE_OPENGL if egl else p.ER_TINY_RENDERER
         self.light = (0.6, -0.4, 2.0)
+        self.light_kw: dict[str, float] = {}
+
+    def set_episode(self, appearance: dict, rng: np.random.Generator | None) -> None:
+        """Light of the scene's appearance; camera poses jittered from the episode's RNG (None: nominal poses)."""
+        self.light = tuple(appearance["light"])
+        self.light_kw = {"lightAmbientCoeff": float(appearance.get("ambient", 0.6)),
+                         "lightDiffuseCoeff": float(appearance.get("diffuse", 0.35))}
+        for v in self.view_mats:
+            eye, target, fov = CAMERAS[v]
+            if rng is not None:
+                eye = tuple(np.asarray(eye) + rng.uniform(-EYE_JITTER, EYE_JITTER, 3))
+                target = tuple(np.asarray(target) + rng.uniform(-TARGET_JITTER, TARGET_JITTER, 3))
+                fov = fov + float(rng.uniform(-FOV_JITTER, FOV_JITTER))
+            self.view_mats[v] = p.computeViewMatrix(eye, target, (0, 0, 1))
+            self.projs[v] = p.computeProjectionMatrixFOV(fov, 1.0, 0.02, 4.0)
 
     def _wrist_view(self, robot_id: int):
         s = p.getLinkState(robot_id, EE_LINK, computeForwardKinematics=True, physicsClientId=self.cid)
@@ -39,8 +60,9 @@ class Renderer:
         out = []
         for v in self.views:
             vm = self._wrist_view(robot_id) if v == "wrist" else self.view_mats[v]
-            _, _, rgb, _, _ = p.getCameraImage(self.size, self.size, vm, self.proj, renderer=self.renderer,
-                                               lightDirection=self.light, shadow=0,
+            _, _, rgb, _, _ = p.getCameraImage(self.size, self.size, vm, self.projs.get(v, self.proj),
+                                               renderer=self.renderer, lightDirection=self.light, shadow=0,
+                                               **self.light_kw,
                                                flags=p.ER_NO_SEGMENTATION_MASK, physicsClientId=self.cid)
             out.append(np.asarray(rgb, np.uint8).reshape(self.size, self.size, 4)[:, :, :3])
         return out

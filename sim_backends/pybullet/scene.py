@@ -40,15 +40,38 @@ UNSEEN_OBJECTS: dict[str, dict[str, Any]] = {
     "test_tube": {"kind": "rod", "length": 0.11, "radius": 0.010, "rgba": [0.85, 0.55, 0.95, 1]},
 }
 
-SEEN_SCENES: list[dict[str, Any]] = [
-    {"bench": [0.82, 0.80, 0.76, 1], "floor": [0.35, 0.35, 0.38, 1], "light": [0.6, -0.4, 2.0], "checker": False},
-    {"bench": [0.78, 0.78, 0.80, 1], "floor": [0.30, 0.33, 0.30, 1], "light": [0.2, 0.6, 2.0], "checker": False},
-    {"bench": [0.86, 0.83, 0.72, 1], "floor": [0.40, 0.36, 0.33, 1], "light": [-0.3, -0.5, 2.0], "checker": False},
-]
-UNSEEN_SCENES: list[dict[str, Any]] = [
-    {"bench": [0.25, 0.28, 0.32, 1], "floor": [0.70, 0.62, 0.48, 1], "light": [1.5, 1.0, 1.0], "checker": True},
-    {"bench": [0.55, 0.40, 0.28, 1], "floor": [0.15, 0.20, 0.35, 1], "light": [-1.0, 1.2, 1.2], "checker": True},
-]
+# Scene appearance families. Seen and unseen never overlap: their bench brightness ranges are disjoint and they
+# use different texture kinds, so an unseen-scene episode never shows a bench the model was trained on.
+SCENE_FAMILIES: dict[str, dict[str, Any]] = {
+    "seen": {"bench_value": (0.68, 0.92), "bench_sat": (0.0, 0.18), "floor_value": (0.22, 0.42),
+             "textures": ("plain", "grain", "speckle")},
+    "unseen": {"bench_value": (0.22, 0.50), "bench_sat": (0.25, 0.60), "floor_value": (0.55, 0.80),
+               "textures": ("checker", "tiles")},
+}
+PLACEMENT_JITTER = 0.035  # m: objects and zones move by up to this much in x and y (times their `jitter`)
+MAX_DISTRACTORS = 3  # glassware on the bench that is not part of the task
+DISTRACTOR_CLEARANCE = 0.11  # m from every task object and zone (and 0.08 from the lines between them)
+
+
+def _rgb(rng: np.random.Generator, value: tuple[float, float], sat: tuple[float, float]) -> list[float]:
+    """A colour of random hue with its HSV value and saturation drawn from the given ranges."""
+    import colorsys
+
+    r, g, b = colorsys.hsv_to_rgb(float(rng.random()), float(rng.uniform(*sat)), float(rng.uniform(*value)))
+    return [round(r, 3), round(g, 3), round(b, 3), 1.0]
+
+
+def draw_appearance(variant: str, rng: np.random.Generator) -> dict[str, Any]:
+    """Bench and floor colours, bench texture and light of one episode (seeded)."""
+    fam = SCENE_FAMILIES["unseen" if variant in ("unseen_scene", "unseen_both") else "seen"]
+    az, el = rng.uniform(0, 2 * math.pi), rng.uniform(math.radians(35), math.radians(80))
+    return {"bench": _rgb(rng, fam["bench_value"], fam["bench_sat"]),
+            "floor": _rgb(rng, fam["floor_value"], (0.0, 0.3)),
+            "texture": str(fam["textures"][int(rng.integers(len(fam["textures"])))]),
+            "light": [round(2 * math.cos(el) * math.cos(az), 3), round(2 * math.cos(el) * math.sin(az), 3),
+                      round(2 * math.sin(el), 3)],
+            "ambient": round(float(rng.uniform(0.5, 0.7)), 3), "diffuse": round(float(rng.uniform(0.3, 0.5)), 3)}
+
 
 @dataclass
 class SceneObject:
@@ -69,23 +92,37 @@ class Scene:
     appearance: dict[str, Any]
     bench_id: int = -1
     labels: dict[str, str] = field(default_factory=dict)  # role -> words used in task text and corrections
+    distractors: dict[str, int] = field(default_factory=dict)  # glassware that is not part of the task -> body
 
     def body(self, name: str) -> int:
         return self.objects[name].body
 
 
-def _checker_texture(cid: int, rgba: list[float], seed: int) -> int:
-    """A procedural checker texture written to a temp PNG (PyBullet loads textures from files only)."""
+def _texture(cid: int, kind: str, rgba: list[float], seed: int) -> int | None:
+    """A procedural bench texture written to a temp PNG (PyBullet loads textures from files only)."""
     import os
     import tempfile
 
     from PIL import Image
 
+    if kind == "plain":
+        return None
     rng = np.random.default_rng(seed)
     base = np.array(rgba[:3]) * 255
     alt = np.clip(base * (0.6 + 0.3 * rng.random()), 0, 255)
-    tile = np.kron((np.indices((8, 8)).sum(0) % 2)[..., None], np.ones((16, 16, 1)))
-    img = (tile * base + (1 - tile) * alt).astype(np.uint8)
+    yy, xx = np.indices((128, 128))
+    if kind == "checker":
+        mask = ((yy // 16 + xx // 16) % 2).astype(float)
+    elif kind == "tiles":  # square tiles with dark grout lines
+        mask = ((yy % 32 < 29) & (xx % 32 < 29)).astype(float)
+    elif kind == "grain":  # wood-like stripes of varying width
+        phase = np.sin(yy / rng.uniform(3, 8) + 2 * np.sin(xx / rng.uniform(20, 40)))
+        mask = 0.55 + 0.45 * phase
+    elif kind == "speckle":
+        mask = 1.0 - 0.5 * (rng.random((128, 128)) < 0.08)
+    else:
+        raise ValueError(f"custom_scene: unknown texture {kind!r}; expected plain, grain, speckle, checker or tiles")
+    img = (mask[..., None] * base + (1 - mask[..., None]) * alt).astype(np.uint8)
     fd, path = tempfile.mkstemp(suffix=".png")
     os.close(fd)
     Image.fromarray(img).save(path)
@@ -93,6 +130,47 @@ def _checker_texture(cid: int, rgba: list[float], seed: int) -> int:
         return p.loadTexture(path, physicsClientId=cid)
     finally:
         os.unlink(path)
+
+
+def _seg_dist(q: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    ab = b - a
+    t = float(np.clip(np.dot(q - a, ab) / max(float(np.dot(ab, ab)), 1e-9), 0.0, 1.0))
+    return float(np.linalg.norm(q - (a + t * ab)))
+
+
+def place_distractors(cid: int, objects: dict[str, "SceneObject"], zones: dict[str, tuple], variant: str,
+                      rng: np.random.Generator, count: int) -> dict[str, int]:
+    """Up to `count` vessels from the variant's catalogue, clear of the task's objects, zones and paths.
+
+    They stand away from every object and zone, from the straight lines between them and from each vessel's
+    approach corridor (the arm comes in along +x), so the nominal plan never touches them.
+    """
+    table = UNSEEN_OBJECTS if variant in ("unseen_object", "unseen_both") else SEEN_OBJECTS
+    kinds = sorted(k for k, v in table.items() if v["kind"] == "vessel")
+    items = [np.asarray(o.home[:2]) for o in objects.values()] + [np.asarray(z[:2]) for z in zones.values()]
+    segs = [(a, b) for i, a in enumerate(items) for b in items[i + 1:]]
+    segs += [(np.asarray(o.home[:2]) - [0.16, 0], np.asarray(o.home[:2])) for o in objects.values()]
+    segs += [(np.zeros(2), it) for it in items]  # the arm reaches out from its base
+    ovens = [np.asarray(o.home[:2]) for o in objects.values() if o.kind == "oven"]
+    out: dict[str, int] = {}
+    for i in range(count):
+        kind = kinds[int(rng.integers(len(kinds)))]
+        for _ in range(40):
+            q = np.array([rng.uniform(0.30, 0.78), rng.uniform(-0.40, 0.40)])
+            if (all(np.linalg.norm(q - it) >= DISTRACTOR_CLEARANCE for it in items)
+                    and all(_seg_dist(q, a, b) >= 0.08 for a, b in segs)
+                    and all(np.linalg.norm(q - ov) >= 0.32 for ov in ovens)
+                    and all(np.linalg.norm(q - np.asarray(p.getBasePositionAndOrientation(b, physicsClientId=cid)[0][:2])) >= 0.09
+                            for b in out.values())):
+                od = table[kind]
+                vs = assets.VesselSpec(radius=od["radius"], height=od["height"], sides=int(od.get("sides", 8)),
+                                       neck_radius=float(od.get("neck_radius", 0.0)), rgba=tuple(od["rgba"]))
+                body = assets.vessel(cid, vs, (float(q[0]), float(q[1]), assets.BENCH_TOP))
+                # A resting distractor sleeps (no solver work) until something touches it.
+                p.changeDynamics(body, -1, activationState=p.ACTIVATION_STATE_ENABLE_SLEEPING, physicsClientId=cid)
+                out[f"distractor{i}"] = body
+                break
+    return out
 
 
 # Words for the objects in task descriptions and correction instructions (custom objects may set `label`).
@@ -112,23 +190,24 @@ def resolve_object(kind_name: str, variant: str, custom: dict[str, dict[str, Any
 
 def build(cid: int, layout: dict[str, Any], variant: str, rng: np.random.Generator,
           custom_objects: dict[str, dict[str, Any]] | None = None,
-          custom_scene: dict[str, Any] | None = None, grip_force: float = 60.0) -> Scene:
+          custom_scene: dict[str, Any] | None = None, grip_force: float = 60.0,
+          max_distractors: int = MAX_DISTRACTORS, lowpoly: bool = True) -> Scene:
     """Create the scene described by a scenario's `layout` (role -> {object, xy, ...})."""
-    if custom_scene is not None:
-        appearance = custom_scene
+    if custom_scene is not None:  # a user's scene file: fixed colours and light; texture optional
+        appearance = {"texture": "checker" if custom_scene.get("checker") else "plain", "ambient": 0.6,
+                      "diffuse": 0.35, **custom_scene}
     else:
-        pool = UNSEEN_SCENES if variant in ("unseen_scene", "unseen_both") else SEEN_SCENES
-        appearance = dict(pool[int(rng.integers(len(pool)))])
+        appearance = draw_appearance(variant, rng)
     bench_id, floor_id = assets.bench(cid, rgba=appearance["bench"], floor_rgba=appearance["floor"])
-    if appearance.get("checker"):
-        tex = _checker_texture(cid, appearance["bench"], int(rng.integers(1 << 30)))
+    tex = _texture(cid, appearance["texture"], appearance["bench"], int(rng.integers(1 << 30)))
+    if tex is not None:
         p.changeVisualShape(bench_id, -1, textureUniqueId=tex, physicsClientId=cid)
-    robot = Panda(cid, grip_force=grip_force)
+    robot = Panda(cid, grip_force=grip_force, lowpoly=lowpoly)
     objects: dict[str, SceneObject] = {}
     zones: dict[str, tuple[float, float, float]] = {}
     parts: dict[str, list[int]] = {}
     labels: dict[str, str] = {}
-    jitter = float(layout.get("_jitter", 0.015))
+    jitter = float(layout.get("_jitter", PLACEMENT_JITTER))
     for role, spec in layout.items():
         if role.startswith("_"):
             continue
@@ -187,4 +266,6 @@ def build(cid: int, layout: dict[str, Any], variant: str, rng: np.random.Generat
             objects[role] = SceneObject(role, "rod", body, pos, {"length": ln, "radius": float(od["radius"])})
         else:
             raise ValueError(f"scenario: object {spec['object']!r} has unknown kind {od['kind']!r}")
-    return Scene(cid, robot, objects, zones, parts, appearance, bench_id, labels)
+    n = int(rng.integers(max_distractors + 1)) if layout.get("_distractors", True) else 0
+    distractors = place_distractors(cid, objects, zones, variant, rng, n)
+    return Scene(cid, robot, objects, zones, parts, appearance, bench_id, labels, distractors)

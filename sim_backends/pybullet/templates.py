@@ -112,3 +112,23 @@ def pour_and_stir(plan: Plan, p: dict[str, Any]) -> None:
     plan.goal("at", object="src", xy="src", tol=0.04)
     plan.goal("stirred", object="rod", vessel="dest", min_fraction=0.6)
     plan.goal("held", object="rod")
+
+
+def _then_start(plan: Plan) -> None:
+    """Finish an oven workflow by pressing the button that starts the drying cycle."""
+    plan.home()
+    plan.press("button")
+    plan.goal("button", object="button", min_travel=0.007)
+
+
+@register_task("retrieve_and_start", backend="pybullet")
+def retrieve_and_start(plan: Plan, p: dict[str, Any]) -> None:
+    """Fetch a sample from the oven, close it and start the next drying cycle."""
+    retrieve_from_oven(plan, p)
+    _then_start(plan)
+
+
+@register_task("load_and_start", backend="pybullet")
+def load_and_start(plan: Plan, p: dict[str, Any]) -> None:
+    load_oven(plan, p)
+    _then_start(plan)

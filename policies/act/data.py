@@ -1,0 +1,121 @@
+"""Demonstrations for ACT: the backend's successful scripted episodes, recorded at the control rate.
+
+Each plan keyframe is split into control ticks of at most `max_dist` metres / `max_angle` radians (the
+target slides from the previous one), plus hold ticks where the plan lets the scene settle (a pour's tilt,
+a press). Before each tick the recorder keeps what the policy will see (every camera view, the proprio
+vector) and the tick's target as the action (position, rotation 6-D, gripper). Ticks go through the same
+`FailureSource.step` as the supervised loop's actions, with the same settling on a gripper change, so a
+trained policy replays them in the same conditions. Only episodes the task family judges successful are kept.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from policies.act.configuration_act import ACTConfig
+from sim_backends.source import FailureSource
+from sim_backends.types import Keyframe, quat_to_matrix, rotation_angle
+
+HOLD_STEPS = 12  # physics steps one hold tick stands for (a tick is >= 8 steps)
+
+
+def rot6d(r: np.ndarray) -> np.ndarray:
+    """The first two columns of a rotation matrix (a continuous rotation representation)."""
+    return np.concatenate([r[:, 0], r[:, 1]])
+
+
+def from_rot6d(v: np.ndarray) -> np.ndarray:
+    """Gram-Schmidt back to a rotation matrix."""
+    a, b = np.asarray(v[:3], float), np.asarray(v[3:6], float)
+    c0 = a / max(np.linalg.norm(a), 1e-8)
+    b = b - c0 * float(np.dot(c0, b))
+    c1 = b / max(np.linalg.norm(b), 1e-8)
+    return np.stack([c0, c1, np.cross(c0, c1)], 1)
+
+
+def action_vector(pos: Any, quat: Any, gripper: int) -> np.ndarray:
+    return np.array([*pos, *rot6d(quat_to_matrix(tuple(quat))), float(gripper)], np.float32)
+
+
+def grip_settle(gripper: int, current: int) -> int:
+    """Settling physics steps for a gripper command (the supervised loop gives unnamed actions the same)."""
+    return 0 if int(gripper) == int(current) else (50 if gripper else 40)
+
+
+def ticks(pos0: np.ndarray, quat0: tuple, kf: Keyframe, max_dist: float, max_angle: float,
+          gripper_change: bool = False) -> list[tuple]:
+    """Targets sliding from (pos0, quat0) to the keyframe, then hold ticks for its settling time (a gripper
+    change settles within its own tick, see `grip_settle`)."""
+    import pybullet as p  # slerp only; recording drives a simulator anyway
+
+    dist = float(np.linalg.norm(np.asarray(kf.pos) - pos0))
+    n = max(1, math.ceil(max(dist / max_dist, rotation_angle(quat0, kf.quat) / max_angle)))
+    out = [(tuple(pos0 + (np.asarray(kf.pos) - pos0) * i / n), tuple(p.getQuaternionSlerp(quat0, kf.quat, i / n)))
+           for i in range(1, n + 1)]
+    holds = 0 if gripper_change else kf.settle_steps // HOLD_STEPS
+    return out + [out[-1]] * holds
+
+
+def record_demo(src: FailureSource, nominal_filter: Any, success: Any, scenario: str, seed: int, variant: str,
+                cameras: list[str], max_dist: float = 0.03, max_angle: float = 0.15) -> dict[str, np.ndarray] | None:
+    """One demonstration (images (T, V, H, W, 3) uint8, state (T, 9), action (T, 10)), or None if it failed."""
+    from policies.openvla_client import proprio_vector
+
+    src.reset(scenario, seed, variant)
+    plan = nominal_filter(src.scripted_keyframes())
+    src.begin()
+    s = src.observe().state
+    pos, quat, grip = np.asarray(s["ee_pos"], float), tuple(s["ee_quat"]), int(s["grip_cmd"])
+    images, states, actions = [], [], []
+    for kf in plan:
+        for tp, tq in ticks(pos, quat, kf, max_dist, max_angle, kf.gripper != grip):
+            obs = src.observe()
+            images.append(np.stack([obs.images[c] for c in cameras]))
+            states.append(proprio_vector(obs.state))
+            actions.append(action_vector(tp, tq, kf.gripper))
+            src.step(Keyframe(kf.name, tp, tq, kf.gripper, kf.target, kf.segment, kf.action, kf.speed,
+                              grip_settle(kf.gripper, grip)))
+            grip = kf.gripper
+        pos, quat = np.asarray(kf.pos, float), tuple(kf.quat)
+    ep = src.finish()
+    if not success(ep):
+        return None
+    return {"images": np.stack(images), "state": np.stack(states), "action": np.stack(actions)}
+
+
+def normalisation(demos: list[dict[str, np.ndarray]]) -> dict[str, list[float]]:
+    st = np.concatenate([d["state"] for d in demos])
+    ac = np.concatenate([d["action"] for d in demos])
+    std = lambda x: np.maximum(x.std(0), 1e-3)  # noqa: E731 - constant columns (the gripper) stay finite
+    return {"state_mean": st.mean(0).tolist(), "state_std": std(st).tolist(),
+            "action_mean": ac.mean(0).tolist(), "action_std": std(ac).tolist()}
+
+
+class DemoDataset(Dataset):
+    """(images, state, action chunk, padding) at every step of every demonstration, normalised."""
+
+    def __init__(self, demos: list[dict[str, np.ndarray]], cfg: ACTConfig):
+        self.demos, self.k = demos, cfg.chunk_size
+        self.index = [(i, t) for i, d in enumerate(demos) for t in range(len(d["action"]))]
+        s = cfg.stats
+        self.sm, self.ss = np.asarray(s["state_mean"], np.float32), np.asarray(s["state_std"], np.float32)
+        self.am, self.as_ = np.asarray(s["action_mean"], np.float32), np.asarray(s["action_std"], np.float32)
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def __getitem__(self, j: int) -> tuple[torch.Tensor, ...]:
+        i, t = self.index[j]
+        d = self.demos[i]
+        n = len(d["action"])
+        idx = np.minimum(np.arange(t, t + self.k), n - 1)  # past the end: repeat the last action, masked out
+        img = torch.from_numpy(d["images"][t]).permute(0, 3, 1, 2).float() / 255.0
+        state = torch.from_numpy((d["state"][t] - self.sm) / self.ss)
+        act = torch.from_numpy((d["action"][idx] - self.am) / self.as_)
+        pad = torch.from_numpy(np.arange(t, t + self.k) >= n)
+        return img, state, act, pad

@@ -1,0 +1,119 @@
+"""ACT training: record the demonstrations (cached in demos.npz), then optimise under a wall-clock budget."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
+from policies.act.checkpoint import save_checkpoint
+from policies.act.configuration_act import ACTConfig
+from policies.act.data import DemoDataset, normalisation, record_demo
+
+IDENTITY = ("task", "demos", "seed", "variant", "backend", "backend_kwargs", "max_dist", "max_angle")
+
+
+def _identity(cfg: DictConfig) -> dict[str, Any]:
+    d = OmegaConf.to_container(cfg, resolve=True)
+    return {**{k: d[k] for k in IDENTITY}, "cameras": d["model"]["cameras"], "image_size": d["model"]["image_size"]}
+
+
+def load_or_record(cfg: DictConfig, family: Any, out: Path) -> tuple[list[dict[str, np.ndarray]], dict[str, Any]]:
+    """The cached demos when they were recorded with the same settings, else record them (atomically)."""
+    from sim_backends.registry import make_backend
+
+    path, ident = out / "demos.npz", _identity(cfg)
+    if path.is_file():
+        with np.load(path, allow_pickle=False) as z:
+            if json.loads(str(z["identity"])) == ident:
+                bounds = z["bounds"]
+                demos = [{k: z[k][a:b] for k in ("images", "state", "action")} for a, b in zip(bounds[:-1], bounds[1:])]
+                return demos, json.loads(str(z["info"]))
+    t0 = time.perf_counter()
+    src = make_backend(cfg.backend, image_size=int(cfg.model.image_size), cameras=list(cfg.model.cameras),
+                       **(OmegaConf.to_container(cfg.backend_kwargs, resolve=True) or {}))
+    demos, tried = [], 0
+    bar = tqdm(total=int(cfg.demos), desc="demos", unit="demo", disable=not cfg.progress)
+    try:
+        while len(demos) < int(cfg.demos) and tried < 3 * int(cfg.demos):
+            scenario = family.scenarios[tried % len(family.scenarios)]
+            d = record_demo(src, family.plan, family.success, scenario, int(cfg.seed) + tried, cfg.variant,
+                            list(cfg.model.cameras), float(cfg.max_dist), float(cfg.max_angle))
+            tried += 1
+            if d is not None:
+                demos.append(d)
+                bar.update(1)
+    finally:
+        bar.close()
+        src.close()
+    if not demos:
+        raise ConfigError(f"task: no successful demonstration of {family.name!r} in {tried} tries")
+    info = {"recorded": len(demos), "tried": tried, "record_s": round(time.perf_counter() - t0, 1),
+            "ticks": int(sum(len(d["action"]) for d in demos))}
+    bounds = np.cumsum([0] + [len(d["action"]) for d in demos])
+    import io
+    buf = io.BytesIO()
+    np.savez(buf, identity=json.dumps(ident), info=json.dumps(info), bounds=bounds,
+             **{k: np.concatenate([d[k] for d in demos]) for k in ("images", "state", "action")})
+    atomic_write_bytes(path, buf.getvalue())
+    return demos, info
+
+
+def train(cfg: DictConfig, family: Any) -> dict[str, Any]:
+    import torch
+    from torch.utils.data import DataLoader
+
+    from policies.act.modeling_act import ACTModel
+
+    out = Path(cfg.out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        model_cfg = ACTConfig(**OmegaConf.to_container(cfg.model, resolve=True))  # type: ignore[arg-type]
+    except OSError as e:
+        raise ConfigError(f"out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
+    except (TypeError, ValueError) as e:
+        raise ConfigError(str(e)) from None
+    demos, info = load_or_record(cfg, family, out)
+    model_cfg.stats = normalisation(demos)
+    t = cfg.train
+    torch.manual_seed(int(t.seed))
+    torch.set_num_threads(int(t.threads))
+    model = ACTModel(model_cfg)
+    backbone = [p for n, p in model.named_parameters() if n.startswith("backbone.")]
+    rest = [p for n, p in model.named_parameters() if not n.startswith("backbone.")]
+    opt = torch.optim.AdamW([{"params": rest, "lr": float(t.lr)}, {"params": backbone, "lr": float(t.lr_backbone)}],
+                            weight_decay=float(t.weight_decay))
+    loader = DataLoader(DemoDataset(demos, model_cfg), batch_size=int(t.batch_size), shuffle=True, drop_last=True,
+                        generator=torch.Generator().manual_seed(int(t.seed)))
+    curve: list[dict[str, float]] = []
+    step, t0, budget = 0, time.perf_counter(), float(t.max_minutes) * 60
+    bar = tqdm(total=int(t.steps), desc="train", unit="step", disable=not cfg.progress)
+    model.train()
+    while step < int(t.steps) and time.perf_counter() - t0 < budget:
+        for images, state, actions, pad in loader:
+            loss, parts = model.loss(images, state, actions, pad)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            step += 1
+            bar.update(1)
+            if step % int(t.log_every) == 0 or step == 1:
+                curve.append({"step": step, "minutes": round((time.perf_counter() - t0) / 60, 3), **parts})
+            if step % int(t.save_every) == 0:
+                save_checkpoint(model, model_cfg, out / "checkpoints" / f"step-{step}")
+            if step >= int(t.steps) or time.perf_counter() - t0 >= budget:
+                break
+    bar.close()
+    save_checkpoint(model.eval(), model_cfg, out / "final")
+    summary = {"task": family.name, "demos": info, "steps": step, "train_minutes": round((time.perf_counter() - t0) / 60, 2),
+               "samples": step * int(t.batch_size), "parameters": sum(p.numel() for p in model.parameters()),
+               "final": str(out / "final"), "curve": curve}
+    atomic_write_json(out / "train_log.json", summary)
+    return summary

@@ -1,0 +1,47 @@
+"""Train an ACT policy on the backend's successful scripted demonstrations of a task family.
+
+Run as:
+    python scripts/train_act.py task=pick demos=50 out_dir=outputs/act/pick
+    python scripts/train_act.py task=pour demos=50 train.max_minutes=45 out_dir=outputs/act/pour
+    python scripts/train_act.py task=pick demos=4 train.steps=20 out_dir=/tmp/act   # a smoke run
+
+Writes out_dir/demos.npz (reused by a rerun with the same recording settings), out_dir/final/
+(model.safetensors + act.json: the checkpoint scripts/supervise.py's policy=act and serve_policy.py load),
+checkpoints/step-N and train_log.json (demos, steps, minutes, loss curve). Defaults: configs/act.yaml.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from labrobfail_vlm.config import cli_main, load_config  # noqa: E402
+
+
+def main(argv: list[str]) -> int:
+    from labrobfail_vlm.config import ConfigError
+    from policies.act.train import train
+    from sim_backends.registry import available_backends, make_backend
+    from supervision.experiment import families, resolve_tasks, scenario_templates
+
+    cfg = load_config("act.yaml", argv)
+    if cfg.backend not in available_backends():
+        raise ConfigError(f"backend: unknown backend {cfg.backend!r}; available: {', '.join(available_backends())}")
+    src = make_backend(cfg.backend, render=False)  # only its scenario catalogue
+    try:
+        templates = scenario_templates(src)
+    finally:
+        src.close()
+    tasks = resolve_tasks(str(cfg.task), families(load_config("supervise.yaml", []), templates), list(templates))
+    if len(tasks) != 1:
+        raise ConfigError("task: name one task family or scenario")
+    summary = train(cfg, tasks[0])
+    print(json.dumps({k: v for k, v in summary.items() if k != "curve"}))
+    return 0
+
+
+if __name__ == "__main__":
+    cli_main(main)

@@ -1,0 +1,94 @@
+"""The supervisor interface, its registry, and the prefix grid of the keyframes so far.
+
+A supervisor is asked, between steps of a running episode, whether a failure has shown up; its
+`Verdict` carries the diagnosis and the correction's primitives (labrobfail_vlm/actions.py), which the
+loop hands to the executor (sim_backends/executor.py). After a correction the loop calls `handled`, and
+the supervisor reports only failures that show up later.
+"""
+
+from __future__ import annotations
+
+import io
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+from labrobfail_vlm.grid import GridConfig, build_grid, sample_keyframes
+from labrobfail_vlm.registry import Registry
+from policies.base import EpisodeContext
+from sim_backends.source import FailureSource
+
+SUPERVISORS = Registry("supervisor", lazy={"none": "supervision.oracle", "oracle": "supervision.oracle",
+                                           "vlm": "supervision.vlm"})
+register_supervisor = SUPERVISORS.register
+
+
+def make_supervisor(name: str, **kwargs: Any) -> "Supervisor":
+    return SUPERVISORS.make(name, **kwargs)
+
+
+@dataclass
+class Verdict:
+    failure: bool
+    failure_type: str | None = None
+    failure_keyframe: int | None = None  # index into the executed keyframes
+    correction: str = ""
+    strategy: str | None = None
+    primitives: list[dict[str, Any]] = field(default_factory=list)
+    diagnosis: dict[str, Any] = field(default_factory=dict)  # the supervisor's full answer (Diagnosis, evidence)
+    grid: Image.Image | None = None  # what the supervisor looked at (VLM)
+
+    def to_log(self) -> dict[str, Any]:
+        return {"failure": self.failure, "failure_type": self.failure_type, "failure_keyframe": self.failure_keyframe,
+                "correction": self.correction, "strategy": self.strategy, "primitives": self.primitives,
+                "diagnosis": self.diagnosis}
+
+
+class Supervisor(ABC):
+    name = "abstract"
+
+    def reset(self, ctx: EpisodeContext) -> None:
+        self.ctx = ctx
+        self.handled_upto = -1  # failures at or before this executed keyframe were corrected already
+
+    @abstractmethod
+    def query(self, src: FailureSource, final: bool = False) -> Verdict:
+        """Has a (new) failure shown up in the episode so far? `final`: the policy has stopped."""
+
+    def handled(self, src: FailureSource) -> None:
+        """A correction ran: what has happened up to now is dealt with."""
+        self.handled_upto = len(src.executed_so_far()) - 1
+
+
+# ---- the live prefix grid ----------------------------------------------------------------------------------
+@dataclass
+class LiveGrid:
+    image: Image.Image
+    keyframes: list[int]  # executed keyframe index shown in each visible cell (grid frame i+1 -> keyframes[i])
+    visible: int
+
+
+def live_grid(src: FailureSource, nominal: list, cfg: GridConfig) -> LiveGrid:
+    """The prefix grid of an episode so far, laid out as the dataset lays out prefix grids.
+
+    Consecutive executed keyframes with one name (a learned policy's control ticks, a correction's
+    keyframes) count as one keyframe, shown by its last image. The cells are sampled from the keyframes so
+    far plus the plan's remaining ones (the episode's length is not known yet), and the cells not reached
+    yet stay blank, as in a training prefix grid (`build_grid(..., visible=k)`).
+    """
+    done = src.executed_so_far()
+    units = [i for i in range(len(done)) if i == len(done) - 1 or done[i + 1].name != done[i].name]
+    names = [k.name for k in nominal]
+    last = done[units[-1]].name if units else None
+    rest = nominal[len(names) - names[::-1].index(last):] if last in names else nominal[len(units):]
+    segments = [done[i].segment for i in units] + [k.segment for k in rest]
+    picks = sample_keyframes(segments, cfg.max_frames)
+    shown = [p for p in picks if p < len(units)]
+    pngs = src.images_so_far()
+    blank = np.zeros((8, 8, 3), np.uint8)
+    views = [[Image.open(io.BytesIO(view[units[p]])).convert("RGB") if p < len(units) else blank for p in picks]
+             for view in pngs]
+    return LiveGrid(build_grid(views, cfg, visible=len(shown)), [units[p] for p in shown], len(shown))

@@ -1,0 +1,164 @@
+"""The recovery experiment behind scripts/supervise.py: trials per task family, with and without supervision.
+
+Each task runs `trials` trials (trial i: scenario i mod n, seed `seed + i`), once without supervision (the
+baseline, when `baseline` is on) and once under the chosen supervisor, on identical initial states and
+failure injections. results.json holds per-task success counts and rates, the difference, the supervisor's
+query latency (p50/p95) and intervention counts; results.md is the paper's table.
+"""
+
+from __future__ import annotations
+
+import statistics
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.taxonomy import SCENE_VARIANTS
+from policies.base import POLICIES, Policy, make_policy
+from supervision.base import SUPERVISORS, Supervisor, make_supervisor
+from supervision.loop import LoopConfig, RunLog, TaskFamily, run_trial
+
+
+def families(cfg: DictConfig, templates: dict[str, str]) -> dict[str, TaskFamily]:
+    """The task families of the config; `templates`: scenario -> its task template (the backend's catalogue).
+    A family lists its scenarios or takes every scenario of its `template`, in catalogue order."""
+    out = {}
+    for name, f in OmegaConf.to_container(cfg.families, resolve=True).items():  # type: ignore[union-attr]
+        scenarios = list(f.get("scenarios") or [s for s, t in templates.items() if t == f.get("template")])
+        bad = [s for s in scenarios if s not in templates]
+        if bad or not scenarios:
+            raise ConfigError(f"families.{name}: " + (f"unknown scenario {bad[0]!r}" if bad else
+                                                      f"no scenario of template {f.get('template')!r}"))
+        out[name] = TaskFamily(name, scenarios, f.get("steps"), f.get("goals"))
+    return out
+
+
+def scenario_templates(src: Any) -> dict[str, str]:
+    return {s: src.scenario_info(s)["template"] for s in src.scenarios()}
+
+
+def resolve_tasks(task: str, fams: dict[str, TaskFamily], scenarios: list[str]) -> list[TaskFamily]:
+    names = list(fams) if task == "all" else [t.strip() for t in str(task).split(",") if t.strip()]
+    out = []
+    for n in names:
+        if n in fams:
+            out.append(fams[n])
+        elif n in scenarios:
+            out.append(TaskFamily(n, [n]))
+        else:
+            raise ConfigError(f"task: unknown task {n!r}; families: {', '.join(fams)} (or a scenario name)")
+    return out
+
+
+def policy_kwargs(cfg: DictConfig, name: str) -> dict[str, Any]:
+    return dict(OmegaConf.to_container(cfg[name], resolve=True)) if name in cfg else {}  # type: ignore[arg-type]
+
+
+def build_policy(cfg: DictConfig) -> Policy:
+    if cfg.policy not in POLICIES.names():
+        raise ConfigError(f"policy: unknown policy {cfg.policy!r}; available: {', '.join(POLICIES.names())}")
+    return make_policy(cfg.policy, **policy_kwargs(cfg, cfg.policy))
+
+
+def build_supervisor(cfg: DictConfig, name: str) -> Supervisor:
+    if name not in SUPERVISORS.names():
+        raise ConfigError(f"supervisor: unknown supervisor {name!r}; available: {', '.join(SUPERVISORS.names())}")
+    return make_supervisor(name, **policy_kwargs(cfg, name))
+
+
+def percentile(xs: list[float], q: float) -> float | None:
+    if not xs:
+        return None
+    s = sorted(xs)
+    return round(s[min(len(s) - 1, int(round(q / 100 * (len(s) - 1))))], 4)
+
+
+def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    lat = [x for r in rows for x in r["latency_s"]]
+    n = len(rows)
+    ok = sum(bool(r["success"]) for r in rows)
+    return {"success": ok, "trials": n, "rate": round(100.0 * ok / n, 2) if n else None,
+            "interventions": sum(r["interventions"] for r in rows),
+            "episodes_with_intervention": sum(r["interventions"] > 0 for r in rows),
+            "stopped": sum(r["stopped"] is not None for r in rows),
+            "latency_p50_s": percentile(lat, 50), "latency_p95_s": percentile(lat, 95),
+            "latency_mean_s": round(statistics.fmean(lat), 4) if lat else None, "queries": len(lat)}
+
+
+def run(cfg: DictConfig) -> dict[str, Any]:
+    from sim_backends.registry import available_backends, backend_spec, make_backend
+
+    if cfg.backend not in available_backends():
+        raise ConfigError(f"backend: unknown backend {cfg.backend!r}; available: {', '.join(available_backends())}")
+    if cfg.variant not in SCENE_VARIANTS:
+        raise ConfigError(f"variant: unknown variant {cfg.variant!r}; expected one of {', '.join(SCENE_VARIANTS)}")
+    if not isinstance(cfg.trials, int) or cfg.trials < 1:
+        raise ConfigError(f"trials: must be a positive integer, got {cfg.trials!r}")
+    try:
+        loop = LoopConfig(**OmegaConf.to_container(cfg.loop, resolve=True))  # type: ignore[arg-type]
+    except (TypeError, ValueError) as e:
+        raise ConfigError(str(e)) from None
+    spec = backend_spec(cfg.backend)
+    try:
+        own = spec.cls.prepare_kwargs(OmegaConf.to_container(cfg.backend_kwargs, resolve=True) or {})
+    except ValueError as e:
+        raise ConfigError(f"backend_kwargs.{e}") from None
+    kwargs = {"image_size": cfg.image_size, "cameras": list(cfg.cameras), **own}
+    sups = (["none"] if cfg.baseline and cfg.supervisor != "none" else []) + [cfg.supervisor]
+    src = make_backend(cfg.backend, **kwargs)
+    try:
+        templates = scenario_templates(src)
+        tasks = resolve_tasks(cfg.task, families(cfg, templates), list(templates))
+        # everything that can be refused is built before the first trial runs
+        policy = build_policy(cfg)
+        supervisors = {n: build_supervisor(cfg, n) for n in sups}
+        out = Path(cfg.out_dir)
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise ConfigError(f"out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
+    except BaseException:
+        src.close()
+        raise
+    log = RunLog(out)
+    results: dict[str, Any] = {}
+    try:
+        total = len(tasks) * len(sups) * cfg.trials
+        bar = tqdm(total=total, desc="trials", unit="trial", disable=not cfg.progress)
+        for fam in tasks:
+            per: dict[str, list[dict[str, Any]]] = {}
+            for name in sups:
+                rows = per.setdefault(name, [])
+                for i in range(cfg.trials):
+                    scenario = fam.scenarios[i % len(fam.scenarios)]
+                    rows.append(run_trial(src, policy, supervisors[name], fam, scenario, int(cfg.seed) + i,
+                                          cfg.variant, loop, log, f"{fam.name}-{name}-{i:03d}"))
+                    bar.update(1)
+            results[fam.name] = {"policy": cfg.policy, **{n: summarize(r) for n, r in per.items()}}
+            if len(sups) == 2:
+                base, sup = results[fam.name]["none"], results[fam.name][cfg.supervisor]
+                results[fam.name]["improvement"] = round(sup["rate"] - base["rate"], 2)
+        bar.close()
+    finally:
+        log.close()
+        src.close()
+        policy.close()
+    return {"config": OmegaConf.to_container(cfg, resolve=True), "tasks": results}
+
+
+def table_md(res: dict[str, Any]) -> str:
+    """The paper's table: Task | Baseline | Rate | +Supervisor | Rate | Improv."""
+    cfg = res["config"]
+    sup = cfg["supervisor"]
+    lines = [f"Success rate of downstream policy recovery ({cfg['policy']} policy, supervisor {sup}, "
+             f"{cfg['trials']} trials per task, variant {cfg['variant']})", "",
+             f"| Task | Baseline | Rate (%) | +{sup} | Rate (%) | Improv. |", "|---|---|---|---|---|---|"]
+    for task, r in res["tasks"].items():
+        base = r.get("none")
+        s = r.get(sup, base)
+        lines.append(f"| {task} | {cfg['policy']} | {base['rate'] if base else '-'} | {s['success']}/{s['trials']} | "
+                     f"{s['rate']} | {('%+.0f%%' % r['improvement']) if 'improvement' in r else '-'} |")
+    return "\n".join(lines) + "\n"

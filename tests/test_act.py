@@ -1,0 +1,131 @@
+"""ACT in plain torch: chunking and temporal ensembling on toy cases, a few training steps, checkpoints,
+and the train_act.py -> policy=act path on real PyBullet demonstrations."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from labrobfail_vlm.config import ConfigError
+from policies.act.checkpoint import load_checkpoint, save_checkpoint
+from policies.act.configuration_act import ACTConfig
+from policies.act.data import from_rot6d, rot6d
+from policies.act.modeling_act import ACTModel, ChunkRunner, TemporalEnsembler
+
+ROOT = Path(__file__).resolve().parents[1]
+TOY = dict(cameras=["front"], image_size=32, chunk_size=4, backbone_channels=[8, 8, 16, 16], dim_model=32, n_heads=2,
+           dim_feedforward=64, n_encoder_layers=1, n_decoder_layers=1, n_vae_encoder_layers=1, latent_dim=4,
+           dropout=0.0)
+
+
+def test_temporal_ensembling_weights_the_oldest_chunk_most():
+    ens = TemporalEnsembler(chunk_size=3, coeff=0.5)
+    assert ens(np.array([[0.0], [1.0], [2.0]]))[0] == 0.0  # t=0: one prediction
+    w0, w1 = 1.0, np.exp(-0.5)  # t=1: the chunk from t=0 (oldest, weight exp(0)) and the new one
+    assert ens(np.array([[10.0], [11.0], [12.0]]))[0] == pytest.approx((w0 * 1.0 + w1 * 10.0) / (w0 + w1))
+    w2 = np.exp(-1.0)
+    got = ens(np.array([[20.0], [21.0], [22.0]]))[0]  # t=2: three chunks predict it
+    assert got == pytest.approx((w0 * 2.0 + w1 * 11.0 + w2 * 20.0) / (w0 + w1 + w2))
+    got = ens(np.array([[30.0], [31.0], [32.0]]))[0]  # t=3: the t=0 chunk has run out (k=3)
+    assert got == pytest.approx((1.0 * 12.0 + w1 * 21.0 + w2 * 30.0) / (1.0 + w1 + w2))
+    ens.reset()
+    assert ens(np.array([[5.0], [6.0], [7.0]]))[0] == 5.0
+
+
+def test_default_coefficient_is_the_papers():
+    assert ACTConfig().temporal_ensemble_coeff == 0.01 and ACTConfig().n_decoder_layers == 1
+
+
+def test_chunks_run_open_loop_without_ensembling():
+    r = ChunkRunner(chunk_size=3)
+    seen, queries = [], 0
+    for t in range(7):
+        chunk = None
+        if r.needs_query():
+            queries += 1
+            chunk = np.arange(3)[:, None] + 10 * t
+        seen.append(float(r(chunk)[0]))
+    assert queries == 3 and seen == [0, 1, 2, 30, 31, 32, 60]
+
+
+def test_rotation_6d_round_trip():
+    from sim_backends.perturbations.control import so3_exp
+    r = so3_exp(np.array([0.3, -1.2, 0.7]))
+    assert np.allclose(from_rot6d(rot6d(r)), r, atol=1e-9)
+    assert np.allclose(from_rot6d(rot6d(r) + 0.01), from_rot6d(rot6d(r) + 0.01) @ np.eye(3))
+
+
+def test_act_trains_a_few_steps_and_predicts_chunks(tmp_path):
+    torch.manual_seed(0)
+    cfg = ACTConfig(**TOY, stats={"state_mean": [0.0] * 9, "state_std": [1.0] * 9, "action_mean": [0.0] * 10,
+                                  "action_std": [1.0] * 10})
+    model = ACTModel(cfg)
+    img, state = torch.rand(4, 1, 3, 32, 32), torch.randn(4, 9)
+    actions, pad = torch.randn(4, 4, 10), torch.zeros(4, 4, dtype=torch.bool)
+    pad[0, 2:] = True  # the first sample's episode ends after 2 steps
+    opt = torch.optim.AdamW(model.parameters(), 1e-3)
+    losses = []
+    for _ in range(30):
+        loss, parts = model.loss(img, state, actions, pad)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(parts["l1"])
+    assert losses[-1] < 0.6 * losses[0]
+    model.eval()
+    assert model.predict(img, state).shape == (4, cfg.chunk_size, 10)
+    save_checkpoint(model, cfg, tmp_path / "ck")
+    again, cfg2 = load_checkpoint(tmp_path / "ck")
+    assert cfg2 == cfg and torch.equal(again.predict(img, state), model.predict(img, state))
+
+
+def test_bad_checkpoints_are_one_line_errors(tmp_path):
+    with pytest.raises(ValueError, match="act.checkpoint: no checkpoint directory"):
+        load_checkpoint(tmp_path / "none")
+    (tmp_path / "ck").mkdir()
+    (tmp_path / "ck" / "act.json").write_text(json.dumps(TOY))
+    (tmp_path / "ck" / "model.safetensors").write_bytes(b"not a safetensors file")
+    with pytest.raises(ValueError, match="act.checkpoint: cannot load"):
+        load_checkpoint(tmp_path / "ck")
+    from policies.act.policy import ACTPolicy
+    with pytest.raises(ConfigError, match="no checkpoint directory"):
+        ACTPolicy(checkpoint=None)
+
+
+def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
+    out = tmp_path / "act"
+    toy = [f"model.{k}={json.dumps(v).replace(' ', '')}" for k, v in TOY.items() if k != "cameras"]
+    r = subprocess.run([sys.executable, "scripts/train_act.py", "task=pick_place_bottle", "demos=1", "train.steps=3",
+                        "train.batch_size=4", "model.cameras=[front]", *toy, "progress=false", f"out_dir={out}"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout.strip().splitlines()[-1])
+    assert summary["steps"] == 3 and summary["demos"]["recorded"] == 1
+    assert (out / "final" / "model.safetensors").is_file() and (out / "demos.npz").is_file()
+    log = json.loads((out / "train_log.json").read_text())
+    assert log["curve"][0]["step"] == 1 and log["demos"]["ticks"] > 10
+    sup = tmp_path / "sup"
+    r = subprocess.run([sys.executable, "scripts/supervise.py", "policy=act", f"act.checkpoint={out / 'final'}",
+                        "act.max_ticks=12", "task=pick_place_bottle", "trials=1", "image_size=48", "cameras=[front]",
+                        "progress=false", f"out_dir={sup}"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    eps = [json.loads(x) for x in (sup / "log.jsonl").read_text().splitlines() if '"episode"' in x]
+    assert len(eps) == 2 and all(0 < e["steps"] <= 12 and e["policy"] == "act" for e in eps)
+    # the same checkpoint behind the OpenVLA protocol
+    p = subprocess.Popen([sys.executable, "scripts/serve_policy.py", "policy=act", f"act.checkpoint={out / 'final'}",
+                          "port=0"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        url = p.stdout.readline().split()[-1]
+        from policies.openvla_client import OpenVLAClient
+        state = {"ee_pos": [0.4, 0.0, 0.3], "ee_quat": [0.0, 0.7071, 0.0, 0.7071], "width": 0.08, "grip_cmd": 0}
+        a = OpenVLAClient(url).request({"image": np.zeros((48, 48, 3), np.uint8), "instruction": "pick",
+                                        "images": {"front": np.zeros((48, 48, 3), np.uint8)},
+                                        "proprio": np.array([*state["ee_pos"], *state["ee_quat"], 0.08, 0], np.float32)})
+        assert a.shape == (7,) and np.all(np.isfinite(a))
+    finally:
+        p.terminate()
+        p.wait(timeout=10)
