@@ -44,7 +44,11 @@ class Server:
     def stop(self):
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
-            return self.proc.wait(timeout=60)
+            try:
+                return self.proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()  # never leave a server behind; the caller's assert reports the hang
+                return None
         return self.proc.returncode
 
 
@@ -128,6 +132,7 @@ def test_bad_requests_get_one_line_4xx(server, tmp_path):
                  headers={"Authorization": f"Bearer {TOKEN}", "Content-Type": "multipart/form-data; boundary=b"})
     r = conn.getresponse()
     assert r.status == 413 and "byte limit" in json.loads(r.read())["error"]
+    conn.close()
     assert c.health()["status"] == "ok"  # still up
 
 
