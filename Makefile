@@ -91,6 +91,7 @@ bench: $(STAMP)
 	$(PY) scripts/bench_sim.py
 	$(PY) scripts/bench_train.py
 	$(PY) scripts/bench_infer.py
+	$(PY) scripts/bench_serve.py
 
 clean:
 	rm -rf outputs

@@ -5,9 +5,11 @@ Run as:
     python infer.py --frames DIR --task "press the red button"      # DIR/<view>/<frame>.png -> grid
     python infer.py --grid frames.png --six-prompts                  # no shared-prefix KV cache
     python infer.py --grid frames.png --task "..." --q6-mode template --objects "small beaker,target area"
+    python infer.py --grid frames.png --task "..." --endpoint http://127.0.0.1:8000/v1   # a vLLM server (README)
 
-Without --model it uses the checkpoint `make demo` trains (outputs/demo_train/final). Any bad input
-(file, folder, model directory) gives one line on stderr and exit code 2.
+Without --model it uses the checkpoint `make demo` trains (outputs/demo_train/final). With --endpoint the
+questions go to an OpenAI-compatible server instead (its key, if any, from $OPENAI_API_KEY or --endpoint-key-env).
+Any bad input (file, folder, model directory, unreachable endpoint) gives one line on stderr and exit code 2.
 """
 
 from __future__ import annotations
@@ -34,7 +36,10 @@ def main(argv: list[str]) -> int:
     src.add_argument("--grid", help="a keyframe grid image (as built by labrobfail_vlm.grid)")
     src.add_argument("--frames", help="folder with one sub-folder of keyframe images per camera view")
     ap.add_argument("--task", default="", help="the task in words (the {task_name} of the prompt)")
-    ap.add_argument("--model", default=DEFAULT_MODEL, help="fine-tuned checkpoint, merged model or Qwen3-VL dir")
+    ap.add_argument("--model", default=None, help="fine-tuned checkpoint, merged model or Qwen3-VL dir")
+    ap.add_argument("--endpoint", help="an OpenAI-compatible server's base URL (e.g. vLLM: http://HOST:8000/v1)")
+    ap.add_argument("--endpoint-model", help="the served model's name (default: the one the server lists)")
+    ap.add_argument("--endpoint-key-env", default="OPENAI_API_KEY", help="environment variable with its API key")
     ap.add_argument("--json", help="also write the diagnosis to this file (atomically)")
     ap.add_argument("--num-frames", type=int, default=None,
                     help="keyframes in the grid (default: the grid the model was trained on, else 16)")
@@ -48,20 +53,29 @@ def main(argv: list[str]) -> int:
     from labrobfail_vlm.model.loading import check_model_dir
     from labrobfail_vlm.train.checkpoint import is_finetuned
 
-    if not Path(a.model).is_dir():
-        raise ConfigError(f"--model: no such model directory {a.model!r}"
-                          + (" (run `make demo` to train the default one)" if a.model == DEFAULT_MODEL else ""))
-    if not is_finetuned(a.model):
-        check_model_dir(a.model, "--model")
+    if a.endpoint and a.model:
+        raise ConfigError("--model/--endpoint: give one of them, not both")
+    model = a.model or DEFAULT_MODEL
+    if not a.endpoint:
+        if not Path(model).is_dir():
+            raise ConfigError(f"--model: no such model directory {model!r}"
+                              + (" (run `make demo` to train the default one)" if model == DEFAULT_MODEL else ""))
+        if not is_finetuned(model):
+            check_model_dir(model, "--model")
     out = Path(a.json) if a.json else None
     if out is not None and not out.parent.is_dir():
         raise ConfigError(f"--json: folder {out.parent} does not exist")
     image = load_image(a.grid) if a.grid else None
     frames = load_frames(a.frames)[1] if a.frames else None
 
-    from labrobfail_vlm.analyzer import FailureAnalyzer
+    if a.endpoint:
+        from labrobfail_vlm.endpoint import EndpointAnalyzer
 
-    fa = FailureAnalyzer.from_pretrained(a.model, q6_mode=a.q6_mode)
+        fa = EndpointAnalyzer(a.endpoint, a.endpoint_model, a.endpoint_key_env, q6_mode=a.q6_mode)
+    else:
+        from labrobfail_vlm.analyzer import FailureAnalyzer
+
+        fa = FailureAnalyzer.from_pretrained(model, q6_mode=a.q6_mode)
     diag = fa.analyze(image if image is not None else frames, task=a.task, one_pass=not a.six_prompts,
                       frames=a.num_frames, objects=[o.strip() for o in a.objects.split(",") if o.strip()])
     text = diag.to_json()

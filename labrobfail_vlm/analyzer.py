@@ -4,6 +4,7 @@
     fa = FailureAnalyzer.from_pretrained("outputs/demo_train/final")
     diagnosis = fa.analyze(grid_image, task="pick up the small beaker and place it on the target area")
     print(diagnosis.to_json())
+    diagnoses = fa.analyze_batch([grid_a, grid_b, DiagnosisRequest(frames, task="...")])  # same answers, batched
 
 Accepts a fine-tuned checkpoint (labrobfail.json: base + adapter + vision weights), a merged
 model, or any local Qwen3-VL directory. Answers are decoded under constraints
@@ -17,7 +18,7 @@ import difflib
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Collection, Iterator, Sequence
 
 import numpy as np
 from PIL import Image
@@ -26,7 +27,7 @@ from labrobfail_vlm import questions as Q
 from labrobfail_vlm.actions import to_primitives
 from labrobfail_vlm.corrections import STRATEGIES, candidates
 from labrobfail_vlm.grid import GridConfig, build_grid, sample_keyframes
-from labrobfail_vlm.model.processor import common_prefix_len, expand_image_tokens
+from labrobfail_vlm.model.processor import common_prefix_len
 from labrobfail_vlm.taxonomy import Category, Severity
 
 
@@ -67,6 +68,47 @@ def frames_to_grid(frames: Sequence[Sequence[Image.Image | np.ndarray]], cfg: Gr
 Q6_MODES = ("free", "template")
 
 
+@dataclass(frozen=True)
+class Ask:
+    """What the model must decode for one reply: "choose" among `options`, "actions" (Q1), or "free" text that
+    may not open like any of `options`."""
+
+    kind: str
+    options: tuple[str, ...] = ()
+
+
+def plan_reply(dim: str, failed: bool | None, frames: int, objects: Sequence[str] = (), q6_mode: str = "free"
+               ) -> str | Ask:
+    """The reply to `dim` when the Q2 verdict (`failed`; None before Q2) already settles it, else what the model
+    must decode. Shared by the local decoder and the endpoint path, so both ask the same things."""
+    if dim == "Q1":
+        return Ask("actions")
+    if dim == "Q2":
+        return Ask("choose", ("Yes", "No"))
+    if dim == "Q6":  # consistent with Q2: no correction after "no failure"; after a failure an instruction,
+        # not the no-correction sentence nor a closed-set reply (Yes/No/None/a number)
+        if failed is False:
+            return Q.NO_CORRECTION
+        if q6_mode == "template":
+            return Ask("choose", tuple(text for _, text in candidates(objects)))
+        closed = (Q.NO_CORRECTION, Q.NO_FAILURE, "Yes", "No", *map(str, range(10)))
+        return Ask("free", closed if failed else ())
+    if failed is False:
+        return Q.NO_FAILURE
+    hi = {"Q3": frames, "Q4": len(Severity), "Q5": len(Category)}[dim]
+    return Ask("choose", tuple(str(i) for i in range(1, hi + 1)))
+
+
+@dataclass
+class DiagnosisRequest:
+    """One grid (or per-view keyframe lists) for `analyze_batch`, with the arguments `analyze` takes."""
+
+    grid: Any
+    task: str = ""
+    frames: int | None = None
+    objects: Sequence[str] = ()
+
+
 class FailureAnalyzer:
     """`q6_mode`: "free" (greedy text) or "template" (the most likely entry of the paper's correction-strategy
     table, placeholders filled from the `objects` given to `analyze`, so every correction maps to primitives)."""
@@ -82,6 +124,7 @@ class FailureAnalyzer:
         self.decoder = Decoder(self.model, processor)
         self.grid = grid  # the layout the model was trained on: --frames grids and the Q3 range follow it
         self.num_frames, self.time_axis = grid.max_frames, grid.time_axis
+        self._ids_checked = False
 
     @classmethod
     def from_pretrained(cls, path: str | Path, dtype: Any = None, device: str | None = None,
@@ -104,68 +147,146 @@ class FailureAnalyzer:
         q = Q.question_text(dim, 0, task, self.time_axis)
         return self.processor.apply_chat_template(messages(q), tokenize=False, add_generation_prompt=True)
 
-    def _answer(self, dim: str, pre: Any, failed: bool | None, frames: int, objects: Sequence[str] = ()) -> str:
+    def _decode(self, pre: Any, plans: Sequence[str | Ask | None]) -> list[str | None]:
+        """Carry out one plan per row of `pre`, one kind of answer at a time (its rows decoded in lockstep)."""
         d = self.decoder
-        if dim == "Q1":
-            return d.actions(pre)
-        if dim == "Q2":
-            return d.choose(pre, ["Yes", "No"])
-        if dim == "Q6":  # consistent with Q2: no correction after "no failure"; after a failure an instruction,
-            # not the no-correction sentence nor a closed-set reply (Yes/No/None/a number)
-            if failed is False:
-                return Q.NO_CORRECTION
-            if self.q6_mode == "template":
-                return d.choose(pre, [text for _, text in candidates(objects)])
-            closed = [Q.NO_CORRECTION, Q.NO_FAILURE, "Yes", "No", *map(str, range(10))]
-            return d.free_text(pre, avoid=closed if failed else ())
-        if failed is False:
-            return Q.NO_FAILURE
-        hi = {"Q3": frames, "Q4": len(Severity), "Q5": len(Category)}[dim]
-        return d.choose(pre, [str(i) for i in range(1, hi + 1)])
+        out = [p if isinstance(p, str) else None for p in plans]
+        for kind in ("choose", "actions", "free"):
+            rows = [i for i, p in enumerate(plans) if isinstance(p, Ask) and p.kind == kind]
+            if not rows:
+                continue
+            sub = pre if len(rows) == len(plans) else d.select(pre, rows)
+            asks = [plans[i] for i in rows]
+            if kind == "choose":
+                got = d.choose_rows(sub, [a.options for a in asks])
+            elif kind == "actions":
+                got = d.actions_rows(sub, [True] * len(rows))
+            else:
+                got = [d.text(t or []) for t in d.free_tokens_rows(sub, [a.options for a in asks], [True] * len(rows))]
+            for i, g in zip(rows, got):
+                out[i] = g
+        return out
 
-    def _prefixes(self, image: Image.Image, prompts: dict[str, str], one_pass: bool) -> Iterator[tuple[str, Any]]:
-        """(dimension, model state after its prompt), in order. One pass shares the image+preamble prefix."""
-        if not one_pass:
-            for dim, p in prompts.items():
-                yield dim, self.decoder.prefill(dict(self.processor(text=[p], images=[image], return_tensors="pt")))
-            return
-        first = next(iter(prompts.values()))
-        one = self.processor(text=[first], images=[image], return_tensors="pt")
-        # Token ids of all six prompts without re-processing the image: expand its placeholder by hand.
-        ids = [self.decoder.encode_ids(expand_image_tokens(self.processor, p, one["image_grid_thw"][0]))
-               for p in prompts.values()]
-        assert ids[0] == one["input_ids"][0].tolist(), "prompt tokenization differs from the processor's"
-        lcp = common_prefix_len(ids)
-        text_cols = ("input_ids", "attention_mask", "mm_token_type_ids")
-        pre = self.decoder.prefill({k: (v[:, :lcp] if k in text_cols else v) for k, v in one.items()})
-        for dim, seq in zip(prompts, ids):
-            q_pre, _ = self.decoder.extend(pre, seq[lcp:])
-            yield dim, q_pre
-            self.decoder.rewind(q_pre, pre)  # after the caller has answered from it
+    def _answer(self, dim: str, pre: Any, failed: bool | None, frames: int, objects: Sequence[str] = ()) -> str:
+        return str(self._decode(pre, [plan_reply(dim, failed, frames, objects, self.q6_mode)])[0])
+
+    def _prefixes(self, image: Image.Image, prompts: dict[str, str]) -> Iterator[tuple[str, Any]]:
+        """Six-prompt mode (the reference path): (dimension, model state after its whole prompt, image included)."""
+        for dim, p in prompts.items():
+            yield dim, self.decoder.prefill(dict(self.processor(text=[p], images=[image], return_tensors="pt")))
 
     def answers(self, image: Image.Image, task: str, one_pass: bool = True, frames: int | None = None,
-                objects: Sequence[str] = (), dims: Sequence[str] = Q.DIMENSIONS) -> dict[str, str]:
+                objects: Sequence[str] = (), dims: Collection[str] = Q.DIMENSIONS) -> dict[str, str]:
         """The replies to `dims` (Q2 is always asked: the others follow its verdict)."""
+        if one_pass:
+            return self.answers_batch([image], [task], [frames], [objects], [dims])[0]
         frames = frames or self.num_frames
         prompts = {dim: self._prompt(dim, task) for dim in Q.DIMENSIONS if dim in dims or dim == "Q2"}
         out: dict[str, str] = {}
         failed: bool | None = None
-        for dim, pre in self._prefixes(image, prompts, one_pass):
+        for dim, pre in self._prefixes(image, prompts):
             out[dim] = self._answer(dim, pre, failed, frames, objects)
             if dim == "Q2":
                 failed = out[dim] == "Yes"
         return out
 
-    def analyze(self, grid_or_frames: Image.Image | np.ndarray | Sequence[Sequence[Any]], task: str = "",
-                one_pass: bool = True, frames: int | None = None, objects: Sequence[str] = ()) -> Diagnosis:
-        """`objects`: the scene's object and place names (used by q6_mode="template")."""
+    def answers_batch(self, images: Sequence[Image.Image], tasks: Sequence[str],
+                      frames: Sequence[int | None] | None = None, objects: Sequence[Sequence[str]] | None = None,
+                      dims: Sequence[Collection[str]] | None = None, max_batch: int | None = None
+                      ) -> list[dict[str, str]]:
+        """`answers` (one pass) for many grids: grids of one size are decoded together, `max_batch` at a time, with
+        the same replies as one at a time. Per-grid `frames`, `objects` and `dims` as in `answers`."""
+        n = len(images)
+        frames = list(frames or [None] * n)
+        objects = list(objects or [()] * n)
+        dims = list(dims or [Q.DIMENSIONS] * n)
+        if not len(tasks) == len(frames) == len(objects) == len(dims) == n:
+            raise ValueError("answers_batch: images, tasks, frames, objects and dims differ in length")
+        groups: dict[tuple[int, int], list[int]] = {}
+        for i, img in enumerate(images):  # one size, one token count: rows without padding to each other
+            groups.setdefault(img.size, []).append(i)
+        step = max(1, max_batch or n)
+        out: list[dict[str, str]] = [{} for _ in range(n)]
+        for idx in groups.values():
+            for c in range(0, len(idx), step):
+                part = idx[c:c + step]
+                got = self._answers_rows([images[i] for i in part], [tasks[i] for i in part],
+                                         [frames[i] or self.num_frames for i in part], [objects[i] for i in part],
+                                         [dims[i] for i in part])
+                for i, a in zip(part, got):
+                    out[i] = a
+        return out
+
+    def _answers_rows(self, images: list[Image.Image], tasks: list[str], frames: list[int],
+                      objects: list[Sequence[str]], dims: list[Collection[str]]) -> list[dict[str, str]]:
+        """One pass over a batch: each grid's image and preamble are prefilled once (one forward for the batch);
+        a question's own tokens are fed only for the rows whose reply needs the model (Q3-Q6 follow Q2)."""
+        d = self.decoder
+        prompts = [{dim: self._prompt(dim, t) for dim in Q.DIMENSIONS if dim in ds or dim == "Q2"}
+                   for t, ds in zip(tasks, dims)]
+        import torch
+
+        # one image per call: the image processor on a list of large grids is ~3x slower per image (measured)
+        one = [self.processor.image_processor(images=[im], return_tensors="pt") for im in images]
+        px = {k: torch.cat([o[k] for o in one]) for k in ("pixel_values", "image_grid_thw")}
+        visual = (px["image_grid_thw"].prod(-1) // self.processor.image_processor.merge_size ** 2).tolist()
+        ids = [{dim: d.prompt_ids(p, v) for dim, p in pr.items()} for pr, v in zip(prompts, visual)]
+        if not self._ids_checked:  # once: the hand-made token ids equal the processor's
+            ref = self.processor(text=[prompts[0]["Q2"]], images=images[:1], return_tensors="pt")["input_ids"][0]
+            if ref.tolist() != ids[0]["Q2"]:
+                raise ValueError("analyzer: prompt tokenization differs from the processor's")
+            self._ids_checked = True
+        lcp = [common_prefix_len(list(x.values())) for x in ids]
+        pre = d.prefill_rows([x["Q2"][:k] for x, k in zip(ids, lcp)], px["pixel_values"], px["image_grid_thw"])
+        out: list[dict[str, str]] = [{} for _ in images]
+        failed: list[bool | None] = [None] * len(images)
+        for dim in Q.DIMENSIONS:
+            plans = [plan_reply(dim, failed[i], frames[i], objects[i], self.q6_mode) if dim in ids[i] else None
+                     for i in range(len(images))]
+            replies: list[str | None] = [p if isinstance(p, str) else None for p in plans]
+            rows = [i for i, p in enumerate(plans) if isinstance(p, Ask)]
+            if rows:  # only these rows are fed the question: the others' replies follow from Q2
+                base = pre if len(rows) == len(images) else d.select(pre, rows)
+                q, _ = d.extend_rows(base, [ids[i][dim][lcp[i]:] for i in rows])
+                for i, r in zip(rows, self._decode(q, [plans[i] for i in rows])):
+                    replies[i] = r
+                d.rewind(q, base)
+            for i, r in enumerate(replies):
+                if r is not None:
+                    out[i][dim] = r
+            if dim == "Q2":
+                failed = [o.get("Q2") == "Yes" for o in out]
+        return out
+
+    def _prepare(self, grid_or_frames: Image.Image | np.ndarray | Sequence[Sequence[Any]], task: str,
+                 frames: int | None) -> tuple[Image.Image, str, int | None]:
+        """(RGB grid, task text, keyframes shown) from a grid image or per-view keyframe lists."""
         if isinstance(grid_or_frames, (Image.Image, np.ndarray)):
             img = grid_or_frames if isinstance(grid_or_frames, Image.Image) else Image.fromarray(grid_or_frames)
         else:
             frames = frames or min(len(grid_or_frames[0]), self.num_frames)
             img = frames_to_grid(grid_or_frames, self.grid)
-        task = task or "a laboratory manipulation task"
-        a = self.answers(img.convert("RGB"), task, one_pass, frames, objects)
+        return img.convert("RGB"), task or "a laboratory manipulation task", frames
+
+    def analyze_batch(self, requests: Sequence[DiagnosisRequest | Image.Image], one_pass: bool = True,
+                      max_batch: int | None = None) -> list[Diagnosis]:
+        """`analyze` for many grids at once (batched decoding, `max_batch` grids per forward), same answers."""
+        reqs = [r if isinstance(r, DiagnosisRequest) else DiagnosisRequest(r) for r in requests]
+        ready = [self._prepare(r.grid, r.task, r.frames) for r in reqs]
+        if one_pass:
+            ans = self.answers_batch([g for g, _, _ in ready], [t for _, t, _ in ready], [f for *_, f in ready],
+                                     [r.objects for r in reqs], max_batch=max_batch)
+        else:
+            ans = [self.answers(g, t, False, f, r.objects) for (g, t, f), r in zip(ready, reqs)]
+        return [self.analyze(g, t, frames=f, objects=r.objects, answers=a) for (g, t, f), r, a in zip(ready, reqs, ans)]
+
+    def analyze(self, grid_or_frames: Image.Image | np.ndarray | Sequence[Sequence[Any]], task: str = "",
+                one_pass: bool = True, frames: int | None = None, objects: Sequence[str] = (),
+                answers: dict[str, str] | None = None) -> Diagnosis:
+        """`objects`: the scene's object and place names (used by q6_mode="template"); `answers`: replies already
+        decoded for this grid (analyze_batch)."""
+        img, task, frames = self._prepare(grid_or_frames, task, frames)
+        a = answers or self.answers(img, task, one_pass, frames, objects)
         failed = a["Q2"] == "Yes"
         sev = int(a["Q4"]) if failed and a["Q4"].isdigit() else None
         cat = int(a["Q5"]) if failed and a["Q5"].isdigit() else None

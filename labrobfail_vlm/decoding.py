@@ -7,17 +7,25 @@ Q1 is built greedily one action at a time from the same 8 candidates. Q6 is free
 3-gram, stops at the end of turn), or in template mode the most likely of the paper's correction strategies
 with their placeholders filled from the scene's object names (labrobfail_vlm.corrections.candidates).
 
+Every operation works on B >= 1 rows in lockstep (a batch of grids), and a single grid is the batch of one.
+Rows grow by different numbers of tokens, so the cache holds holes: each row's real slots are in
+`Prefix.mask`, and each new token gets its rope position explicitly (`Prefix.pos`, the row's own count
+plus Qwen3-VL's rope delta for the image), so a row sees exactly the positions and tokens it would see
+alone. Candidate answers are scored as a token tree in one forward call: every trie node attends to the
+prefix and its own ancestors only (a custom 4-D attention mask), and the tree is cut off the cache again.
+
 One-pass mode prefills the image and preamble once; each question then continues from that
-KV cache (cropped back after use) instead of re-encoding the image six times. The cached
-and uncached paths see the same token ids at the same positions, so they pick the same
-answers.
+KV cache (cropped back after use) instead of re-encoding the image six times.
 """
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any, Sequence
 
+import numpy as np
 import torch
 
 from labrobfail_vlm import questions as Q
@@ -26,45 +34,160 @@ from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS
 
 @dataclass
 class Prefix:
-    """Model state after a token sequence: the cache and the logits of its last position."""
+    """Model state after one token sequence per row: the cache (`length` slots per row, `mask` marking each
+    row's real tokens; holes are left padding and the padding of ragged extensions), the rope position of each
+    row's next token, and the logits after each row's last real token."""
 
     cache: Any
     length: int
-    last_logits: torch.Tensor
+    last: torch.Tensor  # (B, V)
+    mask: torch.Tensor  # (B, length) bool
+    pos: torch.Tensor  # (B,) long
+
+    @property
+    def rows(self) -> int:
+        return int(self.last.shape[0])
+
+    @property
+    def last_logits(self) -> torch.Tensor:
+        """(V,) logits after the last token of a single-row prefix."""
+        assert self.rows == 1, "last_logits: a single-row prefix only"
+        return self.last[0]
 
 
 class Decoder:
-    def __init__(self, model: Any, processor: Any, max_new_tokens: int = 96, no_repeat_ngram: int = 3):
+    def __init__(self, model: Any, processor: Any, max_new_tokens: int = 96, no_repeat_ngram: int = 3,
+                 logit_rows: int = 256):
         self.model, self.proc = model, processor
+        # peft keeps the LoRA layers inside the base model's modules, so its forward is the adapted model's
+        self.lm = model.get_base_model() if hasattr(model, "get_base_model") else model
         self.no_repeat_ngram = no_repeat_ngram
         self.tok = processor.tokenizer
         self.eos = self.tok.convert_tokens_to_ids("<|im_end|>")
+        self.image_id = self.tok.convert_tokens_to_ids(processor.image_token)
+        pad = self.tok.pad_token_id
+        self.pad = int(pad if pad is not None else self.eos)
         self.max_new_tokens = max_new_tokens
+        self.logit_rows = logit_rows  # lm_head rows per call when scoring a tree (bounds memory at large vocabularies)
         self.device = next(model.parameters()).device
+        self.dtype = next(model.parameters()).dtype
+        self._ids = lru_cache(maxsize=16384)(self._tokenize)
 
-    # ---- low-level -------------------------------------------------------------------------------------
+    # ---- tokens ------------------------------------------------------------------------------------------
+    def _tokenize(self, text: str) -> tuple[int, ...]:
+        return tuple(self.tok(text, add_special_tokens=False)["input_ids"])
+
     def encode_ids(self, text: str) -> list[int]:
-        return self.tok(text, add_special_tokens=False)["input_ids"]
+        return list(self._ids(text))
 
+    def prompt_ids(self, text: str, image_tokens: int) -> list[int]:
+        """Token ids of a chat prompt whose image placeholder stands for `image_tokens` visual tokens, as the
+        processor tokenizes it. Special tokens split the text before BPE, so the parts around the placeholder
+        are tokenized (and cached) alone instead of a string with ~1,000 placeholders per prompt."""
+        before, after = text.split(self.proc.image_token, 1)
+        return [*self._ids(before), *[self.image_id] * image_tokens, *self._ids(after)]
+
+    # ---- model state -------------------------------------------------------------------------------------
     @torch.no_grad()
     def prefill(self, inputs: dict[str, torch.Tensor]) -> Prefix:
+        """Run a processor-style batch (input_ids, attention_mask with left padding, pixel values, ...)."""
         from transformers import DynamicCache
 
-        cache = DynamicCache()
         inputs = {k: v.to(self.device) for k, v in inputs.items()}
-        out = self.model(**inputs, past_key_values=cache, use_cache=True)
-        return Prefix(out.past_key_values, int(inputs["input_ids"].shape[1]), out.logits[0, -1].float())
+        ids = inputs["input_ids"]
+        mask = inputs.get("attention_mask")
+        mask = torch.ones_like(ids, dtype=torch.bool) if mask is None else mask.bool()
+        inner = getattr(self.lm, "model", None)
+        if inner is not None and hasattr(inner, "rope_deltas"):
+            inner.rope_deltas = None  # model state left by the last call: this prefill sets its own
+        out = self.lm(**inputs, past_key_values=DynamicCache(), use_cache=True, logits_to_keep=1)
+        # Qwen3-VL's rope delta of each row (the image takes fewer positions than tokens), set by this prefill
+        delta = getattr(inner, "rope_deltas", None)
+        pos = mask.sum(1) + (delta.view(-1).to(self.device) if delta is not None else 0)
+        return Prefix(out.past_key_values, int(ids.shape[1]), out.logits[:, -1].float(), mask, pos.long())
+
+    def prefill_rows(self, rows: Sequence[Sequence[int]], pixel_values: torch.Tensor,
+                     image_grid_thw: torch.Tensor) -> Prefix:
+        """Prefill token sequences (one image each, in order), left-padded to one length."""
+        n = max(len(r) for r in rows)
+        ids = torch.full((len(rows), n), self.pad, dtype=torch.long)
+        mask = torch.zeros((len(rows), n), dtype=torch.long)
+        for i, r in enumerate(rows):
+            ids[i, n - len(r):] = torch.tensor(list(r), dtype=torch.long)
+            mask[i, n - len(r):] = 1
+        return self.prefill({"input_ids": ids, "attention_mask": mask, "pixel_values": pixel_values,
+                             "mm_token_type_ids": (ids == self.image_id).int(), "image_grid_thw": image_grid_thw})
 
     @torch.no_grad()
+    def _forward(self, pre: Prefix, chunks: Sequence[Sequence[int]], parents: Sequence[Sequence[int]] | None = None
+                 ) -> torch.Tensor:
+        """Feed one chunk of tokens per row after `pre` (appending to its cache); hidden states (B, m, H).
+
+        `parents[i][j]`: the chunk index token j follows (-1: the prefix); None means a plain run (j - 1). A token
+        attends to the row's real prefix slots and its own ancestors; shorter rows are padded with tokens that
+        nothing attends to."""
+        b, m = len(chunks), max(len(c) for c in chunks)
+        tok = np.full((b, m), self.pad, np.int64)
+        tree = np.zeros((b, m, m), bool)
+        depth = np.zeros((b, m), np.int64)
+        for i, c in enumerate(chunks):
+            k = len(c)
+            tok[i, :k] = c
+            if parents is None:
+                tree[i, :k, :k] = np.tril(np.ones((k, k), bool))
+                depth[i, :k] = np.arange(k)
+            else:
+                for j, p in enumerate(parents[i]):
+                    if p >= 0:
+                        tree[i, j] = tree[i, p]
+                        depth[i, j] = depth[i, p] + 1
+                    tree[i, j, j] = True
+            tree[i, range(k, m), range(k, m)] = True  # padding attends to itself only (no empty softmax row)
+        allowed = torch.cat([pre.mask[:, None, :].expand(b, m, pre.length),
+                             torch.from_numpy(tree).to(self.device)], dim=2)[:, None]
+        mask4 = torch.zeros(allowed.shape, dtype=self.dtype, device=self.device)
+        mask4.masked_fill_(~allowed, torch.finfo(self.dtype).min)
+        pos = pre.pos[:, None] + torch.from_numpy(depth).to(self.device)
+        out = self.lm.model(input_ids=torch.from_numpy(tok).to(self.device), attention_mask=mask4,
+                            position_ids=pos[None].expand(3, b, m), past_key_values=pre.cache, use_cache=True)
+        return out.last_hidden_state
+
+    @torch.no_grad()
+    def _logits(self, hidden: torch.Tensor) -> torch.Tensor:
+        return self.lm.lm_head(hidden).float()
+
+    def extend_rows(self, pre: Prefix, seqs: Sequence[Sequence[int]], all_logits: bool = False
+                    ) -> tuple[Prefix, torch.Tensor | None]:
+        """Feed `seqs[i]` after row i (mutating the shared cache; an empty sequence leaves the row as it is).
+        Returns the new prefix and, with `all_logits`, the logits (B, m, V) of every fed position."""
+        lens = [len(s) for s in seqs]
+        if not max(lens, default=0):
+            return pre, (pre.last[:, None] if all_logits else None)
+        h = self._forward(pre, seqs)
+        m = h.shape[1]
+        n = torch.tensor(lens, device=self.device)
+        real = torch.arange(m, device=self.device)[None] < n[:, None]
+        grown = [i for i, k in enumerate(lens) if k]
+        last = pre.last.clone()
+        last[grown] = self._logits(h[grown, n[grown] - 1])
+        new = Prefix(pre.cache, pre.length + m, last, torch.cat([pre.mask, real], 1), pre.pos + n)
+        return new, (self._logits(h) if all_logits else None)
+
     def extend(self, pre: Prefix, ids: Sequence[int]) -> tuple[Prefix, torch.Tensor]:
-        """Feed ids after `pre` (mutating its cache); returns the new prefix and logits for every fed position."""
-        if not ids:
-            return pre, pre.last_logits[None]
-        x = torch.tensor([list(ids)], device=self.device)
-        pos = torch.arange(pre.length, pre.length + len(ids), device=self.device)
-        out = self.model(input_ids=x, past_key_values=pre.cache, use_cache=True, cache_position=pos)
-        logits = out.logits[0].float()
-        return Prefix(out.past_key_values, pre.length + len(ids), logits[-1]), logits
+        """Feed ids after a single-row `pre` (mutating its cache); returns the new prefix and logits for every fed
+        position."""
+        new, logits = self.extend_rows(pre, [list(ids)], all_logits=True)
+        assert logits is not None
+        return new, logits[0]
+
+    def select(self, pre: Prefix, rows: Sequence[int]) -> Prefix:
+        """A prefix of some of the rows of `pre` on a cache of their own (copied): the rows a question concerns
+        are decoded without carrying the others along."""
+        idx = torch.tensor(list(rows), device=self.device)
+        cache = copy.copy(pre.cache)
+        cache.layers = [copy.copy(layer) for layer in pre.cache.layers]
+        cache.batch_select_indices(idx)  # re-indexes each layer's tensors: the shared cache is left as it was
+        return Prefix(cache, pre.length, pre.last[idx], pre.mask[idx], pre.pos[idx])
 
     def rewind(self, cur: Prefix, to: Prefix) -> Prefix:
         """Cut the shared cache of `cur` back to the earlier state `to` (same cache, shorter)."""
@@ -72,83 +195,148 @@ class Decoder:
             cur.cache.crop(to.length - cur.length)
         return to
 
-    def score_many(self, pre: Prefix, seqs: Sequence[Sequence[int]]) -> list[float]:
-        """log p of each (non-empty) sequence after `pre`, walking them as a trie: a shared prefix is fed to
-        the model once, and a run of tokens without a branch in one forward call."""
-        out = [0.0] * len(seqs)
-        self._walk(pre, [(i, list(s)) for i, s in enumerate(seqs)], out)
+    # ---- scoring -----------------------------------------------------------------------------------------
+    def score_rows(self, pre: Prefix, seqs: Sequence[Sequence[Sequence[int]]]) -> list[list[float]]:
+        """log p of each (non-empty) sequence `seqs[i][k]` after row i, in one forward call: the proper prefixes
+        of a row's sequences form a trie fed as one tree (a shared prefix is fed once)."""
+        chunks: list[list[int]] = []
+        parents: list[list[int]] = []
+        asks: list[tuple[int, int, int, int]] = []  # (row, sequence, trie node or -1 for the prefix, next token)
+        for i, row in enumerate(seqs):
+            nodes: dict[tuple[int, int], int] = {}
+            toks: list[int] = []
+            par: list[int] = []
+            for k, s in enumerate(row):
+                at = -1
+                for t in s[:-1]:
+                    asks.append((i, k, at, t))
+                    if (at, t) not in nodes:
+                        nodes[(at, t)] = len(toks)
+                        toks.append(t)
+                        par.append(at)
+                    at = nodes[(at, t)]
+                asks.append((i, k, at, s[-1]))
+            chunks.append(toks)
+            parents.append(par)
+        out = [[0.0] * len(row) for row in seqs]
+        first = torch.log_softmax(pre.last, -1)
+        deep: list[tuple[int, int, int, int]] = []
+        for i, k, at, t in asks:
+            if at < 0:
+                out[i][k] += float(first[i, t])
+            else:
+                deep.append((i, k, at, t))
+        if not deep:
+            return out
+        h = self._forward(pre, chunks, parents)
+        self.rewind(Prefix(pre.cache, pre.length + h.shape[1], pre.last, pre.mask, pre.pos), pre)
+        where = sorted({(i, at) for i, _, at, _ in deep})  # the nodes whose next-token distribution is needed
+        index = {w: r for r, w in enumerate(where)}
+        rows_i = torch.tensor([w[0] for w in where], device=self.device)
+        rows_j = torch.tensor([w[1] for w in where], device=self.device)
+        lp = torch.empty(len(deep), dtype=torch.float32)
+        ask_row = torch.tensor([index[(i, at)] for i, _, at, _ in deep])
+        ask_tok = torch.tensor([t for *_, t in deep])
+        for c in range(0, len(where), self.logit_rows):  # vocab-sized rows, a bounded number at a time
+            logits = self._logits(h[rows_i[c:c + self.logit_rows], rows_j[c:c + self.logit_rows]]).cpu()
+            sel = (ask_row >= c) & (ask_row < c + self.logit_rows)
+            r = ask_row[sel] - c
+            lp[sel] = logits[r, ask_tok[sel]] - torch.logsumexp(logits, -1)[r]
+        for (i, k, _, _), v in zip(deep, lp.tolist()):
+            out[i][k] += v
         return out
 
-    def _walk(self, pre: Prefix, items: list[tuple[int, list[int]]], out: list[float]) -> None:
-        lps = torch.log_softmax(pre.last_logits, -1)
-        groups: dict[int, list[tuple[int, list[int]]]] = {}
-        for i, s in items:
-            out[i] += float(lps[s[0]])
-            if len(s) > 1:
-                groups.setdefault(s[0], []).append((i, s[1:]))
-        for first, group in groups.items():
-            rests = [r for _, r in group]
-            k = 0  # tokens every sequence of the group shares after `first`
-            while all(len(r) > k for r in rests) and len({r[k] for r in rests}) == 1:
-                k += 1
-            run = [first, *rests[0][:k]]
-            ext, logits = self.extend(pre, run)
-            idx = torch.tensor(run[1:], device=logits.device)[:, None]
-            shared = float(torch.log_softmax(logits[:k], -1).gather(1, idx).sum()) if k else 0.0
-            left = []
-            for i, r in group:
-                out[i] += shared
-                if len(r) > k:
-                    left.append((i, r[k:]))
-            if left:
-                self._walk(ext, left, out)
-            self.rewind(ext, pre)
+    def score_many(self, pre: Prefix, seqs: Sequence[Sequence[int]]) -> list[float]:
+        """log p of each (non-empty) sequence after a single-row `pre`."""
+        return self.score_rows(pre, [seqs])[0]
 
-    # ---- answers ---------------------------------------------------------------------------------------
+    # ---- answers -----------------------------------------------------------------------------------------
+    def choose_rows(self, pre: Prefix, candidates: Sequence[Sequence[str] | None]) -> list[str | None]:
+        """Per row, the candidate (followed by the end of turn) with the highest log-likelihood; None rows skip."""
+        seqs = [[self.encode_ids(c) + [self.eos] for c in cands] if cands else [] for cands in candidates]
+        scores = self.score_rows(pre, seqs)
+        return [cands[max(range(len(cands)), key=sc.__getitem__)] if cands else None
+                for cands, sc in zip(candidates, scores)]
+
     def choose(self, pre: Prefix, candidates: Sequence[str]) -> str:
-        """The candidate (followed by the end of turn) with the highest log-likelihood."""
-        scores = self.score_many(pre, [self.encode_ids(c) + [self.eos] for c in candidates])
-        return candidates[max(range(len(candidates)), key=scores.__getitem__)]
+        return str(self.choose_rows(pre, [candidates])[0])
 
-    def actions(self, pre: Prefix, max_actions: int = 12) -> str:
-        chosen: list[str] = []
+    def actions_rows(self, pre: Prefix, active: Sequence[bool], max_actions: int = 12) -> list[str | None]:
+        """Per active row, the ordered atomic actions, one greedy choice at a time (or the end of the list)."""
+        chosen: list[list[str]] = [[] for _ in active]
+        going = list(active)
         cur = pre
         for _ in range(max_actions):
-            opts = [(", " if chosen else "") + a for a in ATOMIC_ACTIONS]
-            scores = self.score_many(cur, [self.encode_ids(o) for o in opts] + ([[self.eos]] if chosen else []))
-            best = max(range(len(scores)), key=scores.__getitem__)
-            if best == len(ATOMIC_ACTIONS):
+            if not any(going):
                 break
-            chosen.append(ATOMIC_ACTIONS[best])
-            cur, _ = self.extend(cur, self.encode_ids(opts[best]))
+            opts = [[(", " if chosen[i] else "") + a for a in ATOMIC_ACTIONS] if going[i] else [] for i in
+                    range(len(active))]
+            seqs = [[self.encode_ids(o) for o in opts[i]] + ([[self.eos]] if going[i] and chosen[i] else [])
+                    for i in range(len(active))]
+            scores = self.score_rows(cur, seqs)
+            feed: list[list[int]] = []
+            for i, sc in enumerate(scores):
+                best = max(range(len(sc)), key=sc.__getitem__) if going[i] else -1
+                if best < 0 or best == len(ATOMIC_ACTIONS):
+                    going[i] = False
+                    feed.append([])
+                else:
+                    chosen[i].append(ATOMIC_ACTIONS[best])
+                    feed.append(self.encode_ids(opts[i][best]))
+            if any(going):
+                cur, _ = self.extend_rows(cur, feed)
         self.rewind(cur, pre)
-        return Q.format_actions(chosen)
+        return [Q.format_actions(c) if a else None for c, a in zip(chosen, active)]
 
-    def free_text(self, pre: Prefix, avoid: Sequence[str] = ()) -> str:
-        """Greedy text until the end of turn (see `free_tokens`)."""
-        return self.tok.decode(self.free_tokens(pre, avoid), skip_special_tokens=True).strip()
+    def actions(self, pre: Prefix, max_actions: int = 12) -> str:
+        return str(self.actions_rows(pre, [True], max_actions)[0])
+
+    def free_tokens_rows(self, pre: Prefix, avoid: Sequence[Sequence[str]], active: Sequence[bool]
+                         ) -> list[list[int] | None]:
+        """Per active row, greedy token ids until the end of turn (see `free_tokens`)."""
+        out: list[list[int]] = [[] for _ in active]
+        going = list(active)
+        barred = [sorted({self.encode_ids(a)[0] for a in av if a}) for av in avoid]
+        n = self.no_repeat_ngram
+        cur = pre
+        for _ in range(self.max_new_tokens):
+            if not any(going):
+                break
+            logits = cur.last.clone()
+            feed: list[list[int]] = []
+            for i in range(len(active)):
+                if not going[i]:
+                    feed.append([])
+                    continue
+                o = out[i]
+                if not o and barred[i]:
+                    logits[i, barred[i]] = float("-inf")
+                if n and len(o) >= n - 1:
+                    tail = o[len(o) - n + 1:]
+                    seen = [o[j + n - 1] for j in range(len(o) - n + 1) if o[j:j + n - 1] == tail]
+                    if seen:
+                        logits[i, seen] = float("-inf")
+                t = int(logits[i].argmax())
+                if t == self.eos:
+                    going[i] = False
+                    feed.append([])
+                else:
+                    o.append(t)
+                    feed.append([t])
+            if any(going):
+                cur, _ = self.extend_rows(cur, feed)
+        self.rewind(cur, pre)
+        return [o if a else None for o, a in zip(out, active)]
 
     def free_tokens(self, pre: Prefix, avoid: Sequence[str] = ()) -> list[int]:
         """Greedy token ids until the end of turn; `avoid`: replies that must not be produced (their first tokens
         are barred at step one). No n-gram of `no_repeat_ngram` tokens is produced twice (a small model's greedy
         text otherwise loops: "...to secure the gripper to secure the gripper...")."""
-        out: list[int] = []
-        cur = pre
-        barred = sorted({self.encode_ids(a)[0] for a in avoid if a})
-        n = self.no_repeat_ngram
-        for _ in range(self.max_new_tokens):
-            logits = cur.last_logits.clone()
-            if not out and barred:
-                logits[barred] = float("-inf")
-            if n and len(out) >= n - 1:
-                tail = out[len(out) - n + 1:]
-                seen = [out[i + n - 1] for i in range(len(out) - n + 1) if out[i:i + n - 1] == tail]
-                if seen:
-                    logits[seen] = float("-inf")
-            t = int(logits.argmax())
-            if t == self.eos:
-                break
-            out.append(t)
-            cur, _ = self.extend(cur, [t])
-        self.rewind(cur, pre)
-        return out
+        return self.free_tokens_rows(pre, [avoid], [True])[0] or []
+
+    def text(self, ids: Sequence[int]) -> str:
+        return self.tok.decode(list(ids), skip_special_tokens=True).strip()
+
+    def free_text(self, pre: Prefix, avoid: Sequence[str] = ()) -> str:
+        """Greedy text until the end of turn (see `free_tokens`)."""
+        return self.text(self.free_tokens(pre, avoid))

@@ -6,31 +6,50 @@ Authorization header: never logged, never written, never part of an error messag
 
 from __future__ import annotations
 
+import base64
+import io
 import json
 import os
 import urllib.request
 from typing import Any
 
 
+def image_data_url(image: Any) -> str:
+    """A PIL image as a PNG data: URL (lossless, so the server sees the grid's exact pixels)."""
+    buf = io.BytesIO()
+    image.convert("RGB").save(buf, format="PNG")
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode()
+
+
 class ChatClient:
     def __init__(self, base_url: str, model: str, api_key_env: str = "OPENAI_API_KEY", timeout_s: float = 60.0):
         if not base_url.startswith(("http://", "https://")):
             raise ValueError(f"base_url: expected an http(s) URL, got {base_url!r}")
-        self.url = base_url.rstrip("/") + "/chat/completions"
+        self.base = base_url.rstrip("/")
+        self.url = self.base + "/chat/completions"
         self.model, self.timeout = model, float(timeout_s)
         self._key = os.environ.get(api_key_env, "")
 
     def __repr__(self) -> str:  # never show the key
         return f"ChatClient({self.url!r}, model={self.model!r})"
 
-    def chat(self, messages: list[dict[str, Any]], temperature: float = 0.0, max_tokens: int = 256) -> str:
-        """The reply text; raises OSError/ValueError/KeyError on transport or format problems."""
-        body = json.dumps({"model": self.model, "temperature": temperature, "max_tokens": max_tokens,
-                           "messages": messages}).encode()
+    def _call(self, url: str, body: dict[str, Any] | None = None) -> Any:
         headers = {"Content-Type": "application/json"}
         if self._key:
             headers["Authorization"] = f"Bearer {self._key}"
-        req = urllib.request.Request(self.url, data=body, method="POST", headers=headers)
+        data = json.dumps(body).encode() if body is not None else None
+        req = urllib.request.Request(url, data=data, method="POST" if body is not None else "GET", headers=headers)
         with urllib.request.urlopen(req, timeout=self.timeout) as r:  # noqa: S310 - scheme checked above
-            reply = json.loads(r.read())
+            return json.loads(r.read())
+
+    def chat(self, messages: list[dict[str, Any]], temperature: float = 0.0, max_tokens: int = 256,
+             **extra: Any) -> str:
+        """The reply text; `extra` goes into the request body as is (e.g. vLLM's `structured_outputs`).
+        Raises OSError/ValueError/KeyError on transport or format problems."""
+        reply = self._call(self.url, {"model": self.model, "temperature": temperature, "max_tokens": max_tokens,
+                                      "messages": messages, **extra})
         return str(reply["choices"][0]["message"]["content"])
+
+    def models(self) -> list[str]:
+        """The model ids the server lists (GET /models)."""
+        return [str(m["id"]) for m in self._call(self.base + "/models")["data"]]

@@ -4,7 +4,8 @@ Run as:
     python scripts/evaluate.py model=outputs/demo_train/final dataset_dir=outputs/demo_dataset split=test
     python scripts/evaluate.py predictions=preds.jsonl dataset_dir=outputs/dataset split=object
     python scripts/evaluate.py model=DIR dataset_dir=DIR external.enabled=true external.model=gpt-4o
-
+    python scripts/evaluate.py endpoint=http://127.0.0.1:8000/v1 dataset_dir=outputs/dataset split=test
+    python scripts/evaluate.py model=DIR dataset_dir=DIR batch_size=16      # grids decoded together
     python scripts/evaluate.py model=DIR dataset_dir=DIR executable.enabled=true executable.shards=SHARDS_DIR
 
 results.json: q1..q5 (top-1 %, Q1 exact ordered list, Q3 exact frame), q3_within1, q6 {bleu1..bleu4
@@ -31,31 +32,44 @@ def main(argv: list[str]) -> int:
     from labrobfail_vlm.bench.report import PAPER_ROWS, PAPER_UNSEEN_ROWS, confusion_png, markdown, row
 
     cfg = load_config("evaluate.yaml", argv)
-    if (cfg.model is None) == (cfg.predictions is None):
-        raise ConfigError("model/predictions: give exactly one of model=DIR or predictions=FILE")
+    if sum(x is not None for x in (cfg.model, cfg.predictions, cfg.endpoint)) != 1:
+        raise ConfigError("model/predictions/endpoint: give exactly one of model=DIR, predictions=FILE or endpoint=URL")
     if cfg.dataset_dir is None:
         raise ConfigError("dataset_dir: required")
+    if not isinstance(cfg.batch_size, int) or cfg.batch_size < 1:
+        raise ConfigError(f"batch_size: expected a positive integer, got {cfg.batch_size!r}")
     recs, traj = ev.load_split(cfg.dataset_dir, cfg.split)
-    src = Path(cfg.model or cfg.predictions)
-    out = Path(cfg.out_dir or (src if src.is_dir() else src.parent) / f"eval_{cfg.split}")
+    if cfg.endpoint is not None:
+        out = Path(cfg.out_dir or Path("outputs") / f"eval_endpoint_{cfg.split}")
+    else:
+        src = Path(cfg.model or cfg.predictions)
+        out = Path(cfg.out_dir or (src if src.is_dir() else src.parent) / f"eval_{cfg.split}")
     out.mkdir(parents=True, exist_ok=True)
     log_lines: list[str] = []
     results: dict[str, dict] = {}
     analyzer = None
-    tmpl: dict[str, str] = {}  # Q6 in template mode (model runs only)
-    if cfg.model is not None:
-        from labrobfail_vlm.analyzer import FailureAnalyzer
-        if not Path(cfg.model).is_dir():
-            raise ConfigError(f"model: no such directory {cfg.model!r}")
-        analyzer = FailureAnalyzer.from_pretrained(cfg.model)
-        preds = ev.model_predictions(analyzer, cfg.dataset_dir, recs, traj, progress=cfg.progress)
-        name = "LabRobFail-VLM (" + Path(cfg.model).name + ")"
+    tmpl: dict[str, str] = {}  # Q6 in template mode (model and endpoint runs)
+    if cfg.model is not None or cfg.endpoint is not None:
+        if cfg.endpoint is not None:
+            from labrobfail_vlm.endpoint import EndpointAnalyzer
+            analyzer = EndpointAnalyzer(str(cfg.endpoint), cfg.endpoint_model, cfg.endpoint_key_env,
+                                        cfg.endpoint_timeout_s, concurrency=cfg.batch_size)
+            name = f"LabRobFail-VLM endpoint ({analyzer.client.model})"
+        else:
+            from labrobfail_vlm.analyzer import FailureAnalyzer
+            if not Path(cfg.model).is_dir():
+                raise ConfigError(f"model: no such directory {cfg.model!r}")
+            analyzer = FailureAnalyzer.from_pretrained(cfg.model)
+            name = "LabRobFail-VLM (" + Path(cfg.model).name + ")"
+        preds = ev.model_predictions(analyzer, cfg.dataset_dir, recs, traj, progress=cfg.progress,
+                                     batch_size=cfg.batch_size)
         q6 = [r for r in recs if r["id"].endswith("_Q6")]
         if cfg.q6_template and q6:
             # the same model, Q6 chosen among the correction-strategy table's filled templates; the other
             # answers do not depend on the Q6 mode, so only Q6 (and the Q2 verdict it follows) is asked again
             analyzer.q6_mode = "template"
-            tmpl = ev.model_predictions(analyzer, cfg.dataset_dir, q6, traj, progress=cfg.progress)
+            tmpl = ev.model_predictions(analyzer, cfg.dataset_dir, q6, traj, progress=cfg.progress,
+                                        batch_size=cfg.batch_size)
             results[name + ", Q6 template"] = ev.score(recs, {**preds, **tmpl}, traj)
             analyzer.q6_mode = "free"
     else:
@@ -78,8 +92,8 @@ def main(argv: list[str]) -> int:
             if analyzer is None:
                 continue  # needs a model to blindfold
             results["blind (grey grid)"] = ev.score(
-                recs, ev.model_predictions(analyzer, cfg.dataset_dir, recs, traj, blind=True, progress=cfg.progress),
-                traj)
+                recs, ev.model_predictions(analyzer, cfg.dataset_dir, recs, traj, blind=True, progress=cfg.progress,
+                                           batch_size=cfg.batch_size), traj)
         else:
             raise ConfigError(f"baselines: unknown baseline {b!r}; known: majority, blind")
     if cfg.external.enabled:

@@ -171,7 +171,7 @@ def test_evaluate_model_and_predictions_file(tiny, small_ds, tmp_path):  # noqa:
 
 def _q6_prefix(fa, img, task):
     prompts = {"Q6": fa._prompt("Q6", task)}
-    return next(fa._prefixes(img, prompts, one_pass=False))[1]
+    return next(fa._prefixes(img, prompts))[1]
 
 
 def test_q6_free_text_never_repeats_a_trigram(tiny, grid):  # noqa: F811

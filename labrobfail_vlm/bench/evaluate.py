@@ -65,26 +65,34 @@ def read_predictions(path: str | Path) -> dict[str, str]:
 
 # ---- prediction sources -----------------------------------------------------------------------------------
 def model_predictions(analyzer: Any, dataset_dir: str | Path, recs: list[dict], traj: dict[str, dict],
-                      blind: bool = False, progress: bool = True) -> dict[str, str]:
-    """Run the analyzer once per trajectory (one pass over the dimensions its records ask); `blind` blanks
-    the grid."""
+                      blind: bool = False, progress: bool = True, batch_size: int = 1) -> dict[str, str]:
+    """Run the analyzer once per trajectory (one pass over the dimensions its records ask), `batch_size`
+    trajectories per `answers_batch` call; `blind` blanks the grid."""
     from tqdm import tqdm
 
     by_traj: dict[str, list[dict]] = defaultdict(list)
     for r in recs:
         by_traj[Q.traj_of(r["id"])].append(r)
+    items = list(by_traj.items())
     out: dict[str, str] = {}
-    for t, rs in tqdm(by_traj.items(), desc="blind" if blind else "model", disable=not progress):
-        img = Image.open(Path(dataset_dir) / rs[0]["image"]).convert("RGB")
-        if blind:
-            img = Image.new("RGB", img.size, (128, 128, 128))
-        info = traj.get(t, {})
-        ans = analyzer.answers(img, info.get("task", ""), one_pass=True, frames=info.get("frames"),
-                               objects=info.get("objects", ()), dims={Q.dim_of(r["id"]) for r in rs})
-        failed = ans["Q2"] == "Yes"
-        for r in rs:
-            d = Q.dim_of(r["id"])
-            out[r["id"]] = q2_as_asked(r["conversations"][0]["value"], failed) if d == "Q2" else ans[d]
+    bar = tqdm(total=len(items), desc="blind" if blind else "model", disable=not progress)
+    for c in range(0, len(items), max(1, batch_size)):
+        chunk = items[c:c + max(1, batch_size)]
+        images = []
+        for _, rs in chunk:
+            img = Image.open(Path(dataset_dir) / rs[0]["image"]).convert("RGB")
+            images.append(Image.new("RGB", img.size, (128, 128, 128)) if blind else img)
+        infos = [traj.get(t, {}) for t, _ in chunk]
+        answers = analyzer.answers_batch(images, [i.get("task", "") for i in infos], [i.get("frames") for i in infos],
+                                         [i.get("objects", ()) for i in infos],
+                                         [{Q.dim_of(r["id"]) for r in rs} for _, rs in chunk], max_batch=batch_size)
+        for (_, rs), ans in zip(chunk, answers):
+            failed = ans["Q2"] == "Yes"
+            for r in rs:
+                d = Q.dim_of(r["id"])
+                out[r["id"]] = q2_as_asked(r["conversations"][0]["value"], failed) if d == "Q2" else ans[d]
+        bar.update(len(chunk))
+    bar.close()
     return out
 
 
@@ -157,18 +165,15 @@ def score(recs: list[dict], preds: dict[str, str], traj: dict[str, dict],
 def external_predictions(client: Any, dataset_dir: str | Path, recs: list[dict], progress: bool = True,
                          log: Callable[[str], None] | None = None) -> dict[str, str]:
     """Ask an OpenAI-compatible chat model each record's question with its grid (a data: URL)."""
-    import base64
-    import io
-
     from tqdm import tqdm
+
+    from labrobfail_vlm.llm_client import image_data_url
 
     cache: dict[str, str] = {}
     out: dict[str, str] = {}
     for r in tqdm(recs, desc="external", disable=not progress):
         if r["image"] not in cache:
-            buf = io.BytesIO()
-            Image.open(Path(dataset_dir) / r["image"]).convert("RGB").save(buf, format="PNG")
-            cache = {r["image"]: "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode()}
+            cache = {r["image"]: image_data_url(Image.open(Path(dataset_dir) / r["image"]))}
         q = r["conversations"][0]["value"].removeprefix("<image>\n")
         hint = {"Q1": "Answer with the actions only, comma-separated.", "Q2": "Answer Yes or No.",
                 "Q3": "Answer with the frame number only, or None if nothing failed.",

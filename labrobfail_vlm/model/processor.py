@@ -41,13 +41,6 @@ def image_processor(max_pixels: int = GRID_PIXELS, min_pixels: int = MIN_PIXELS,
                                     size={"shortest_edge": min_pixels, "longest_edge": max_pixels})
 
 
-def expand_image_tokens(processor: Any, text: str, grid_thw: Any) -> str:
-    """`text` with its image placeholder repeated once per visual token, as the processor does before
-    tokenizing: lets a caller tokenize a prompt without processing the image again."""
-    n = int(grid_thw.prod()) // processor.image_processor.merge_size ** 2
-    return text.replace(processor.image_token, processor.image_token * n, 1)
-
-
 def common_prefix_len(seqs: list[list[int]]) -> int:
     """Length of the longest common prefix of token sequences (the image and preamble that prompts share)."""
     n = min(len(s) for s in seqs)

@@ -1,0 +1,189 @@
+"""The diagnosis server's FastAPI app: `create_app(analyzer, ServeConfig(...))`.
+
+    POST /diagnose  multipart form (labrobfail_vlm.serve.form) -> the Diagnosis JSON (Diagnosis.to_json())
+    GET  /health    {"status": "ok", queue and batch counters}; never needs the token
+    GET  /info      model, grid layout, version, batching settings
+
+Errors are one JSON line, {"error": "..."}: 400 bad field or image, 401 missing/wrong token, 404/405,
+413 upload over the limit or a decompression bomb, 415 not multipart, 503 queue full or shutting down,
+500 (never with a traceback) if the model itself fails. The token (if set) is compared in constant time and
+never logged or echoed.
+"""
+
+from __future__ import annotations
+
+import hmac
+import json
+import logging
+from contextlib import asynccontextmanager
+from dataclasses import asdict, dataclass
+from typing import Any, Awaitable, Callable, MutableMapping
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, Response
+from starlette.concurrency import run_in_threadpool
+from starlette.datastructures import UploadFile
+from starlette.exceptions import HTTPException
+
+from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.images import ImageTooLarge
+from labrobfail_vlm.serve.batcher import Batcher, Busy
+from labrobfail_vlm.serve.form import Upload, parse
+
+log = logging.getLogger("labrobfail.serve")
+Scope = MutableMapping[str, Any]
+Receive = Callable[[], Awaitable[MutableMapping[str, Any]]]
+Send = Callable[[MutableMapping[str, Any]], Awaitable[None]]
+
+
+@dataclass(frozen=True)
+class ServeConfig:
+    model_name: str = "model"
+    max_batch: int = 8
+    max_wait_ms: float = 10.0
+    max_queue: int = 1024
+    max_upload_bytes: int = 32 * 1024 * 1024
+    max_files: int = 256
+    token: str | None = None  # the bearer token; None or "" = no token required
+
+    def public(self) -> dict[str, Any]:
+        """The settings /info shows (never the token)."""
+        d = asdict(self)
+        d.pop("token")
+        d["token_required"] = bool(self.token)
+        return d
+
+
+class BodyTooLarge(Exception):
+    pass
+
+
+class Guard:
+    """ASGI middleware in front of the app: the bearer token (every path but /health) and the upload size, both
+    checked before the body is read; a body streamed past the limit stops with BodyTooLarge."""
+
+    def __init__(self, app: Any, token: str | None, max_bytes: int):
+        self.app, self.max_bytes = app, max_bytes
+        self._expected = f"Bearer {token}".encode() if token else None
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        headers = dict(scope.get("headers") or [])
+        if self._expected is not None and scope.get("path") != "/health":
+            given = headers.get(b"authorization", b"")
+            if not hmac.compare_digest(given, self._expected):
+                return await _reply(send, 401, "missing or wrong bearer token (Authorization: Bearer <token>)",
+                                    [(b"www-authenticate", b"Bearer")])
+        length = headers.get(b"content-length", b"")
+        if length.isdigit() and int(length) > self.max_bytes:
+            return await _reply(send, 413, f"upload of {int(length):,} bytes is over the {self.max_bytes:,} byte limit")
+        seen = 0
+
+        async def counted() -> MutableMapping[str, Any]:
+            nonlocal seen
+            msg = await receive()
+            if msg["type"] == "http.request":
+                seen += len(msg.get("body", b""))
+                if seen > self.max_bytes:
+                    raise BodyTooLarge()
+            return msg
+
+        await self.app(scope, counted, send)
+
+
+async def _reply(send: Send, status: int, message: str, extra: list[tuple[bytes, bytes]] | None = None) -> None:
+    body = json.dumps({"error": message}).encode()
+    await send({"type": "http.response.start", "status": status,
+                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+                            *(extra or [])]})
+    await send({"type": "http.response.body", "body": body})
+
+
+def version() -> str:
+    """The installed labrobfail package's version (`unknown` when run from a source tree that is not installed)."""
+    from importlib.metadata import PackageNotFoundError, version as pkg_version
+
+    try:
+        return pkg_version("labrobfail")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
+    """The app for one loaded FailureAnalyzer (the model is loaded once, by the caller)."""
+    __version__ = version()
+
+    def run(batch: list[Any]) -> list[str]:
+        return [d.to_json() for d in analyzer.analyze_batch(batch, max_batch=cfg.max_batch)]
+
+    batcher: Batcher[Any, str] = Batcher(run, cfg.max_batch, cfg.max_wait_ms / 1000, cfg.max_queue)
+
+    @asynccontextmanager
+    async def lifespan(_: Any):  # type: ignore[no-untyped-def]
+        await batcher.start()
+        yield
+        await batcher.stop()  # after uvicorn has let in-flight requests finish: drain what is queued
+
+    app = FastAPI(title="LabRobFail-VLM diagnosis", version=__version__, lifespan=lifespan, docs_url=None,
+                  redoc_url=None, openapi_url=None)
+
+    def error(status: int, message: str) -> JSONResponse:
+        return JSONResponse({"error": message}, status_code=status)
+
+    @app.exception_handler(HTTPException)
+    async def http_error(_: Request, exc: HTTPException) -> JSONResponse:
+        return error(exc.status_code, str(exc.detail).splitlines()[0] if exc.detail else "error")
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid(_: Request, exc: RequestValidationError) -> JSONResponse:
+        return error(400, "invalid request")
+
+    @app.exception_handler(BodyTooLarge)
+    async def too_large(_: Request, __: BodyTooLarge) -> JSONResponse:
+        return error(413, f"upload is over the {cfg.max_upload_bytes:,} byte limit")
+
+    @app.exception_handler(Exception)
+    async def internal(_: Request, exc: Exception) -> JSONResponse:
+        log.error("internal error: %s: %s", type(exc).__name__, str(exc).splitlines()[0][:200] if str(exc) else "")
+        return error(500, f"internal error ({type(exc).__name__})")
+
+    @app.get("/health")
+    async def health() -> dict[str, Any]:
+        s = batcher.stats
+        return {"status": "ok", "queued": batcher.queued, "batches": s.batches, "diagnoses": s.items,
+                "largest_batch": s.largest, "failed": s.failed}
+
+    @app.get("/info")
+    async def info() -> dict[str, Any]:
+        p = next(analyzer.model.parameters())
+        return {"model": cfg.model_name, "version": __version__, "grid": asdict(analyzer.grid),
+                "q6_mode": analyzer.q6_mode, "device": str(p.device), "dtype": str(p.dtype).removeprefix("torch."),
+                "serve": cfg.public(), "fields": "grid or frames.<view> files, task, prefix, objects"}
+
+    @app.post("/diagnose")
+    async def diagnose(request: Request) -> Response:
+        ctype = request.headers.get("content-type", "")
+        if not ctype.startswith("multipart/form-data"):
+            return error(415, "expected a multipart/form-data upload (grid or frames.<view> files, task, prefix, "
+                              "objects)")
+        form = await request.form(max_files=cfg.max_files, max_fields=16, max_part_size=64 * 1024)
+        try:
+            items = [(k, Upload(v.filename or "", await v.read()) if isinstance(v, UploadFile) else v)
+                     for k, v in form.multi_items()]
+        finally:
+            await form.close()
+        try:
+            req = await run_in_threadpool(parse, items, analyzer.grid)  # image decoding off the event loop
+        except ImageTooLarge as e:
+            return error(413, str(e))
+        except ConfigError as e:
+            return error(400, str(e))
+        try:
+            body = await batcher.submit(req)
+        except Busy as e:
+            return error(503, str(e))
+        return Response(body, media_type="application/json")
+
+    return Guard(app, cfg.token, cfg.max_upload_bytes)

@@ -1,0 +1,136 @@
+"""A standard-library client for the diagnosis server (no extra dependency for a robot stack).
+
+    from labrobfail_vlm.serve.client import DiagnosisClient
+    c = DiagnosisClient("http://127.0.0.1:8100")          # token from $LABROBFAIL_API_TOKEN, if set
+    diagnosis = c.diagnose(grid="grid.png", task="pick up the small beaker")
+    diagnosis = c.diagnose(frames={"front": [f0, f1, ...], "side": [...]}, task="...", prefix=3)
+
+One client holds one keep-alive connection: use one per thread. A reply other than 200 raises ServiceError
+with the server's one-line message.
+"""
+
+from __future__ import annotations
+
+import http.client
+import io
+import json
+import os
+import uuid
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+from urllib.parse import urlsplit
+
+Part = tuple[str, "str | tuple[str, bytes, str]"]  # (field, text) or (field, (filename, data, content type))
+
+
+class ServiceError(RuntimeError):
+    def __init__(self, status: int, message: str):
+        super().__init__(f"{status}: {message}")
+        self.status, self.message = status, message
+
+
+def multipart(parts: Sequence[Part]) -> tuple[bytes, str]:
+    """Encode form fields and files; returns (body, content type)."""
+    boundary = uuid.uuid4().hex
+    out = io.BytesIO()
+    for name, value in parts:
+        out.write(f"--{boundary}\r\n".encode())
+        if isinstance(value, tuple):
+            filename, data, ctype = value
+            out.write(f'Content-Disposition: form-data; name="{name}"; filename="{filename}"\r\n'
+                      f"Content-Type: {ctype}\r\n\r\n".encode())
+            out.write(data)
+        else:
+            out.write(f'Content-Disposition: form-data; name="{name}"\r\n\r\n'.encode())
+            out.write(str(value).encode())
+        out.write(b"\r\n")
+    out.write(f"--{boundary}--\r\n".encode())
+    return out.getvalue(), f"multipart/form-data; boundary={boundary}"
+
+
+def image_part(name: str, image: Any, filename: str = "image.png") -> Part:
+    """A file part from a path, PNG/JPEG bytes, a PIL image or an HxWx3 uint8 array (sent as PNG)."""
+    if isinstance(image, (str, Path)):
+        p = Path(image)
+        return name, (p.name, p.read_bytes(), "image/jpeg" if p.suffix.lower() in (".jpg", ".jpeg") else "image/png")
+    if isinstance(image, (bytes, bytearray)):
+        return name, (filename, bytes(image), "application/octet-stream")
+    from PIL import Image
+
+    img = image if isinstance(image, Image.Image) else Image.fromarray(image)
+    buf = io.BytesIO()
+    img.save(buf, format="PNG")
+    return name, (filename, buf.getvalue(), "image/png")
+
+
+class DiagnosisClient:
+    def __init__(self, url: str = "http://127.0.0.1:8100", token_env: str = "LABROBFAIL_API_TOKEN",
+                 timeout_s: float = 120.0):
+        u = urlsplit(url)
+        if u.scheme not in ("http", "https") or not u.hostname:
+            raise ValueError(f"url: expected http(s)://host:port, got {url!r}")
+        self.scheme, self.host, self.port = u.scheme, u.hostname, u.port or (443 if u.scheme == "https" else 80)
+        self.timeout = timeout_s
+        self._token = os.environ.get(token_env, "")
+        self._conn: http.client.HTTPConnection | None = None
+
+    def __repr__(self) -> str:  # never show the token
+        return f"DiagnosisClient({self.scheme}://{self.host}:{self.port})"
+
+    def request(self, method: str, path: str, body: bytes | None = None,
+                headers: Mapping[str, str] | None = None) -> tuple[int, Any]:
+        """(status, decoded JSON body); reconnects once if a kept-alive connection was closed by the server."""
+        hdrs = {**({"Authorization": f"Bearer {self._token}"} if self._token else {}), **(headers or {})}
+        for attempt in (0, 1):
+            if self._conn is None:
+                cls = http.client.HTTPSConnection if self.scheme == "https" else http.client.HTTPConnection
+                self._conn = cls(self.host, self.port, timeout=self.timeout)
+            try:
+                self._conn.request(method, path, body=body, headers=hdrs)
+                r = self._conn.getresponse()
+                data = r.read()
+                break
+            except (http.client.RemoteDisconnected, BrokenPipeError, ConnectionResetError):
+                self.close()
+                if attempt:
+                    raise
+        try:
+            return r.status, json.loads(data) if data else None
+        except ValueError:
+            return r.status, {"error": data[:200].decode("utf-8", "replace")}
+
+    def post_form(self, parts: Sequence[Part]) -> tuple[int, Any]:
+        body, ctype = multipart(parts)
+        return self.request("POST", "/diagnose", body, {"Content-Type": ctype})
+
+    def diagnose(self, grid: Any = None, frames: Mapping[str, Sequence[Any]] | None = None, task: str = "",
+                 prefix: int | None = None, objects: Sequence[str] = ()) -> dict[str, Any]:
+        parts: list[Part] = []
+        if grid is not None:
+            parts.append(image_part("grid", grid))
+        for view, imgs in (frames or {}).items():
+            parts.extend(image_part(f"frames.{view}", im, f"{view}-{i}.png") for i, im in enumerate(imgs))
+        if task:
+            parts.append(("task", task))
+        if prefix is not None:
+            parts.append(("prefix", str(prefix)))
+        if objects:
+            parts.append(("objects", ",".join(objects)))
+        return self._ok(*self.post_form(parts))
+
+    def health(self) -> dict[str, Any]:
+        return self._ok(*self.request("GET", "/health"))
+
+    def info(self) -> dict[str, Any]:
+        return self._ok(*self.request("GET", "/info"))
+
+    @staticmethod
+    def _ok(status: int, body: Any) -> Any:
+        if status != 200:
+            raise ServiceError(status, (body or {}).get("error", "") if isinstance(body, dict) else str(body))
+        return body
+
+    def close(self) -> None:
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None

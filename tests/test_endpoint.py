@@ -1,0 +1,133 @@
+"""The vLLM path: infer.py --endpoint and scripts/evaluate.py endpoint= against a loopback OpenAI-compatible
+server (tests/fake_openai.py, backed by the same tiny model) give FailureAnalyzer's answers; requests carry the
+image first, the same image for every question of a grid, and closed sets as structured-output choices."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from conftest import ROOT
+from fake_openai import FakeOpenAI
+from serve_fixtures import TASKS, grids, mixed_model  # noqa: F401  (fixtures)
+from test_train import small_ds  # noqa: F401  (session fixture)
+
+KEY = "sk-test-" + "y" * 24
+
+
+@pytest.fixture(scope="module")
+def local(mixed_model):  # noqa: F811
+    from labrobfail_vlm.analyzer import FailureAnalyzer
+    return FailureAnalyzer.from_pretrained(mixed_model)
+
+
+@pytest.fixture(scope="module")
+def fake(mixed_model):  # noqa: F811
+    from labrobfail_vlm.analyzer import FailureAnalyzer
+    f = FakeOpenAI(FailureAnalyzer.from_pretrained(mixed_model), api_key=KEY)
+    os.environ["_FAKE_KEY"] = KEY
+    yield f
+    f.close()
+
+
+def test_endpoint_answers_equal_the_local_model(fake, local, grids):  # noqa: F811
+    from labrobfail_vlm import questions as Q
+    from labrobfail_vlm.endpoint import ACTIONS_REGEX, EndpointAnalyzer
+    ep = EndpointAnalyzer(fake.url, api_key_env="_FAKE_KEY")
+    assert ep.client.model == fake.name  # the only model the server lists
+    fake.requests.clear()
+    got = ep.answers_batch(grids[:6], [TASKS[i % 3] for i in range(6)], [8] * 6, max_batch=3)
+    want = local.answers_batch(grids[:6], [TASKS[i % 3] for i in range(6)], [8] * 6)
+    assert {a["Q2"] for a in want} == {"Yes", "No"}
+    for g, w in zip(got, want):
+        assert {d: g[d] for d in ("Q1", "Q2", "Q3", "Q4", "Q5")} == {d: w[d] for d in ("Q1", "Q2", "Q3", "Q4", "Q5")}
+        if w["Q2"] == "No":
+            assert g["Q6"] == w["Q6"] == Q.NO_CORRECTION
+        else:
+            assert g["Q6"] and g["Q6"] != Q.NO_CORRECTION
+    # requests: image first, one image per grid for all its questions, closed sets as structured outputs
+    by_image: dict[str, list[dict]] = {}
+    for body in fake.requests:
+        img, text = body["messages"][0]["content"]
+        assert img["type"] == "image_url" and text["type"] == "text" and body["temperature"] == 0.0
+        by_image.setdefault(img["image_url"]["url"], []).append(body)
+    assert len(by_image) == 6
+    for bodies in by_image.values():
+        texts = [b["messages"][0]["content"][1]["text"] for b in bodies]
+        assert len({t.split(" Task: ")[0] for t in texts}) == 1  # the same preamble after the image: prefix cache
+        so = [b.get("structured_outputs") for b in bodies]
+        assert so[0] == {"regex": ACTIONS_REGEX} and so[1] == {"choice": ["Yes", "No"]}
+        assert len(bodies) in (2, 6)  # after "No", Q3-Q6 are not asked
+        if len(bodies) == 6:
+            assert so[2] == {"choice": [str(i) for i in range(1, 9)]} and so[5] is None  # Q6 free text
+
+
+def test_endpoint_template_mode_uses_choices(fake, local, grids):  # noqa: F811
+    from labrobfail_vlm.endpoint import EndpointAnalyzer
+    ep = EndpointAnalyzer(fake.url, fake.name, api_key_env="_FAKE_KEY", q6_mode="template")
+    local.q6_mode = "template"
+    objs = ["small beaker", "target area"]
+    for g in grids[:2]:
+        assert ep.analyze(g, "pick up the small beaker", objects=objs).to_json() == \
+            local.analyze(g, "pick up the small beaker", objects=objs).to_json()
+    local.q6_mode = "free"
+
+
+def _run(*args, env=None):
+    return subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=600,
+                          env={**os.environ, **(env or {})})
+
+
+def test_infer_through_the_endpoint(fake, local, grids, tmp_path):  # noqa: F811
+    grids[0].save(tmp_path / "g.png")
+    r = _run("infer.py", "--grid", str(tmp_path / "g.png"), "--task", "pick up the small beaker", "--endpoint",
+             fake.url, "--num-frames", "8", env={"OPENAI_API_KEY": KEY})
+    assert r.returncode == 0, r.stderr[-2000:]
+    got = json.loads(r.stdout)
+    want = json.loads(local.analyze(grids[0], "pick up the small beaker", frames=8).to_json())
+    assert got["failure"] is want["failure"] is True
+    assert {k: got[k] for k in ("actions", "failure_frame", "severity", "category")} == \
+        {k: want[k] for k in ("actions", "failure_frame", "severity", "category")}
+    for args, needle in (([], "HTTPError"),  # no key: the server says 401
+                         (["--endpoint-model", "other"], "HTTPError: HTTP Error 404"),
+                         (["--model", "x"], "not both")):
+        r = _run("infer.py", "--grid", str(tmp_path / "g.png"), "--endpoint", fake.url, *args,
+                 env={"OPENAI_API_KEY": KEY if args else ""})
+        assert r.returncode == 2 and needle in r.stderr and "Traceback" not in r.stderr, r.stderr[-1000:]
+        assert KEY not in r.stderr
+    r = _run("infer.py", "--grid", str(tmp_path / "g.png"), "--endpoint", "http://127.0.0.1:9/v1")
+    assert r.returncode == 2 and "cannot list models" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_evaluate_through_the_endpoint_matches_the_local_model(fake, mixed_model, small_ds, tmp_path):  # noqa: F811
+    common = [f"dataset_dir={small_ds}", "split=test", "progress=false", "baselines=[]", "q6_template=false"]
+    r = _run("scripts/evaluate.py", f"endpoint={fake.url}", "endpoint_key_env=_FAKE_KEY", f"out_dir={tmp_path / 'e'}",
+             "batch_size=3", *common)
+    assert r.returncode == 0, r.stderr[-2000:]
+    r = _run("scripts/evaluate.py", f"model={mixed_model}", f"out_dir={tmp_path / 'm'}", "batch_size=4", *common)
+    assert r.returncode == 0, r.stderr[-2000:]
+    preds = [dict((json.loads(line)["id"], json.loads(line)["prediction"]) for line in
+                  (tmp_path / d / "predictions.jsonl").read_text().splitlines()) for d in ("e", "m")]
+    assert preds[0].keys() == preds[1].keys()
+    assert {k: v for k, v in preds[0].items() if not k.endswith("_Q6")} == \
+        {k: v for k, v in preds[1].items() if not k.endswith("_Q6")}
+    res = json.loads((tmp_path / "e" / "results.json").read_text())
+    assert res["method"] == f"LabRobFail-VLM endpoint ({fake.name})"
+    r = _run("scripts/evaluate.py", f"endpoint={fake.url}", f"model={mixed_model}", f"dataset_dir={small_ds}")
+    assert r.returncode == 2 and "exactly one" in r.stderr
+
+
+def test_evaluate_batch_size_gives_the_same_predictions(mixed_model, small_ds, tmp_path):  # noqa: F811
+    common = [f"model={mixed_model}", f"dataset_dir={small_ds}", "split=test", "progress=false", "baselines=[blind]"]
+    outs = []
+    for b in (1, 5):
+        r = _run("scripts/evaluate.py", f"out_dir={tmp_path / str(b)}", f"batch_size={b}", *common)
+        assert r.returncode == 0, r.stderr[-2000:]
+        outs.append((tmp_path / str(b) / "predictions.jsonl").read_text())
+        res = json.loads((tmp_path / str(b) / "results.json").read_text())
+        outs.append(json.dumps({k: res["baselines"][k]["q2"] for k in res["baselines"]}))
+    assert outs[0] == outs[2] and outs[1] == outs[3]
+    r = _run("scripts/evaluate.py", "batch_size=0", *common)
+    assert r.returncode == 2 and "batch_size" in r.stderr
