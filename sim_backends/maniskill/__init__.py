@@ -19,19 +19,24 @@ os.environ.setdefault("MS_ASSET_DIR", str(ROOT / ".maniskill"))
 os.environ.setdefault("MS_SKIP_ASSET_DOWNLOAD_PROMPT", "1")
 
 _PROBE = """
-import sapien, sapien.render
+import sys
+try:
+    import sapien, sapien.render
+except ImportError:
+    sys.exit(3)
 sapien.render.RenderSystem(sapien.Device("cpu"))
 """
 
 
 def vulkan_problem() -> str | None:
-    """Why SAPIEN cannot render on this machine (None when it can), probed in a child process:
-    a machine without a Vulkan driver may crash SAPIEN rather than raise."""
+    """Why SAPIEN finds no Vulkan device on this machine (None when it renders, or when SAPIEN is not
+    installed: that is an installation error, not a missing device). Probed in a child process, as a
+    machine without a Vulkan driver may crash SAPIEN rather than raise."""
     try:
         r = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, text=True, timeout=120)
     except subprocess.TimeoutExpired:
         return "the SAPIEN render probe did not finish in 120 s"
-    if r.returncode == 0:
+    if r.returncode in (0, 3):
         return None
     lines = [ln for ln in (r.stderr or r.stdout).strip().splitlines() if ln.strip()]
     why = lines[-1] if lines else f"exit status {r.returncode}"

@@ -15,7 +15,7 @@ from typing import Any, Sequence
 import numpy as np
 from omegaconf import OmegaConf
 
-import sim_backends.maniskill  # noqa: F401 - offline defaults before mani_skill is imported
+from sim_backends.maniskill import vulkan_problem  # first: offline defaults before mani_skill is imported
 from mani_skill import logger as ms_logger
 from sim_backends.maniskill import assets, envs
 from sim_backends.maniskill import templates  # noqa: F401 - registers the task templates
@@ -43,7 +43,12 @@ def load_task_config(path: str | Path = TASKS_FILE) -> dict[str, Any]:
         if sc.get("template") not in known:
             raise ValueError(f"scenario {name}: unknown template {sc.get('template')!r}")
         if sc.get("env") not in envs.ENVS:
-            raise ValueError(f"scenario {name}: unknown env {sc.get('env')!r}; known: {', '.join(envs.ENVS)}")
+            try:
+                envs.check_offline(str(sc.get("env")))
+            except ValueError as e:
+                raise ValueError(f"scenario {name}: {e}") from None
+            raise ValueError(f"scenario {name}: env {sc.get('env')!r} is not wrapped for LabRobFail; "
+                             f"wrapped: {', '.join(envs.ENVS)}")
     return cfg
 
 
@@ -89,6 +94,11 @@ class ManiSkillSource(FailureSource):
         if not isinstance(out.get("wrist", False), bool):
             raise ValueError(f"wrist: must be true or false, got {out.get('wrist')!r}")
         return out
+
+    @classmethod
+    def unavailable(cls) -> str | None:
+        """ManiSkill needs a Vulkan device even without cameras (sim_backends.maniskill.vulkan_problem)."""
+        return vulkan_problem()
 
     @classmethod
     def list_scenarios(cls, **kwargs: Any) -> list[str]:
