@@ -13,7 +13,6 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
-from omegaconf import OmegaConf
 
 from sim_backends.maniskill import vulkan_problem  # first: offline defaults before mani_skill is imported
 from mani_skill import logger as ms_logger
@@ -23,6 +22,7 @@ from sim_backends.maniskill.plan import Plan, SceneView, Thing
 from sim_backends.maniskill.robot import Arm, Contacts, canonical_quat, wxyz_to_xyzw
 from sim_backends.perturbations.physics import PhysicsEvent
 from sim_backends.registry import register_backend, task_templates
+from sim_backends.scenario_config import ScenarioConfig
 from sim_backends.schema import NominalKeyframe, ObjectInfo, TaskMeta
 from sim_backends.source import FailureSource
 from sim_backends.types import Keyframe
@@ -35,31 +35,15 @@ MOVABLE = ("vessel", "rod")
 SIM_BACKENDS = {"cpu": ("physx_cpu", "cpu"), "gpu": ("physx_cuda", "gpu")}
 
 
-def load_task_config(path: str | Path = TASKS_FILE) -> dict[str, Any]:
-    cfg = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
-    assert isinstance(cfg, dict)
-    known = task_templates(ManiSkillSource.name)
-    for name, sc in cfg["scenarios"].items():
-        if sc.get("template") not in known:
-            raise ValueError(f"scenario {name}: unknown template {sc.get('template')!r}")
-        if sc.get("env") not in envs.ENVS:
-            try:
-                envs.check_offline(str(sc.get("env")))
-            except ValueError as e:
-                raise ValueError(f"scenario {name}: {e}") from None
-            raise ValueError(f"scenario {name}: env {sc.get('env')!r} is not wrapped for LabRobFail; "
-                             f"wrapped: {', '.join(envs.ENVS)}")
-    return cfg
-
-
 @register_backend("maniskill", image_size=224, cameras=["front", "side"], wrist=False, sim_backend="cpu")
-class ManiSkillSource(FailureSource):
+class ManiSkillSource(ScenarioConfig, FailureSource):
     name = "maniskill"
+    TASKS_FILE = TASKS_FILE
 
     def __init__(self, image_size: int = 224, cameras: Sequence[str] = ("front", "side"), wrist: bool = False,
                  sim_backend: str = "cpu", render: bool = True, tasks_file: str | Path | None = None):
         super().__init__()
-        self.cfg = load_task_config(tasks_file or TASKS_FILE)
+        self.cfg = self.load_task_config(tasks_file)
         unknown = [v for v in cameras if v not in envs.CAMERAS]
         if unknown:
             raise ValueError(f"cameras: unknown view(s) {unknown}; available: {', '.join(envs.CAMERAS)}")
@@ -101,23 +85,14 @@ class ManiSkillSource(FailureSource):
         return vulkan_problem()
 
     @classmethod
-    def list_scenarios(cls, **kwargs: Any) -> list[str]:
-        return list(load_task_config(kwargs.get("tasks_file") or TASKS_FILE)["scenarios"])
-
-    # -- FailureSource --------------------------------------------------------------------------------
-    def scenarios(self) -> list[str]:
-        return list(self.cfg["scenarios"])
-
-    def scenario_info(self, scenario: str) -> dict[str, Any]:
-        sc = self._scenario(scenario)
-        tmpl = self.cfg["templates"].get(sc["template"], {})
-        return {"template": sc["template"], "perturbations": sc.get("perturbations", tmpl.get("perturbations", [])),
-                "substitutes": sc.get("substitutes", {})}
-
-    def _scenario(self, scenario: str) -> dict[str, Any]:
-        if scenario not in self.cfg["scenarios"]:
-            raise ValueError(f"task: unknown scenario {scenario!r}")
-        return self.cfg["scenarios"][scenario]
+    def check_scenario(cls, name: str, sc: dict[str, Any]) -> None:
+        if sc.get("env") not in envs.ENVS:
+            try:
+                envs.check_offline(str(sc.get("env")))
+            except ValueError as e:
+                raise ValueError(f"scenario {name}: {e}") from None
+            raise ValueError(f"scenario {name}: env {sc.get('env')!r} is not wrapped for LabRobFail; "
+                             f"wrapped: {', '.join(envs.ENVS)}")
 
     @property
     def camera_names(self) -> list[str]:
@@ -331,12 +306,7 @@ class ManiSkillSource(FailureSource):
             places={k: list(v) for k, v in self.object_positions().items()},
             nominal=[NominalKeyframe(k.name, list(k.pos), list(k.quat), k.gripper, k.segment) for k in plan.keyframes],
             executed=[k.name for k in executed], bench_top=0.0, liquid_total={}, labels=dict(self.info.labels),
-            description=self._describe())
-
-    def _describe(self) -> str:
-        sc = self._scenario(self._key[0])
-        text = sc.get("description") or self.cfg["templates"].get(sc["template"], {}).get("description")
-        return str(text or self._key[0].replace("_", " ")).format_map({**self.info.labels, **sc.get("params", {})})
+            description=self.describe(self._key[0], self.info.labels))
 
     def close(self) -> None:
         self._undo.clear()

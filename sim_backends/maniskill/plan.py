@@ -262,6 +262,34 @@ class Plan(PlanBuilder):
                 self.kf(f"bypass{i}", wp, side(), 0, oven)
         self.update(contact_kf=f"s{self.steps[-1].index}_grip", contact_point=[float(v) for v in h0])
 
+    def push_shut(self, oven: str, arc_points: int = 6) -> None:
+        """Close the open door by pushing its outer face near the free edge with the closed fingers, the
+        hand pointing down, along the hinge arc. (Grasping the handle of the open door needs the hand
+        turned sideways next to the robot's base, a pose the Panda barely reaches; PyBullet grasps.)"""
+        o = self.scene.objects[oven]
+        d, w = o.dims["depth"], o.dims["width"]
+        hinge = np.array([o.pos[0] - d / 2, o.pos[1] - w / 2])
+        # Push half way out along the door (the handle near the free edge would catch the fingers), the
+        # fingertips at mid-height.
+        r, z = 0.5 * w, o.pos[2] + 0.11
+        q = top_down(0.0)
+        a0, a1 = assets.DOOR_OPEN, 0.06
+
+        def at(a: float, out: float) -> tuple[float, float, float]:
+            c, s_ = math.cos(a), math.sin(a)
+            lx = -0.01 - 0.012 - out  # outside the door's outer face (door frame x), by the fingers' half width
+            return (float(hinge[0] + lx * c - r * s_), float(hinge[1] + lx * s_ + r * c), z)
+
+        self.step("close", object=oven, target_angle=a1)
+        above = at(a0, 0.08)
+        self.kf("above", (above[0], above[1], o.pos[2] + o.dims["height"] + 0.08), q, 1, oven)  # over the door
+        self.kf("pre", above, q, 1, oven)
+        touch = self.kf("touch", at(a0, 0.0), q, 1, oven, speed=0.15)
+        for i in range(1, arc_points + 1):
+            self.kf(f"arc{i}", at(a0 + (a1 - a0) * i / arc_points, 0.0), q, 1, oven, speed=0.12)
+        self.kf("retreat", at(a1, 0.10), q, 1, oven, speed=0.2)
+        self.update(contact_kf=touch, contact_point=list(at(a0, 0.0)))
+
     def press(self, button: str) -> None:
         """Push the button's cap down with the closed fingers (reported as the atomic action `close`)."""
         o = self.scene.objects[button]

@@ -247,27 +247,20 @@ class Arm:
 
 
 class Contacts:
-    """Which task objects each finger of the Panda touches (from PhysX's contacts of the last step)."""
+    """How many fingers of the Panda press on each task object (contact impulses of the last physics step,
+    through ManiSkill's pairwise query, which serves the CPU and the GPU simulation alike)."""
 
     def __init__(self, env, bodies: dict[str, object]):
-        self.env = env
+        self.scene = env.scene
         a = env.agent
-        self.fingers = {}
-        for i, links in enumerate(((a.finger1_link, a.finger1pad_link), (a.finger2_link, a.finger2pad_link))):
-            for link in (lk for lk in links if lk is not None):  # not every Panda model has finger pads
-                for comp in link._objs:
-                    self.fingers[comp] = i
-        self.roles = {}
-        for role, h in bodies.items():
-            for comp in getattr(h, "_bodies", []):
-                self.roles[comp] = role
+        # not every Panda model has finger pads
+        self.fingers = [[lk for lk in links if lk is not None]
+                        for links in ((a.finger1_link, a.finger1pad_link), (a.finger2_link, a.finger2pad_link))]
+        self.bodies = dict(bodies)
 
     def count(self) -> dict[str, int]:
-        touched: dict[str, set[int]] = {r: set() for r in set(self.roles.values())}
-        for c in self.env.scene.get_contacts():
-            b0, b1 = c.bodies
-            for f, o in ((b0, b1), (b1, b0)):
-                if f in self.fingers and o in self.roles and any(
-                        pt.separation < 1e-3 or float(np.linalg.norm(pt.impulse)) > 1e-7 for pt in c.points):
-                    touched[self.roles[o]].add(self.fingers[f])
-        return {r: len(s) for r, s in touched.items()}
+        return {role: sum(any(self._touch(link, body) for link in links) for links in self.fingers)
+                for role, body in self.bodies.items()}
+
+    def _touch(self, link, body) -> bool:
+        return float(np.linalg.norm(self.scene.get_pairwise_contact_impulses(link, body)[0].cpu().numpy())) > 1e-7

@@ -102,7 +102,7 @@ def open_oven(plan: Plan, p: dict[str, Any]) -> None:
 
 @register_task("close_oven", backend="maniskill")
 def close_oven(plan: Plan, p: dict[str, Any]) -> None:
-    plan.door("oven", to_open=False)
+    plan.push_shut("oven")
     plan.goal("door", object="oven", max=0.12)
 
 
