@@ -122,8 +122,8 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
         for _ in range(PRE_STEPS):  # let anything placed exactly on the table come to rest
             self.arm.hold()
         self.info = env.lrf_objects()
-        self.info.labels = {**{r: o.label for r, o in self.info.objects.items()}, **spec.get("labels", {}),
-                            **self.info.labels}
+        self.info.labels = {**{r: o.label for r, o in self.info.objects.items()}, **self.info.labels,
+                            **spec.get("labels", {})}
         self.plan = Plan(self._view())
         task_templates(self.name)[sc["template"]].cls(self.plan, dict(sc.get("params", {})))
 
@@ -132,8 +132,9 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
         pool = self.cfg["scenes"]["unseen" if variant in ("unseen_scene", "unseen_both") else "seen"]
         spec: dict[str, Any] = {"appearance": dict(pool[int(rng.integers(len(pool)))])}
         unseen_obj = variant in ("unseen_object", "unseen_both")
-        if unseen_obj and "unseen_colors" in sc:
+        if unseen_obj and "unseen_colors" in sc:  # a stock task's objects recoloured, and named by colour
             spec["colors"] = dict(sc["unseen_colors"])
+            spec["labels"] = dict(sc.get("unseen_labels", {}))
         if "layout" not in sc:
             return spec
         catalogue = self.cfg["objects"]["unseen" if unseen_obj else "seen"]
@@ -179,8 +180,8 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
     def _view(self) -> SceneView:
         things = {}
         for role, o in self.info.objects.items():
-            pos, quat, body = self._pose(o)
-            things[role] = Thing(o.kind, pos, quat, dict(o.dims), body)
+            pos, _, body = self._pose(o)
+            things[role] = Thing(o.kind, pos, dict(o.dims), body)
         extra: dict[str, Any] = {}
         if hasattr(self.env, "goal_pose") and isinstance(self.env, envs.LrfPegInsertionSide):
             g = self.env.goal_pose

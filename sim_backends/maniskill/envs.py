@@ -124,7 +124,8 @@ class LabRobFailEnv:
 
     def _initialize_episode(self, env_idx: torch.Tensor, options: dict):
         super()._initialize_episode(env_idx, options)
-        self._lrf_after_init()
+        with torch.device(self.device):  # new tensors on the simulation's device (GPU sim)
+            self._lrf_after_init()
 
     # -- per task ------------------------------------------------------------------------------------
     def _lrf_scene(self) -> LrfScene:
@@ -266,6 +267,10 @@ class LabBenchEnv(LabRobFailEnv, BaseEnv):
         return out
 
     def _initialize_episode(self, env_idx: torch.Tensor, options: dict):
+        with torch.device(self.device):  # new tensors on the simulation's device (GPU sim)
+            self._place_layout(env_idx)
+
+    def _place_layout(self, env_idx: torch.Tensor) -> None:
         self.table_scene.initialize(env_idx)
         for role, sp in self._lrf.get("layout", {}).items():
             obj = self._built.get(role)

@@ -58,8 +58,7 @@ def wrap(a: float, period: float) -> float:
 @dataclass
 class Thing:
     kind: str
-    pos: np.ndarray  # recorded position (see envs.TaskObject.frame)
-    quat: tuple  # recorded orientation (x, y, z, w)
+    pos: np.ndarray  # position as recorded in the trace (see envs.TaskObject.frame)
     dims: dict[str, float]
     body_quat: tuple = (0.0, 0.0, 0.0, 1.0)  # the body's own orientation (x, y, z, w)
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from sim_backends.maniskill.plan import Plan, wrap, yaw_of
+from sim_backends.maniskill.plan import Plan, yaw_of
 from sim_backends.registry import register_task
 
 
