@@ -3,18 +3,25 @@ VENV  ?= .venv
 PY    := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: install browser demo reproduce sim20k test bench clean
+.PHONY: install browser vulkan demo reproduce sim20k test bench clean
 APT_STAMP := $(VENV)/.apt-stamp
+VULKAN_STAMP := $(VENV)/.vulkan-stamp
+BACKPORTS := /etc/apt/sources.list.d/bookworm-backports.sources
 SUDO  := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+
+# mani-skill and sapien without their declared dependencies (pyproject's `maniskill` extra lists the rest):
+# mplib segfaults with numpy 2 and opencv-python would overwrite opencv-python-headless.
+MANISKILL := mani-skill==3.0.1 sapien==3.0.3
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -c constraints.txt -e ".[dev]"
+	$(PY) -m pip install -q -c constraints.txt -e ".[dev,maniskill]"
+	$(PY) -m pip install -q -c constraints.txt --no-deps $(MANISKILL)
 	$(PY) -m pip install -q -c constraints.txt --no-build-isolation deepspeed==0.19.8
 	touch $(STAMP)
 
-install: $(STAMP)
+install: $(STAMP) $(VULKAN_STAMP)
 
 # Debian's Chromium + ChromeDriver for the review-page test (nothing is downloaded by the tests themselves).
 $(APT_STAMP): | $(STAMP)
@@ -23,6 +30,20 @@ $(APT_STAMP): | $(STAMP)
 	touch $(APT_STAMP)
 
 browser: $(APT_STAMP)
+
+# A Vulkan device for ManiSkill/SAPIEN (needed even without cameras): on Debian bookworm, Mesa 25's lavapipe
+# from bookworm-backports (bookworm's own Mesa 22 is too old for SAPIEN). Elsewhere install a Vulkan driver
+# yourself; without one the ManiSkill tests skip and say why.
+$(VULKAN_STAMP): | $(STAMP)
+	if grep -q '^VERSION_CODENAME=bookworm' /etc/os-release 2>/dev/null && ! dpkg --compare-versions \
+	    "$$(dpkg-query -W -f='$${Version}' mesa-vulkan-drivers 2>/dev/null || echo 0)" ge 25; then \
+	  printf 'Types: deb\nURIs: http://deb.debian.org/debian\nSuites: bookworm-backports\nComponents: main\nSigned-By: /usr/share/keyrings/debian-archive-keyring.gpg\n' \
+	    | $(SUDO) tee $(BACKPORTS) >/dev/null && $(SUDO) apt-get update -qq && \
+	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq -t bookworm-backports mesa-vulkan-drivers libvulkan1 >/dev/null; \
+	fi
+	touch $(VULKAN_STAMP)
+
+vulkan: $(VULKAN_STAMP)
 
 # The main job on the embedded default, all on CPU: PyBullet episodes (success/failure pairs) rendered at the
 # grid's cell size -> keyframe strips -> the VQA dataset (512x512 grids of 8 keyframes, 128 px cells, 256 visual
@@ -83,7 +104,7 @@ sim20k: $(STAMP)
 	  $(PY) scripts/generate.py seed=0 workers=$(SIM_WORKERS) $(SIM_EXEC) num_episodes=$(SIM_UNSEEN) variant=$$v \
 	    out_dir=$(SIM)/$$v || exit 1; done
 
-test: $(STAMP) $(APT_STAMP)
+test: $(STAMP) $(APT_STAMP) $(VULKAN_STAMP)
 	LABROBFAIL_REQUIRE_BROWSER=1 $(PY) -m pytest -q tests
 
 bench: $(STAMP)

@@ -9,6 +9,7 @@ the same command after a kill skips finished shards and redoes the rest.
 
 from __future__ import annotations
 
+import inspect
 import json
 import math
 import os
@@ -56,7 +57,7 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
         raise ConfigError(f"variant: unknown variant {cfg.variant!r}; expected one of {', '.join(SCENE_VARIANTS)}")
     spec = backend_spec(cfg.backend)
     try:
-        own = spec.cls.prepare_kwargs(OmegaConf.to_container(cfg.backend_kwargs, resolve=True) or {})
+        own = spec.cls.prepare_kwargs(_own_section(cfg, spec.cls))
     except ValueError as e:
         raise ConfigError(f"backend_kwargs.{e}") from None
     out = Path(cfg.out_dir)
@@ -75,12 +76,29 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
     return kwargs
 
 
+def _default_backend_kwargs() -> dict[str, Any]:
+    return OmegaConf.to_container(OmegaConf.load(DEFAULTS).backend_kwargs, resolve=True) or {}
+
+
+def _own_section(cfg: DictConfig, cls: Any) -> dict[str, Any]:
+    """The keys of the shared `backend_kwargs` section that this backend's constructor takes. A key of
+    another backend must keep its default (`sim_backend=gpu` with backend=pybullet is an error)."""
+    section = OmegaConf.to_container(cfg.backend_kwargs, resolve=True) or {}
+    takes = set(inspect.signature(cls.__init__).parameters) - {"self"}
+    defaults = _default_backend_kwargs()
+    for k, v in section.items():
+        if k not in takes and v != defaults.get(k):
+            raise ValueError(f"{k}: not an option of the {cfg.backend} backend")
+    return {k: v for k, v in section.items() if k in takes}
+
+
 def _upgrade_identity(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
-    """A run.json written before `backend_kwargs` existed kept its PyBullet keys top level: move them there."""
-    if "backend_kwargs" in old:
-        return old
-    legacy = {k: old.get(k) for k in ("wrist", "custom_objects", "custom_scene")}
-    return {**old, "backend_kwargs": {**(new["backend_kwargs"] or {}), **legacy}}
+    """A run.json written before `backend_kwargs` existed kept its PyBullet keys top level: move them there;
+    keys added to the section since a run was written read as their defaults."""
+    if "backend_kwargs" not in old:
+        legacy = {k: old.get(k) for k in ("wrist", "custom_objects", "custom_scene")}
+        old = {**old, "backend_kwargs": {**(new["backend_kwargs"] or {}), **legacy}}
+    return {**old, "backend_kwargs": {**_default_backend_kwargs(), **(old["backend_kwargs"] or {})}}
 
 
 def scenario_order(scenarios: list[str], seed: int, pairs: int, repeats: dict[str, int] | None = None) -> list[str]:

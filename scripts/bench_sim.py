@@ -65,6 +65,7 @@ def main(argv: list[str]) -> int:
     pairs = n // 2
     res: dict = {"backend": backend, "episodes": n, "image_size": size,
                  "scenario_mix": "the generator's pair plan for seed 0 (all scenarios, oversampled by horizon)",
+                 "scenarios": len(backend_spec(backend).cls.list_scenarios()),
                  "physics_only_episodes_per_hour_per_core": in_process(backend, pairs, cameras=[])}
     for name, kw in RENDER_VARIANTS.get(backend, {"default": {}}).items():
         res[f"rendered_2x{size}_{name}_episodes_per_hour_per_core"] = in_process(backend, pairs, image_size=size,

@@ -16,6 +16,7 @@ from typing import Any, Callable
 # Backends whose module is imported on first use; the module registers itself.
 _LAZY_BACKEND_MODULES: dict[str, str] = {
     "pybullet": "sim_backends.pybullet.backend",
+    "maniskill": "sim_backends.maniskill.backend",
 }
 
 

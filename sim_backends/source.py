@@ -79,6 +79,12 @@ class FailureSource(ABC):
         return dict(kwargs)
 
     @classmethod
+    def unavailable(cls) -> str | None:
+        """Why this backend cannot run on this machine at all (a missing device, not a missing package),
+        or None. Tests skip a backend only for such a reason."""
+        return None
+
+    @classmethod
     def list_scenarios(cls, **kwargs: Any) -> list[str]:
         """Scenario names, without starting a simulator when the backend can (default: start one)."""
         src = cls(**kwargs)

@@ -1,0 +1,51 @@
+"""Backend-neutral book-keeping of a keyframe plan: steps, keyframes and goals.
+
+A backend's skills (grasp, place, press, ...) compute poses in its own terms and call these
+primitives; what they record is what the labeler reads (`Step`, `Goal` of sim_backends/schema.py)
+and what the stepping contract executes (`Keyframe`). Keyframe names are `s<step>_<name>`, the
+names the perturbation specs in configs/tasks/*.yaml refer to.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from sim_backends.schema import Goal, Step
+from sim_backends.types import Keyframe
+
+
+@dataclass
+class PlanBuilder:
+    keyframes: list[Keyframe] = field(default_factory=list)
+    steps: list[Step] = field(default_factory=list)
+    goals: list[Goal] = field(default_factory=list)
+
+    def step(self, action: str, **info: Any) -> None:
+        """Open a new step (one atomic action); its keyframes follow."""
+        self.steps.append(Step(len(self.steps), action, **info))
+
+    def kf(self, name: str, pos, quat, gripper: int, target: str, speed: float = 0.4, settle: int = 0) -> str:
+        """Append a keyframe to the current step; returns its full name."""
+        st = self.steps[-1]
+        full = f"s{st.index}_{name}"
+        self.keyframes.append(Keyframe(full, tuple(float(v) for v in pos), tuple(float(v) for v in quat),
+                                       int(gripper), target, st.index, st.action, speed, settle))
+        st.keyframes.append(full)
+        return full
+
+    def update(self, **info: Any) -> None:
+        """Set what the labeler needs about the current step once its keyframes exist."""
+        for k, v in info.items():
+            setattr(self.steps[-1], k, v)
+
+    def goal(self, kind: str, **kw: Any) -> None:
+        self.goals.append(Goal(kind, dict(kw)))
+
+    def grip_offset(self, obj: str) -> list[float]:
+        """End effector minus object position in the last grasp of `obj`."""
+        return next(s.grip_offset for s in reversed(self.steps) if s.object == obj and s.grip_offset is not None)
+
+    @property
+    def actions(self) -> list[str]:
+        return [s.action for s in self.steps]
