@@ -27,6 +27,7 @@ class ScenarioConfig:
     def load_task_config(cls, path: str | Path | None = None) -> dict[str, Any]:
         cfg = OmegaConf.to_container(OmegaConf.load(path or cls.TASKS_FILE), resolve=True)
         assert isinstance(cfg, dict)
+        cfg["scenarios"] = cls.expand_scenarios(cfg["scenarios"])
         known = task_templates(cls.name)
         for name, sc in cfg["scenarios"].items():
             if sc.get("template") not in known:
@@ -35,12 +36,37 @@ class ScenarioConfig:
         return cfg
 
     @classmethod
+    def expand_scenarios(cls, scenarios: dict[str, Any]) -> dict[str, Any]:
+        """`expand: {role: [object, ...]}` turns one YAML entry into one scenario per object, named
+        `<entry>_<object>` (the same layout and perturbations with another object in that role)."""
+        out: dict[str, Any] = {}
+        for name, sc in scenarios.items():
+            if "expand" not in sc:
+                out[name] = sc
+                continue
+            (role, objects), = sc["expand"].items()
+            for obj in objects:
+                layout = {**sc["layout"], role: {**sc["layout"][role], "object": obj}}
+                out[f"{name}_{obj}"] = {k: v for k, v in sc.items() if k != "expand"} | {"layout": layout}
+        return out
+
+    @classmethod
     def check_scenario(cls, name: str, sc: dict[str, Any]) -> None:
         """A backend's own checks of one scenario entry (ValueError "scenario <name>: ...")."""
+
+    @staticmethod
+    def _repeat(cfg: dict[str, Any], sc: dict[str, Any]) -> int:
+        """`repeat: N` (on a scenario or its template) puts it N times in each generation cycle."""
+        return int(sc.get("repeat", cfg["templates"].get(sc["template"], {}).get("repeat", 1)))
 
     @classmethod
     def list_scenarios(cls, **kwargs: Any) -> list[str]:
         return list(cls.load_task_config(kwargs.get("tasks_file"))["scenarios"])
+
+    @classmethod
+    def scenario_repeats(cls, **kwargs: Any) -> dict[str, int]:
+        cfg = cls.load_task_config(kwargs.get("tasks_file"))
+        return {name: cls._repeat(cfg, sc) for name, sc in cfg["scenarios"].items()}
 
     def scenarios(self) -> list[str]:
         return list(self.cfg["scenarios"])
@@ -49,7 +75,7 @@ class ScenarioConfig:
         sc = self._scenario(scenario)
         tmpl = self.cfg["templates"].get(sc["template"], {})
         return {"template": sc["template"], "perturbations": sc.get("perturbations", tmpl.get("perturbations", [])),
-                "substitutes": sc.get("substitutes", {})}
+                "substitutes": sc.get("substitutes", {}), "repeat": self._repeat(self.cfg, sc)}
 
     def _scenario(self, scenario: str) -> dict[str, Any]:
         if scenario not in self.cfg["scenarios"]:

@@ -38,9 +38,7 @@ def _retreat(p: dict[str, Any]) -> tuple[float, float, float]:
 def pick_place(plan: Plan, p: dict[str, Any]) -> None:
     q = _grasp(plan, "obj", p)
     plan.place("obj", "target", q, retreat=_retreat(p))
-    plan.goal("at", object="obj", xy="target", tol=0.04)
-    plan.goal("upright", object="obj")
-    plan.goal("released", object="obj")
+    plan.goal_placed("obj", "target")
 
 
 @register_task("stack", backend="maniskill")
@@ -48,9 +46,7 @@ def stack(plan: Plan, p: dict[str, Any]) -> None:
     q = _grasp(plan, "obj", {"grasp": "cube"})
     base = plan.scene.objects["base"]
     plan.place("obj", "base", q, surface=float(base.pos[2] + base.dims["height"] / 2))
-    plan.goal("at", object="obj", xy="base", tol=0.02)
-    plan.goal("upright", object="obj")
-    plan.goal("released", object="obj")
+    plan.goal_placed("obj", "base", tol=0.02)
 
 
 @register_task("push", backend="maniskill")
@@ -91,19 +87,19 @@ def insert_tube(plan: Plan, p: dict[str, Any]) -> None:
 @register_task("press_button", backend="maniskill")
 def press_button(plan: Plan, p: dict[str, Any]) -> None:
     plan.press("button")
-    plan.goal("button", object="button", min_travel=0.007)
+    plan.goal_pressed("button")
 
 
 @register_task("open_oven", backend="maniskill")
 def open_oven(plan: Plan, p: dict[str, Any]) -> None:
     plan.door("oven", to_open=True)
-    plan.goal("door", object="oven", min=1.1)
+    plan.goal_door("oven", to_open=True)
 
 
 @register_task("close_oven", backend="maniskill")
 def close_oven(plan: Plan, p: dict[str, Any]) -> None:
     plan.push_shut("oven")
-    plan.goal("door", object="oven", max=0.12)
+    plan.goal_door("oven", to_open=False)
 
 
 @register_task("shake", backend="maniskill")
@@ -116,9 +112,7 @@ def shake(plan: Plan, p: dict[str, Any]) -> None:
         plan.kf(f"left{i}", (x - 0.005, y - 0.05, 0.16), q, 1, "obj", speed=0.5)
         plan.kf(f"right{i}", (x - 0.005, y + 0.05, 0.16), q, 1, "obj", speed=0.5)
     plan.place("obj", "obj", q, returning=True, retreat=_retreat(p))
-    plan.goal("at", object="obj", xy="obj", tol=0.04)
-    plan.goal("upright", object="obj")
-    plan.goal("released", object="obj")
+    plan.goal_placed("obj", "obj")
 
 
 @register_task("place_and_press", backend="maniskill")
@@ -127,8 +121,6 @@ def place_and_press(plan: Plan, p: dict[str, Any]) -> None:
     q = _grasp(plan, "obj", p)
     plan.place("obj", "target", q, retreat=_retreat(p))
     plan.press("button")
-    plan.goal("at", object="obj", xy="target", tol=0.04)
-    plan.goal("upright", object="obj")
-    plan.goal("released", object="obj")
-    plan.goal("button", object="button", min_travel=0.007)
+    plan.goal_placed("obj", "target")
+    plan.goal_pressed("button")
 

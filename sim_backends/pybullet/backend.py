@@ -17,6 +17,7 @@ from sim_backends.pybullet.plan import Plan
 from sim_backends.pybullet.render import Renderer
 from sim_backends.pybullet.robot import DT
 from sim_backends.registry import register_backend, task_templates
+from sim_backends.scenario_config import ScenarioConfig
 from sim_backends.schema import NominalKeyframe, ObjectInfo, TaskMeta
 from sim_backends.source import FailureSource
 from sim_backends.types import Keyframe
@@ -25,32 +26,6 @@ TASKS_FILE = Path(__file__).resolve().parents[2] / "configs" / "tasks" / "pybull
 SOLVER_ITERATIONS = 50  # contact solver iterations per physics step (grasps need them; see bench_sim.py)
 TRACE_EVERY = 6  # physics steps per trace sample: 240 Hz / 6 = 40 Hz
 TRACE_RATE_HZ = round(1.0 / (DT * TRACE_EVERY), 6)  # recorded in every trace as `rate_hz`; the labeler reads it there
-
-
-def expand_scenarios(scenarios: dict[str, Any]) -> dict[str, Any]:
-    """`expand: {role: [object, ...]}` turns one YAML entry into one scenario per object, named
-    `<entry>_<object>` (the same layout and perturbations with another piece of glassware)."""
-    out: dict[str, Any] = {}
-    for name, sc in scenarios.items():
-        if "expand" not in sc:
-            out[name] = sc
-            continue
-        (role, objects), = sc["expand"].items()
-        for obj in objects:
-            layout = {**sc["layout"], role: {**sc["layout"][role], "object": obj}}
-            out[f"{name}_{obj}"] = {k: v for k, v in sc.items() if k != "expand"} | {"layout": layout}
-    return out
-
-
-def load_task_config(path: str | Path = TASKS_FILE) -> dict[str, Any]:
-    cfg = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
-    assert isinstance(cfg, dict)
-    cfg["scenarios"] = expand_scenarios(cfg["scenarios"])
-    known = task_templates(PyBulletSource.name)
-    for name, sc in cfg["scenarios"].items():
-        if sc.get("template") not in known:
-            raise ValueError(f"scenario {name}: unknown template {sc.get('template')!r}")
-    return cfg
 
 
 def _yaml_mapping(key: str, path: str | None) -> dict[str, Any] | None:
@@ -73,8 +48,9 @@ def _yaml_mapping(key: str, path: str | None) -> dict[str, Any] | None:
 
 @register_backend("pybullet", image_size=224, cameras=["front", "side"], wrist=False, egl=False, camera_jitter=True,
                   max_distractors=scene_mod.MAX_DISTRACTORS, lowpoly_robot=True)
-class PyBulletSource(FailureSource):
+class PyBulletSource(ScenarioConfig, FailureSource):
     name = "pybullet"
+    TASKS_FILE = TASKS_FILE
 
     def __init__(self, image_size: int = 224, cameras: Sequence[str] = ("front", "side"), wrist: bool = False,
                  egl: bool = False, render: bool = True, tasks_file: str | Path | None = None,
@@ -83,7 +59,7 @@ class PyBulletSource(FailureSource):
                  max_distractors: int = scene_mod.MAX_DISTRACTORS, lowpoly_robot: bool = True):
         super().__init__()
         self.camera_jitter, self.max_distractors, self.lowpoly_robot = camera_jitter, int(max_distractors), lowpoly_robot
-        self.cfg = load_task_config(tasks_file or TASKS_FILE)
+        self.cfg = self.load_task_config(tasks_file)
         self.cid = p.connect(p.DIRECT)
         if egl:
             import pkgutil
@@ -123,31 +99,7 @@ class PyBulletSource(FailureSource):
                 raise ValueError(f"custom_scene: missing {k!r}")
         return out
 
-    @classmethod
-    def list_scenarios(cls, **kwargs: Any) -> list[str]:
-        return list(load_task_config(kwargs.get("tasks_file") or TASKS_FILE)["scenarios"])
-
-    @classmethod
-    def scenario_repeats(cls, **kwargs: Any) -> dict[str, int]:
-        cfg = load_task_config(kwargs.get("tasks_file") or TASKS_FILE)
-        return {name: int(sc.get("repeat", cfg["templates"].get(sc["template"], {}).get("repeat", 1)))
-                for name, sc in cfg["scenarios"].items()}
-
     # -- FailureSource ------------------------------------------------------------------------------
-    def scenarios(self) -> list[str]:
-        return list(self.cfg["scenarios"])
-
-    def scenario_info(self, scenario: str) -> dict[str, Any]:
-        sc = self._scenario(scenario)
-        tmpl = self.cfg["templates"].get(sc["template"], {})
-        return {"template": sc["template"], "perturbations": sc.get("perturbations", tmpl.get("perturbations", [])),
-                "substitutes": sc.get("substitutes", {}), "repeat": int(sc.get("repeat", tmpl.get("repeat", 1)))}
-
-    def _scenario(self, scenario: str) -> dict[str, Any]:
-        if scenario not in self.cfg["scenarios"]:
-            raise ValueError(f"task: unknown scenario {scenario!r}")
-        return self.cfg["scenarios"][scenario]
-
     def _reset(self, scenario: str, seed: int, variant: str) -> None:
         sc = self._scenario(scenario)
         cid = self.cid
@@ -253,14 +205,7 @@ class PyBulletSource(FailureSource):
             nominal=[NominalKeyframe(k.name, list(k.pos), list(k.quat), k.gripper, k.segment) for k in plan.keyframes],
             executed=[k.name for k in executed], bench_top=assets.BENCH_TOP,
             liquid_total={k: len(v) for k, v in scene.particles.items()}, labels=scene.labels,
-            description=self._describe())
-
-    def _describe(self) -> str:
-        """The task in words (the `{task_name}` of the VQA preamble), from the template's description."""
-        assert self.scene is not None
-        sc = self._scenario(self._key[0])
-        text = sc.get("description") or self.cfg["templates"].get(sc["template"], {}).get("description")
-        return str(text or self._key[0].replace("_", " ")).format_map({**self.scene.labels, **sc.get("params", {})})
+            description=self.describe(self._key[0], self.scene.labels))
 
 
 class _Trace:

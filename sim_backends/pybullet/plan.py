@@ -9,8 +9,6 @@ the task's goals (`goals`) as the typed `Step`/`Goal` of sim_backends/schema.py.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 import pybullet as p
@@ -18,11 +16,11 @@ import pybullet as p
 from sim_backends.pybullet import assets
 from sim_backends.pybullet.robot import SIDE, TOP_DOWN
 from sim_backends.pybullet.scene import Scene
-from sim_backends.schema import Goal, Step
-from sim_backends.types import Keyframe
+from sim_backends.plan_builder import PlanBuilder
 
 SAFE_Z = 0.26  # transport height of the end effector
 POUR_SIGN = 1.0
+POUR_REACH = 0.8  # grasp point beside dest, as a fraction of the grasp-to-mouth length
 
 
 def _yaw(angle: float, quat=SIDE) -> tuple:
@@ -35,34 +33,15 @@ def _roll(quat, angle: float) -> tuple:
     return p.multiplyTransforms([0, 0, 0], quat, [0, 0, 0], p.getQuaternionFromEuler([0, 0, angle]))[1]
 
 
-@dataclass
-class Plan:
-    scene: Scene
-    keyframes: list[Keyframe] = field(default_factory=list)
-    steps: list[Step] = field(default_factory=list)
-    goals: list[Goal] = field(default_factory=list)
-    moved: dict[str, tuple[float, float, float]] = field(default_factory=dict)  # where earlier steps put objects
+class Plan(PlanBuilder):
+    """The PyBullet skills on the backend-neutral builder; `scene` gives the objects and zones."""
 
-    # -- builder primitives ---------------------------------------------------------------------------
-    def step(self, action: str, **info: Any) -> None:
-        self.steps.append(Step(len(self.steps), action, **info))
+    DEFAULT_SPEED = 0.45
 
-    def kf(self, name: str, pos, quat, gripper: int, target: str, speed: float = 0.45, settle: int = 0) -> str:
-        st = self.steps[-1]
-        full = f"s{st.index}_{name}"
-        self.keyframes.append(Keyframe(full, tuple(float(v) for v in pos), tuple(float(v) for v in quat),
-                                       int(gripper), target, st.index, st.action, speed, settle))
-        st.keyframes.append(full)
-        return full
-
-    def _update(self, **info: Any) -> None:
-        """Set what the labeler needs about the current step once its keyframes exist."""
-        for k, v in info.items():
-            setattr(self.steps[-1], k, v)
-
-    @property
-    def actions(self) -> list[str]:
-        return [s.action for s in self.steps]
+    def __init__(self, scene: Scene):
+        super().__init__()
+        self.scene = scene
+        self.moved: dict[str, tuple[float, float, float]] = {}  # where earlier steps put objects
 
     def _obj(self, name: str):
         return self.scene.objects[name]
@@ -70,10 +49,6 @@ class Plan:
     def _at(self, name: str) -> tuple[float, float, float]:
         """Where an object stands when this step starts: its home, or where an earlier step placed it."""
         return self.moved.get(name, self.scene.objects[name].home)
-
-    def _grip(self, obj: str) -> list[float]:
-        """Offset of the end effector from the object's frame in the grasp that holds `obj`."""
-        return next(s.grip_offset for s in reversed(self.steps) if s.object == obj and s.grip_offset is not None)
 
     # -- skills ---------------------------------------------------------------------------------------
     def grasp(self, obj: str, inside: bool = False) -> None:
@@ -94,7 +69,7 @@ class Plan:
                 self.kf("withdraw", (x - 0.25, y, zg + 0.02), SIDE, 1, obj, speed=0.25)
             else:
                 self.kf("lift", (x - 0.005, y, zg + 0.12), SIDE, 1, obj, speed=0.3)
-            self._update(close_kf=close, grip_offset=[-0.005, 0.0, zg - z], width=2 * o.dims["radius"] + 0.004)
+            self.update(close_kf=close, grip_offset=[-0.005, 0.0, zg - z], width=2 * o.dims["radius"] + 0.004)
         else:
             top = z + o.dims["length"] / 2
             zg = top - 0.035
@@ -102,7 +77,7 @@ class Plan:
             self.kf("reach", (x, y, zg), TOP_DOWN, 0, obj, speed=0.25)
             close = self.kf("close", (x, y, zg), TOP_DOWN, 1, obj, settle=50)
             self.kf("lift", (x, y, zg + o.dims["length"] * 0.75 + 0.02), TOP_DOWN, 1, obj, speed=0.3)
-            self._update(close_kf=close, grip_offset=[0.0, 0.0, zg - z], width=2 * o.dims["radius"])
+            self.update(close_kf=close, grip_offset=[0.0, 0.0, zg - z], width=2 * o.dims["radius"])
 
     def place(self, obj: str, dest: str, returning: bool = False, inside: bool = False) -> None:
         """Carry the held object to a zone (or back home) and release it there.
@@ -110,7 +85,7 @@ class Plan:
         `inside`: the zone is in the oven, so come in low and horizontally.
         """
         o = self._obj(obj)
-        g = self._grip(obj)
+        g = self.grip_offset(obj)
         dx, dy = (self.scene.zones[dest][:2] if dest in self.scene.zones else o.home[:2])
         quat = SIDE if o.kind == "vessel" else TOP_DOWN
         zr = assets.BENCH_TOP + g[2] + 0.004
@@ -131,12 +106,12 @@ class Plan:
         """Bring the held vessel beside `dest` and roll it progressively until the liquid has run out."""
         d = self._obj(dest)
         s = self._obj(src)
-        g = self._grip(src)
+        g = self.grip_offset(src)
         x, y, z = d.home
         rim = z + d.dims["height"]
         mouth = s.dims["height"] - g[2]  # from the grasp point to the mouth of the held vessel
         # Hold the grasp point beside dest so that, fully tilted, the mouth is above dest's centre.
-        ay = y + side * 0.8 * mouth
+        ay = y + side * POUR_REACH * mouth
         zc = rim + 0.065
         self.step("pour", object=src, dest=dest)
         self.kf("align", (x + g[0], ay, zc + 0.05), SIDE, 1, dest)
@@ -157,7 +132,7 @@ class Plan:
 
     def _ee_z_for_bottom(self, obj: str, bottom: float) -> float:
         """End-effector height that puts the lower end of a held rod at `bottom`."""
-        return bottom + 0.5 * self._obj(obj).dims["length"] + self._grip(obj)[2]
+        return bottom + 0.5 * self._obj(obj).dims["length"] + self.grip_offset(obj)[2]
 
     def insert(self, obj: str, into: str) -> None:
         """Lower a held rod (top-down grasp) into a vessel or a rack hole.
@@ -222,7 +197,7 @@ class Plan:
         if to_open:  # end in front of the opening, ready to reach inside
             for i, wp in enumerate(self._door_bypass(oven, h1[2])):
                 self.kf(f"bypass{i}", wp, SIDE, 0, oven)
-        self._update(contact_kf=f"s{self.steps[-1].index}_grip", contact_point=[float(v) for v in h0])
+        self.update(contact_kf=f"s{self.steps[-1].index}_grip", contact_point=[float(v) for v in h0])
 
     def press(self, button: str) -> None:
         o = self._obj(button)
@@ -233,13 +208,10 @@ class Plan:
         self.kf("touch", (x, y, top + 0.015), TOP_DOWN, 1, button, speed=0.2)
         self.kf("press", (x, y, top - 0.004), TOP_DOWN, 1, button, speed=0.05, settle=30)
         self.kf("release", (x, y, top + 0.08), TOP_DOWN, 1, button, speed=0.2)
-        self._update(contact_kf=f"s{self.steps[-1].index}_press", contact_point=[x, y, top - 0.004])
+        self.update(contact_kf=f"s{self.steps[-1].index}_press", contact_point=[x, y, top - 0.004])
 
     def home(self) -> None:
         """A neutral pose between sub-tasks (part of the previous step)."""
         st = self.steps[-1]
         self.kf("home", (0.4, 0.0, SAFE_Z + 0.05), SIDE if st.action != "insert" else TOP_DOWN,
                 self.keyframes[-1].gripper, self.keyframes[-1].target)
-
-    def goal(self, kind: str, **kw: Any) -> None:
-        self.goals.append(Goal(kind, dict(kw)))

@@ -16,9 +16,7 @@ from sim_backends.registry import register_task
 def pick_place(plan: Plan, p: dict[str, Any]) -> None:
     plan.grasp("obj")
     plan.place("obj", "target")
-    plan.goal("at", object="obj", xy="target", tol=0.04)
-    plan.goal("upright", object="obj")
-    plan.goal("released", object="obj")
+    plan.goal_placed("obj", "target")
 
 
 @register_task("insert_tube", backend="pybullet")
@@ -33,19 +31,19 @@ def insert_tube(plan: Plan, p: dict[str, Any]) -> None:
 @register_task("press_button", backend="pybullet")
 def press_button(plan: Plan, p: dict[str, Any]) -> None:
     plan.press("button")
-    plan.goal("button", object="button", min_travel=0.007)
+    plan.goal_pressed("button")
 
 
 @register_task("open_oven", backend="pybullet")
 def open_oven(plan: Plan, p: dict[str, Any]) -> None:
     plan.door("oven", to_open=True)
-    plan.goal("door", object="oven", min=1.1)
+    plan.goal_door("oven", to_open=True)
 
 
 @register_task("close_oven", backend="pybullet")
 def close_oven(plan: Plan, p: dict[str, Any]) -> None:
     plan.door("oven", to_open=False)
-    plan.goal("door", object="oven", max=0.12)
+    plan.goal_door("oven", to_open=False)
 
 
 @register_task("pour", backend="pybullet")
@@ -54,8 +52,7 @@ def pour(plan: Plan, p: dict[str, Any]) -> None:
     plan.pour("src", "dest", side=float(p.get("side", -1.0)))
     plan.place("src", "src", returning=True)
     plan.goal("liquid", into="dest", min_fraction=0.5, source="src")
-    plan.goal("at", object="src", xy="src", tol=0.04)
-    plan.goal("upright", object="src")
+    plan.goal_placed("src", "src", released=False)
 
 
 @register_task("stir", backend="pybullet")
@@ -73,9 +70,7 @@ def shake(plan: Plan, p: dict[str, Any]) -> None:
     plan.grasp("obj")
     plan.shake("obj")
     plan.place("obj", "obj", returning=True)
-    plan.goal("at", object="obj", xy="obj", tol=0.04)
-    plan.goal("upright", object="obj")
-    plan.goal("released", object="obj")
+    plan.goal_placed("obj", "obj")
 
 
 @register_task("retrieve_from_oven", backend="pybullet")
@@ -84,9 +79,8 @@ def retrieve_from_oven(plan: Plan, p: dict[str, Any]) -> None:
     plan.grasp("obj", inside=True)
     plan.place("obj", "target")
     plan.door("oven", to_open=False)
-    plan.goal("at", object="obj", xy="target", tol=0.04)
-    plan.goal("upright", object="obj")
-    plan.goal("door", object="oven", max=0.12)
+    plan.goal_placed("obj", "target", released=False)
+    plan.goal_door("oven", to_open=False)
 
 
 @register_task("load_oven", backend="pybullet")
@@ -95,9 +89,8 @@ def load_oven(plan: Plan, p: dict[str, Any]) -> None:
     plan.grasp("obj")
     plan.place("obj", "inside", inside=True)
     plan.door("oven", to_open=False)
-    plan.goal("at", object="obj", xy="inside", tol=0.04)
-    plan.goal("upright", object="obj")
-    plan.goal("door", object="oven", max=0.12)
+    plan.goal_placed("obj", "inside", released=False)
+    plan.goal_door("oven", to_open=False)
 
 
 @register_task("pour_and_stir", backend="pybullet")
@@ -118,7 +111,7 @@ def _then_start(plan: Plan) -> None:
     """Finish an oven workflow by pressing the button that starts the drying cycle."""
     plan.home()
     plan.press("button")
-    plan.goal("button", object="button", min_travel=0.007)
+    plan.goal_pressed("button")
 
 
 @register_task("retrieve_and_start", backend="pybullet")
