@@ -1,9 +1,9 @@
 """The scripted policy: the task's keyframes with a failure injected by the existing operators.
 
-The controlled baseline of the supervision experiments. The perturbation is drawn exactly as
-`failure_generator.run_pair` draws it for the same seed (so its failing episodes are the dataset's),
-restricted to the specs that touch the steps the task family runs (e.g. "pick": the grasp only); a
-trial is perturbed with probability `inject_prob`.
+The controlled baseline of the supervision experiments. The perturbation is drawn as
+`failure_generator.run_injected` draws it for the same seed (its random stream and weights, so its failing
+episodes are the dataset's), restricted to the specs that touch the steps the task family runs (e.g. "pick":
+the grasp only); a trial is perturbed with probability `inject_prob`.
 
 After a correction that ran in full (`resume: replan`, the default) the policy re-plans: it goes on with the
 nominal plan after the plan keyframe nearest to where the correction left the arm, so an intervention clears
@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from policies.base import Action, EpisodeContext, Policy, register_policy
-from sim_backends.failure_generator import apply_spec
+from sim_backends.failure_generator import apply_spec, draw_spec, perturbation_rng
 from sim_backends.perturbations.physics import PhysicsEvent
 from sim_backends.source import Observation
 
@@ -67,9 +67,8 @@ class ScriptedPolicy(Policy):
         specs = [s for s in ctx.perturbations if spec_applies(s, {k.name for k in kfs}, steps)]
         inject = np.random.default_rng([ctx.seed, 0x1AB]).random() < self.inject_prob
         if specs and inject:
-            rng = np.random.default_rng([ctx.seed, 0xFA11])  # run_pair's stream for this seed
-            kfs, events, self.perturbation = apply_spec(specs[int(rng.integers(len(specs)))], kfs, ctx.positions,
-                                                        rng)
+            rng = perturbation_rng(ctx.seed)  # the generator's stream for this seed, weights included
+            kfs, events, self.perturbation = apply_spec(draw_spec(specs, rng), kfs, ctx.positions, rng)
         self.queue, self.i = kfs, 0
         return events
 

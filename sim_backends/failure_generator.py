@@ -63,9 +63,15 @@ def draw_spec(specs: Sequence[dict[str, Any]], rng: np.random.Generator) -> dict
     return specs[int(rng.choice(len(specs), p=w / w.sum()))]
 
 
+def perturbation_rng(seed: int, draw: int = 0) -> np.random.Generator:
+    """The random stream that picks and parameterises the perturbation of the episode with this seed
+    (`draw` > 0: a redraw). A policy that injects the dataset's failures draws from the same stream."""
+    return np.random.default_rng([seed, 0xFA11] + ([draw] if draw else []))
+
+
 def run_injected(src: FailureSource, scenario: str, seed: int, variant: str, draw: int = 0) -> Episode:
     """The same initial state under one perturbation; `draw` > 0 draws another perturbation."""
-    rng = np.random.default_rng([seed, 0xFA11] + ([draw] if draw else []))
+    rng = perturbation_rng(seed, draw)
     specs = src.scenario_info(scenario)["perturbations"]
     src.reset(scenario, seed, variant)
     kfs, events, prov = src.scripted_keyframes(), [], {"level": "none"}
