@@ -51,6 +51,7 @@ SCENE_FAMILIES: dict[str, dict[str, Any]] = {
 PLACEMENT_JITTER = 0.035  # m: objects and zones move by up to this much in x and y (times their `jitter`)
 MAX_DISTRACTORS = 3  # glassware on the bench that is not part of the task
 DISTRACTOR_CLEARANCE = 0.11  # m from every task object and zone (and 0.08 from the lines between them)
+ARM_CORRIDOR = 0.24  # m behind (-x of) each object and zone that the hand and forearm sweep when reaching it
 
 
 def _rgb(rng: np.random.Generator, value: tuple[float, float], sat: tuple[float, float]) -> list[float]:
@@ -142,14 +143,16 @@ def place_distractors(cid: int, objects: dict[str, "SceneObject"], zones: dict[s
                       rng: np.random.Generator, count: int) -> dict[str, int]:
     """Up to `count` vessels from the variant's catalogue, clear of the task's objects, zones and paths.
 
-    They stand away from every object and zone, from the straight lines between them and from each vessel's
-    approach corridor (the arm comes in along +x), so the nominal plan never touches them.
+    They stand away from every object and zone, from the straight lines between them and from the approach
+    corridor behind each object and zone (the arm comes in along +x), so the nominal plan never touches them.
     """
     table = UNSEEN_OBJECTS if variant in ("unseen_object", "unseen_both") else SEEN_OBJECTS
     kinds = sorted(k for k, v in table.items() if v["kind"] == "vessel")
     items = [np.asarray(o.home[:2]) for o in objects.values()] + [np.asarray(z[:2]) for z in zones.values()]
     segs = [(a, b) for i, a in enumerate(items) for b in items[i + 1:]]
-    segs += [(np.asarray(o.home[:2]) - [0.16, 0], np.asarray(o.home[:2])) for o in objects.values()]
+    # The hand comes in along +x with the forearm trailing low behind it, at every object it grasps and every
+    # zone it places on: keep those corridors clear (a distractor behind a target zone blocked the lowering).
+    segs += [(it - [ARM_CORRIDOR, 0], it) for it in items]
     segs += [(np.zeros(2), it) for it in items]  # the arm reaches out from its base
     ovens = [np.asarray(o.home[:2]) for o in objects.values() if o.kind == "oven"]
     out: dict[str, int] = {}
