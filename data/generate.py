@@ -246,8 +246,9 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
         atomic_write_json(run_file, identity, indent=2)
     for stale in out.glob("*.tmp"):  # leftovers of a killed run; their shard is simply redone
         stale.unlink()
-    scenarios = list(cfg.scenarios) if cfg.scenarios else backend_spec(cfg.backend).cls.list_scenarios(**kwargs)
-    jobs = shard_jobs(cfg, scenarios, backend_spec(cfg.backend).cls.scenario_repeats(**kwargs))
+    repeats = backend_spec(cfg.backend).cls.scenario_repeats(**kwargs)  # every scenario name -> its repeat
+    scenarios = list(cfg.scenarios) if cfg.scenarios else list(repeats)
+    jobs = shard_jobs(cfg, scenarios, repeats)
     todo = [j for j in jobs if not (out / f"shard-{j['shard']:05d}.parquet").exists()]
     done_eps = sum(j["hi"] - j["lo"] for j in jobs) - sum(j["hi"] - j["lo"] for j in todo)
     bar = tqdm(total=int(cfg.num_episodes), initial=done_eps, unit="ep", disable=not cfg.progress,

@@ -13,10 +13,10 @@ import math
 import numpy as np
 import pybullet as p
 
+from sim_backends.plan_builder import PlanBuilder
 from sim_backends.pybullet import assets
 from sim_backends.pybullet.robot import SIDE, TOP_DOWN
 from sim_backends.pybullet.scene import Scene
-from sim_backends.plan_builder import PlanBuilder
 
 SAFE_Z = 0.26  # transport height of the end effector
 POUR_SIGN = 1.0
