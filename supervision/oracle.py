@@ -62,14 +62,15 @@ def live_failure(trace: Trace, meta: TaskMeta, after_sample: int) -> Event | Non
 
 
 def unmet_goal(trace: Trace, meta: TaskMeta, goals: list[dict[str, Any]] | None) -> Event | None:
-    """Once the policy is done, a goal that fails with no detector signature: named by the labeler's
-    goal -> type fallback where the labeler has one; a labeler that never guesses leaves it unexplained (None)."""
+    """Once the policy has stopped, a goal that still fails with no detector signature. The dataset leaves such
+    an episode out (its labeler never guesses a type); a supervisor must still act, and what it knows is exactly
+    this: the policy stopped before the task was done. That is an incomplete trajectory, whose correction (the
+    strategy table, by the step's action) resumes the unfinished step."""
     md = meta.to_dict()
     bad = failed_goals(trace, {**md, "goals": goals} if goals is not None else md)
-    fallback = getattr(labeler, "FALLBACK", {})
-    if not bad or bad[0]["kind"] not in fallback:
+    if not bad:
         return None
-    return len(trace["t"]) - 1, fallback[bad[0]["kind"]], f"goal {bad[0]['kind']!r} fails at the end"
+    return len(trace["t"]) - 1, "incomplete_trajectory", f"policy stopped with goal {bad[0]['kind']!r} unmet"
 
 
 @register_supervisor("oracle")

@@ -83,3 +83,27 @@ def test_vlm_supervisor_queries_the_analyzer_on_prefix_grids(tmp_path, tiny):  #
 def test_bad_settings_are_one_line_errors(tmp_path, args, msg):
     r = supervise(*args, f"out_dir={tmp_path / 'x'}", check=False)
     assert r.returncode == 2 and msg in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_oracle_names_a_stopped_policy_with_an_unmet_goal_an_incomplete_trajectory():
+    """A policy (ACT, OpenVLA) that stops short of its goal leaves no detector signature; the oracle must still
+    act at the final query: incomplete trajectory, corrected by resuming the unfinished grasp."""
+    from sim_backends.registry import make_backend
+    from supervision.loop import TaskFamily, episode_context
+    from supervision.oracle import OracleSupervisor
+
+    src = make_backend("pybullet", render=False)
+    try:
+        fam = TaskFamily("pick", ["pick_place_beaker_small"], 1, [{"kind": "held", "object": "obj"}])
+        src.reset("pick_place_beaker_small", 0, "seen")
+        src.begin()
+        src.step(src.scripted_keyframes()[0])  # the approach above the beaker, then the policy stops
+        oracle = OracleSupervisor()
+        oracle.reset(episode_context(src, fam, "pick_place_beaker_small", 0, "seen"))
+        assert not oracle.query(src).failure  # nothing has gone wrong while the policy still runs
+        v = oracle.query(src, final=True)
+        assert v.failure and v.failure_type == "incomplete_trajectory"
+        assert "'held' unmet" in v.diagnosis["evidence"]
+        assert [p["op"] for p in v.primitives][-1] == "gripper_close"  # G2: align with the beaker, then grasp
+    finally:
+        src.close()
