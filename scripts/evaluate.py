@@ -38,6 +38,8 @@ def main(argv: list[str]) -> int:
         raise ConfigError("dataset_dir: required")
     if not isinstance(cfg.batch_size, int) or cfg.batch_size < 1:
         raise ConfigError(f"batch_size: expected a positive integer, got {cfg.batch_size!r}")
+    if cfg.model is not None and not Path(cfg.model).is_dir():  # before anything is written
+        raise ConfigError(f"model: no such directory {cfg.model!r}")
     recs, traj = ev.load_split(cfg.dataset_dir, cfg.split)
     if cfg.endpoint is not None:
         out = Path(cfg.out_dir or Path("outputs") / f"eval_endpoint_{cfg.split}")
@@ -57,8 +59,6 @@ def main(argv: list[str]) -> int:
             name = f"LabRobFail-VLM endpoint ({analyzer.client.model})"
         else:
             from labrobfail_vlm.analyzer import FailureAnalyzer
-            if not Path(cfg.model).is_dir():
-                raise ConfigError(f"model: no such directory {cfg.model!r}")
             analyzer = FailureAnalyzer.from_pretrained(cfg.model)
             name = "LabRobFail-VLM (" + Path(cfg.model).name + ")"
         preds = ev.model_predictions(analyzer, cfg.dataset_dir, recs, traj, progress=cfg.progress,

@@ -167,6 +167,10 @@ def test_evaluate_model_and_predictions_file(tiny, small_ds, tmp_path):  # noqa:
     r = subprocess.run([sys.executable, "scripts/evaluate.py", f"predictions={tmp_path / 'bad.jsonl'}",
                         f"dataset_dir={small_ds}"], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "line 1" in r.stderr and "Traceback" not in r.stderr
+    # a missing model is refused before anything is written (no empty eval_<split> folder beside it)
+    r = subprocess.run([sys.executable, "scripts/evaluate.py", f"model={tmp_path / 'gone' / 'final'}",
+                        f"dataset_dir={small_ds}"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "no such directory" in r.stderr and not (tmp_path / "gone").exists()
 
 
 def _q6_prefix(fa, img, task):
