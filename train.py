@@ -50,7 +50,7 @@ def run(cfg: Any) -> dict[str, Any]:
 
     from labrobfail_vlm.model.hybrid import apply_tuning, count_trainable
     from labrobfail_vlm.model.loading import load_model, load_processor
-    from labrobfail_vlm.train.curriculum import PolarityWarmup, Rewording
+    from labrobfail_vlm.train.curriculum import DetectFirst, PolarityWarmup, Rewording
     from labrobfail_vlm.train.data import Collator, VQADataset
     from labrobfail_vlm.train.packing import TrajectoryDataset
     from labrobfail_vlm.train.trainer import HybridTrainer, ProgressLog, check_loss_mode
@@ -58,8 +58,12 @@ def run(cfg: Any) -> dict[str, Any]:
     grid = _check_dataset(cfg)
     check_loss_mode(str(cfg.loss.mode))  # before the model loads
     pairs, warm = bool(cfg.curriculum.pairs), float(cfg.curriculum.polarity_warmup)
-    if not 0.0 <= warm <= 1.0:
-        raise ConfigError(f"curriculum.polarity_warmup: a fraction of the steps in [0, 1], got {warm}")
+    detect = float(cfg.curriculum.get("detect_first", 0.0))
+    for key, v in (("polarity_warmup", warm), ("detect_first", detect)):
+        if not 0.0 <= v <= 1.0:
+            raise ConfigError(f"curriculum.{key}: a fraction of the steps in [0, 1], got {v}")
+    if detect and cfg.loss.mode != "record":
+        raise ConfigError("curriculum.detect_first: needs loss.mode=record (it sets per-record loss weights)")
     if cfg.model.path is None:
         raise ConfigError("model.path: give a local Qwen3-VL directory (or use preset=tiny)")
     if cfg.preset == "tiny" and not Path(cfg.model.path).is_dir():
@@ -113,10 +117,11 @@ def run(cfg: Any) -> dict[str, Any]:
     # packing: a trajectory's records share one row and one image encoding (labrobfail_vlm/train/packing.py);
     # per_device_batch and global_batch then count trajectories
     train = TrajectoryDataset(cfg.dataset_dir, "train") if cfg.packing else VQADataset(cfg.dataset_dir, "train")
-    rewording = Rewording(train.group_of, pairs) if pairs or warm > 0 else None
+    rewording = Rewording(train.group_of, pairs) if pairs or warm > 0 or detect > 0 else None
     records_per_item = len(train.records) / len(train) if cfg.packing else 1.0
     callbacks = [ProgressLog(Path(cfg.output_dir), records_per_item),
-                 *([PolarityWarmup(rewording, warm)] if rewording is not None and warm else [])]
+                 *([PolarityWarmup(rewording, warm)] if rewording is not None and warm else []),
+                 *([DetectFirst(rewording, detect)] if rewording is not None and detect else [])]
     trainer = HybridTrainer(model=model, args=args, train_dataset=train,
                             data_collator=Collator(processor, int(cfg.max_length), dict(cfg.loss.question_weights)
                                                    if cfg.loss.mode == "record" else None, rewording),

@@ -143,7 +143,10 @@ def test_bad_train_config_is_one_line(small_ds, tmp_path):
     for args, field in [(["preset=huge"], "preset"), ([f"dataset_dir={tmp_path}"], "dataset_dir"),
                         (["preset=no_index", f"dataset_dir={small_ds}"], "grid_index"),
                         (["model.path=/nonexistent", f"dataset_dir={small_ds}"], "model.path"),
-                        (["loss.mode=sum", f"dataset_dir={small_ds}"], "loss.mode")]:
+                        (["loss.mode=sum", f"dataset_dir={small_ds}"], "loss.mode"),
+                        (["curriculum.detect_first=1.5", f"dataset_dir={small_ds}"], "curriculum.detect_first"),
+                        (["curriculum.detect_first=0.5", "loss.mode=token", f"dataset_dir={small_ds}"],
+                         "curriculum.detect_first")]:
         r = subprocess.run([sys.executable, "train.py", f"output_dir={tmp_path}/o", *args], cwd=ROOT,
                            capture_output=True, text=True, timeout=120)
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
@@ -240,3 +243,24 @@ def test_rewording_and_pair_sampler(small_ds):
     for pos_, k in enumerate(keys):
         where.setdefault(k, set()).add(pos_ // 4)
     assert sum(len(v) > 1 for v in where.values()) <= 1  # at most the tail straddles
+
+
+def test_detect_first_puts_the_loss_on_q2_alone(tiny, small_ds):
+    """curriculum.detect_first: while it lasts, the packed batch's record weights are 0 except Q2's."""
+    from labrobfail_vlm import questions as Q
+    from labrobfail_vlm.model.loading import load_processor
+    from labrobfail_vlm.train.curriculum import Rewording
+    from labrobfail_vlm.train.data import Collator
+    from labrobfail_vlm.train.packing import TrajectoryDataset
+    proc = load_processor(tiny)
+    proc.tokenizer.padding_side = "right"
+    td = TrajectoryDataset(small_ds, "train")
+    items = [td[0], td[1]]
+    rw = Rewording(td.group_of, pairs=False)
+    col = Collator(proc, 1024, {"Q2": 2.0}, rw)
+    dims = [Q.dim_of(r["id"]) for i in items for r in i]
+    rw.detect_only = True
+    w = col(items)["record_weight"].tolist()
+    assert [d for d, x in zip(dims, w) if x > 0] == ["Q2", "Q2"] and max(w) == 2.0
+    rw.detect_only = False
+    assert all(x > 0 for x in col(items)["record_weight"].tolist())

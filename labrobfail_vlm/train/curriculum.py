@@ -12,6 +12,10 @@ Two levers, off by default and set by the tiny preset (configs/train.yaml, `curr
 - `polarity_warmup`: for this fraction of the optimizer steps, Q2 records are asked in one of the three
   failure-polarity wordings ("Is there any error...?"), so "Yes" always means a failure while the image
   feature forms; afterwards every record keeps its dataset wording (all five, as the benchmark asks).
+- `detect_first`: for this fraction of the optimizer steps only the Q2 records carry loss (the others get
+  weight 0). Trained on all six questions from the start, a random model settles on the text priors of
+  Q1/Q3-Q6 and its Q2 stays at the majority answer; trained on Q2 alone it starts to read the grid. The
+  other questions join once that image feature exists.
 
 The benchmark is untouched: evaluation reads the test split as built. Rewording goes through
 `questions.reask`, which recomputes a Q2 answer for the new polarity.
@@ -82,12 +86,15 @@ class Rewording:
     def __init__(self, group_of: dict[str, str], pairs: bool):
         self.group_of, self.pairs = group_of, pairs
         self.negative_only = False  # set by PolarityWarmup
+        self.detect_only = False  # set by DetectFirst: records other than Q2 get loss weight 0
 
     def __call__(self, batch: list[dict[str, Any]]) -> list[dict[str, Any]]:
         chosen: dict[tuple[str, str], int] = {}
         out = []
         for b in batch:
             dim, traj = Q.dim_of(b["id"]), Q.traj_of(b["id"])
+            if self.detect_only and dim != "Q2":
+                b = {**b, "weight_scale": 0.0}
             v = Q.variant_of(dim, b["question"]) if dim in Q.VARIANTS else None
             if v is None:  # an auxiliary fact, or a wording of no known variant
                 out.append(b)
@@ -111,5 +118,17 @@ class PolarityWarmup(TrainerCallback):
 
     def on_step_begin(self, args, state, control, **kwargs):  # noqa: D102
         self.rewording.negative_only = state.global_step < self.fraction * max(1, state.max_steps)
+
+    on_train_begin = on_step_begin
+
+
+class DetectFirst(TrainerCallback):
+    """Loss on Q2 records only for the first `fraction` of the optimizer steps."""
+
+    def __init__(self, rewording: Rewording, fraction: float):
+        self.rewording, self.fraction = rewording, float(fraction)
+
+    def on_step_begin(self, args, state, control, **kwargs):  # noqa: D102
+        self.rewording.detect_only = state.global_step < self.fraction * max(1, state.max_steps)
 
     on_train_begin = on_step_begin

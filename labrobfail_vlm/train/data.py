@@ -83,11 +83,13 @@ class Collator:
                 raise ConfigError(f"loss.question_weights: expected non-negative weights for "
                                   f"{', '.join(Q.DIMENSIONS)}, aux; got {dict(question_weights)}")
 
-    def weight(self, rid: str) -> float:
+    def weight(self, rec: dict[str, Any]) -> float:
+        """The record's loss weight: its question's, times the curriculum's `weight_scale` (detect_first)."""
+        scale = float(rec.get("weight_scale", 1.0))
         if self.weights is None:
-            return 1.0
-        dim = Q.dim_of(rid)
-        return self.weights["aux" if Q.is_aux(dim) else dim]
+            return scale
+        dim = Q.dim_of(rec["id"])
+        return self.weights["aux" if Q.is_aux(dim) else dim] * scale
 
     def _ids(self, texts: list[str], grid_thw: torch.Tensor) -> list[list[int]]:
         """Token ids of texts holding one image placeholder, as the processor would make them: the
@@ -138,7 +140,7 @@ class Collator:
                 row["shift"] += [start - k] * len(branch)
                 row["labels"] += [IGNORE] * (pl - k) + branch[pl - k:]
                 row["slots"] += [-1] * (pl - k) + [slot] * (len(f) - pl)
-                weights.append(self.weight(b["id"]))
+                weights.append(self.weight(b))
             if len(row["ids"]) > self.max_length:
                 raise ValueError(f"sample {recs[0]['id']}: {len(row['ids'])} packed tokens exceed max_length="
                                  f"{self.max_length}; raise max_length or shrink the grid")
@@ -178,5 +180,5 @@ class Collator:
             labels[i, :len(p_ids)] = IGNORE
         enc["labels"] = labels
         if self.weights is not None:
-            enc["record_weight"] = torch.tensor([self.weight(b["id"]) for b in batch])
+            enc["record_weight"] = torch.tensor([self.weight(b) for b in batch])
         return dict(enc)
