@@ -110,25 +110,27 @@ class Rewording:
         return out
 
 
-class PolarityWarmup(TrainerCallback):
-    """Q2 in failure-polarity wordings only for the first `fraction` of the optimizer steps."""
+class Phase(TrainerCallback):
+    """Sets the Rewording's `flag` for the first `fraction` of the optimizer steps, clears it after."""
+
+    flag = ""
 
     def __init__(self, rewording: Rewording, fraction: float):
         self.rewording, self.fraction = rewording, float(fraction)
 
     def on_step_begin(self, args, state, control, **kwargs):  # noqa: D102
-        self.rewording.negative_only = state.global_step < self.fraction * max(1, state.max_steps)
+        setattr(self.rewording, self.flag, state.global_step < self.fraction * max(1, state.max_steps))
 
     on_train_begin = on_step_begin
 
 
-class DetectFirst(TrainerCallback):
-    """Loss on Q2 records only for the first `fraction` of the optimizer steps."""
+class PolarityWarmup(Phase):
+    """Q2 in failure-polarity wordings only."""
 
-    def __init__(self, rewording: Rewording, fraction: float):
-        self.rewording, self.fraction = rewording, float(fraction)
+    flag = "negative_only"
 
-    def on_step_begin(self, args, state, control, **kwargs):  # noqa: D102
-        self.rewording.detect_only = state.global_step < self.fraction * max(1, state.max_steps)
 
-    on_train_begin = on_step_begin
+class DetectFirst(Phase):
+    """Loss on Q2 records only."""
+
+    flag = "detect_only"
