@@ -22,7 +22,7 @@ from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.questions import traj_of
 from policies.scripted import resume_index
 from sim_backends.executor import CorrectionExecutor
-from sim_backends.perturbations.physics import PhysicsEvent
+from sim_backends.perturbations.physics import events_from_record
 from sim_backends.source import FailureSource
 from sim_backends.types import Keyframe
 
@@ -42,13 +42,6 @@ def shard_index(dirs: Iterable[str | Path]) -> dict[str, dict[str, Any]]:
     return out
 
 
-def physics_events(perturbation: dict[str, Any]) -> list[PhysicsEvent]:
-    if perturbation.get("level") != "physics":
-        return []
-    return [PhysicsEvent(perturbation["param"], perturbation["target"], float(perturbation["scale"]),
-                         int(perturbation["at_keyframe"]))]
-
-
 def run_correction(src: FailureSource, row: dict[str, Any], failure_keyframe: int, text: str,
                    objects: Sequence[str]) -> dict[str, Any]:
     """Replay `row` to its failure keyframe, execute `text`, finish the plan; the outcome."""
@@ -57,7 +50,7 @@ def run_correction(src: FailureSource, row: dict[str, Any], failure_keyframe: in
         return {"success": False, "mapped": False, "executed": False, "reason": "does not map to primitives"}
     src.reset(row["scenario"], int(row["seed"]), row["variant"])
     plan = src.scripted_keyframes()
-    src.begin(physics_events(json.loads(row["perturbation"] or "{}")))
+    src.begin(events_from_record(json.loads(row["perturbation"] or "{}")))
     for kd in json.loads(row["keyframes"])[:failure_keyframe + 1]:
         src.step(Keyframe.from_dict(kd))
     res = CorrectionExecutor(src).run(prims)
@@ -81,7 +74,11 @@ def executable_accuracy(src: FailureSource, shards: dict[str, dict[str, Any]], t
         for t in failed:
             if t not in texts:
                 continue
-            r = run_correction(src, shards[t], int(traj[t]["failure_keyframe"]), texts[t], traj[t].get("objects", []))
+            try:
+                r = run_correction(src, shards[t], int(traj[t]["failure_keyframe"]), texts[t],
+                                   traj[t].get("objects", []))
+            except ValueError as e:  # a shard row this code cannot replay: name it, no traceback
+                raise ConfigError(f"executable.shards: trajectory {t}: {e}") from None
             rows.append((traj[t]["failure_type"], r))
         n = len(rows)
         ok = sum(r["success"] for _, r in rows)

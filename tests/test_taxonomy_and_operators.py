@@ -67,3 +67,20 @@ def test_semantic_and_physics_operators():
         physics.sample_event(kfs, "gravity", "obj", ["s1_k0"], [-0.5, 0.5], rng)
     with pytest.raises(ValueError, match="does not have"):
         semantic.omit(kfs, 7)
+
+
+def test_a_physics_perturbation_record_replays_to_its_events():
+    """What the generator stores in a shard's `perturbation` column gives back the events it applied (the
+    executable-correction replay depends on it), for a several-parameter draw and an old one-event record."""
+    import json
+
+    from sim_backends.failure_generator import apply_spec
+    spec = {"level": "physics", "at": ["s1_k0"], "params": [{"param": "grip_force", "target": "robot", "alpha": 0.9},
+                                                            {"param": "friction", "target": "obj", "delta": [-0.5, 0]}]}
+    _, events, record = apply_spec(spec, _kfs(), {}, np.random.default_rng(4))
+    assert len(events) == 2 and physics.events_from_record(json.loads(json.dumps(record))) == events
+    old = {"level": "physics", "param": "mass", "target": "obj", "scale": 1.2, "at_keyframe": 3}
+    assert physics.events_from_record(old) == [physics.PhysicsEvent("mass", "obj", 1.2, 3)]
+    assert physics.events_from_record({"level": "control", "op": "translate"}) == []
+    with pytest.raises(ValueError, match="lacks"):
+        physics.events_from_record({"level": "physics", "events": [{"param": "mass"}]})

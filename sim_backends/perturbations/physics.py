@@ -29,6 +29,19 @@ class PhysicsEvent:
         return asdict(self)
 
 
+def events_from_record(perturbation: dict[str, Any]) -> list[PhysicsEvent]:
+    """The events of a shard's `perturbation` record (what `sample_events` wrote: `{"level": "physics",
+    "events": [...]}`; older shards hold one event's fields at the top level); none for other levels."""
+    if perturbation.get("level") != "physics":
+        return []
+    fields = ("param", "target", "scale", "at_keyframe")
+    evs = perturbation.get("events") or [perturbation]
+    bad = next((e for e in evs if any(f not in e for f in fields)), None)
+    if bad is not None:
+        raise ValueError(f"physics perturbation record lacks {[f for f in fields if f not in bad]}: {bad}")
+    return [PhysicsEvent(str(e["param"]), str(e["target"]), float(e["scale"]), int(e["at_keyframe"])) for e in evs]
+
+
 def delta_range(p: dict[str, Any]) -> tuple[float, float]:
     """`alpha: a` is the paper's U(-a, a); `delta: [lo, hi]` an explicit range."""
     if "alpha" in p:
