@@ -58,7 +58,7 @@ def run(cfg: Any) -> dict[str, Any]:
     grid = _check_dataset(cfg)
     check_loss_mode(str(cfg.loss.mode))  # before the model loads
     pairs, warm = bool(cfg.curriculum.pairs), float(cfg.curriculum.polarity_warmup)
-    detect = float(cfg.curriculum.get("detect_first", 0.0))
+    detect = float(cfg.curriculum.detect_first)
     for key, v in (("polarity_warmup", warm), ("detect_first", detect)):
         if not 0.0 <= v <= 1.0:
             raise ConfigError(f"curriculum.{key}: a fraction of the steps in [0, 1], got {v}")

@@ -8,7 +8,7 @@ how to set e.g. `friction` on its own engine.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from typing import Any, Sequence
 
 import numpy as np
@@ -34,11 +34,11 @@ def events_from_record(perturbation: dict[str, Any]) -> list[PhysicsEvent]:
     "events": [...]}`; older shards hold one event's fields at the top level); none for other levels."""
     if perturbation.get("level") != "physics":
         return []
-    fields = ("param", "target", "scale", "at_keyframe")
     evs = perturbation.get("events") or [perturbation]
-    bad = next((e for e in evs if any(f not in e for f in fields)), None)
+    names = [f.name for f in fields(PhysicsEvent)]
+    bad = next((e for e in evs if any(n not in e for n in names)), None)
     if bad is not None:
-        raise ValueError(f"physics perturbation record lacks {[f for f in fields if f not in bad]}: {bad}")
+        raise ValueError(f"physics perturbation record lacks {[n for n in names if n not in bad]}: {bad}")
     return [PhysicsEvent(str(e["param"]), str(e["target"]), float(e["scale"]), int(e["at_keyframe"])) for e in evs]
 
 
