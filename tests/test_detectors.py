@@ -227,3 +227,19 @@ def test_glassware_falling_fast_is_fatal():
     assert derive_labels(tr, meta).severity == int(Severity.FATAL)
     tr, meta = _case("target_positioning_deviation")  # set down gently, only in the wrong place
     assert impact_speed(tr, "obj") < BREAK_SPEED and derive_labels(tr, meta).severity != int(Severity.FATAL)
+
+
+def test_impact_speed_does_not_depend_on_where_the_impact_falls_between_samples():
+    """A 10 cm free fall hits at 1.40 m/s: it reads as breaking (>= 1.2) whatever the 40 Hz sample phase,
+    and never above the true impact speed; a 5 cm fall (0.99 m/s) never reads as breaking."""
+    from sim_backends.labeler import BREAK_SPEED, GRAVITY, impact_speed
+
+    for height in (0.10, 0.05):
+        hit = (2 * GRAVITY * height) ** 0.5
+        fall_t = hit / GRAVITY
+        for phase in np.linspace(0.0, 0.024, 7):
+            ts = phase + np.arange(0, 0.3, 1 / 40)
+            z = [height - 0.5 * GRAVITY * min(t, fall_t) ** 2 for t in ts]
+            speed = impact_speed({"obj.pos": [[0.5, 0.0, v] for v in z], "rate_hz": 40.0}, "obj")
+            assert speed <= hit + 1e-9
+            assert (speed >= BREAK_SPEED) == (height == 0.10), (height, phase, speed)
