@@ -53,7 +53,7 @@ DEMO_EPISODES ?= 200
 DEMO_EPOCHS   ?= 16
 DEMO_GRID     := grid.width=512 grid.height=512 grid.max_frames=8 grid.columns=4
 demo: $(STAMP)
-	$(PY) scripts/generate.py backend=pybullet num_episodes=$(DEMO_EPISODES) out_dir=outputs/demo_shards seed=0 workers=2 image_size=128
+	$(PY) scripts/generate.py backend=pybullet num_episodes=$(DEMO_EPISODES) out_dir=outputs/demo_shards seed=0 workers=2 image_size=128 render_frames=8
 	$(PY) scripts/render_strips.py outputs/demo_shards outputs/demo_strips
 	$(PY) scripts/build_dataset.py shards=outputs/demo_shards out_dir=outputs/demo_dataset $(DEMO_GRID)
 	$(PY) train.py preset=tiny dataset_dir=outputs/demo_dataset output_dir=outputs/demo_train epochs=$(DEMO_EPOCHS)
@@ -69,7 +69,7 @@ REPRO_SEEN     ?= 1200
 REPRO_UNSEEN   ?= 60
 REPRO_EPOCHS   ?= 12
 RESULTS        ?= docs/RESULTS.md
-REPRO_GEN      := backend=pybullet seed=0 workers=2 image_size=128 progress=false
+REPRO_GEN      := backend=pybullet seed=0 workers=2 image_size=128 render_frames=8 progress=false
 stamp           = echo "$(1) $$(date +%s)" >> $(R)/timeline.txt
 reproduce: $(STAMP)
 	mkdir -p $(R) && rm -f $(R)/timeline.txt && $(call stamp,generate)

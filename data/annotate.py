@@ -18,6 +18,7 @@ import numpy as np
 from PIL import Image
 
 from labrobfail_vlm import questions as Q
+from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.corrections import Context, correction
 from labrobfail_vlm.grid import GridConfig, build_grid, frame_for_keyframe, sample_keyframes
 from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, Category, Severity
@@ -66,6 +67,9 @@ def failure_context(row: dict[str, Any], meta: dict[str, Any], trace: dict[str, 
 
 
 def decode_views(images: list[list[bytes]], picks: list[int]) -> list[list[Image.Image]]:
+    if any(not view[i] for view in images for i in picks):  # b"": the generator's render_frames left it out
+        raise ConfigError("grid.max_frames: the shards hold no images of keyframes this grid shows; build with the "
+                          "generator's render_frames as grid.max_frames, or regenerate with render_frames=null")
     return [[Image.open(io.BytesIO(view[i])).convert("RGB") for i in picks] for view in images]
 
 

@@ -55,6 +55,19 @@ def _shard_files(cfg: DictConfig) -> list[Path]:
     return files
 
 
+def check_rendered(cfg: DictConfig, max_frames: int) -> None:
+    """Shards generated with `render_frames=M` hold the images of the keyframes an M-frame grid shows (the
+    picks of a smaller grid are not always among them): refuse another grid size before anything is written."""
+    dirs = [cfg.shards] if isinstance(cfg.shards, str) else list(cfg.shards)
+    for d in dirs:
+        run = Path(d) / "run.json"
+        rendered = json.loads(run.read_text()).get("render_frames") if run.is_file() else None
+        if rendered is not None and rendered != max_frames:
+            raise ConfigError(f"grid.max_frames: {d} was generated with render_frames={rendered} (images of the "
+                              f"keyframes a {rendered}-frame grid shows); build with grid.max_frames={rendered} "
+                              "or regenerate with render_frames=null")
+
+
 def _rows(files: list[Path]):
     for f in files:
         try:
@@ -87,6 +100,7 @@ def build(cfg: DictConfig) -> dict[str, Any]:
         gcfg = GridConfig(**OmegaConf.to_container(cfg.grid))  # type: ignore[arg-type]
     except (TypeError, ValueError) as e:
         raise ConfigError(str(e)) from None
+    check_rendered(cfg, gcfg.max_frames)
     if len(cfg.ratios) != 3 or any(float(r) < 0 for r in cfg.ratios) or abs(sum(cfg.ratios) - 1) > 1e-6:
         raise ConfigError(f"ratios: three non-negative fractions summing to 1, got {list(cfg.ratios)}")
     marks = _review_marks(cfg.review)

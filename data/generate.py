@@ -28,7 +28,7 @@ from labrobfail_vlm.taxonomy import SCENE_VARIANTS
 DEFAULTS = Path(__file__).resolve().parents[1] / "configs" / "generate.yaml"
 # Keys that define the data; changing any of them in an existing out_dir is refused.
 IDENTITY_KEYS = ("backend", "num_episodes", "seed", "episodes_per_shard", "variant", "scenarios", "image_size",
-                 "cameras", "backend_kwargs")
+                 "cameras", "backend_kwargs", "render_frames")
 
 
 def load_config(dotlist: list[str]) -> DictConfig:
@@ -49,6 +49,9 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
         v = cfg[key]
         if not isinstance(v, int) or isinstance(v, bool) or v < (0 if key == "num_episodes" else 1):
             raise ConfigError(f"{key}: must be a {'non-negative' if key == 'num_episodes' else 'positive'} integer, got {v!r}")
+    rf = cfg.render_frames
+    if rf is not None and (not isinstance(rf, int) or isinstance(rf, bool) or rf < 1):
+        raise ConfigError(f"render_frames: must be a positive integer or null (every keyframe), got {rf!r}")
     if cfg.episodes_per_shard % 2:
         raise ConfigError("episodes_per_shard: must be even (a shard holds whole success/failure pairs)")
     if cfg.executor not in ("process", "ray"):
@@ -156,13 +159,15 @@ def shard_jobs(cfg: DictConfig, scenarios: list[str], repeats: dict[str, int] | 
     for k in range(math.ceil(n / per)):
         lo, hi = k * per, min(n, (k + 1) * per)
         pairs = [(j, order[j]) for j in range(lo // 2, math.ceil(hi / 2))]  # seeds: labelable_pair draws them
-        jobs.append({"shard": k, "lo": lo, "hi": hi, "pairs": pairs, "seed": int(cfg.seed)})
+        jobs.append({"shard": k, "lo": lo, "hi": hi, "pairs": pairs, "seed": int(cfg.seed),
+                     "render_frames": cfg.get("render_frames")})
     return jobs
 
 
 def run_shard(job: dict[str, Any], backend: str, kwargs: dict[str, Any], variant: str, out_dir: str) -> int:
     """Generate one shard's episodes and write it atomically. Returns the number of episodes."""
     src = _worker_source(backend, kwargs)
+    src.render_frames = job.get("render_frames")
     rows, records = [], []
     for j, scenario in job["pairs"]:
         nominal, injected, recs = labelable_pair(src, scenario, job["seed"], j, variant)

@@ -6,8 +6,9 @@ Run as:
 Every row runs the same episodes: the generator's own pair plan for seed 0 (the same scenario mix,
 short, medium and long, with its oversampling), so rows compare side by side in one run:
 physics only (no camera), two rendered views with each rendering variant the backend offers
-(PyBullet: the stock Panda meshes against the low-poly ones), and end to end into shards with
-1 worker and with 2 workers (speed-up = ratio). Peak memory of the main process and of a worker.
+(PyBullet: the stock Panda meshes against the low-poly ones) at every keyframe, the default rendering at only
+the keyframes the generator's default `render_frames` grid shows, and end to end into shards (the generator's
+defaults) with 1 worker and with 2 workers (speed-up = ratio). Peak memory of the main process and of a worker.
 """
 
 from __future__ import annotations
@@ -35,9 +36,10 @@ def per_hour(n: int, seconds: float) -> float:
     return round(3600.0 * n / seconds, 1)
 
 
-def in_process(backend: str, pairs: int, **kwargs) -> float:
+def in_process(backend: str, pairs: int, render_frames: int | None = None, **kwargs) -> float:
     """Episodes/hour of the generator's pairs (redraws included) in this process."""
     src = make_backend(backend, **kwargs)
+    src.render_frames = render_frames
     order = scenario_order(src.scenarios(), 0, pairs, backend_spec(backend).cls.scenario_repeats(**kwargs))
     t = time.perf_counter()
     for j, scenario in enumerate(order):
@@ -70,6 +72,11 @@ def main(argv: list[str]) -> int:
     for name, kw in RENDER_VARIANTS.get(backend, {"default": {}}).items():
         res[f"rendered_2x{size}_{name}_episodes_per_hour_per_core"] = in_process(backend, pairs, image_size=size,
                                                                                   **kw)
+    # The backend's default rendering, only at the keyframes a grid of `render_frames` shows (the generator's
+    # default), against every keyframe in the row above.
+    rf = int(load_config([]).render_frames)
+    res[f"rendered_2x{size}_grid_keyframes_{rf}_episodes_per_hour_per_core"] = in_process(
+        backend, pairs, render_frames=rf, image_size=size)
     t1 = end_to_end(backend, 1, n, size)
     t2 = end_to_end(backend, 2, n, size)
     res.update({

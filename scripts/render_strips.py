@@ -27,19 +27,23 @@ CELL = 128  # px: cells are shown at most this wide (a 50-keyframe strip at 192 
 
 
 def strip(row: dict, mark: int | None) -> Image.Image:
-    views = [[Image.open(io.BytesIO(b)).convert("RGB") for b in v] for v in row["images"]]
+    # Keyframes the generator did not render (render_frames) hold b"" and are left out; cells keep their number.
+    shown = [c for c, b in enumerate(row["images"][0]) if b]
+    views = [[Image.open(io.BytesIO(v[c])).convert("RGB") for c in shown] for v in row["images"]]
     views = [[im.resize((CELL, CELL)) if im.width > CELL else im for im in v] for v in views]
     w, h = views[0][0].size
     n = len(views[0])
+    if mark is not None:  # the failure shows in the first image taken at or after its keyframe
+        mark = next((kf for kf in shown if kf >= mark), shown[-1])
     out = Image.new("RGB", (w * n, h * len(views) + 18), "white")
     d = ImageDraw.Draw(out)
     d.text((4, 3), f"{row['scenario']} | {row['role']} | success={row['success']} | {row['failure_type'] or ''} "
                    f"| failure keyframe={row['failure_keyframe']}", fill="black")
     for r, v in enumerate(views):
-        for c, img in enumerate(v):
+        for c, (kf, img) in enumerate(zip(shown, v)):
             out.paste(img, (c * w, 18 + r * h))
-            d.text((c * w + 3, 18 + r * h + 2), str(c), fill="black")
-            if mark is not None and c == mark:
+            d.text((c * w + 3, 18 + r * h + 2), str(kf), fill="black")
+            if mark is not None and kf == mark:
                 d.rectangle([c * w, 18 + r * h, (c + 1) * w - 1, 18 + (r + 1) * h - 1], outline="red", width=3)
     return out
 

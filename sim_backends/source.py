@@ -30,6 +30,7 @@ from typing import Any, Sequence
 import numpy as np
 from PIL import Image
 
+from labrobfail_vlm.grid import sample_keyframes
 from labrobfail_vlm.taxonomy import SCENE_VARIANTS, horizon_of
 from sim_backends.labeler import derive_labels
 from sim_backends.perturbations.physics import PhysicsEvent
@@ -59,12 +60,18 @@ class _Run:
 
     events: list[PhysicsEvent]
     executed: list[Keyframe] = field(default_factory=list)
-    images: list[list[bytes]] = field(default_factory=list)  # [view][keyframe] PNG bytes
+    images: list[list[bytes]] = field(default_factory=list)  # [view][keyframe] PNG bytes (b"": not rendered)
     last: list[np.ndarray] | None = None  # images rendered at the end of the last step
+    render: set[int] | None = None  # keyframe indices to render at the end of their step (None: every one)
 
 
 class FailureSource(ABC):
     name: str = "abstract"
+    # Open-loop `execute` renders only the keyframes that a keyframe grid of this many frames shows
+    # (labrobfail_vlm.grid.sample_keyframes picks them from the keyframes' steps, known before the run);
+    # the others hold b"" in `images`. None renders every keyframe. Rendering is most of an episode's cost
+    # once physics is cheap, and a 16-frame grid shows 12 of an average 18 keyframes.
+    render_frames: int | None = None
 
     def __init__(self) -> None:
         self._key: tuple[str, int, str] = ("", 0, "")
@@ -163,13 +170,13 @@ class FailureSource(ABC):
         self._fresh = True
         self._key = (scenario, seed, variant)
 
-    def begin(self, physics_events: Sequence[PhysicsEvent] = ()) -> None:
+    def begin(self, physics_events: Sequence[PhysicsEvent] = (), render: set[int] | None = None) -> None:
         """Start recording an episode from the state `reset` built; `physics_events` fire before the
-        keyframe whose index they name."""
+        keyframe whose index they name; `render`: the keyframe indices whose images are taken (None: all)."""
         if not self._fresh:
             raise RuntimeError("begin() needs a fresh reset(): every episode starts from the seeded initial state")
         self._fresh = False
-        self._run = _Run(list(physics_events), images=[[] for _ in self.camera_names])
+        self._run = _Run(list(physics_events), images=[[] for _ in self.camera_names], render=render)
         self._begin()
 
     def step(self, kf: Keyframe) -> None:
@@ -181,6 +188,11 @@ class FailureSource(ABC):
                 self._apply_physics(ev)
         self._move(kf, i)
         run.executed.append(kf)
+        if run.render is not None and i not in run.render:
+            run.last = None  # observe() renders on demand
+            for v in run.images:
+                v.append(b"")
+            return
         run.last = self.render() if self.camera_names else []
         for v, img in enumerate(run.last):
             run.images[v].append(png_bytes(img))
@@ -210,7 +222,8 @@ class FailureSource(ABC):
 
     def execute(self, keyframes: Sequence[Keyframe], physics_events: Sequence[PhysicsEvent] = ()) -> Episode:
         """Run keyframes from the state set by the last `reset`, render and label (open loop)."""
-        self.begin(physics_events)
+        picks = sample_keyframes([kf.segment for kf in keyframes], self.render_frames) if self.render_frames else None
+        self.begin(physics_events, None if picks is None else set(picks))
         for kf in keyframes:
             self.step(kf)
         return self.finish()
@@ -221,7 +234,8 @@ class FailureSource(ABC):
         return list(self._active().executed)
 
     def images_so_far(self) -> list[list[bytes]]:
-        """PNG bytes of every view at the end of every keyframe stepped so far: `[view][keyframe]` (a copy)."""
+        """PNG bytes of every view at the end of every keyframe stepped so far: `[view][keyframe]` (a copy;
+        b"" for a keyframe `begin(render=...)` left out)."""
         return [list(v) for v in self._active().images]
 
     def _active(self) -> _Run:

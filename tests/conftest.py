@@ -9,8 +9,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+# render_frames=null: every keyframe rendered, so the data tests can build grids of any size from the same run.
 SMALL = ["scenarios=[press_button_red,open_oven_center,pick_place_bottle]", "image_size=48", "episodes_per_shard=2",
-         "progress=false"]
+         "render_frames=null", "progress=false"]
 
 
 def gen(out, *extra, check=True):

@@ -72,6 +72,7 @@ def test_resume_after_sigkill_gives_identical_data(run6, tmp_path):
 @pytest.mark.parametrize("arg, field", [
     ("backend=gazebo", "backend"), ("num_episodes=-3", "num_episodes"), ("variant=unseen_moon", "variant"),
     ("scenarios=[fly_to_moon]", "scenarios"), ("workers=0", "workers"), ("bogus_key=1", "bogus_key"),
+    ("render_frames=0", "render_frames"),
     ("backend_kwargs.custom_objects=tests/data/bad_objects.yaml", "backend_kwargs.custom_objects"),
     ("backend_kwargs.custom_scene=nowhere.yaml", "backend_kwargs.custom_scene"),
 ])
@@ -133,3 +134,29 @@ def test_ray_executor_gives_the_same_data(run6, tmp_path):
     assert [[r[k] for k in keys] for r in rows(out)] == [[r[k] for k in keys] for r in rows(run6)]
     man = json.loads((out / "manifest.json").read_text())
     assert man["episodes"] == 6 and man["guessed_labels"] == 0
+
+
+def test_render_frames_takes_only_the_images_its_grid_shows(tmp_path):
+    """With render_frames=M an episode holds images at exactly the keyframes an M-frame grid samples (b"" at the
+    others); the physics and labels are those of a fully rendered run; building another grid size is refused
+    before anything is written, and a build with M frames works."""
+    from labrobfail_vlm.grid import sample_keyframes
+
+    full, part = tmp_path / "full", tmp_path / "part"
+    gen(full, "num_episodes=2", "seed=5", "scenarios=[pick_place_bottle]")
+    gen(part, "num_episodes=2", "seed=5", "scenarios=[pick_place_bottle]", "render_frames=4")
+    for a, b in zip(rows(full), rows(part)):
+        assert (a["state_trace"], a["failure_type"]) == (b["state_trace"], b["failure_type"])
+        picks = sample_keyframes([k["segment"] for k in json.loads(b["keyframes"])], 4)
+        assert len(b["images"][0]) > len(picks)
+        for va, vb in zip(a["images"], b["images"]):
+            assert [i for i, x in enumerate(vb) if x] == picks and all(vb[i] == va[i] for i in picks)
+    build = [sys.executable, "scripts/build_dataset.py", f"shards={part}", "grid.width=256", "grid.height=128",
+             "grid.columns=4", "progress=false"]
+    r = subprocess.run([*build, f"out_dir={tmp_path}/o8", "grid.max_frames=8"], cwd=ROOT, capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 2 and "render_frames=4" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "o8").exists()
+    r = subprocess.run([*build, f"out_dir={tmp_path}/o4", "grid.max_frames=4", "grid.columns=2"], cwd=ROOT,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr

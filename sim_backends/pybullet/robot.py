@@ -15,12 +15,15 @@ import pybullet_data
 ARM_JOINTS = list(range(7))
 FINGERS = (9, 10)
 EE_LINK = 11  # the grasp target between the fingertips
+SWEEP_LINKS = list(range(3, 12))  # from the elbow to the fingertips: the links that reach down to the bench
 FINGER_OPEN = 0.04
 REST = [0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.785]
 LOWER = [-2.9, -1.76, -2.9, -3.07, -2.9, -0.02, -2.9]
 UPPER = [2.9, 1.76, 2.9, -0.07, 2.9, 3.75, 2.9]
 RANGES = [u - l for l, u in zip(LOWER, UPPER)]
 DT = 1.0 / 240.0
+TURN = 2.5  # rad/s: wrist rotation rate of a keyframe move
+LIQUID_TURN = 0.8  # rad/s, while the closed gripper may hold liquid
 
 # Orientation with the fingers pointing down and closing along the world y axis.
 TOP_DOWN = p.getQuaternionFromEuler([math.pi, 0.0, 0.0])
@@ -65,6 +68,7 @@ class Panda:
         self.grip_force = grip_force
         self.gripper_cmd = 0
         self.q_target = list(REST)
+        self.carries_liquid = False  # set by the scene: liquid in play makes a closed gripper turn slowly
 
     # -- state ---------------------------------------------------------------------------------------
     def ee_pose(self) -> tuple[np.ndarray, tuple]:
@@ -79,6 +83,29 @@ class Panda:
         return sum(1 for f in FINGERS
                    if p.getContactPoints(self.id, body, f, -1, physicsClientId=self.cid)
                    or p.getContactPoints(self.id, body, f, physicsClientId=self.cid))
+
+    def sweep(self, poses, per_move: int = 6) -> np.ndarray:
+        """Points (N x 3) that the links from the elbow to the fingertips pass through along a plan of (pos, quat)
+        poses, moving in straight lines from the current pose: inverse kinematics chained as `move_to` chains it,
+        no physics step. The joints are put back afterwards. Distractors keep clear of these (scene.py)."""
+        q_keep, target_keep = [p.getJointState(self.id, j, physicsClientId=self.cid)[0] for j in ARM_JOINTS], self.q_target
+        cur, cur_q = self.ee_pose()
+        out: list[tuple[float, float, float]] = []
+        for pos, quat in poses:
+            pos = np.asarray(pos, float)
+            for i in range(1, per_move + 1):
+                a = i / per_move
+                q = self._ik(cur + (pos - cur) * a, p.getQuaternionSlerp(cur_q, quat, a))
+                self.q_target = q
+                for j, v in zip(ARM_JOINTS, q):
+                    p.resetJointState(self.id, j, v, physicsClientId=self.cid)
+                out.extend(s[4] for s in p.getLinkStates(self.id, SWEEP_LINKS, computeForwardKinematics=True,
+                                                         physicsClientId=self.cid))
+            cur, cur_q = pos, quat
+        self.q_target = target_keep
+        for j, v in zip(ARM_JOINTS, q_keep):
+            p.resetJointState(self.id, j, v, physicsClientId=self.cid)
+        return np.asarray(out, float).reshape(-1, 3)
 
     # -- commands ------------------------------------------------------------------------------------
     def set_gripper(self, closed: int) -> None:
@@ -105,7 +132,10 @@ class Panda:
         pos = np.asarray(pos, float)
         dist = float(np.linalg.norm(pos - p0))
         ang = 2 * math.acos(min(1.0, abs(float(np.dot(q0, quat)))))
-        n = max(8, int(max(dist / speed, ang / 0.8) / DT))  # <= 0.8 rad/s: faster rolls fling the liquid
+        # A held vessel with liquid turns at <= 0.8 rad/s (faster rolls fling the liquid); otherwise the wrist
+        # turns at 2.5 rad/s, which roughly halves the physics steps of a long task (scripts/bench_sim.py).
+        turn = LIQUID_TURN if (self.gripper_cmd and self.carries_liquid) else TURN
+        n = max(8, int(max(dist / speed, ang / turn) / DT))
         for i in range(1, n + 1):
             a = i / n
             if i % 4 == 1 or i == n:  # IK at 60 Hz is plenty for a 240 Hz position controller

@@ -51,6 +51,8 @@ SCENE_FAMILIES: dict[str, dict[str, Any]] = {
 PLACEMENT_JITTER = 0.035  # m: objects and zones move by up to this much in x and y (times their `jitter`)
 MAX_DISTRACTORS = 3  # glassware on the bench that is not part of the task
 DISTRACTOR_CLEARANCE = 0.11  # m from every task object and zone (and 0.08 from the lines between them)
+SWEEP_CLEARANCE = 0.13  # m (xy) from every link origin of the arm's sweep (links are up to ~0.1 m wide) ...
+SWEEP_HEIGHT = 0.30  # m: ... that passes lower than this (the tallest glassware plus the link's reach)
 ARM_CORRIDOR = 0.24  # m behind (-x of) each object and zone that the hand and forearm sweep when reaching it
 
 
@@ -140,12 +142,15 @@ def _seg_dist(q: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
 
 
 def place_distractors(cid: int, objects: dict[str, "SceneObject"], zones: dict[str, tuple], variant: str,
-                      rng: np.random.Generator, count: int) -> dict[str, int]:
+                      rng: np.random.Generator, count: int, sweep: np.ndarray | None = None) -> dict[str, int]:
     """Up to `count` vessels from the variant's catalogue, clear of the task's objects, zones and paths.
 
-    They stand away from every object and zone, from the straight lines between them and from the approach
-    corridor behind each object and zone (the arm comes in along +x), so the nominal plan never touches them.
+    They stand away from every object and zone, from the straight lines between them, from the approach
+    corridor behind each object and zone (the arm comes in along +x) and from every point of `sweep` (where
+    the arm's links pass along the nominal plan) low enough to hit them, so the nominal plan never touches them.
+    Without the sweep, all 11 nominal failures in 432 runs were the forearm, wrist or hand hitting a distractor.
     """
+    low = sweep[sweep[:, 2] < SWEEP_HEIGHT, :2] if sweep is not None and len(sweep) else np.zeros((0, 2))
     table = UNSEEN_OBJECTS if variant in ("unseen_object", "unseen_both") else SEEN_OBJECTS
     kinds = sorted(k for k, v in table.items() if v["kind"] == "vessel")
     items = [np.asarray(o.home[:2]) for o in objects.values()] + [np.asarray(z[:2]) for z in zones.values()]
@@ -163,6 +168,7 @@ def place_distractors(cid: int, objects: dict[str, "SceneObject"], zones: dict[s
             if (all(np.linalg.norm(q - it) >= DISTRACTOR_CLEARANCE for it in items)
                     and all(_seg_dist(q, a, b) >= 0.08 for a, b in segs)
                     and all(np.linalg.norm(q - ov) >= 0.32 for ov in ovens)
+                    and (not len(low) or float(np.min(np.linalg.norm(low - q, axis=1))) >= SWEEP_CLEARANCE)
                     and all(np.linalg.norm(q - np.asarray(p.getBasePositionAndOrientation(b, physicsClientId=cid)[0][:2])) >= 0.09
                             for b in out.values())):
                 od = table[kind]
@@ -194,7 +200,7 @@ def resolve_object(kind_name: str, variant: str, custom: dict[str, dict[str, Any
 def build(cid: int, layout: dict[str, Any], variant: str, rng: np.random.Generator,
           custom_objects: dict[str, dict[str, Any]] | None = None,
           custom_scene: dict[str, Any] | None = None, grip_force: float = 60.0,
-          max_distractors: int = MAX_DISTRACTORS, lowpoly: bool = True) -> Scene:
+          lowpoly: bool = True) -> Scene:
     """Create the scene described by a scenario's `layout` (role -> {object, xy, ...})."""
     if custom_scene is not None:  # a user's scene file: fixed colours and light; texture optional
         appearance = {"texture": "checker" if custom_scene.get("checker") else "plain", "ambient": 0.6,
@@ -269,6 +275,13 @@ def build(cid: int, layout: dict[str, Any], variant: str, rng: np.random.Generat
             objects[role] = SceneObject(role, "rod", body, pos, {"length": ln, "radius": float(od["radius"])})
         else:
             raise ValueError(f"scenario: object {spec['object']!r} has unknown kind {od['kind']!r}")
+    return Scene(cid, robot, objects, zones, parts, appearance, bench_id, labels)
+
+
+def add_distractors(scene: Scene, layout: dict[str, Any], variant: str, rng: np.random.Generator,
+                    max_distractors: int, plan_poses: list) -> None:
+    """0..max_distractors glassware vessels that the nominal plan's arm never comes near (`Panda.sweep`)."""
     n = int(rng.integers(max_distractors + 1)) if layout.get("_distractors", True) else 0
-    distractors = place_distractors(cid, objects, zones, variant, rng, n)
-    return Scene(cid, robot, objects, zones, parts, appearance, bench_id, labels, distractors)
+    if n:
+        sweep = scene.robot.sweep(plan_poses)
+        scene.distractors = place_distractors(scene.cid, scene.objects, scene.zones, variant, rng, n, sweep)
