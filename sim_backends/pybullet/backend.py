@@ -121,7 +121,6 @@ class PyBulletSource(ScenarioConfig, FailureSource):
             self.renderer.set_episode(self.scene.appearance, rng if self.camera_jitter else None)
         for _ in range(60):  # let liquid and glassware settle before the first keyframe
             p.stepSimulation(physicsClientId=cid)
-        self.scene.robot.carries_liquid = bool(self.scene.particles)
 
     def scripted_keyframes(self) -> list[Keyframe]:
         assert self.plan is not None, "reset() first"

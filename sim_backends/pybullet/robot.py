@@ -68,7 +68,7 @@ class Panda:
         self.grip_force = grip_force
         self.gripper_cmd = 0
         self.q_target = list(REST)
-        self.carries_liquid = False  # set by the scene: liquid in play makes a closed gripper turn slowly
+        self.carries_liquid = False  # scene.build sets it: liquid in play makes a closed gripper turn slowly
 
     # -- state ---------------------------------------------------------------------------------------
     def ee_pose(self) -> tuple[np.ndarray, tuple]:

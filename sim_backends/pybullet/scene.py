@@ -275,6 +275,7 @@ def build(cid: int, layout: dict[str, Any], variant: str, rng: np.random.Generat
             objects[role] = SceneObject(role, "rod", body, pos, {"length": ln, "radius": float(od["radius"])})
         else:
             raise ValueError(f"scenario: object {spec['object']!r} has unknown kind {od['kind']!r}")
+    robot.carries_liquid = bool(parts)  # liquid in play: a closed gripper turns slowly (robot.LIQUID_TURN)
     return Scene(cid, robot, objects, zones, parts, appearance, bench_id, labels)
 
 
