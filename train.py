@@ -43,6 +43,22 @@ def _check_dataset(cfg: Any) -> dict[str, Any]:
     return grid
 
 
+def _grounding(cfg: Any, model: Any, grid: dict[str, Any]) -> tuple[dict[str, Any] | None, dict | None]:
+    """The grounding head and its per-frame targets (labrobfail_vlm/train/grounding.py), or (None, None)."""
+    g = cfg.grounding
+    if float(g.weight) == 0:
+        return None, None
+    from labrobfail_vlm.grid import GridConfig
+    from labrobfail_vlm.train.grounding import GroundingHead, dataset_targets
+
+    gcfg = GridConfig(**{k: v for k, v in grid.items() if k in GridConfig.__dataclass_fields__})
+    trajs = json.loads((Path(cfg.dataset_dir) / "trajectories.json").read_text())
+    targets, views = dataset_targets(trajs, gcfg)
+    head = GroundingHead(int(model.config.vision_config.out_hidden_size), gcfg, views)
+    head.prepare(round(gcfg.height / 32), round(gcfg.width / 32))  # Qwen3-VL: one visual token per 32x32 px
+    return {"head": head, "weight": float(g.weight), "rank": float(g.rank), "lr": float(g.lr)}, targets
+
+
 def run(cfg: Any) -> dict[str, Any]:
     import torch
     from transformers import TrainingArguments
@@ -62,6 +78,9 @@ def run(cfg: Any) -> dict[str, Any]:
     for key, v in (("polarity_warmup", warm), ("detect_first", detect)):
         if not 0.0 <= v <= 1.0:
             raise ConfigError(f"curriculum.{key}: a fraction of the steps in [0, 1], got {v}")
+    for key in ("weight", "rank", "lr"):
+        if float(cfg.grounding[key]) < 0:
+            raise ConfigError(f"grounding.{key}: must be >= 0, got {cfg.grounding[key]}")
     if detect and cfg.loss.mode != "record":
         raise ConfigError("curriculum.detect_first: needs loss.mode=record (it sets per-record loss weights)")
     if cfg.model.path is None:
@@ -122,12 +141,14 @@ def run(cfg: Any) -> dict[str, Any]:
     callbacks = [ProgressLog(Path(cfg.output_dir), records_per_item),
                  *([PolarityWarmup(rewording, warm)] if rewording is not None and warm else []),
                  *([DetectFirst(rewording, detect)] if rewording is not None and detect else [])]
+    grounding, targets = _grounding(cfg, model, grid)
     trainer = HybridTrainer(model=model, args=args, train_dataset=train,
                             data_collator=Collator(processor, int(cfg.max_length), dict(cfg.loss.question_weights)
-                                                   if cfg.loss.mode == "record" else None, rewording),
+                                                   if cfg.loss.mode == "record" else None, rewording,
+                                                   targets, train.group_of),
                             processing_class=processor, group_lrs=dict(cfg.lr), base_model=str(cfg.model.path),
                             tuning=str(cfg.tuning), loss_mode=str(cfg.loss.mode), grid=grid, pair_batches=pairs,
-                            callbacks=callbacks)
+                            grounding=grounding, callbacks=callbacks)
     resume = None
     if cfg.resume is True:
         resume = get_last_checkpoint(str(cfg.output_dir))
@@ -137,6 +158,9 @@ def run(cfg: Any) -> dict[str, Any]:
         if not Path(cfg.resume).is_dir():
             raise ConfigError(f"resume: no such checkpoint {cfg.resume!r}")
         resume = cfg.resume
+    if resume is not None and grounding is not None:
+        from labrobfail_vlm.train.grounding import load_head
+        load_head(grounding["head"], Path(resume))
     result = trainer.train(resume_from_checkpoint=resume)
     trainer.save_model(str(Path(cfg.output_dir) / "final"))
     losses = [h["loss"] for h in trainer.state.log_history if "loss" in h]

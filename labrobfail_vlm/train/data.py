@@ -70,8 +70,11 @@ class Collator:
     carries `record_weight`, which the trainer's record loss pops before the forward pass."""
 
     def __init__(self, processor: Any, max_length: int = 2048, question_weights: dict[str, float] | None = None,
-                 rewording: Callable[[list[dict[str, Any]]], list[dict[str, Any]]] | None = None):
+                 rewording: Callable[[list[dict[str, Any]]], list[dict[str, Any]]] | None = None,
+                 frame_targets: dict[str, list[float]] | None = None, group_of: dict[str, str] | None = None):
         self.processor = processor
+        # grounding (labrobfail_vlm/train/grounding.py): per-frame targets and twin ids, one row per image
+        self.frame_targets, self.group_of = frame_targets, group_of or {}
         self.rewording = rewording  # labrobfail_vlm.train.curriculum.Rewording
         self.max_length = int(max_length)
         self.image_token = processor.image_token
@@ -90,6 +93,18 @@ class Collator:
             return scale
         dim = Q.dim_of(rec["id"])
         return self.weights["aux" if Q.is_aux(dim) else dim] * scale
+
+    def add_grounding(self, batch: dict[str, Any], record_ids: list[str]) -> None:
+        """`frame_target` (rows, max_frames) and `pair_group` (rows,) for the images of a batch, one per row."""
+        if self.frame_targets is None:
+            return
+        trajs = [Q.traj_of(r) for r in record_ids]
+        missing = [t for t in trajs if t not in self.frame_targets]
+        if missing:
+            raise ValueError(f"grounding: trajectory {missing[0]} has no frame targets in trajectories.json")
+        groups = {g: i for i, g in enumerate(dict.fromkeys(self.group_of.get(t, t) for t in trajs))}
+        batch["frame_target"] = torch.tensor([self.frame_targets[t] for t in trajs])
+        batch["pair_group"] = torch.tensor([groups[self.group_of.get(t, t)] for t in trajs])
 
     def _ids(self, texts: list[str], grid_thw: torch.Tensor) -> list[list[int]]:
         """Token ids of texts holding one image placeholder, as the processor would make them: the
@@ -152,6 +167,7 @@ class Collator:
         batch = pack_rows(rows, int(proc.tokenizer.pad_token_id))
         batch.update(pixel_values=torch.cat(pixels), image_grid_thw=torch.stack(thws),
                      record_weight=torch.tensor(weights))
+        self.add_grounding(batch, [recs[0]["id"] for recs in items])
         return batch
 
     def __call__(self, batch: list[Any]) -> dict[str, torch.Tensor]:
@@ -181,4 +197,6 @@ class Collator:
         enc["labels"] = labels
         if self.weights is not None:
             enc["record_weight"] = torch.tensor([self.weight(b) for b in batch])
-        return dict(enc)
+        out = dict(enc)
+        self.add_grounding(out, [b["id"] for b in batch])
+        return out

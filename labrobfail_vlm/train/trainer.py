@@ -36,8 +36,15 @@ def check_loss_mode(mode: str) -> str:
 class HybridTrainer(Trainer):
     def __init__(self, *args: Any, group_lrs: dict[str, float], base_model: str, tuning: str,
                  loss_mode: str = "token", grid: dict[str, Any] | None = None, pair_batches: bool = False,
-                 **kwargs: Any):
+                 grounding: dict[str, Any] | None = None, **kwargs: Any):
         super().__init__(*args, **kwargs)
+        # grounding: {"head": GroundingHead, "weight": float, "rank": float, "lr": float} (train/grounding.py)
+        self.grounding = grounding
+        self.tap = None
+        if grounding is not None:
+            from labrobfail_vlm.train.grounding import TokenTap
+            self.tap = TokenTap(self.model)
+            grounding["head"].to(self.args.device)
         self.group_lrs, self.base_model, self.tuning = group_lrs, base_model, tuning
         self.pair_batches = pair_batches
         self.loss_mode = check_loss_mode(loss_mode)
@@ -48,13 +55,27 @@ class HybridTrainer(Trainer):
     def compute_loss(self, model, inputs, return_outputs=False, num_items_in_batch=None):  # noqa: D102
         weights = inputs.pop("record_weight", None)
         slots = inputs.pop("label_slot", None)
+        targets, groups = inputs.pop("frame_target", None), inputs.pop("pair_group", None)
+        thw = inputs.get("image_grid_thw")
         if "segment_ids" in inputs:  # shared-prefix packed rows (labrobfail_vlm/train/packing.py)
             inputs = prepare_packed(model, inputs)
         if self.loss_mode == "token":
-            return super().compute_loss(model, inputs, return_outputs, num_items_in_batch)
-        labels = inputs.pop("labels")
-        loss, outputs = record_loss(model, inputs, labels, weights, slots)
+            out = super().compute_loss(model, inputs, True, num_items_in_batch)
+            loss, outputs = out
+        else:
+            loss, outputs = record_loss(model, inputs, inputs.pop("labels"), weights, slots)
+        if self.grounding is not None and targets is not None and model.training:
+            from labrobfail_vlm.train.grounding import grounding_loss
+            g = grounding_loss(self.grounding["head"], self.tap.take(), thw, targets, groups,
+                               float(self.grounding["rank"]))
+            self._grounding_log = float(g.detach())
+            loss = loss + float(self.grounding["weight"]) * g
         return (loss, outputs) if return_outputs else loss
+
+    def log(self, logs: dict[str, float], *args: Any, **kwargs: Any) -> None:  # noqa: D102
+        if getattr(self, "_grounding_log", None) is not None and "loss" in logs:
+            logs["grounding_loss"] = round(self._grounding_log, 4)
+        super().log(logs, *args, **kwargs)
 
     def _get_train_sampler(self, train_dataset=None):  # noqa: D102 - curriculum: twins in one micro-batch
         ds = train_dataset if train_dataset is not None else self.train_dataset
@@ -66,6 +87,9 @@ class HybridTrainer(Trainer):
     def create_optimizer(self, model=None):  # noqa: D102 - one optimizer, a learning rate per parameter group
         if self.optimizer is None:
             groups = param_groups(model or self.model, self.group_lrs, self.args.weight_decay)
+            if self.grounding is not None:
+                groups.append({"params": list(self.grounding["head"].parameters()), "lr": float(self.grounding["lr"]),
+                               "weight_decay": self.args.weight_decay, "name": "grounding"})
             self.optimizer = torch.optim.AdamW(groups, betas=(self.args.adam_beta1, self.args.adam_beta2),
                                                eps=self.args.adam_epsilon)
         return self.optimizer
@@ -80,6 +104,9 @@ class HybridTrainer(Trainer):
                        self.tuning, self.grid)
         if self.processing_class is not None:
             self.processing_class.save_pretrained(out)
+        if self.grounding is not None:  # for resuming only; inference never reads it
+            from labrobfail_vlm.train.grounding import save_head
+            save_head(self.grounding["head"], out)
 
 
 def record_loss(model: Any, inputs: dict[str, Any], labels: torch.Tensor, weights: torch.Tensor | None = None,

@@ -1,0 +1,180 @@
+"""Frame grounding: a training-only head that teaches the vision tower where a failure shows.
+
+Trained from scratch, the VLM gets one Yes/No per grid for Q2, and that signal must travel through two decoder
+layers and the merger before it reaches the vision tower; the model settles on text priors instead (see
+docs/ARCHITECTURE.md, "The from-scratch recipe"). The simulator says more for free: the grid frame where the
+failure first shows (the labeler's failure keyframe, from simulator state). So every cell of the grid gets a
+target, "has the trajectory failed by this frame?" (0 before that frame and in successes, 1 from it on, none for
+cells the grid leaves blank), and a small head reads it from the visual tokens the language model receives
+(the merger's output):
+
+    cell's tokens (flattened) -> MLP -> + time/view embedding -> the time step's views -> one logit
+
+Its loss is the mean binary cross-entropy over shown cells, plus a ranking term for success/failure twins in
+the same batch (same scene, camera and distractors; only the failure differs): the failed twin's last frame
+must score above the successful one's. The head adds `grounding.weight` x that loss to the VQA loss; it is
+not part of the model (checkpoints keep it beside the weights, `GROUNDING_FILE`, only for resuming), and the
+benchmark never sees it.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.grid import GridConfig
+
+GROUNDING_FILE = "grounding_head.safetensors"
+TOKEN_PX = 32  # Qwen3-VL: 16 px patches merged 2x2
+
+
+def frame_targets(meta: dict[str, Any], max_frames: int) -> list[float]:
+    """Per grid frame 1..max_frames: 1.0 once the failure shows, 0.0 before it (and in a success), -1.0 where
+    the grid shows nothing (past the trajectory's frames, or past a prefix grid's cut)."""
+    shown = min(int(meta.get("visible") or meta["frames"]), int(meta["frames"]))
+    fail_at = math.inf if meta["success"] else int(meta["frame"])
+    return [-1.0 if t > shown else float(t >= fail_at) for t in range(1, max_frames + 1)]
+
+
+def dataset_targets(trajectories: list[dict[str, Any]], grid: GridConfig) -> tuple[dict[str, list[float]], int]:
+    """trajectory -> frame targets, and the dataset's number of camera views (every grid must have the same)."""
+    views = {t.get("views") for t in trajectories}
+    if len(views) != 1 or None in views:
+        raise ConfigError("grounding: the dataset's trajectories.json lacks one common 'views' count (built before "
+                          "grounding existed); rebuild it with scripts/build_dataset.py")
+    return {t["trajectory"]: frame_targets(t, grid.max_frames) for t in trajectories}, int(views.pop())
+
+
+def cell_index(grid: GridConfig, views: int, h_tok: int, w_tok: int) -> torch.Tensor:
+    """(h_tok * w_tok,) raster order of merged tokens -> time step t (0-based) of the cell under the token's
+    centre, times `views` plus the view; -1 for tokens outside every cell."""
+    rows, cols = grid.shape(views)
+    cw, ch = grid.width // cols, grid.height // rows
+    sx, sy = grid.width / (w_tok * TOKEN_PX), grid.height / (h_tok * TOKEN_PX)  # the processor may resize
+    lookup = {grid.cell(t, k, views): t * views + k for t in range(grid.max_frames) for k in range(views)}
+    out = torch.full((h_tok * w_tok,), -1, dtype=torch.long)
+    for i in range(h_tok):
+        for j in range(w_tok):
+            y, x = (i + 0.5) * TOKEN_PX * sy, (j + 0.5) * TOKEN_PX * sx
+            out[i * w_tok + j] = lookup.get((int(y // ch), int(x // cw)), -1)
+    return out
+
+
+class GroundingHead(nn.Module):
+    """Visual tokens of one grid -> one logit per time step: each cell's tokens, flattened in raster order,
+    through a small MLP (with the cell's time/view embedding), the views of a time step concatenated."""
+
+    def __init__(self, dim: int, grid: GridConfig, views: int, hidden: int = 64):
+        super().__init__()
+        self.grid, self.views, self.dim, self.hidden = grid, int(views), int(dim), int(hidden)
+        self.cells = grid.max_frames * self.views
+        self.pos = nn.Parameter(torch.zeros(self.cells, hidden))
+        self.cell: nn.Module | None = None  # built on the first grid: its input size is the tokens per cell
+        self.out = nn.Linear(hidden * self.views, 1)
+        self._index: dict[tuple[int, int], torch.Tensor] = {}
+
+    def build(self, per_cell: int) -> None:
+        """Size the cell MLP for `per_cell` tokens (called before the optimizer exists, and on loading)."""
+        if self.cell is None:
+            self.cell = nn.Sequential(nn.Linear(self.dim * per_cell, 4 * self.hidden), nn.GELU(),
+                                      nn.Linear(4 * self.hidden, self.hidden))
+
+    def gather(self, h_tok: int, w_tok: int) -> torch.Tensor:
+        """(cells, tokens per cell) token indices; every cell of a grid covers the same number of tokens."""
+        key = (h_tok, w_tok)
+        if key not in self._index:
+            idx = cell_index(self.grid, self.views, h_tok, w_tok)
+            counts = torch.bincount(idx[idx >= 0], minlength=self.cells)
+            if counts.min() != counts.max() or counts.min() == 0:
+                raise ConfigError(f"grounding: grid cells cover unequal numbers of visual tokens ({counts.tolist()}); "
+                                  "use a grid whose cells are multiples of 32 px")
+            order = torch.argsort(idx * (h_tok * w_tok) + torch.arange(h_tok * w_tok))  # by cell, then raster
+            self._index[key] = order[int((idx < 0).sum()):].view(self.cells, int(counts[0]))
+        return self._index[key]
+
+    def prepare(self, h_tok: int, w_tok: int) -> "GroundingHead":
+        """Build the cell MLP for grids of h_tok x w_tok merged tokens (before the optimizer takes the params)."""
+        self.build(self.gather(h_tok, w_tok).shape[1])
+        return self
+
+    def forward(self, tokens: torch.Tensor, h_tok: int, w_tok: int) -> torch.Tensor:
+        at = self.gather(h_tok, w_tok).to(tokens.device)
+        if self.cell is None:
+            raise RuntimeError("grounding: call prepare() before the first forward pass")
+        e = self.cell(tokens.float()[at].flatten(1)) + self.pos  # (cells, hidden), cell = t * views + k
+        return self.out(e.view(self.grid.max_frames, -1)).squeeze(-1)
+
+
+def grounding_loss(head: GroundingHead, tokens: torch.Tensor, thw: torch.Tensor, targets: torch.Tensor,
+                   groups: torch.Tensor | None = None, rank: float = 1.0) -> torch.Tensor:
+    """`tokens`: the merger's output for the batch's images, concatenated; `thw`: image_grid_thw (B, 3);
+    `targets`: (B, max_frames) from `frame_targets`; `groups`: (B,) pair ids (twins share one)."""
+    logits, at = [], 0
+    for t, h, w in thw.tolist():
+        n = t * (h // 2) * (w // 2)
+        logits.append(head(tokens[at:at + n], h // 2, w // 2))
+        at += n
+    z = torch.stack(logits)
+    y = targets.to(z.device)
+    shown = y >= 0
+    loss = F.binary_cross_entropy_with_logits(z[shown], y[shown])
+    if rank and groups is not None:
+        last = shown.long().cumsum(1).argmax(1)  # the last shown frame
+        zl = z.gather(1, last[:, None]).squeeze(1)
+        failed = y.gather(1, last[:, None]).squeeze(1) > 0.5
+        g = groups.to(z.device)
+        twins = (g[:, None] == g[None, :]) & failed[:, None] & ~failed[None, :]  # (failed i, successful j)
+        if twins.any():
+            fi, sj = twins.nonzero(as_tuple=True)
+            loss = loss + rank * F.softplus(zl[sj] - zl[fi]).mean()
+    return loss
+
+
+def vision_module(model: nn.Module) -> nn.Module:
+    """The vision tower inside a Qwen3-VL model (under a PeftModel too)."""
+    for name, m in model.named_modules():
+        if name.endswith("visual") and hasattr(m, "merger"):
+            return m
+    raise ConfigError("grounding: the model has no Qwen3-VL vision tower (a module named *visual with a merger)")
+
+
+class TokenTap:
+    """Keeps the vision tower's last merged tokens (its pooler_output) from each forward pass."""
+
+    def __init__(self, model: nn.Module):
+        self.tokens: torch.Tensor | None = None
+        self.handle = vision_module(model).register_forward_hook(self._hook)
+
+    def _hook(self, module: nn.Module, args: Any, output: Any) -> None:
+        self.tokens = output.pooler_output if hasattr(output, "pooler_output") else output[1]
+
+    def take(self) -> torch.Tensor:
+        if self.tokens is None:
+            raise RuntimeError("grounding: the vision tower did not run in this forward pass")
+        t, self.tokens = self.tokens, None
+        return t
+
+
+def save_head(head: GroundingHead, out: Path) -> None:
+    from safetensors.torch import save_file
+
+    save_file({k: v.detach().cpu().contiguous() for k, v in head.state_dict().items()}, str(out / GROUNDING_FILE))
+
+
+def load_head(head: GroundingHead, ckpt: Path) -> bool:
+    """Restore the head saved beside a checkpoint (resume); False when the checkpoint has none."""
+    from safetensors.torch import load_file
+
+    path = Path(ckpt) / GROUNDING_FILE
+    if not path.is_file():
+        return False
+    state = load_file(str(path))
+    head.build(state["cell.0.weight"].shape[1] // head.dim)
+    head.load_state_dict(state)
+    return True

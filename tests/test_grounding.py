@@ -1,0 +1,105 @@
+"""Frame grounding (labrobfail_vlm/train/grounding.py): targets, the token-to-cell map, the head, a real run."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from conftest import ROOT
+from test_train import small_ds, tiny  # noqa: F401  (session fixtures)
+
+
+def test_frame_targets_follow_the_failure_frame_and_the_shown_cells():
+    from labrobfail_vlm.train.grounding import frame_targets
+    assert frame_targets({"success": True, "frame": None, "frames": 6}, 8) == [0, 0, 0, 0, 0, 0, -1, -1]
+    assert frame_targets({"success": False, "frame": 3, "frames": 6}, 8) == [0, 0, 1, 1, 1, 1, -1, -1]
+    # a prefix grid shows its first `visible` frames only
+    assert frame_targets({"success": False, "frame": 2, "frames": 8, "visible": 3}, 8) == [0, 1, 1] + [-1] * 5
+
+
+def test_cell_index_maps_tokens_to_time_steps_and_views():
+    from labrobfail_vlm.grid import GridConfig
+    from labrobfail_vlm.train.grounding import cell_index
+    g = GridConfig(width=512, height=512, max_frames=8, columns=4)  # 4 rows (2 bands x 2 views) of 128 px cells
+    idx = cell_index(g, 2, 16, 16).view(16, 16)
+    assert idx[0, 0] == 0 and idx[3, 3] == 0  # t=0, view 0: the top-left 4x4 tokens
+    assert idx[4, 0] == 1  # t=0, view 1
+    assert idx[0, 15] == 3 * 2  # t=3, view 0
+    assert idx[8, 4] == 5 * 2 and idx[15, 15] == 7 * 2 + 1  # the second band: t=5 view 0, t=7 view 1
+    assert torch.bincount(idx.flatten()).tolist() == [16] * 16
+    # the default 1536x768 grid of 16 frames: 6x6 tokens per cell, every token in a cell
+    d = GridConfig()
+    idx = cell_index(d, 2, 24, 48)
+    assert (idx >= 0).all() and torch.bincount(idx).tolist() == [36] * 32
+
+
+def test_head_reads_each_time_step_from_its_own_cells():
+    from labrobfail_vlm.grid import GridConfig
+    from labrobfail_vlm.train.grounding import GroundingHead, grounding_loss
+    torch.manual_seed(0)
+    g = GridConfig(width=512, height=512, max_frames=8, columns=4)
+    head = GroundingHead(8, g, 2).prepare(16, 16)
+    tokens = torch.zeros(256, 8)
+    base = head(tokens, 16, 16)
+    tokens.view(16, 16, 8)[8:12, 4:8] = 3.0  # the cell of t=5 in view 0
+    moved = head(tokens, 16, 16)
+    assert torch.allclose(moved[[0, 1, 2, 3, 4, 6, 7]], base[[0, 1, 2, 3, 4, 6, 7]])
+    assert not torch.isclose(moved[5], base[5])
+    # the loss trains: a few steps separate a grid whose late cells differ from its unchanged twin
+    fail, ok = torch.randn(256, 8), None
+    ok = fail.clone()
+    fail.view(16, 16, 8)[8:16, :] += 1.0  # frames 5-8 change
+    tok = torch.cat([fail, ok])
+    thw = torch.tensor([[1, 32, 32], [1, 32, 32]])
+    y = torch.tensor([[0, 0, 0, 0, 1, 1, 1, 1], [0.0] * 8])
+    opt = torch.optim.Adam(head.parameters(), lr=0.05)
+    first = None
+    for _ in range(40):
+        loss = grounding_loss(head, tok, thw, y, torch.tensor([0, 0]))
+        first = float(loss) if first is None else first
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert float(loss) < 0.5 * first
+    z = torch.stack([head(fail, 16, 16), head(ok, 16, 16)])
+    assert (z[0, 4:] > z[1, 4:]).all()
+
+
+def test_training_with_grounding_logs_saves_and_resumes(tiny, small_ds, tmp_path):  # noqa: F811
+    out = tmp_path / "g"
+    common = [sys.executable, "train.py", "preset=tiny", f"model.path={tiny}", f"dataset_dir={small_ds}",
+              f"output_dir={out}", "global_batch=2", "per_device_batch=2", "grounding.weight=1.0", "save_steps=2", "logging_steps=1",
+              "wandb.enabled=false", "progress=false"]
+    r = subprocess.run([*common, "max_steps=2"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "grounding_loss" in r.stdout + r.stderr
+    from safetensors.torch import load_file
+    saved = load_file(str(out / "checkpoint-2" / "grounding_head.safetensors"))
+    assert saved and all(torch.isfinite(t).all() for t in saved.values())
+    r = subprocess.run([*common, "max_steps=3", "resume=true"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert json.loads((out / "train_summary.json").read_text())["global_step"] == 3
+    # an old dataset without view counts is refused in one line
+    traj = json.loads((small_ds / "trajectories.json").read_text())
+    old = tmp_path / "old"
+    old.mkdir()
+    for f in small_ds.iterdir():
+        if f.is_file() and f.name != "trajectories.json":
+            (old / f.name).symlink_to(f)
+    (old / "images").symlink_to(small_ds / "images")
+    (old / "trajectories.json").write_text(json.dumps([{k: v for k, v in t.items() if k != "views"} for t in traj]))
+    r = subprocess.run([*common[:4], f"dataset_dir={old}", f"output_dir={tmp_path}/o", "max_steps=1", "grounding.weight=1",
+                        "wandb.enabled=false"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "grounding" in r.stderr.strip().splitlines()[-1]
+
+
+@pytest.mark.parametrize("bad", ["grounding.weight=-1", "grounding.rank=-0.5"])
+def test_bad_grounding_config_is_one_line(tiny, small_ds, tmp_path, bad):  # noqa: F811
+    r = subprocess.run([sys.executable, "train.py", "preset=tiny", f"model.path={tiny}", f"dataset_dir={small_ds}",
+                        f"output_dir={tmp_path}/o", bad, "wandb.enabled=false"], cwd=ROOT, capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert bad.split("=")[0] in r.stderr.strip().splitlines()[-1]
