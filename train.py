@@ -51,11 +51,10 @@ def _grounding(cfg: Any, model: Any, grid: dict[str, Any]) -> tuple[dict[str, An
     from labrobfail_vlm.grid import GridConfig
     from labrobfail_vlm.train.grounding import GroundingHead, dataset_targets
 
-    gcfg = GridConfig(**{k: v for k, v in grid.items() if k in GridConfig.__dataclass_fields__})
+    gcfg = GridConfig.from_dict(grid)
     trajs = json.loads((Path(cfg.dataset_dir) / "trajectories.json").read_text())
     targets, views = dataset_targets(trajs, gcfg)
     head = GroundingHead(int(model.config.vision_config.out_hidden_size), gcfg, views)
-    head.prepare(round(gcfg.height / 32), round(gcfg.width / 32))  # Qwen3-VL: one visual token per 32x32 px
     return {"head": head, "weight": float(g.weight), "rank": float(g.rank), "lr": float(g.lr)}, targets
 
 

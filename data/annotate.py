@@ -112,7 +112,8 @@ def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator
         "task": task_name, "variant": row["variant"],
         "success": success, "failure_type": row["failure_type"], "category": row["category"],
         "severity": row["severity"], "failure_keyframe": row["failure_keyframe"], "frame": frame,
-        "frames": len(picks), "views": len(views), "sampled_keyframes": picks, "horizon": row["horizon"], "actions": list(row["actions"]),
+        "frames": len(picks), "views": len(views), "sampled_keyframes": picks, "horizon": row["horizon"],
+        "actions": list(row["actions"]),
         "evidence": row["evidence"], "strategy": correction(ctx)[0] if ctx else None,
         # the scene's object and place names: what a robot stack knows, and what Q6's template mode fills in
         "objects": sorted(set(meta.get("labels", {}).values())),

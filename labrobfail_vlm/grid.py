@@ -44,6 +44,11 @@ class GridConfig:
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"grid.{name}: must be a positive integer, got {getattr(self, name)!r}")
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "GridConfig":
+        """The config stored in a dataset's stats.json or a checkpoint's manifest (unknown keys ignored)."""
+        return cls(**{k: v for k, v in d.items() if k in cls.__dataclass_fields__})
+
     @property
     def bands(self) -> int:
         return math.ceil(self.max_frames / self.columns)

@@ -40,7 +40,7 @@ def test_head_reads_each_time_step_from_its_own_cells():
     from labrobfail_vlm.train.grounding import GroundingHead, grounding_loss
     torch.manual_seed(0)
     g = GridConfig(width=512, height=512, max_frames=8, columns=4)
-    head = GroundingHead(8, g, 2).prepare(16, 16)
+    head = GroundingHead(8, g, 2)
     tokens = torch.zeros(256, 8)
     base = head(tokens, 16, 16)
     tokens.view(16, 16, 8)[8:12, 4:8] = 3.0  # the cell of t=5 in view 0

@@ -56,7 +56,7 @@ def trained_grid(path: str | Path) -> GridConfig | None:
         return None
     if not isinstance(grid, dict):
         return None
-    return GridConfig(**{k: v for k, v in grid.items() if k in GridConfig.__dataclass_fields__})
+    return GridConfig.from_dict(grid)
 
 
 def load_finetuned(path: str | Path, dtype: Any = None):

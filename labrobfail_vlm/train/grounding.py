@@ -72,18 +72,14 @@ class GroundingHead(nn.Module):
 
     def __init__(self, dim: int, grid: GridConfig, views: int, hidden: int = 64):
         super().__init__()
-        self.grid, self.views, self.dim, self.hidden = grid, int(views), int(dim), int(hidden)
+        self.grid, self.views = grid, int(views)
         self.cells = grid.max_frames * self.views
-        self.pos = nn.Parameter(torch.zeros(self.cells, hidden))
-        self.cell: nn.Module | None = None  # built on the first grid: its input size is the tokens per cell
-        self.out = nn.Linear(hidden * self.views, 1)
         self._index: dict[tuple[int, int], torch.Tensor] = {}
-
-    def build(self, per_cell: int) -> None:
-        """Size the cell MLP for `per_cell` tokens (called before the optimizer exists, and on loading)."""
-        if self.cell is None:
-            self.cell = nn.Sequential(nn.Linear(self.dim * per_cell, 4 * self.hidden), nn.GELU(),
-                                      nn.Linear(4 * self.hidden, self.hidden))
+        # the grid's own token layout sizes the cell MLP (the processor keeps sides that are multiples of 32 px)
+        per_cell = self.gather(round(grid.height / TOKEN_PX), round(grid.width / TOKEN_PX)).shape[1]
+        self.cell = nn.Sequential(nn.Linear(int(dim) * per_cell, 4 * hidden), nn.GELU(), nn.Linear(4 * hidden, hidden))
+        self.pos = nn.Parameter(torch.zeros(self.cells, hidden))
+        self.out = nn.Linear(hidden * self.views, 1)
 
     def gather(self, h_tok: int, w_tok: int) -> torch.Tensor:
         """(cells, tokens per cell) token indices; every cell of a grid covers the same number of tokens."""
@@ -98,15 +94,8 @@ class GroundingHead(nn.Module):
             self._index[key] = order[int((idx < 0).sum()):].view(self.cells, int(counts[0]))
         return self._index[key]
 
-    def prepare(self, h_tok: int, w_tok: int) -> "GroundingHead":
-        """Build the cell MLP for grids of h_tok x w_tok merged tokens (before the optimizer takes the params)."""
-        self.build(self.gather(h_tok, w_tok).shape[1])
-        return self
-
     def forward(self, tokens: torch.Tensor, h_tok: int, w_tok: int) -> torch.Tensor:
         at = self.gather(h_tok, w_tok).to(tokens.device)
-        if self.cell is None:
-            raise RuntimeError("grounding: call prepare() before the first forward pass")
         e = self.cell(tokens.float()[at].flatten(1)) + self.pos  # (cells, hidden), cell = t * views + k
         return self.out(e.view(self.grid.max_frames, -1)).squeeze(-1)
 
@@ -174,7 +163,5 @@ def load_head(head: GroundingHead, ckpt: Path) -> bool:
     path = Path(ckpt) / GROUNDING_FILE
     if not path.is_file():
         return False
-    state = load_file(str(path))
-    head.build(state["cell.0.weight"].shape[1] // head.dim)
-    head.load_state_dict(state)
+    head.load_state_dict(load_file(str(path)))
     return True

@@ -41,6 +41,7 @@ class HybridTrainer(Trainer):
         # grounding: {"head": GroundingHead, "weight": float, "rank": float, "lr": float} (train/grounding.py)
         self.grounding = grounding
         self.tap = None
+        self._grounding_log: float | None = None  # the last grounding loss, added to the logged losses
         if grounding is not None:
             from labrobfail_vlm.train.grounding import TokenTap
             self.tap = TokenTap(self.model)
@@ -60,8 +61,7 @@ class HybridTrainer(Trainer):
         if "segment_ids" in inputs:  # shared-prefix packed rows (labrobfail_vlm/train/packing.py)
             inputs = prepare_packed(model, inputs)
         if self.loss_mode == "token":
-            out = super().compute_loss(model, inputs, True, num_items_in_batch)
-            loss, outputs = out
+            loss, outputs = super().compute_loss(model, inputs, True, num_items_in_batch)
         else:
             loss, outputs = record_loss(model, inputs, inputs.pop("labels"), weights, slots)
         if self.grounding is not None and targets is not None and model.training:
@@ -73,7 +73,7 @@ class HybridTrainer(Trainer):
         return (loss, outputs) if return_outputs else loss
 
     def log(self, logs: dict[str, float], *args: Any, **kwargs: Any) -> None:  # noqa: D102
-        if getattr(self, "_grounding_log", None) is not None and "loss" in logs:
+        if self._grounding_log is not None and "loss" in logs:
             logs["grounding_loss"] = round(self._grounding_log, 4)
         super().log(logs, *args, **kwargs)
 
