@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -49,12 +50,12 @@ def _grounding(cfg: Any, model: Any, grid: dict[str, Any]) -> tuple[dict[str, An
     if float(g.weight) == 0:
         return None, None
     from labrobfail_vlm.grid import GridConfig
-    from labrobfail_vlm.train.grounding import GroundingHead, dataset_targets
+    from labrobfail_vlm.train.grounding import dataset_targets, make_head
 
     gcfg = GridConfig.from_dict(grid)
     trajs = json.loads((Path(cfg.dataset_dir) / "trajectories.json").read_text())
     targets, views = dataset_targets(trajs, gcfg)
-    head = GroundingHead(int(model.config.vision_config.out_hidden_size), gcfg, views)
+    head = make_head(str(g.head), int(model.config.vision_config.out_hidden_size), gcfg, views)
     return {"head": head, "weight": float(g.weight), "rank": float(g.rank), "lr": float(g.lr)}, targets
 
 
@@ -77,9 +78,18 @@ def run(cfg: Any) -> dict[str, Any]:
     for key, v in (("polarity_warmup", warm), ("detect_first", detect)):
         if not 0.0 <= v <= 1.0:
             raise ConfigError(f"curriculum.{key}: a fraction of the steps in [0, 1], got {v}")
-    for key in ("weight", "rank", "lr"):
+    for key in ("weight", "rank", "lr", "pretrain_epochs"):
         if float(cfg.grounding[key]) < 0:
             raise ConfigError(f"grounding.{key}: must be >= 0, got {cfg.grounding[key]}")
+    from labrobfail_vlm.train.grounding import HEADS
+    if str(cfg.grounding.head) not in HEADS:
+        raise ConfigError(f"grounding.head: expected one of {', '.join(HEADS)}, got {cfg.grounding.head!r}")
+    pre_epochs = int(cfg.grounding.pretrain_epochs)
+    if pre_epochs and float(cfg.grounding.weight) == 0:
+        raise ConfigError("grounding.pretrain_epochs: needs grounding.weight > 0 (the head it trains)")
+    if pre_epochs and cfg.deepspeed is not None:
+        raise ConfigError("grounding.pretrain_epochs: runs on one process without DeepSpeed; pre-train the tower "
+                          "in a separate run and pass its final/ as model.path")
     if detect and cfg.loss.mode != "record":
         raise ConfigError("curriculum.detect_first: needs loss.mode=record (it sets per-record loss weights)")
     if cfg.model.path is None:
@@ -160,12 +170,22 @@ def run(cfg: Any) -> dict[str, Any]:
     if resume is not None and grounding is not None:
         from labrobfail_vlm.train.grounding import load_head
         load_head(grounding["head"], Path(resume))
+    pre: dict[str, float] = {}
+    if pre_epochs and resume is None:  # stage A; a resumed run's checkpoint already holds the grounded tower
+        from labrobfail_vlm.train.grounding import pretrain
+        wall, cpu = time.perf_counter(), time.process_time()
+        pre = pretrain(model, grounding["head"], trainer.get_train_dataloader(), pre_epochs,  # type: ignore[index]
+                       float(cfg.grounding.lr), float(cfg.grounding.rank), bool(cfg.progress))
+        pre |= {"epochs": pre_epochs, "wall_s": round(time.perf_counter() - wall, 1),
+                "cpu_s": round(time.process_time() - cpu, 1)}
+        callbacks[0].start_after(pre["wall_s"], pre["cpu_s"])  # the learning curve's clocks include stage A
+        print(json.dumps({"grounding_pretrain": pre}), flush=True)
     result = trainer.train(resume_from_checkpoint=resume)
     trainer.save_model(str(Path(cfg.output_dir) / "final"))
     losses = [h["loss"] for h in trainer.state.log_history if "loss" in h]
     summary = {"global_step": trainer.state.global_step, "train_loss": result.training_loss,
                "first_loss": losses[0] if losses else None, "last_loss": losses[-1] if losses else None,
-               "trainable_parameters": counts}
+               "trainable_parameters": counts, **({"grounding_pretrain": pre} if pre else {})}
     if args.process_index == 0:
         atomic_write_json(Path(cfg.output_dir) / "train_summary.json", summary)
         print(json.dumps(summary), flush=True)

@@ -35,12 +35,13 @@ def test_cell_index_maps_tokens_to_time_steps_and_views():
     assert (idx >= 0).all() and torch.bincount(idx).tolist() == [36] * 32
 
 
-def test_head_reads_each_time_step_from_its_own_cells():
+@pytest.mark.parametrize("kind", ["token", "cell"])
+def test_head_reads_each_time_step_from_its_own_cells(kind):
     from labrobfail_vlm.grid import GridConfig
-    from labrobfail_vlm.train.grounding import GroundingHead, grounding_loss
+    from labrobfail_vlm.train.grounding import grounding_loss, make_head
     torch.manual_seed(0)
     g = GridConfig(width=512, height=512, max_frames=8, columns=4)
-    head = GroundingHead(8, g, 2)
+    head = make_head(kind, 8, g, 2)
     tokens = torch.zeros(256, 8)
     base = head(tokens, 16, 16)
     tokens.view(16, 16, 8)[8:12, 4:8] = 3.0  # the cell of t=5 in view 0
@@ -72,15 +73,21 @@ def test_training_with_grounding_logs_saves_and_resumes(tiny, small_ds, tmp_path
     common = [sys.executable, "train.py", "preset=tiny", f"model.path={tiny}", f"dataset_dir={small_ds}",
               f"output_dir={out}", "global_batch=2", "per_device_batch=2", "grounding.weight=1.0", "save_steps=2", "logging_steps=1",
               "wandb.enabled=false", "progress=false"]
-    r = subprocess.run([*common, "max_steps=2"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    r = subprocess.run([*common, "max_steps=2", "grounding.pretrain_epochs=1"], cwd=ROOT, capture_output=True,
+                       text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     assert "grounding_loss" in r.stdout + r.stderr
+    # stage A ran before the VQA steps, and the learning curve's clocks count it
+    pre = json.loads((out / "train_summary.json").read_text())["grounding_pretrain"]
+    assert pre["epochs"] == 1 and pre["first_epoch_loss"] > 0
+    assert json.loads((out / "progress.json").read_text())[0]["cpu_s"] >= pre["cpu_s"]
     from safetensors.torch import load_file
     saved = load_file(str(out / "checkpoint-2" / "grounding_head.safetensors"))
     assert saved and all(torch.isfinite(t).all() for t in saved.values())
     r = subprocess.run([*common, "max_steps=3", "resume=true"], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
-    assert json.loads((out / "train_summary.json").read_text())["global_step"] == 3
+    summary = json.loads((out / "train_summary.json").read_text())
+    assert summary["global_step"] == 3 and "grounding_pretrain" not in summary  # the checkpoint holds stage A
     # an old dataset without view counts is refused in one line
     traj = json.loads((small_ds / "trajectories.json").read_text())
     old = tmp_path / "old"
@@ -96,7 +103,8 @@ def test_training_with_grounding_logs_saves_and_resumes(tiny, small_ds, tmp_path
     assert "grounding" in r.stderr.strip().splitlines()[-1]
 
 
-@pytest.mark.parametrize("bad", ["grounding.weight=-1", "grounding.rank=-0.5"])
+@pytest.mark.parametrize("bad", ["grounding.weight=-1", "grounding.rank=-0.5", "grounding.head=mlp",
+                                 "grounding.pretrain_epochs=-2", "grounding.pretrain_epochs=1"])
 def test_bad_grounding_config_is_one_line(tiny, small_ds, tmp_path, bad):  # noqa: F811
     r = subprocess.run([sys.executable, "train.py", "preset=tiny", f"model.path={tiny}", f"dataset_dir={small_ds}",
                         f"output_dir={tmp_path}/o", bad, "wandb.enabled=false"], cwd=ROOT, capture_output=True,

@@ -6,15 +6,25 @@ docs/ARCHITECTURE.md, "The from-scratch recipe"). The simulator says more for fr
 failure first shows (the labeler's failure keyframe, from simulator state). So every cell of the grid gets a
 target, "has the trajectory failed by this frame?" (0 before that frame and in successes, 1 from it on, none for
 cells the grid leaves blank), and a small head reads it from the visual tokens the language model receives
-(the merger's output):
+(the merger's output). Two heads (`grounding.head`):
 
-    cell's tokens (flattened) -> MLP -> + time/view embedding -> the time step's views -> one logit
+    token: each token -> MLP -> one score; a cell's mean score + a per-cell bias; the time step's views summed
+    cell:  a cell's tokens (flattened) -> MLP -> + time/view embedding -> the time step's views -> one logit
+
+The `token` head is the default because it asks for what a small decoder can read: its first layer's MLP
+works on one token at a time and its attention then averages tokens, so the evidence must sit in single
+tokens. The `cell` head reads combinations of a cell's tokens; it learns faster, but the decoder cannot use
+what it learns (docs/ARCHITECTURE.md, "Frame grounding", table).
 
 Its loss is the mean binary cross-entropy over shown cells, plus a ranking term for success/failure twins in
 the same batch (same scene, camera and distractors; only the failure differs): the failed twin's last frame
 must score above the successful one's. The head adds `grounding.weight` x that loss to the VQA loss; it is
 not part of the model (checkpoints keep it beside the weights, `GROUNDING_FILE`, only for resuming), and the
 benchmark never sees it.
+
+`pretrain` is stage A of the from-scratch recipe (`grounding.pretrain_epochs`): the vision tower and head alone
+learn the frame targets before any question is asked (vision forward only, so an epoch costs a fraction of a
+VQA epoch); the VQA training then starts from a tower whose tokens already show failures.
 """
 
 from __future__ import annotations
@@ -66,20 +76,17 @@ def cell_index(grid: GridConfig, views: int, h_tok: int, w_tok: int) -> torch.Te
     return out
 
 
-class GroundingHead(nn.Module):
-    """Visual tokens of one grid -> one logit per time step: each cell's tokens, flattened in raster order,
-    through a small MLP (with the cell's time/view embedding), the views of a time step concatenated."""
+HEADS = ("token", "cell")
 
-    def __init__(self, dim: int, grid: GridConfig, views: int, hidden: int = 64):
+
+class _CellHead(nn.Module):
+    """Visual tokens of one grid -> one logit per time step (subclasses say how a cell's tokens are read)."""
+
+    def __init__(self, grid: GridConfig, views: int):
         super().__init__()
         self.grid, self.views = grid, int(views)
         self.cells = grid.max_frames * self.views
         self._index: dict[tuple[int, int], torch.Tensor] = {}
-        # the grid's own token layout sizes the cell MLP (the processor keeps sides that are multiples of 32 px)
-        per_cell = self.gather(round(grid.height / TOKEN_PX), round(grid.width / TOKEN_PX)).shape[1]
-        self.cell = nn.Sequential(nn.Linear(int(dim) * per_cell, 4 * hidden), nn.GELU(), nn.Linear(4 * hidden, hidden))
-        self.pos = nn.Parameter(torch.zeros(self.cells, hidden))
-        self.out = nn.Linear(hidden * self.views, 1)
 
     def gather(self, h_tok: int, w_tok: int) -> torch.Tensor:
         """(cells, tokens per cell) token indices; every cell of a grid covers the same number of tokens."""
@@ -94,13 +101,48 @@ class GroundingHead(nn.Module):
             self._index[key] = order[int((idx < 0).sum()):].view(self.cells, int(counts[0]))
         return self._index[key]
 
+
+
+class TokenHead(_CellHead):
+    """Each token through a small MLP to one score; a cell scores the mean of its tokens plus its own bias, a
+    time step the sum of its views' cells."""
+
+    def __init__(self, dim: int, grid: GridConfig, views: int, hidden: int = 64):
+        super().__init__(grid, views)
+        self.token = nn.Sequential(nn.Linear(int(dim), hidden), nn.GELU(), nn.Linear(hidden, 1))
+        self.bias = nn.Parameter(torch.zeros(self.cells))
+
+    def forward(self, tokens: torch.Tensor, h_tok: int, w_tok: int) -> torch.Tensor:
+        at = self.gather(h_tok, w_tok).to(tokens.device)
+        c = self.token(tokens.float()[at]).squeeze(-1).mean(1) + self.bias  # (cells,), cell = t * views + k
+        return c.view(self.grid.max_frames, self.views).sum(1)
+
+
+class CellHead(_CellHead):
+    """Each cell's tokens, flattened in raster order, through a small MLP (with the cell's time/view
+    embedding), the views of a time step concatenated."""
+
+    def __init__(self, dim: int, grid: GridConfig, views: int, hidden: int = 64):
+        super().__init__(grid, views)
+        # the grid's own token layout sizes the cell MLP (the processor keeps sides that are multiples of 32 px)
+        per_cell = self.gather(round(grid.height / TOKEN_PX), round(grid.width / TOKEN_PX)).shape[1]
+        self.cell = nn.Sequential(nn.Linear(int(dim) * per_cell, 4 * hidden), nn.GELU(), nn.Linear(4 * hidden, hidden))
+        self.pos = nn.Parameter(torch.zeros(self.cells, hidden))
+        self.out = nn.Linear(hidden * self.views, 1)
+
     def forward(self, tokens: torch.Tensor, h_tok: int, w_tok: int) -> torch.Tensor:
         at = self.gather(h_tok, w_tok).to(tokens.device)
         e = self.cell(tokens.float()[at].flatten(1)) + self.pos  # (cells, hidden), cell = t * views + k
         return self.out(e.view(self.grid.max_frames, -1)).squeeze(-1)
 
 
-def grounding_loss(head: GroundingHead, tokens: torch.Tensor, thw: torch.Tensor, targets: torch.Tensor,
+def make_head(kind: str, dim: int, grid: GridConfig, views: int) -> _CellHead:
+    if kind not in HEADS:
+        raise ConfigError(f"grounding.head: expected one of {', '.join(HEADS)}, got {kind!r}")
+    return (TokenHead if kind == "token" else CellHead)(dim, grid, views)
+
+
+def grounding_loss(head: _CellHead, tokens: torch.Tensor, thw: torch.Tensor, targets: torch.Tensor,
                    groups: torch.Tensor | None = None, rank: float = 1.0) -> torch.Tensor:
     """`tokens`: the merger's output for the batch's images, concatenated; `thw`: image_grid_thw (B, 3);
     `targets`: (B, max_frames) from `frame_targets`; `groups`: (B,) pair ids (twins share one)."""
@@ -150,13 +192,13 @@ class TokenTap:
         return t
 
 
-def save_head(head: GroundingHead, out: Path) -> None:
+def save_head(head: _CellHead, out: Path) -> None:
     from safetensors.torch import save_file
 
     save_file({k: v.detach().cpu().contiguous() for k, v in head.state_dict().items()}, str(out / GROUNDING_FILE))
 
 
-def load_head(head: GroundingHead, ckpt: Path) -> bool:
+def load_head(head: _CellHead, ckpt: Path) -> bool:
     """Restore the head saved beside a checkpoint (resume); False when the checkpoint has none."""
     from safetensors.torch import load_file
 
@@ -165,3 +207,41 @@ def load_head(head: GroundingHead, ckpt: Path) -> bool:
         return False
     head.load_state_dict(load_file(str(path)))
     return True
+
+
+def pretrain(model: nn.Module, head: _CellHead, batches: Any, epochs: int, lr: float, rank: float = 1.0,
+             progress: bool = True) -> dict[str, float]:
+    """Stage A: the vision tower (and its merger) with the head on the frame targets alone, `epochs` passes over
+    `batches` (the training dataloader: collated batches with pixel_values, image_grid_thw, frame_target,
+    pair_group), one AdamW at the head's rate `lr` with a linear warm-up and cosine decay (the VQA stage that
+    follows keeps its own per-group rates). Returns the mean grounding loss of the first and the last epoch."""
+    from tqdm.auto import tqdm
+    from transformers import get_cosine_schedule_with_warmup
+
+    vm = vision_module(model)
+    params = [p for p in vm.parameters() if p.requires_grad] + list(head.parameters())
+    opt = torch.optim.AdamW(params, lr=float(lr))
+    total = int(epochs) * len(batches)
+    sched = get_cosine_schedule_with_warmup(opt, max(1, total // 10), total)
+    was = vm.training
+    vm.train()
+    means: list[float] = []
+    bar = tqdm(total=total, desc="grounding pre-training", disable=not progress)
+    for _ in range(int(epochs)):
+        losses = []
+        for b in batches:
+            out = vm(b["pixel_values"], grid_thw=b["image_grid_thw"])
+            tokens = out.pooler_output if hasattr(out, "pooler_output") else out[1]
+            loss = grounding_loss(head, tokens, b["image_grid_thw"], b["frame_target"], b["pair_group"], rank)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(params, 1.0)
+            opt.step()
+            sched.step()
+            opt.zero_grad(set_to_none=True)
+            losses.append(float(loss.detach()))
+            bar.update(1)
+            bar.set_postfix(loss=f"{losses[-1]:.3f}")
+        means.append(sum(losses) / max(1, len(losses)))
+    bar.close()
+    vm.train(was)
+    return {"first_epoch_loss": round(means[0], 4), "last_epoch_loss": round(means[-1], 4)} if means else {}

@@ -142,11 +142,16 @@ class ProgressLog(TrainerCallback):
         self.out, self.per_item = Path(out), float(records_per_item)
         self.rows: list[dict[str, float]] = []
         self.t0 = self.c0 = 0.0
+        self.before = (0.0, 0.0)  # wall and CPU seconds spent before train() (grounding pre-training)
+
+    def start_after(self, wall_s: float, cpu_s: float) -> None:
+        """Count `wall_s`/`cpu_s` already spent in this run (stage A) in every row's clocks."""
+        self.before = (float(wall_s), float(cpu_s))
 
     def on_train_begin(self, args, state, control, **kwargs):  # noqa: D102
         from labrobfail_vlm.io import atomic_write_json
 
-        self.t0, self.c0 = time.perf_counter(), time.process_time()
+        self.t0, self.c0 = time.perf_counter() - self.before[0], time.process_time() - self.before[1]
         if not state.is_world_process_zero:  # one writer: ranks would race on the same file
             return
         self.out.mkdir(parents=True, exist_ok=True)
