@@ -102,7 +102,6 @@ class _CellHead(nn.Module):
         return self._index[key]
 
 
-
 class TokenHead(_CellHead):
     """Each token through a small MLP to one score; a cell scores the mean of its tokens plus its own bias, a
     time step the sum of its views' cells."""
