@@ -153,16 +153,25 @@ def test_bad_train_config_is_one_line(small_ds, tmp_path):
         assert field in r.stderr.strip().splitlines()[-1]
 
 
+def _free_port() -> int:
+    """A loopback port nobody holds now (a fixed one collides with a lingering or concurrent run)."""
+    import socket
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
 @pytest.mark.skipif(shutil.which("deepspeed", path=os.path.dirname(sys.executable)) is None,
                     reason="deepspeed not installed (make install adds it)")
 def test_deepspeed_two_cpu_ranks_train_save_resume(tiny, small_ds, tmp_path):
     ds_bin = os.path.join(os.path.dirname(sys.executable), "deepspeed")
     out = tmp_path / "ds"
-    common = [ds_bin, "--num_gpus", "2", "train.py", "preset=tiny", "tuning=hybrid", f"model.path={tiny}", f"dataset_dir={small_ds}",
+    # the launcher ignores MASTER_PORT and would use 29500 every time: a free port per launch
+    common = ["train.py", "preset=tiny", "tuning=hybrid", f"model.path={tiny}", f"dataset_dir={small_ds}",
               f"output_dir={out}", "deepspeed=configs/ds_zero3.json", "global_batch=4", "per_device_batch=1",
               "save_steps=2", "logging_steps=1", "wandb.enabled=false", "progress=false"]
-    env = {**os.environ, "MASTER_PORT": "29531"}
-    r = subprocess.run([*common, "max_steps=2"], cwd=ROOT, capture_output=True, text=True, timeout=900, env=env)
+    launch = [ds_bin, "--num_gpus", "2", "--master_port", str(_free_port())]
+    r = subprocess.run([*launch, *common, "max_steps=2"], cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     from safetensors.torch import load_file
     adapter = load_file(str(out / "checkpoint-2" / "adapter_model.safetensors"))
@@ -170,8 +179,9 @@ def test_deepspeed_two_cpu_ranks_train_save_resume(tiny, small_ds, tmp_path):
     assert adapter and all(t.numel() > 0 for t in adapter.values())  # gathered, not empty partitions
     assert any("merger" in k for k in vision) and all(t.numel() > 0 for t in vision.values())
     assert any(float(t.abs().sum()) > 0 for k, t in adapter.items() if "lora_B" in k)  # it trained
-    r = subprocess.run([*common, "max_steps=3", "resume=true"], cwd=ROOT, capture_output=True, text=True,
-                       timeout=900, env=env)
+    launch[-1] = str(_free_port())  # the first run's port may linger in TIME_WAIT
+    r = subprocess.run([*launch, *common, "max_steps=3", "resume=true"], cwd=ROOT, capture_output=True, text=True,
+                       timeout=900)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     summary = json.loads((out / "train_summary.json").read_text())
     assert summary["global_step"] == 3
