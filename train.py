@@ -81,9 +81,8 @@ def run(cfg: Any) -> dict[str, Any]:
     for key in ("weight", "rank", "lr", "pretrain_epochs"):
         if float(cfg.grounding[key]) < 0:
             raise ConfigError(f"grounding.{key}: must be >= 0, got {cfg.grounding[key]}")
-    from labrobfail_vlm.train.grounding import HEADS
-    if str(cfg.grounding.head) not in HEADS:
-        raise ConfigError(f"grounding.head: expected one of {', '.join(HEADS)}, got {cfg.grounding.head!r}")
+    from labrobfail_vlm.train.grounding import check_head
+    check_head(str(cfg.grounding.head))  # before the model loads
     pre_epochs = int(cfg.grounding.pretrain_epochs)
     if pre_epochs and float(cfg.grounding.weight) == 0:
         raise ConfigError("grounding.pretrain_epochs: needs grounding.weight > 0 (the head it trains)")
@@ -147,7 +146,8 @@ def run(cfg: Any) -> dict[str, Any]:
     train = TrajectoryDataset(cfg.dataset_dir, "train") if cfg.packing else VQADataset(cfg.dataset_dir, "train")
     rewording = Rewording(train.group_of, pairs) if pairs or warm > 0 or detect > 0 else None
     records_per_item = len(train.records) / len(train) if cfg.packing else 1.0
-    callbacks = [ProgressLog(Path(cfg.output_dir), records_per_item),
+    progress_log = ProgressLog(Path(cfg.output_dir), records_per_item)
+    callbacks = [progress_log,
                  *([PolarityWarmup(rewording, warm)] if rewording is not None and warm else []),
                  *([DetectFirst(rewording, detect)] if rewording is not None and detect else [])]
     grounding, targets = _grounding(cfg, model, grid)
@@ -178,7 +178,7 @@ def run(cfg: Any) -> dict[str, Any]:
                        float(cfg.grounding.lr), float(cfg.grounding.rank), bool(cfg.progress))
         pre |= {"epochs": pre_epochs, "wall_s": round(time.perf_counter() - wall, 1),
                 "cpu_s": round(time.process_time() - cpu, 1)}
-        callbacks[0].start_after(pre["wall_s"], pre["cpu_s"])  # the learning curve's clocks include stage A
+        progress_log.start_after(pre["wall_s"], pre["cpu_s"])  # the learning curve's clocks include stage A
         print(json.dumps({"grounding_pretrain": pre}), flush=True)
     result = trainer.train(resume_from_checkpoint=resume)
     trainer.save_model(str(Path(cfg.output_dir) / "final"))

@@ -135,10 +135,14 @@ class CellHead(_CellHead):
         return self.out(e.view(self.grid.max_frames, -1)).squeeze(-1)
 
 
-def make_head(kind: str, dim: int, grid: GridConfig, views: int) -> _CellHead:
+def check_head(kind: str) -> str:
     if kind not in HEADS:
         raise ConfigError(f"grounding.head: expected one of {', '.join(HEADS)}, got {kind!r}")
-    return (TokenHead if kind == "token" else CellHead)(dim, grid, views)
+    return kind
+
+
+def make_head(kind: str, dim: int, grid: GridConfig, views: int) -> _CellHead:
+    return (TokenHead if check_head(kind) == "token" else CellHead)(dim, grid, views)
 
 
 def grounding_loss(head: _CellHead, tokens: torch.Tensor, thw: torch.Tensor, targets: torch.Tensor,
@@ -174,6 +178,11 @@ def vision_module(model: nn.Module) -> nn.Module:
     raise ConfigError("grounding: the model has no Qwen3-VL vision tower (a module named *visual with a merger)")
 
 
+def merged_tokens(output: Any) -> torch.Tensor:
+    """The merger's tokens (what the decoder receives) from a vision tower's forward output."""
+    return output.pooler_output if hasattr(output, "pooler_output") else output[1]
+
+
 class TokenTap:
     """Keeps the vision tower's last merged tokens (its pooler_output) from each forward pass."""
 
@@ -182,7 +191,7 @@ class TokenTap:
         self.handle = vision_module(model).register_forward_hook(self._hook)
 
     def _hook(self, module: nn.Module, args: Any, output: Any) -> None:
-        self.tokens = output.pooler_output if hasattr(output, "pooler_output") else output[1]
+        self.tokens = merged_tokens(output)
 
     def take(self) -> torch.Tensor:
         if self.tokens is None:
@@ -229,8 +238,7 @@ def pretrain(model: nn.Module, head: _CellHead, batches: Any, epochs: int, lr: f
     for _ in range(int(epochs)):
         losses = []
         for b in batches:
-            out = vm(b["pixel_values"], grid_thw=b["image_grid_thw"])
-            tokens = out.pooler_output if hasattr(out, "pooler_output") else out[1]
+            tokens = merged_tokens(vm(b["pixel_values"], grid_thw=b["image_grid_thw"]))
             loss = grounding_loss(head, tokens, b["image_grid_thw"], b["frame_target"], b["pair_group"], rank)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(params, 1.0)

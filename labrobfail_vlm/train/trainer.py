@@ -38,7 +38,7 @@ class HybridTrainer(Trainer):
                  loss_mode: str = "token", grid: dict[str, Any] | None = None, pair_batches: bool = False,
                  grounding: dict[str, Any] | None = None, **kwargs: Any):
         super().__init__(*args, **kwargs)
-        # grounding: {"head": GroundingHead, "weight": float, "rank": float, "lr": float} (train/grounding.py)
+        # grounding: {"head": make_head(...), "weight": float, "rank": float, "lr": float} (train/grounding.py)
         self.grounding = grounding
         self.tap = None
         self._grounding_log: float | None = None  # the last grounding loss, added to the logged losses
