@@ -1,3 +1,4 @@
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -20,6 +21,13 @@ def gen(out, *extra, check=True):
     if check:
         assert r.returncode == 0, r.stderr
     return r
+
+
+def free_port() -> int:
+    """A loopback port nobody holds now (a fixed one collides with a lingering or concurrent run)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
 
 
 def rows(out):

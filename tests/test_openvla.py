@@ -1,7 +1,6 @@
 """The OpenVLA REST client against real loopback servers: scripts/serve_policy.py and two faulty ones."""
 
 import json
-import socket
 import subprocess
 import sys
 import threading
@@ -12,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import free_port
 from labrobfail_vlm.config import ConfigError
 from policies import json_numpy
 from policies.base import PolicyError
@@ -65,14 +65,6 @@ def fake_server(reply: bytes, delay: float = 0.0):
     srv = HTTPServer(("127.0.0.1", 0), H)
     threading.Thread(target=srv.serve_forever, daemon=True).start()
     return srv, f"http://127.0.0.1:{srv.server_address[1]}/act"
-
-
-def free_port():
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
 
 
 def test_json_numpy_round_trip_and_refusals():

@@ -9,7 +9,7 @@ import sys
 import pytest
 import torch
 
-from conftest import ROOT
+from conftest import ROOT, free_port
 
 SMALL_GRID = ["grid.width=256", "grid.height=128", "grid.max_frames=8", "grid.columns=4"]
 
@@ -153,14 +153,6 @@ def test_bad_train_config_is_one_line(small_ds, tmp_path):
         assert field in r.stderr.strip().splitlines()[-1]
 
 
-def _free_port() -> int:
-    """A loopback port nobody holds now (a fixed one collides with a lingering or concurrent run)."""
-    import socket
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.mark.skipif(shutil.which("deepspeed", path=os.path.dirname(sys.executable)) is None,
                     reason="deepspeed not installed (make install adds it)")
 def test_deepspeed_two_cpu_ranks_train_save_resume(tiny, small_ds, tmp_path):
@@ -170,7 +162,7 @@ def test_deepspeed_two_cpu_ranks_train_save_resume(tiny, small_ds, tmp_path):
     common = ["train.py", "preset=tiny", "tuning=hybrid", f"model.path={tiny}", f"dataset_dir={small_ds}",
               f"output_dir={out}", "deepspeed=configs/ds_zero3.json", "global_batch=4", "per_device_batch=1",
               "save_steps=2", "logging_steps=1", "wandb.enabled=false", "progress=false"]
-    launch = [ds_bin, "--num_gpus", "2", "--master_port", str(_free_port())]
+    launch = [ds_bin, "--num_gpus", "2", "--master_port", str(free_port())]
     r = subprocess.run([*launch, *common, "max_steps=2"], cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     from safetensors.torch import load_file
@@ -179,7 +171,7 @@ def test_deepspeed_two_cpu_ranks_train_save_resume(tiny, small_ds, tmp_path):
     assert adapter and all(t.numel() > 0 for t in adapter.values())  # gathered, not empty partitions
     assert any("merger" in k for k in vision) and all(t.numel() > 0 for t in vision.values())
     assert any(float(t.abs().sum()) > 0 for k, t in adapter.items() if "lora_B" in k)  # it trained
-    launch[-1] = str(_free_port())  # the first run's port may linger in TIME_WAIT
+    launch[-1] = str(free_port())  # the first run's port may linger in TIME_WAIT
     r = subprocess.run([*launch, *common, "max_steps=3", "resume=true"], cwd=ROOT, capture_output=True, text=True,
                        timeout=900)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]

@@ -101,6 +101,10 @@ class _CellHead(nn.Module):
             self._index[key] = order[int((idx < 0).sum()):].view(self.cells, int(counts[0]))
         return self._index[key]
 
+    def cell_tokens(self, tokens: torch.Tensor, h_tok: int, w_tok: int) -> torch.Tensor:
+        """(cells, tokens per cell, dim) in float: each cell's tokens of one grid, cell = t * views + k."""
+        return tokens.float()[self.gather(h_tok, w_tok).to(tokens.device)]
+
 
 class TokenHead(_CellHead):
     """Each token through a small MLP to one score; a cell scores the mean of its tokens plus its own bias, a
@@ -112,8 +116,7 @@ class TokenHead(_CellHead):
         self.bias = nn.Parameter(torch.zeros(self.cells))
 
     def forward(self, tokens: torch.Tensor, h_tok: int, w_tok: int) -> torch.Tensor:
-        at = self.gather(h_tok, w_tok).to(tokens.device)
-        c = self.token(tokens.float()[at]).squeeze(-1).mean(1) + self.bias  # (cells,), cell = t * views + k
+        c = self.token(self.cell_tokens(tokens, h_tok, w_tok)).squeeze(-1).mean(1) + self.bias  # (cells,)
         return c.view(self.grid.max_frames, self.views).sum(1)
 
 
@@ -130,8 +133,7 @@ class CellHead(_CellHead):
         self.out = nn.Linear(hidden * self.views, 1)
 
     def forward(self, tokens: torch.Tensor, h_tok: int, w_tok: int) -> torch.Tensor:
-        at = self.gather(h_tok, w_tok).to(tokens.device)
-        e = self.cell(tokens.float()[at].flatten(1)) + self.pos  # (cells, hidden), cell = t * views + k
+        e = self.cell(self.cell_tokens(tokens, h_tok, w_tok).flatten(1)) + self.pos  # (cells, hidden)
         return self.out(e.view(self.grid.max_frames, -1)).squeeze(-1)
 
 
