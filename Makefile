@@ -45,15 +45,17 @@ $(VULKAN_STAMP): | $(STAMP)
 
 vulkan: $(VULKAN_STAMP)
 
-# The main job on the embedded default, all on CPU: PyBullet episodes (success/failure pairs) rendered at the
+# The main job on the embedded default, all on CPU: PyBullet episodes (success/failure pairs) in the demo world
+# (configs/generate.yaml preset=demo: pick-and-place on one bench, fixed cameras, no distractors), rendered at the
 # grid's cell size -> keyframe strips -> the VQA dataset (512x512 grids of 8 keyframes, 128 px cells, 256 visual
-# tokens) -> the tiny Qwen3-VL trained from scratch (preset tiny: packed rows, pair batches, polarity warm-up)
-# -> the bench with majority/blind baselines -> one failure diagnosed (Q6 from the strategy table).
-DEMO_EPISODES ?= 200
-DEMO_EPOCHS   ?= 16
+# tokens) -> the tiny Qwen3-VL trained from scratch (preset tiny: stage A frame grounding, then packed rows, pair
+# batches, detection first) -> the bench with majority/blind baselines -> one failure diagnosed (Q6 from the
+# strategy table). About 10 minutes on 2 cores after the install.
+DEMO_EPISODES ?= 400
+DEMO_EPOCHS   ?= 10
 DEMO_GRID     := grid.width=512 grid.height=512 grid.max_frames=8 grid.columns=4
 demo: $(STAMP)
-	$(PY) scripts/generate.py backend=pybullet num_episodes=$(DEMO_EPISODES) out_dir=outputs/demo_shards seed=0 workers=2 image_size=128 render_frames=8
+	$(PY) scripts/generate.py preset=demo num_episodes=$(DEMO_EPISODES) out_dir=outputs/demo_shards seed=0 workers=2 image_size=128 render_frames=8
 	$(PY) scripts/render_strips.py outputs/demo_shards outputs/demo_strips
 	$(PY) scripts/build_dataset.py shards=outputs/demo_shards out_dir=outputs/demo_dataset $(DEMO_GRID)
 	$(PY) train.py preset=tiny dataset_dir=outputs/demo_dataset output_dir=outputs/demo_train epochs=$(DEMO_EPOCHS)

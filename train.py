@@ -86,9 +86,10 @@ def run(cfg: Any) -> dict[str, Any]:
     pre_epochs = int(cfg.grounding.pretrain_epochs)
     if pre_epochs and float(cfg.grounding.weight) == 0:
         raise ConfigError("grounding.pretrain_epochs: needs grounding.weight > 0 (the head it trains)")
-    if pre_epochs and cfg.deepspeed is not None:
-        raise ConfigError("grounding.pretrain_epochs: runs on one process without DeepSpeed; pre-train the tower "
-                          "in a separate run and pass its final/ as model.path")
+    if float(cfg.grounding.weight) > 0 and cfg.deepspeed is not None:  # the head lives outside DeepSpeed's engine
+        raise ConfigError(f"grounding.weight: the grounding head and stage A run on one process, not under "
+                          f"deepspeed={cfg.deepspeed}; set grounding.weight=0 grounding.pretrain_epochs=0 (or pre-train "
+                          f"the tower in a separate run and pass its final/ as model.path)")
     if detect and cfg.loss.mode != "record":
         raise ConfigError("curriculum.detect_first: needs loss.mode=record (it sets per-record loss weights)")
     if cfg.model.path is None:

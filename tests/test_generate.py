@@ -72,7 +72,7 @@ def test_resume_after_sigkill_gives_identical_data(run6, tmp_path):
 @pytest.mark.parametrize("arg, field", [
     ("backend=gazebo", "backend"), ("num_episodes=-3", "num_episodes"), ("variant=unseen_moon", "variant"),
     ("scenarios=[fly_to_moon]", "scenarios"), ("workers=0", "workers"), ("bogus_key=1", "bogus_key"),
-    ("render_frames=0", "render_frames"),
+    ("render_frames=0", "render_frames"), ("preset=moon", "preset"),
     ("backend_kwargs.custom_objects=tests/data/bad_objects.yaml", "backend_kwargs.custom_objects"),
     ("backend_kwargs.custom_scene=nowhere.yaml", "backend_kwargs.custom_scene"),
 ])
@@ -160,3 +160,27 @@ def test_render_frames_takes_only_the_images_its_grid_shows(tmp_path):
     r = subprocess.run([*build, f"out_dir={tmp_path}/o4", "grid.max_frames=4", "grid.columns=2"], cwd=ROOT,
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
+
+
+def test_demo_preset_is_one_fixed_scene(tmp_path):
+    """preset=demo (make demo's world) restricts the scenarios and fixes bench, light and cameras: the first frames
+    of two pairs differ only where the objects stand; in the wide world the bench itself changes between them."""
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    def first_frames(out, *extra):
+        r = subprocess.run([sys.executable, "scripts/generate.py", f"out_dir={out}", "num_episodes=4", "image_size=48",
+                            "episodes_per_shard=2", "render_frames=null", "progress=false", *extra], cwd=ROOT,
+                           capture_output=True, text=True, timeout=600)
+        assert r.returncode == 0, r.stderr
+        rs = [x for x in rows(out) if x["role"] == "nominal"]
+        return json.loads((out / "manifest.json").read_text()), [
+            np.asarray(Image.open(io.BytesIO(x["images"][0][0])).convert("RGB"), dtype=int) for x in rs]
+
+    man, (a, b) = first_frames(tmp_path / "demo", "preset=demo")
+    assert man["scenarios"] == ["pick_place_beaker_large", "pick_place_right_beaker_large"]
+    _, (c, d) = first_frames(tmp_path / "wide", "scenarios=[pick_place_beaker_large,pick_place_right_beaker_large]")
+    changed = lambda x, y: float((np.abs(x - y).max(axis=-1) > 12).mean())  # noqa: E731
+    assert changed(a, b) < 0.25 and changed(c, d) > 0.5  # measured: 0.17 (the objects) and 0.98 (the bench)

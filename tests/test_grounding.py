@@ -104,7 +104,8 @@ def test_training_with_grounding_logs_saves_and_resumes(tiny, small_ds, tmp_path
 
 
 @pytest.mark.parametrize("bad", ["grounding.weight=-1", "grounding.rank=-0.5", "grounding.head=mlp",
-                                 "grounding.pretrain_epochs=-2", "grounding.pretrain_epochs=1"])
+                                 "grounding.pretrain_epochs=-2", "grounding.weight=0",
+                                 "deepspeed=configs/ds_zero3.json"])
 def test_bad_grounding_config_is_one_line(tiny, small_ds, tmp_path, bad):  # noqa: F811
     r = subprocess.run([sys.executable, "train.py", "preset=tiny", f"model.path={tiny}", f"dataset_dir={small_ds}",
                         f"output_dir={tmp_path}/o", bad, "wandb.enabled=false"], cwd=ROOT, capture_output=True,
