@@ -62,7 +62,7 @@ demo: $(STAMP)
 	$(PY) scripts/evaluate.py model=outputs/demo_train/final dataset_dir=outputs/demo_dataset split=test
 	$(PY) scripts/demo_diagnosis.py outputs/demo_dataset outputs/demo_train/final
 
-# The from-scratch recipe at full size (docs/RESULTS.md, about 40 min on 2 CPU cores): seen and unseen
+# The from-scratch recipe at full size (docs/RESULTS.md, about 50 min on 2 CPU cores): seen and unseen
 # (object, scene, both) data, one prefix grid per trajectory, the tiny model, every split's bench with
 # baselines, the learning curve.
 # Resumable: generation resumes its shards; delete outputs/reproduce to start over.

@@ -4,7 +4,7 @@ Run as:
     python train.py preset=tiny dataset_dir=outputs/demo_dataset output_dir=outputs/demo_train max_steps=50
     python train.py model.path=/models/Qwen3-VL-8B-Instruct dataset_dir=outputs/dataset output_dir=outputs/run
     python train.py preset=frozen_vision ...          # ablations: full | frozen_vision | no_index
-    deepspeed --num_gpus 2 train.py deepspeed=configs/ds_zero3.json preset=tiny dataset_dir=... output_dir=...
+    deepspeed --num_gpus 2 train.py deepspeed=configs/ds_zero3.json model.path=... dataset_dir=... output_dir=...
     python train.py ... resume=true                   # continue from the newest checkpoint in output_dir
 
 Defaults and presets: configs/train.yaml. Checkpoints: labrobfail_vlm/train/checkpoint.py.
@@ -88,8 +88,8 @@ def run(cfg: Any) -> dict[str, Any]:
         raise ConfigError("grounding.pretrain_epochs: needs grounding.weight > 0 (the head it trains)")
     if float(cfg.grounding.weight) > 0 and cfg.deepspeed is not None:  # the head lives outside DeepSpeed's engine
         raise ConfigError(f"grounding.weight: the grounding head and stage A run on one process, not under "
-                          f"deepspeed={cfg.deepspeed}; set grounding.weight=0 grounding.pretrain_epochs=0 (or pre-train "
-                          f"the tower in a separate run and pass its final/ as model.path)")
+                          f"deepspeed={cfg.deepspeed}; set grounding.weight=0 grounding.pretrain_epochs=0 (or "
+                          f"pre-train the tower in a separate run and pass its final/ as model.path)")
     if detect and cfg.loss.mode != "record":
         raise ConfigError("curriculum.detect_first: needs loss.mode=record (it sets per-record loss weights)")
     if cfg.model.path is None:
@@ -170,7 +170,9 @@ def run(cfg: Any) -> dict[str, Any]:
         resume = cfg.resume
     if resume is not None and grounding is not None:
         from labrobfail_vlm.train.grounding import load_head
-        load_head(grounding["head"], Path(resume))
+        if not load_head(grounding["head"], Path(resume)):  # a run made without grounding: its optimizer differs
+            raise ConfigError(f"resume: {resume} was trained without frame grounding; resume it with "
+                              f"grounding.weight=0 grounding.pretrain_epochs=0")
     pre: dict[str, float] = {}
     if pre_epochs and resume is None:  # stage A; a resumed run's checkpoint already holds the grounded tower
         from labrobfail_vlm.train.grounding import pretrain

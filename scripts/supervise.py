@@ -2,7 +2,7 @@
 
 Run as:
     python scripts/supervise.py policy=scripted supervisor=oracle task=place trials=25 backend=pybullet
-    python scripts/supervise.py policy=scripted supervisor=vlm vlm.model=outputs/demo_train/final task=all
+    python scripts/supervise.py policy=scripted supervisor=vlm vlm.model=outputs/demo_train/final task=place
     python scripts/supervise.py policy=act act.checkpoint=outputs/act/pick/final supervisor=oracle task=pick
     python scripts/supervise.py policy=openvla openvla.url=http://127.0.0.1:8777/act supervisor=none task=pour
 

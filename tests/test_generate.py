@@ -176,10 +176,15 @@ def test_demo_preset_is_one_fixed_scene(tmp_path):
                            capture_output=True, text=True, timeout=600)
         assert r.returncode == 0, r.stderr
         rs = [x for x in rows(out) if x["role"] == "nominal"]
+        assert len(rs) == 2, [x["role"] for x in rows(out)]
         return json.loads((out / "manifest.json").read_text()), [
             np.asarray(Image.open(io.BytesIO(x["images"][0][0])).convert("RGB"), dtype=int) for x in rs]
 
-    man, (a, b) = first_frames(tmp_path / "demo", "preset=demo")
+    man, (a, b) = first_frames(tmp_path / "demo", "preset=demo")  # run in the repository: the bench file's path
+    elsewhere = subprocess.run([sys.executable, str(ROOT / "scripts/generate.py"), f"out_dir={tmp_path}/o",
+                                "preset=demo", "num_episodes=0", "progress=false"], cwd=tmp_path,
+                               capture_output=True, text=True, timeout=300)
+    assert elsewhere.returncode == 0, elsewhere.stderr  # ... resolves from another directory too
     assert man["scenarios"] == ["pick_place_beaker_large", "pick_place_right_beaker_large"]
     _, (c, d) = first_frames(tmp_path / "wide", "scenarios=[pick_place_beaker_large,pick_place_right_beaker_large]")
     changed = lambda x, y: float((np.abs(x - y).max(axis=-1) > 12).mean())  # noqa: E731

@@ -22,7 +22,8 @@ from sim_backends.schema import NominalKeyframe, ObjectInfo, TaskMeta
 from sim_backends.source import FailureSource
 from sim_backends.types import Keyframe
 
-TASKS_FILE = Path(__file__).resolve().parents[2] / "configs" / "tasks" / "pybullet.yaml"
+REPO_ROOT = Path(__file__).resolve().parents[2]
+TASKS_FILE = REPO_ROOT / "configs" / "tasks" / "pybullet.yaml"
 SOLVER_ITERATIONS = 50  # contact solver iterations per physics step (grasps need them: 20 drops half the grasps)
 # The solver stops early once its residual is below this (PyBullet's default 1e-7 runs all 50 iterations on
 # resting contacts): a third less time per step with the same nominal success (measured over all scenarios).
@@ -38,6 +39,8 @@ def _yaml_mapping(key: str, path: str | None) -> dict[str, Any] | None:
     if isinstance(path, dict):  # already loaded (kwargs handed on to a worker)
         return path
     pth = Path(path)
+    if not pth.is_file() and not pth.is_absolute() and (REPO_ROOT / pth).is_file():
+        pth = REPO_ROOT / pth  # a file shipped in the repository (configs/scenes/...), run from another directory
     if not pth.is_file():
         raise ValueError(f"{key}: no such file {path!r}")
     try:
