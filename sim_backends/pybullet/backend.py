@@ -39,7 +39,7 @@ def _yaml_mapping(key: str, path: str | None) -> dict[str, Any] | None:
     if isinstance(path, dict):  # already loaded (kwargs handed on to a worker)
         return path
     pth = Path(path)
-    if not pth.is_file() and not pth.is_absolute() and (REPO_ROOT / pth).is_file():
+    if not pth.is_file() and (REPO_ROOT / pth).is_file():  # (REPO_ROOT / an absolute path) is that path
         pth = REPO_ROOT / pth  # a file shipped in the repository (configs/scenes/...), run from another directory
     if not pth.is_file():
         raise ValueError(f"{key}: no such file {path!r}")
