@@ -89,19 +89,31 @@ def _own_section(cfg: DictConfig, cls: Any) -> dict[str, Any]:
     section = OmegaConf.to_container(cfg.backend_kwargs, resolve=True) or {}
     takes = set(inspect.signature(cls.__init__).parameters) - {"self"}
     defaults = _default_backend_kwargs()
+    preset = (cfg.get("presets") or {}).get(cfg.get("preset")) or {}
+    from_preset = set(preset.get("backend_kwargs") or {})
     for k, v in section.items():
         if k not in takes and v != defaults.get(k):
-            raise ValueError(f"{k}: not an option of the {cfg.backend} backend")
+            why = f" (preset={cfg.preset} sets it: that world is not made for {cfg.backend})" if k in from_preset else ""
+            raise ValueError(f"{k}: not an option of the {cfg.backend} backend{why}")
     return {k: v for k, v in section.items() if k in takes}
+
+
+def _file_contents(section: dict[str, Any], kwargs: dict[str, Any]) -> dict[str, Any]:
+    """The content of each file a `backend_kwargs` entry names (custom_scene, custom_objects), as the backend
+    loaded it: run.json keeps it, so editing the file and rerunning into the same out_dir cannot mix two
+    scenes in one dataset (the path alone would still match)."""
+    return {k: kwargs[k] for k, v in section.items() if isinstance(v, str) and isinstance(kwargs.get(k), dict)}
 
 
 def _upgrade_identity(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
     """A run.json written before `backend_kwargs` existed kept its PyBullet keys top level: move them there;
-    keys added to the section since a run was written read as their defaults."""
+    keys added to the section since a run was written read as their defaults. One written before
+    `backend_files` existed is taken to hold today's file contents (nothing else is known of them)."""
     if "backend_kwargs" not in old:
         legacy = {k: old.get(k) for k in ("wrist", "custom_objects", "custom_scene")}
         old = {**old, "backend_kwargs": {**(new["backend_kwargs"] or {}), **legacy}}
-    return {**old, "backend_kwargs": {**_default_backend_kwargs(), **(old["backend_kwargs"] or {})}}
+    return {**old, "backend_kwargs": {**_default_backend_kwargs(), **(old["backend_kwargs"] or {})},
+            "backend_files": old.get("backend_files", new["backend_files"])}
 
 
 def scenario_order(scenarios: list[str], seed: int, pairs: int, repeats: dict[str, int] | None = None) -> list[str]:
@@ -240,6 +252,7 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
     kwargs = validate(cfg)
     out = Path(cfg.out_dir)
     identity = {k: OmegaConf.to_container(cfg, resolve=True)[k] for k in IDENTITY_KEYS}
+    identity["backend_files"] = _file_contents(identity["backend_kwargs"] or {}, kwargs)
     run_file = out / "run.json"
     if run_file.exists():
         old = _upgrade_identity(json.loads(run_file.read_text()), identity)
@@ -247,6 +260,10 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
         if diff:
             raise ConfigError(f"{diff[0]}: out_dir {cfg.out_dir!r} holds a run with {diff[0]}={old.get(diff[0])!r}; "
                               "use a new out_dir (nothing was changed)")
+        edited = [k for k, v in identity["backend_files"].items() if old["backend_files"].get(k, v) != v]
+        if edited:
+            raise ConfigError(f"backend_kwargs.{edited[0]}: the file {identity['backend_kwargs'][edited[0]]!r} changed "
+                              f"since out_dir {cfg.out_dir!r} was started; use a new out_dir (nothing was changed)")
     else:
         atomic_write_json(run_file, identity, indent=2)
     for stale in out.glob("*.tmp"):  # leftovers of a killed run; their shard is simply redone

@@ -189,3 +189,25 @@ def test_demo_preset_is_one_fixed_scene(tmp_path):
     _, (c, d) = first_frames(tmp_path / "wide", "scenarios=[pick_place_beaker_large,pick_place_right_beaker_large]")
     changed = lambda x, y: float((np.abs(x - y).max(axis=-1) > 12).mean())  # noqa: E731
     assert changed(a, b) < 0.25 and changed(c, d) > 0.5  # measured: 0.17 (the objects) and 0.98 (the bench)
+
+
+def test_an_edited_scene_file_is_refused_on_resume(tmp_path):
+    """run.json keeps the content of custom_scene, not only its path: editing the file and rerunning into the
+    same out_dir would mix two benches in one dataset, so it is refused and nothing there changes."""
+    scene = tmp_path / "bench.yaml"
+    scene.write_text((ROOT / "configs/scenes/demo_bench.yaml").read_text())
+    out = tmp_path / "o"
+    args = ("num_episodes=0", "preset=demo", f"backend_kwargs.custom_scene={scene}")
+    gen(out, *args)
+    gen(out, *args)  # the same file again: a plain resume
+    before = (out / "run.json").read_bytes()
+    scene.write_text(scene.read_text().replace("bench:", "bench:\n  # edited\n", 1) + "checker: true\n")
+    r = gen(out, *args, check=False)
+    assert r.returncode == 2 and "Traceback" not in r.stderr and r.stderr.strip().count("\n") == 0
+    assert "backend_kwargs.custom_scene" in r.stderr and "changed" in r.stderr
+    assert (out / "run.json").read_bytes() == before
+
+
+def test_demo_preset_on_another_backend_says_why(tmp_path):
+    r = gen(tmp_path / "m", "num_episodes=0", "preset=demo", "backend=maniskill", check=False)
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "preset=demo sets it" in r.stderr
