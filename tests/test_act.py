@@ -4,7 +4,6 @@ and the train_act.py -> policy=act path on real PyBullet demonstrations."""
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,8 +14,8 @@ from policies.act.checkpoint import load_checkpoint, save_checkpoint
 from policies.act.configuration_act import ACTConfig
 from policies.act.data import from_rot6d, rot6d
 from policies.act.modeling_act import ACTModel, ChunkRunner, TemporalEnsembler
+from conftest import ROOT  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
 TOY = dict(cameras=["front"], image_size=32, chunk_size=4, backbone_channels=[8, 8, 16, 16], dim_model=32, n_heads=2,
            dim_feedforward=64, n_encoder_layers=1, n_decoder_layers=1, n_vae_encoder_layers=1, latent_dim=4,
            dropout=0.0)

@@ -3,11 +3,9 @@
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 from test_train import small_ds  # noqa: F401  (session fixture: a dataset built from conftest's run6 shards)
-
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import ROOT  # noqa: E402
 
 
 def test_gold_and_predicted_corrections_are_run_in_the_simulator(run6, small_ds, tmp_path):  # noqa: F811

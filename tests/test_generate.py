@@ -75,6 +75,7 @@ def test_resume_after_sigkill_gives_identical_data(run6, tmp_path):
     ("render_frames=0", "render_frames"), ("preset=moon", "preset"),
     ("backend_kwargs.custom_objects=tests/data/bad_objects.yaml", "backend_kwargs.custom_objects"),
     ("backend_kwargs.custom_scene=nowhere.yaml", "backend_kwargs.custom_scene"),
+    ("backend_kwargs.custom_scene=tests/data/bad_vary_scene.yaml", "vary"),
 ])
 def test_bad_config_is_one_line(tmp_path, arg, field):
     r = gen(tmp_path / "c", "num_episodes=2", arg, check=False)
@@ -189,6 +190,11 @@ def test_demo_preset_is_one_fixed_scene(tmp_path):
     _, (c, d) = first_frames(tmp_path / "wide", "scenarios=[pick_place_beaker_large,pick_place_right_beaker_large]")
     changed = lambda x, y: float((np.abs(x - y).max(axis=-1) > 12).mean())  # noqa: E731
     assert changed(a, b) < 0.25 and changed(c, d) > 0.5  # measured: 0.17 (the objects) and 0.98 (the bench)
+    # `vary` in a scene file draws the named factors per episode again (the ladder between the two worlds)
+    scene = tmp_path / "vary.yaml"
+    scene.write_text((ROOT / "configs/scenes/demo_bench.yaml").read_text() + "vary: [bench, floor]\n")
+    _, (e, f) = first_frames(tmp_path / "vary", "preset=demo", f"backend_kwargs.custom_scene={scene}")
+    assert changed(e, f) > 0.5
 
 
 def test_an_edited_scene_file_is_refused_on_resume(tmp_path):

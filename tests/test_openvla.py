@@ -6,12 +6,11 @@ import sys
 import threading
 import time
 from http.server import BaseHTTPRequestHandler, HTTPServer
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import free_port
+from conftest import ROOT, free_port
 from labrobfail_vlm.config import ConfigError
 from policies import json_numpy
 from policies.base import PolicyError
@@ -21,7 +20,6 @@ from sim_backends.registry import make_backend
 from sim_backends.types import rotation_angle
 from supervision.loop import TaskFamily, episode_context
 
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")

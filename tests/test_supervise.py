@@ -10,8 +10,8 @@ import pytest
 from labrobfail_vlm.actions import PRIMITIVES
 
 from test_train import tiny  # noqa: F401  (session fixture: a tiny Qwen3-VL checkpoint)
+from conftest import ROOT  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
 FAST = ["image_size=48", "progress=false", "cameras=[front]"]
 
 

@@ -103,6 +103,10 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         for k in ("bench", "floor", "light"):
             if scene is not None and k not in scene:
                 raise ValueError(f"custom_scene: missing {k!r}")
+        if scene is not None and "vary" in scene:
+            if not isinstance(scene["vary"], list):
+                raise ValueError(f"custom_scene: vary must be a list of factors, got {scene['vary']!r}")
+            scene_mod.vary_keys(scene["vary"])
         return out
 
     # -- FailureSource ------------------------------------------------------------------------------

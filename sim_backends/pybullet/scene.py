@@ -76,6 +76,17 @@ def draw_appearance(variant: str, rng: np.random.Generator) -> dict[str, Any]:
             "ambient": round(float(rng.uniform(0.5, 0.7)), 3), "diffuse": round(float(rng.uniform(0.3, 0.5)), 3)}
 
 
+# `vary` names in a custom scene -> the appearance keys drawn for them (draw_appearance)
+VARY = {"bench": ("bench",), "floor": ("floor",), "texture": ("texture",), "light": ("light", "ambient", "diffuse")}
+
+
+def vary_keys(names: list[str]) -> list[str]:
+    bad = [n for n in names if n not in VARY]
+    if bad:
+        raise ValueError(f"custom_scene: vary: unknown factor {bad[0]!r}; expected some of {', '.join(VARY)}")
+    return [k for n in names for k in VARY[n]]
+
+
 @dataclass
 class SceneObject:
     name: str  # role name in the task: "obj", "src", "dest_vessel", ...
@@ -205,6 +216,9 @@ def build(cid: int, layout: dict[str, Any], variant: str, rng: np.random.Generat
     if custom_scene is not None:  # a user's scene file: fixed colours and light; texture optional
         appearance = {"texture": "checker" if custom_scene.get("checker") else "plain", "ambient": 0.6,
                       "diffuse": 0.35, **custom_scene}
+        if custom_scene.get("vary"):  # these factors are drawn per episode as in the wide world, the rest stay fixed
+            drawn = draw_appearance(variant, rng)
+            appearance.update({k: drawn[k] for k in vary_keys(custom_scene["vary"])})
     else:
         appearance = draw_appearance(variant, rng)
     bench_id, floor_id = assets.bench(cid, rgba=appearance["bench"], floor_rgba=appearance["floor"])
