@@ -260,7 +260,7 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
         if diff:
             raise ConfigError(f"{diff[0]}: out_dir {cfg.out_dir!r} holds a run with {diff[0]}={old.get(diff[0])!r}; "
                               "use a new out_dir (nothing was changed)")
-        edited = [k for k, v in identity["backend_files"].items() if old["backend_files"].get(k, v) != v]
+        edited = [k for k, v in identity["backend_files"].items() if old["backend_files"].get(k) != v]
         if edited:
             raise ConfigError(f"backend_kwargs.{edited[0]}: the file {identity['backend_kwargs'][edited[0]]!r} changed "
                               f"since out_dir {cfg.out_dir!r} was started; use a new out_dir (nothing was changed)")

@@ -14,7 +14,7 @@ from policies.act.checkpoint import load_checkpoint, save_checkpoint
 from policies.act.configuration_act import ACTConfig
 from policies.act.data import from_rot6d, rot6d
 from policies.act.modeling_act import ACTModel, ChunkRunner, TemporalEnsembler
-from conftest import ROOT  # noqa: E402
+from conftest import ROOT
 
 TOY = dict(cameras=["front"], image_size=32, chunk_size=4, backbone_channels=[8, 8, 16, 16], dim_model=32, n_heads=2,
            dim_feedforward=64, n_encoder_layers=1, n_decoder_layers=1, n_vae_encoder_layers=1, latent_dim=4,

@@ -5,7 +5,7 @@ import subprocess
 import sys
 
 from test_train import small_ds  # noqa: F401  (session fixture: a dataset built from conftest's run6 shards)
-from conftest import ROOT  # noqa: E402
+from conftest import ROOT
 
 
 def test_gold_and_predicted_corrections_are_run_in_the_simulator(run6, small_ds, tmp_path):  # noqa: F811

@@ -21,7 +21,6 @@ from sim_backends.types import rotation_angle
 from supervision.loop import TaskFamily, episode_context
 
 
-
 @pytest.fixture(scope="module")
 def served():
     """scripts/serve_policy.py serving the scripted policy on a free loopback port."""

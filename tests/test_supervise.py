@@ -10,7 +10,7 @@ import pytest
 from labrobfail_vlm.actions import PRIMITIVES
 
 from test_train import tiny  # noqa: F401  (session fixture: a tiny Qwen3-VL checkpoint)
-from conftest import ROOT  # noqa: E402
+from conftest import ROOT
 
 FAST = ["image_size=48", "progress=false", "cameras=[front]"]
 

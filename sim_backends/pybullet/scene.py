@@ -81,6 +81,9 @@ VARY = {"bench": ("bench",), "floor": ("floor",), "texture": ("texture",), "ligh
 
 
 def vary_keys(names: list[str]) -> list[str]:
+    """A scene file's `vary` list checked and expanded to appearance keys."""
+    if not isinstance(names, list):
+        raise ValueError(f"custom_scene: vary must be a list of factors, got {names!r}")
     bad = [n for n in names if n not in VARY]
     if bad:
         raise ValueError(f"custom_scene: vary: unknown factor {bad[0]!r}; expected some of {', '.join(VARY)}")
