@@ -41,7 +41,7 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
     Generic keys are checked here; the backend checks its own `backend_kwargs` section
     (`FailureSource.prepare_kwargs`), so nothing here knows which simulator runs.
     """
-    from sim_backends.registry import available_backends, backend_spec
+    from sim_backends.registry import available_backends, backend_options, backend_spec
 
     if cfg.backend not in available_backends():
         raise ConfigError(f"backend: unknown backend {cfg.backend!r}; available: {', '.join(available_backends())}")
@@ -59,10 +59,7 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
     if cfg.variant not in SCENE_VARIANTS:
         raise ConfigError(f"variant: unknown variant {cfg.variant!r}; expected one of {', '.join(SCENE_VARIANTS)}")
     spec = backend_spec(cfg.backend)
-    try:
-        own = spec.cls.prepare_kwargs(_own_section(cfg, spec.cls))
-    except ValueError as e:
-        raise ConfigError(f"backend_kwargs.{e}") from None
+    own = backend_options(cfg.backend, _own_section(cfg, spec.cls))
     out = Path(cfg.out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -94,7 +91,8 @@ def _own_section(cfg: DictConfig, cls: Any) -> dict[str, Any]:
     for k, v in section.items():
         if k not in takes and v != defaults.get(k):
             why = f" (preset={cfg.preset} sets it: that world is not made for {cfg.backend})" if k in from_preset else ""
-            raise ValueError(f"{k}: not an option of the {cfg.backend} backend{why}")
+            raise ConfigError(f"backend_kwargs.{k}: not an option of the {cfg.backend} backend"
+                              f"{why}")
     return {k: v for k, v in section.items() if k in takes}
 
 

@@ -20,9 +20,15 @@ class ConfigError(ValueError):
 
 
 def load_config(defaults: str | Path, dotlist: list[str]) -> DictConfig:
-    """Defaults from a YAML file under configs/ (struct: unknown keys are errors) merged with `key=value` args."""
+    """Defaults from a YAML file under configs/ (struct: unknown keys are errors) merged with `key=value` args.
+    A top-level mapping that is empty in the defaults (`backend_kwargs: {}`) is a free-form section: its keys
+    are checked by whoever reads it (a backend checks its own options)."""
     base = OmegaConf.load(CONFIG_DIR / defaults if not Path(defaults).is_absolute() else defaults)
     OmegaConf.set_struct(base, True)
+    for key in base:
+        node = base[key]
+        if isinstance(node, DictConfig) and len(node) == 0:
+            OmegaConf.set_struct(node, False)
     try:
         cli = OmegaConf.from_dotlist(dotlist)
         layers = [base]

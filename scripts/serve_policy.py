@@ -33,6 +33,7 @@ class PolicyService:
     def __init__(self, cfg: Any):
         from omegaconf import OmegaConf
 
+        from sim_backends.registry import backend_options
         from supervision.experiment import build_policy
 
         if cfg.policy == "openvla":
@@ -41,7 +42,8 @@ class PolicyService:
         self.policy = build_policy(cfg)
         self.episode: Any = None
         self.src: Any = None
-        self.backend_kwargs = OmegaConf.to_container(cfg.backend_kwargs, resolve=True) or {}
+        self.backend_kwargs = backend_options(cfg.backend,
+                                              OmegaConf.to_container(cfg.backend_kwargs, resolve=True) or {})
 
     def _reset(self, episode: Any, instruction: str) -> None:
         from policies.base import EpisodeContext

@@ -92,6 +92,28 @@ def backend_spec(name: str) -> Spec:
     return BACKENDS[name]
 
 
+# Constructor parameters every entry point sets itself (from its own image_size / cameras keys, or for the
+# policy server's physics-only source): never part of a `backend_kwargs` section.
+_GENERIC_PARAMS = {"self", "image_size", "cameras", "render"}
+
+
+def backend_options(name: str, section: dict[str, Any]) -> dict[str, Any]:
+    """A `backend_kwargs` section checked for backend `name`: each key must be an option of its constructor;
+    the backend then checks and resolves the values (`FailureSource.prepare_kwargs`, which loads scene and
+    object files). A bad one is a ConfigError "backend_kwargs.<key>: <problem>"."""
+    from labrobfail_vlm.config import ConfigError
+
+    cls = backend_spec(name).cls
+    takes = set(inspect.signature(cls.__init__).parameters) - _GENERIC_PARAMS
+    try:
+        for k in section:
+            if k not in takes:
+                raise ValueError(f"{k}: not an option of the {name} backend")
+        return cls.prepare_kwargs(dict(section))
+    except ValueError as e:
+        raise ConfigError(f"backend_kwargs.{e}") from None
+
+
 def make_backend(name: str, **kwargs: Any):
     spec = backend_spec(name)
     return spec.cls(**{**spec.kwargs, **kwargs})

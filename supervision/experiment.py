@@ -89,7 +89,7 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
-    from sim_backends.registry import available_backends, backend_spec, make_backend
+    from sim_backends.registry import available_backends, backend_options, make_backend
 
     if cfg.backend not in available_backends():
         raise ConfigError(f"backend: unknown backend {cfg.backend!r}; available: {', '.join(available_backends())}")
@@ -101,11 +101,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         loop = LoopConfig(**OmegaConf.to_container(cfg.loop, resolve=True))  # type: ignore[arg-type]
     except (TypeError, ValueError) as e:
         raise ConfigError(str(e)) from None
-    spec = backend_spec(cfg.backend)
-    try:
-        own = spec.cls.prepare_kwargs(OmegaConf.to_container(cfg.backend_kwargs, resolve=True) or {})
-    except ValueError as e:
-        raise ConfigError(f"backend_kwargs.{e}") from None
+    own = backend_options(cfg.backend, OmegaConf.to_container(cfg.backend_kwargs, resolve=True) or {})
     kwargs = {"image_size": cfg.image_size, "cameras": list(cfg.cameras), **own}
     sups = (["none"] if cfg.baseline and cfg.supervisor != "none" else []) + [cfg.supervisor]
     src = make_backend(cfg.backend, **kwargs)

@@ -34,7 +34,8 @@ REACH_POS, REACH_ROT = 0.02, 0.25  # m, rad: a target this close to a plan keyfr
 
 @dataclass
 class LoopConfig:
-    query_every: int = 0  # 0: at each keyframe boundary; k > 0: every k policy steps
+    query_every: int = 0  # 0: at each keyframe boundary; k > 0: every k policy steps; -1: never during the
+    # episode, only the final query (a post-hoc review of the whole trajectory, the grid a model was trained on)
     budget: int = 2  # corrections per episode
     on_manual: str = "stop"  # a manual correction hands over to a person: "stop" the episode or "continue"
     max_steps: int = 600  # policy steps per episode
@@ -46,8 +47,10 @@ class LoopConfig:
             raise ValueError(f"loop.on_manual: expected stop or continue, got {self.on_manual!r}")
         if self.grids not in ("all", "failures", "none"):
             raise ValueError(f"loop.grids: expected all, failures or none, got {self.grids!r}")
-        if self.budget < 0 or self.query_every < 0 or self.max_steps < 1:
-            raise ValueError("loop: budget and query_every must be >= 0, max_steps >= 1")
+        if self.budget < 0 or self.query_every < -1 or self.max_steps < 1:
+            raise ValueError("loop: budget must be >= 0, query_every >= -1, max_steps >= 1")
+        if self.query_every == -1 and not self.final_query:
+            raise ValueError("loop.query_every=-1 asks only the final query; it needs loop.final_query=true")
 
 
 @dataclass
@@ -170,7 +173,12 @@ def run_trial(src: FailureSource, policy: Policy, supervisor: Supervisor, family
         src.step(kf)
         steps += 1
         obs = src.observe()
-        due = steps % cfg.query_every == 0 if cfg.query_every else (a.name is not None or kf.name != prev_name)
+        if cfg.query_every < 0:
+            due = False
+        elif cfg.query_every:
+            due = steps % cfg.query_every == 0
+        else:  # a keyframe boundary
+            due = a.name is not None or kf.name != prev_name
         prev_name = kf.name
         if due and not _query(src, policy, supervisor, executor, cfg, log, trial, t, obs, grid_cfg, ctx):
             break

@@ -71,6 +71,27 @@ def test_vlm_supervisor_queries_the_analyzer_on_prefix_grids(tmp_path, tiny):  #
     assert lat["latency_p50_s"] > 0 and lat["latency_p95_s"] >= lat["latency_p50_s"]
 
 
+def test_a_family_runs_in_make_demos_world_from_the_command_line(tmp_path):
+    """The backend's own options and a family's scenarios are command-line settings, as in generate.py: the
+    demo model is supervised in the world it was trained in, and can be asked only once the policy stops."""
+    from sim_backends.registry import backend_options
+
+    out = tmp_path / "demo_world"
+    world = ["backend_kwargs.custom_scene=configs/scenes/demo_bench.yaml", "backend_kwargs.camera_jitter=false",
+             "backend_kwargs.max_distractors=0", "families.pick.scenarios=[pick_place_right_beaker_large]"]
+    supervise("supervisor=oracle", "baseline=false", "task=pick", "trials=2", "loop.query_every=-1", *world,
+              f"out_dir={out}")
+    eps = [x for x in records(out) if x["event"] == "episode"]
+    assert [e["scenario"] for e in eps] == ["pick_place_right_beaker_large"] * 2
+    queries = [x for x in records(out) if x["event"] == "query"]  # query_every=-1: the final review alone
+    assert len(queries) == 2 and all(q["final"] for q in queries)
+    cfg = json.loads((out / "results.json").read_text())["config"]
+    assert cfg["backend_kwargs"]["custom_scene"] == "configs/scenes/demo_bench.yaml"
+    # the scene file is loaded (a path the backend could not read would be refused before any trial)
+    scene = backend_options("pybullet", {"custom_scene": str(ROOT / "configs/scenes/demo_bench.yaml")})
+    assert scene["custom_scene"]["bench"] == [0.80, 0.78, 0.74, 1.0]
+
+
 @pytest.mark.parametrize("args, msg", [
     (["policy=teleop"], "policy: unknown policy 'teleop'"),
     (["task=juggle"], "task: unknown task 'juggle'"),
@@ -79,6 +100,10 @@ def test_vlm_supervisor_queries_the_analyzer_on_prefix_grids(tmp_path, tiny):  #
     (["supervisor=vlm", "vlm.model=/nonexistent"], "vlm.model: no such model directory"),
     (["loop.on_manual=panic"], "loop.on_manual"),
     (["trials=0"], "trials: must be a positive integer"),
+    (["backend_kwargs.warp_drive=true"], "backend_kwargs.warp_drive: not an option of the pybullet backend"),
+    (["backend_kwargs.custom_scene=tests/data/bad_vary_scene.yaml"], "backend_kwargs.custom_scene: vary"),
+    (["families.place.scenarios=[juggle]"], "families.place: unknown scenario 'juggle'"),
+    (["loop.query_every=-1", "loop.final_query=false"], "loop.query_every=-1 asks only the final query"),
 ])
 def test_bad_settings_are_one_line_errors(tmp_path, args, msg):
     r = supervise(*args, f"out_dir={tmp_path / 'x'}", check=False)

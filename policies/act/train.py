@@ -27,7 +27,7 @@ def _identity(cfg: DictConfig) -> dict[str, Any]:
 
 def load_or_record(cfg: DictConfig, family: Any, out: Path) -> tuple[list[dict[str, np.ndarray]], dict[str, Any]]:
     """The cached demos when they were recorded with the same settings, else record them (atomically)."""
-    from sim_backends.registry import make_backend
+    from sim_backends.registry import backend_options, make_backend
 
     path, ident = out / "demos.npz", _identity(cfg)
     if path.is_file():
@@ -38,7 +38,7 @@ def load_or_record(cfg: DictConfig, family: Any, out: Path) -> tuple[list[dict[s
                 return demos, json.loads(str(z["info"]))
     t0 = time.perf_counter()
     src = make_backend(cfg.backend, image_size=int(cfg.model.image_size), cameras=list(cfg.model.cameras),
-                       **(OmegaConf.to_container(cfg.backend_kwargs, resolve=True) or {}))
+                       **backend_options(cfg.backend, OmegaConf.to_container(cfg.backend_kwargs, resolve=True) or {}))
     demos, tried = [], 0
     bar = tqdm(total=int(cfg.demos), desc="demos", unit="demo", disable=not cfg.progress)
     try:
