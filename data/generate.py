@@ -91,8 +91,7 @@ def _own_section(cfg: DictConfig, cls: Any) -> dict[str, Any]:
     for k, v in section.items():
         if k not in takes and v != defaults.get(k):
             why = f" (preset={cfg.preset} sets it: that world is not made for {cfg.backend})" if k in from_preset else ""
-            raise ConfigError(f"backend_kwargs.{k}: not an option of the {cfg.backend} backend"
-                              f"{why}")
+            raise ConfigError(f"backend_kwargs.{k}: not an option of the {cfg.backend} backend{why}")
     return {k: v for k, v in section.items() if k in takes}
 
 
