@@ -9,7 +9,6 @@ the same command after a kill skips finished shards and redoes the rest.
 
 from __future__ import annotations
 
-import inspect
 import json
 import math
 import os
@@ -59,7 +58,7 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
     if cfg.variant not in SCENE_VARIANTS:
         raise ConfigError(f"variant: unknown variant {cfg.variant!r}; expected one of {', '.join(SCENE_VARIANTS)}")
     spec = backend_spec(cfg.backend)
-    own = backend_options(cfg.backend, _own_section(cfg, spec.cls))
+    own = backend_options(cfg.backend, _own_section(cfg))
     out = Path(cfg.out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -80,11 +79,13 @@ def _default_backend_kwargs() -> dict[str, Any]:
     return OmegaConf.to_container(OmegaConf.load(DEFAULTS).backend_kwargs, resolve=True) or {}
 
 
-def _own_section(cfg: DictConfig, cls: Any) -> dict[str, Any]:
-    """The keys of the shared `backend_kwargs` section that this backend's constructor takes. A key of
-    another backend must keep its default (`sim_backend=gpu` with backend=pybullet is an error)."""
+def _own_section(cfg: DictConfig) -> dict[str, Any]:
+    """The keys of the shared `backend_kwargs` section that this backend takes. A key of another backend must
+    keep its default (`sim_backend=gpu` with backend=pybullet is an error)."""
+    from sim_backends.registry import backend_option_names
+
     section = OmegaConf.to_container(cfg.backend_kwargs, resolve=True) or {}
-    takes = set(inspect.signature(cls.__init__).parameters) - {"self"}
+    takes = backend_option_names(cfg.backend)
     defaults = _default_backend_kwargs()
     preset = (cfg.get("presets") or {}).get(cfg.get("preset")) or {}
     from_preset = set(preset.get("backend_kwargs") or {})

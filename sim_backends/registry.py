@@ -97,19 +97,23 @@ def backend_spec(name: str) -> Spec:
 _GENERIC_PARAMS = {"self", "image_size", "cameras", "render"}
 
 
+def backend_option_names(name: str) -> set[str]:
+    """The keys a `backend_kwargs` section may hold for backend `name`: its constructor's own parameters."""
+    return set(inspect.signature(backend_spec(name).cls.__init__).parameters) - _GENERIC_PARAMS
+
+
 def backend_options(name: str, section: dict[str, Any]) -> dict[str, Any]:
     """A `backend_kwargs` section checked for backend `name`: each key must be an option of its constructor;
     the backend then checks and resolves the values (`FailureSource.prepare_kwargs`, which loads scene and
     object files). A bad one is a ConfigError "backend_kwargs.<key>: <problem>"."""
     from labrobfail_vlm.config import ConfigError
 
-    cls = backend_spec(name).cls
-    takes = set(inspect.signature(cls.__init__).parameters) - _GENERIC_PARAMS
+    takes = backend_option_names(name)
     try:
         for k in section:
             if k not in takes:
                 raise ValueError(f"{k}: not an option of the {name} backend")
-        return cls.prepare_kwargs(dict(section))
+        return backend_spec(name).cls.prepare_kwargs(dict(section))
     except ValueError as e:
         raise ConfigError(f"backend_kwargs.{e}") from None
 
