@@ -4,7 +4,9 @@
                     at each keyframe boundary (or every `query_every` steps): verdict = supervisor.query(src)
                     failure and budget left -> CorrectionExecutor(src).run(verdict.primitives),
                                                supervisor.handled(src), policy.after_correction(obs)
-    at the end:     one last query (a failure that shows only once the policy stops), src.finish()
+    policy stops:   one more query (a failure that shows only once the policy stops); a correction that runs
+                    there hands control back to the policy (corrections end "then resume the remaining
+                    workflow"), which is reviewed again when it stops; then src.finish()
 
 Every query is a JSONL record (latency, diagnosis, primitives, the executor's outcome, the grid's path);
 every trial ends with an `episode` record. Success is judged by the task family's goals on the settled
@@ -146,6 +148,38 @@ class _Trial:
     interventions: int = 0
     latency: list[float] = field(default_factory=list)
     stopped: str | None = None
+    steps: int = 0  # policy steps
+    corrected: bool = False  # the last query's correction ran
+
+
+def _act(src: FailureSource, policy: Policy, supervisor: Supervisor, executor: CorrectionExecutor,
+         tracker: PhaseTracker, cfg: LoopConfig, log: RunLog | None, trial: str, t: _Trial, grid_cfg: GridConfig,
+         ctx: EpisodeContext) -> None:
+    """Step the policy, querying as `cfg` says, until it stops, errs, a correction stops the episode or the
+    step limit is reached."""
+    prev_name: str | None = None
+    while t.steps < cfg.max_steps:
+        obs = src.observe()
+        try:
+            a = policy.act(obs)
+        except PolicyError as e:
+            t.stopped = f"policy error: {e}"
+            return
+        if a is None:
+            return
+        kf = tracker.keyframe(a, obs.state)
+        src.step(kf)
+        t.steps += 1
+        obs = src.observe()
+        if cfg.query_every < 0:
+            due = False
+        elif cfg.query_every:
+            due = t.steps % cfg.query_every == 0
+        else:  # a keyframe boundary
+            due = a.name is not None or kf.name != prev_name
+        prev_name = kf.name
+        if due and not _query(src, policy, supervisor, executor, cfg, log, trial, t, obs, grid_cfg, ctx):
+            return
 
 
 def run_trial(src: FailureSource, policy: Policy, supervisor: Supervisor, family: TaskFamily, scenario: str,
@@ -158,40 +192,25 @@ def run_trial(src: FailureSource, policy: Policy, supervisor: Supervisor, family
     src.begin(events)
     tracker, t = PhaseTracker(ctx.nominal), _Trial()
     executor = CorrectionExecutor(src)
-    prev_name: str | None = None
-    steps = 0
-    while steps < cfg.max_steps:
-        obs = src.observe()
-        try:
-            a = policy.act(obs)
-        except PolicyError as e:
-            t.stopped = f"policy error: {e}"
+    while True:
+        _act(src, policy, supervisor, executor, tracker, cfg, log, trial, t, grid_cfg, ctx)
+        if not src.executed_so_far():  # nothing ran (a policy that failed at once): hold still, so the episode
+            # has a keyframe to label
+            s = src.observe().state
+            src.step(tracker.keyframe(Action(tuple(s["ee_pos"]), tuple(s["ee_quat"]), int(s["grip_cmd"]),
+                                             name=tracker.nominal[0].name)))
+        if not cfg.final_query or t.stopped is not None:
             break
-        if a is None:
-            break
-        kf = tracker.keyframe(a, obs.state)
-        src.step(kf)
-        steps += 1
-        obs = src.observe()
-        if cfg.query_every < 0:
-            due = False
-        elif cfg.query_every:
-            due = steps % cfg.query_every == 0
-        else:  # a keyframe boundary
-            due = a.name is not None or kf.name != prev_name
-        prev_name = kf.name
-        if due and not _query(src, policy, supervisor, executor, cfg, log, trial, t, obs, grid_cfg, ctx):
-            break
-    if not src.executed_so_far():  # nothing ran (a policy that failed at once): hold still, so the episode has
-        # a keyframe to label
-        s = src.observe().state
-        src.step(tracker.keyframe(Action(tuple(s["ee_pos"]), tuple(s["ee_quat"]), int(s["grip_cmd"]), name=tracker.nominal[0].name)))
-    if cfg.final_query and t.stopped is None:
         _query(src, policy, supervisor, executor, cfg, log, trial, t, src.observe(), grid_cfg, ctx, final=True)
+        if not t.corrected or t.stopped is not None or t.steps >= cfg.max_steps:
+            break
+        # A correction ran once the policy had stopped. Many end "... then resume the remaining workflow" and the
+        # policy has re-planned from the corrected state (`after_correction`): it goes on, and is reviewed again
+        # when it stops (the budget bounds the rounds).
     ep = src.finish()
     res = {"event": "episode", "trial": trial, "scenario": scenario, "seed": seed, "variant": variant,
            "family": family.name, "policy": policy.name, "supervisor": supervisor.name,
-           "success": family.success(ep), "steps": steps, "keyframes": len(ep.executed_keyframes),
+           "success": family.success(ep), "steps": t.steps, "keyframes": len(ep.executed_keyframes),
            "queries": t.queries, "interventions": t.interventions, "stopped": t.stopped,
            "labels": ep.labels.to_dict(), "latency_s": t.latency, **policy.info()}
     if log is not None:
@@ -212,7 +231,7 @@ def _query(src: FailureSource, policy: Policy, sup: Supervisor, executor: Correc
     if log is not None and (cfg.grids == "all" or (cfg.grids == "failures" and v.failure)):
         img = v.grid if v.grid is not None else live_grid(src, ctx.nominal, grid_cfg).image
         rec["grid"] = log.grid(img, f"{trial}-q{t.queries:03d}")
-    go_on = True
+    go_on, t.corrected = True, False
     if v.failure and t.interventions >= cfg.budget:
         rec["outcome"] = {"executed": False, "error": "intervention budget spent"}
     elif v.failure:
@@ -221,6 +240,7 @@ def _query(src: FailureSource, policy: Policy, sup: Supervisor, executor: Correc
         sup.handled(src)
         policy.after_correction(src.observe(), res.executed)
         rec["outcome"] = res.to_dict()
+        t.corrected = bool(res.executed)
         if res.manual and cfg.on_manual == "stop":
             t.stopped, go_on = "manual correction", False
     if log is not None:

@@ -84,9 +84,15 @@ class OracleSupervisor(Supervisor):
     def query(self, src: FailureSource, final: bool = False) -> Verdict:
         trace = src.trace_so_far()
         meta = src.task_meta(src.executed_so_far())
-        ev = live_failure(trace, meta, self.after_sample)
-        if ev is None and final:  # the policy has stopped: a goal that fails with no earlier signature
-            ev = unmet_goal(trace, meta, self.ctx.goals)
+        if final:
+            # The policy has stopped, so the labeler's first rule decides: every goal holds = success, whatever
+            # a detector saw on the way (a placement made with a twisted wrist that still stands on the target).
+            # Correcting a success could only undo it. Otherwise the earliest signature names the failure; a
+            # failed goal with no signature is an incomplete trajectory.
+            unmet = unmet_goal(trace, meta, self.ctx.goals)
+            ev = None if unmet is None else live_failure(trace, meta, self.after_sample) or unmet
+        else:
+            ev = live_failure(trace, meta, self.after_sample)
         if ev is None:
             return Verdict(False)
         j, ftype, why = ev
