@@ -197,6 +197,12 @@ def run(cfg: Any) -> dict[str, Any]:
 
 def main(argv: list[str]) -> int:
     run(load_config("train.yaml", [a for a in argv if not a.startswith("--local_rank")]))
+    import torch.distributed as dist
+    if dist.is_available() and dist.is_initialized():
+        # A rank that exits with its gloo process group alive can abort at interpreter shutdown ("terminate
+        # called without an active exception", SIGABRT) once the run has already succeeded. Only after success:
+        # tearing down while another rank still waits in a collective would hang instead.
+        dist.destroy_process_group()
     return 0
 
 
