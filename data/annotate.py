@@ -73,15 +73,25 @@ def decode_views(images: list[list[bytes]], picks: list[int]) -> list[list[Image
     return [[Image.open(io.BytesIO(view[i])).convert("RGB") for i in picks] for view in images]
 
 
+def grid_picks(row: dict[str, Any], max_frames: int) -> list[int]:
+    """The executed keyframes a grid of `max_frames` shows for this shard row."""
+    return sample_keyframes([k["segment"] for k in json.loads(row["keyframes"])], max_frames)
+
+
+def grid_failure_frame(row: dict[str, Any], picks: list[int]) -> int | None:
+    """The 1-based grid frame where the row's labeled failure first shows (None for a success)."""
+    return None if row["success"] else frame_for_keyframe(picks, int(row["failure_keyframe"]))
+
+
 def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator, prefix_cuts: int = 0,
-             prefix_rng: np.random.Generator | None = None, aux: int = 0) -> Annotated:
+             prefix_rng: np.random.Generator | None = None, aux: int = 0, cut_frame: int | None = None) -> Annotated:
     """`prefix_cuts` > 0 adds that many prefix grids, each with a Q2 and a Q3 record (`prefix_records`); `aux` > 0
     that many per-frame fact records (data/facts.py). Both draw from `prefix_rng`, so the six main records are the
-    same with or without them."""
+    same with or without them. `cut_frame`: the failure frame the prefix cuts are placed around (None: this
+    trajectory's own); the builder passes a pair's so that twins are cut at the same keyframes."""
     meta = json.loads(row["task_meta"])
     trace = json.loads(row["state_trace"])
-    kfs = json.loads(row["keyframes"])
-    picks = sample_keyframes([k["segment"] for k in kfs], grid_cfg.max_frames)
+    picks = grid_picks(row, grid_cfg.max_frames)
     views = decode_views(row["images"], picks)
     grid = build_grid(views, grid_cfg)
     traj = f"{row['variant']}-{row['episode_id']}"
@@ -94,7 +104,7 @@ def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator
         answers.update(Q3=Q.NO_FAILURE, Q4=Q.NO_FAILURE, Q5=Q.NO_FAILURE, Q6=Q.NO_CORRECTION)
         frame = None
     else:
-        frame = frame_for_keyframe(picks, int(row["failure_keyframe"]))
+        frame = grid_failure_frame(row, picks)
         ctx = failure_context(row, meta, trace)
         answers.update(Q3=str(frame), Q4=str(int(row["severity"])), Q5=str(int(row["category"])),
                        Q6=correction(ctx)[1])
@@ -122,7 +132,8 @@ def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator
     }
     ann = Annotated(traj, info["group"], row["variant"], image, grid, records, info)
     if prefix_cuts > 0:
-        ann.prefixes = prefix_records(ann, views, grid_cfg, prefix_cuts, prefix_rng or rng)
+        ann.prefixes = prefix_records(ann, views, grid_cfg, prefix_cuts, prefix_rng or rng,
+                                      frame if cut_frame is None else cut_frame)
     if aux > 0:
         ann.aux = aux_records(traj, image, Q.preamble(task_name, grid_cfg.time_axis), frame_facts(trace, meta, picks),
                               aux, prefix_rng or rng)
@@ -146,11 +157,12 @@ def prefix_cut_points(frames: int, failure_frame: int | None, n: int, rng: np.ra
 
 
 def prefix_records(ann: Annotated, views: list[list[Image.Image]], grid_cfg: GridConfig, n: int,
-                   rng: np.random.Generator) -> list[Annotated]:
+                   rng: np.random.Generator, cut_frame: int | None) -> list[Annotated]:
     """Prefix grids for online supervision: the first k keyframes shown, later cells blank. Q2 asks whether a
-    failure has shown up yet (the labeled failure frame is <= k), Q3 the frame when it has, else None."""
+    failure has shown up yet (the labeled failure frame is <= k), Q3 the frame when it has, else None. The cuts
+    are placed around `cut_frame`; the answers always come from this trajectory's own label."""
     info, out = ann.meta, []
-    for k in prefix_cut_points(info["frames"], info["frame"], n, rng):
+    for k in prefix_cut_points(info["frames"], cut_frame, n, rng):
         failed = info["frame"] is not None and info["frame"] <= k
         traj = f"{ann.trajectory}-p{k}"
         image = f"images/{traj}.png"

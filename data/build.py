@@ -26,7 +26,7 @@ import pyarrow.parquet as pq
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from data.annotate import Annotated, annotate, check_record
+from data.annotate import Annotated, annotate, check_record, grid_failure_frame, grid_picks
 from data.paraphrase import Paraphraser
 from data.splits import assign
 from labrobfail_vlm import questions as Q
@@ -83,6 +83,23 @@ def _rows(files: list[Path]):
             raise ConfigError(f"shards: cannot read {f} ({type(e).__name__}: {str(e).splitlines()[0]})") from None
 
 
+def _pair_cut_frames(files: list[Path], max_frames: int) -> dict[str, int | None]:
+    """variant-pair_id -> the earliest grid failure frame of the pair's twins (None if both succeeded), read from
+    the label columns only (no images)."""
+    cols = ["variant", "pair_id", "success", "failure_keyframe", "keyframes"]
+    frames: dict[str, int | None] = {}
+    for f in files:
+        try:
+            rows = pq.read_table(f, columns=cols).to_pylist()
+        except Exception as e:  # pyarrow raises several types for a corrupt file
+            raise ConfigError(f"shards: cannot read {f} ({type(e).__name__}: {str(e).splitlines()[0]})") from None
+        for row in rows:
+            key, fr = f"{row['variant']}-{row['pair_id']}", grid_failure_frame(row, grid_picks(row, max_frames))
+            old = frames.get(key)
+            frames[key] = fr if old is None else old if fr is None else min(old, fr)
+    return frames
+
+
 def _review_marks(path: str | None) -> dict[str, str]:
     if path is None:
         return {}
@@ -114,6 +131,10 @@ def build(cfg: DictConfig) -> dict[str, Any]:
         raise ConfigError(f"out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
 
     rng = np.random.default_rng(int(cfg.seed))
+    # Twins cut at the same keyframes: before their failure the two prefix grids are the same picture with the
+    # same answer, after it they differ by the failure alone (a clean contrast for pair batches).
+    pair_cuts = int(cfg.prefix.cuts) > 0 and bool(cfg.prefix.pair_cuts)
+    cut_frames = _pair_cut_frames(files, gcfg.max_frames) if pair_cuts else {}
     drops: Counter[str] = Counter()
     para_stats: Counter[str] = Counter()
     kept: list[Annotated] = []
@@ -124,9 +145,10 @@ def build(cfg: DictConfig) -> dict[str, Any]:
         if row["variant"] not in SCENE_VARIANTS:
             raise ConfigError(f"shards: row {row['episode_id']} has unknown variant {row['variant']!r}")
         # prefix cuts draw from their own stream: the main records are the same with or without them
-        traj_key = zlib.crc32(f"{row['variant']}-{row['episode_id']}".encode())
+        group = f"{row['variant']}-{row['pair_id']}"
+        traj_key = zlib.crc32((group if pair_cuts else f"{row['variant']}-{row['episode_id']}").encode())
         ann = annotate(row, gcfg, rng, int(cfg.prefix.cuts), np.random.default_rng([int(cfg.seed), traj_key]),
-                       int(cfg.aux.per_trajectory))
+                       int(cfg.aux.per_trajectory), cut_frames.get(group))
         if marks.get(ann.trajectory) == "reject":
             drops["review_rejected"] += 1
             continue
@@ -175,7 +197,8 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     trajectories = [a.meta for a in kept]
     atomic_write_json(out / "trajectories.json", trajectories + [p.meta for a in kept for p in a.prefixes])
     stats = dataset_stats(trajectories, splits, total_rows, drops, para_stats, gcfg)
-    stats["prefix"] = {"cuts": int(cfg.prefix.cuts), "grids": sum(len(a.prefixes) for a in kept)}
+    stats["prefix"] = {"cuts": int(cfg.prefix.cuts), "pair_cuts": bool(cfg.prefix.pair_cuts),
+                       "grids": sum(len(a.prefixes) for a in kept)}
     stats["aux"] = {"per_trajectory": int(cfg.aux.per_trajectory),
                     "records": sum(len(a.aux) for a in kept if a.meta["split"] == "train")}
     atomic_write_json(out / "stats.json", stats)

@@ -225,6 +225,36 @@ def test_paraphrase_through_openai_compatible_endpoint(run6, tmp_path, mode):
         assert stats["paraphrase"].get("rejected", 0) > 0 and stats["trajectories_kept"] == 6
 
 
+def test_pair_cuts_cut_twins_at_the_same_keyframes(run6, tmp_path):
+    """prefix.pair_cuts: a pair's twins get the same prefix lengths (placed around the failed twin's frame), each
+    prefix keeps its own trajectory's answer, and the whole-grid records do not change."""
+    grid = ["grid.width=256", "grid.height=128", "grid.max_frames=8", "grid.columns=4"]
+    on, off = tmp_path / "on", tmp_path / "off"
+    assert build(run6, on, "prefix.cuts=2", "prefix.pair_cuts=true", *grid).returncode == 0
+    assert build(run6, off, "prefix.cuts=2", *grid).returncode == 0
+    traj = {t["trajectory"]: t for t in load(on, "trajectories")}
+    cuts: dict[str, dict[str, list[int]]] = {}
+    for t in traj.values():
+        if "prefix_of" in t:
+            cuts.setdefault(t["group"], {}).setdefault(t["prefix_of"], []).append(t["visible"])
+    shared = 0
+    for pair in cuts.values():
+        if len(pair) == 2:
+            (a, ka), (b, kb) = pair.items()
+            if traj[a]["frames"] == traj[b]["frames"]:  # twins of different lengths have different cut ranges
+                assert ka == kb, (a, ka, b, kb)
+                shared += 1
+    assert shared >= 1
+    for t in traj.values():  # each prefix's answer is its own trajectory's: failed yet iff its frame <= k
+        if "prefix_of" in t:
+            full = traj[t["prefix_of"]]
+            assert t["success"] == (full["frame"] is None or full["frame"] > t["visible"])
+    rec_on = [x for x in load(on, "train") if "-p" not in Q.traj_of(x["id"])]
+    assert rec_on == [x for x in load(off, "train") if "-p" not in Q.traj_of(x["id"])]
+    assert load(on, "test") == load(off, "test")
+    assert json.loads((on / "stats.json").read_text())["prefix"]["pair_cuts"] is True
+
+
 def test_prefix_records_follow_the_failure_frame(run6, ds, tmp_path):
     from data.annotate import prefix_cut_points
     out = tmp_path / "p"
