@@ -133,7 +133,9 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     rng = np.random.default_rng(int(cfg.seed))
     # Twins cut at the same keyframes: before their failure the two prefix grids are the same picture with the
     # same answer, after it they differ by the failure alone (a clean contrast for pair batches).
-    pair_cuts = int(cfg.prefix.cuts) > 0 and bool(cfg.prefix.pair_cuts)
+    if not isinstance(cfg.prefix.pair_cuts, bool):
+        raise ConfigError(f"prefix.pair_cuts: true or false, got {cfg.prefix.pair_cuts!r}")
+    pair_cuts = int(cfg.prefix.cuts) > 0 and cfg.prefix.pair_cuts
     cut_frames = _pair_cut_frames(files, gcfg.max_frames) if pair_cuts else {}
     drops: Counter[str] = Counter()
     para_stats: Counter[str] = Counter()

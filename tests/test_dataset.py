@@ -158,7 +158,8 @@ def test_split_groups_are_exact_and_deterministic():
 
 def test_bad_inputs_are_one_line_errors(run6, tmp_path):
     for args, field in [([f"shards={tmp_path}/none"], "shards"), (["grid.time_axis=diagonal"], "grid.time_axis"),
-                        (["ratios=[0.5,0.5,0.5]"], "ratios"), (["bogus=1"], "bogus")]:
+                        (["ratios=[0.5,0.5,0.5]"], "ratios"), (["bogus=1"], "bogus"),
+                        (["prefix.cuts=1", "prefix.pair_cuts=maybe"], "prefix.pair_cuts")]:
         r = subprocess.run([sys.executable, "scripts/build_dataset.py", f"out_dir={tmp_path}/o",
                             *([f"shards={run6}"] if not args[0].startswith("shards") else []), *args],
                            cwd=ROOT, capture_output=True, text=True, timeout=120)
