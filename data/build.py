@@ -68,14 +68,14 @@ def check_rendered(cfg: DictConfig, max_frames: int) -> None:
                               "or regenerate with render_frames=null")
 
 
-def _rows(files: list[Path]):
+def _rows(files: list[Path], columns: list[str] = READ_COLUMNS):
     for f in files:
         try:
             pf = pq.ParquetFile(f)
-            missing = [c for c in READ_COLUMNS if c not in pf.schema_arrow.names]
+            missing = [c for c in columns if c not in pf.schema_arrow.names]
             if missing:
                 raise ConfigError(f"shards: {f} lacks columns {missing}")
-            for batch in pf.iter_batches(batch_size=16, columns=READ_COLUMNS):
+            for batch in pf.iter_batches(batch_size=16, columns=columns):
                 yield from batch.to_pylist()
         except ConfigError:
             raise
@@ -86,17 +86,11 @@ def _rows(files: list[Path]):
 def _pair_cut_frames(files: list[Path], max_frames: int) -> dict[str, int | None]:
     """variant-pair_id -> the earliest grid failure frame of the pair's twins (None if both succeeded), read from
     the label columns only (no images)."""
-    cols = ["variant", "pair_id", "success", "failure_keyframe", "keyframes"]
     frames: dict[str, int | None] = {}
-    for f in files:
-        try:
-            rows = pq.read_table(f, columns=cols).to_pylist()
-        except Exception as e:  # pyarrow raises several types for a corrupt file
-            raise ConfigError(f"shards: cannot read {f} ({type(e).__name__}: {str(e).splitlines()[0]})") from None
-        for row in rows:
-            key, fr = f"{row['variant']}-{row['pair_id']}", grid_failure_frame(row, grid_picks(row, max_frames))
-            old = frames.get(key)
-            frames[key] = fr if old is None else old if fr is None else min(old, fr)
+    for row in _rows(files, ["variant", "pair_id", "success", "failure_keyframe", "keyframes"]):
+        key, fr = f"{row['variant']}-{row['pair_id']}", grid_failure_frame(row, grid_picks(row, max_frames))
+        old = frames.get(key)
+        frames[key] = fr if old is None else old if fr is None else min(old, fr)
     return frames
 
 
