@@ -114,6 +114,8 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     check_rendered(cfg, gcfg.max_frames)
     if len(cfg.ratios) != 3 or any(float(r) < 0 for r in cfg.ratios) or abs(sum(cfg.ratios) - 1) > 1e-6:
         raise ConfigError(f"ratios: three non-negative fractions summing to 1, got {list(cfg.ratios)}")
+    if not isinstance(cfg.prefix.pair_cuts, bool):
+        raise ConfigError(f"prefix.pair_cuts: true or false, got {cfg.prefix.pair_cuts!r}")
     marks = _review_marks(cfg.review)
     para = Paraphraser(cfg.paraphrase.base_url, cfg.paraphrase.model, cfg.paraphrase.api_key_env,
                        cfg.paraphrase.timeout_s) if cfg.paraphrase.enabled else None
@@ -127,8 +129,6 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     rng = np.random.default_rng(int(cfg.seed))
     # Twins cut at the same keyframes: before their failure the two prefix grids are the same picture with the
     # same answer, after it they differ by the failure alone (a clean contrast for pair batches).
-    if not isinstance(cfg.prefix.pair_cuts, bool):
-        raise ConfigError(f"prefix.pair_cuts: true or false, got {cfg.prefix.pair_cuts!r}")
     pair_cuts = int(cfg.prefix.cuts) > 0 and cfg.prefix.pair_cuts
     cut_frames = _pair_cut_frames(files, gcfg.max_frames) if pair_cuts else {}
     drops: Counter[str] = Counter()
