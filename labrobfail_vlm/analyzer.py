@@ -75,6 +75,7 @@ class Ask:
 
     kind: str
     options: tuple[str, ...] = ()
+    per_token: bool = False  # "choose": rank options by mean log-likelihood per token (options of unequal length)
 
 
 def plan_reply(dim: str, failed: bool | None, frames: int, objects: Sequence[str] = (), q6_mode: str = "free"
@@ -90,7 +91,7 @@ def plan_reply(dim: str, failed: bool | None, frames: int, objects: Sequence[str
         if failed is False:
             return Q.NO_CORRECTION
         if q6_mode == "template":
-            return Ask("choose", tuple(text for _, text in candidates(objects)))
+            return Ask("choose", tuple(text for _, text in candidates(objects)), per_token=True)
         closed = (Q.NO_CORRECTION, Q.NO_FAILURE, "Yes", "No", *map(str, range(10)))
         return Ask("free", closed if failed else ())
     if failed is False:
@@ -158,7 +159,7 @@ class FailureAnalyzer:
             sub = pre if len(rows) == len(plans) else d.select(pre, rows)
             asks = [plans[i] for i in rows]
             if kind == "choose":
-                got = d.choose_rows(sub, [a.options for a in asks])
+                got = d.choose_rows(sub, [a.options for a in asks], [a.per_token for a in asks])
             elif kind == "actions":
                 got = d.actions_rows(sub, [True] * len(rows))
             else:

@@ -251,15 +251,21 @@ class Decoder:
         return self.score_rows(pre, [seqs])[0]
 
     # ---- answers -----------------------------------------------------------------------------------------
-    def choose_rows(self, pre: Prefix, candidates: Sequence[Sequence[str] | None]) -> list[str | None]:
-        """Per row, the candidate (followed by the end of turn) with the highest log-likelihood; None rows skip."""
+    def choose_rows(self, pre: Prefix, candidates: Sequence[Sequence[str] | None],
+                    per_token: Sequence[bool] | None = None) -> list[str | None]:
+        """Per row, the candidate (followed by the end of turn) with the highest log-likelihood; None rows skip.
+        A row with `per_token` true ranks by the mean log-likelihood per token instead: sentences of 16 to 30
+        tokens (the correction strategies) are otherwise decided by their length, a small model's per-token
+        doubt adding up over the longer ones (docs/ARCHITECTURE.md, "Seventh round")."""
         seqs = [[self.encode_ids(c) + [self.eos] for c in cands] if cands else [] for cands in candidates]
         scores = self.score_rows(pre, seqs)
+        norm = per_token or [False] * len(seqs)
+        scores = [[v / len(s) for v, s in zip(sc, row)] if n else sc for sc, row, n in zip(scores, seqs, norm)]
         return [cands[max(range(len(cands)), key=sc.__getitem__)] if cands else None
                 for cands, sc in zip(candidates, scores)]
 
-    def choose(self, pre: Prefix, candidates: Sequence[str]) -> str:
-        return str(self.choose_rows(pre, [candidates])[0])
+    def choose(self, pre: Prefix, candidates: Sequence[str], per_token: bool = False) -> str:
+        return str(self.choose_rows(pre, [candidates], [per_token])[0])
 
     def actions_rows(self, pre: Prefix, active: Sequence[bool], max_actions: int = 12) -> list[str | None]:
         """Per active row, the ordered atomic actions, one greedy choice at a time (or the end of the list)."""

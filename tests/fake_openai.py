@@ -2,7 +2,7 @@
 
 It speaks the part of the API the endpoint path uses, as vLLM does: GET /v1/models, POST /v1/chat/completions
 with one user message (image_url data: URL + text), `structured_outputs.choice` (the reply is one of the
-choices: scored like the local decoder), `structured_outputs.regex` (only the Q1 action-list pattern: decoded
+choices: ranked as the local decoder ranks them), `structured_outputs.regex` (only the Q1 action-list pattern: decoded
 as a constrained action list) and plain free text; optional bearer key. Every request body is recorded.
 """
 
@@ -72,7 +72,10 @@ class FakeOpenAI:
                 with lock:
                     pre = fa.decoder.prefill(dict(fa.processor(text=[prompt], images=[image], return_tensors="pt")))
                     if "choice" in so:
-                        reply = fa.decoder.choose(pre, so["choice"])
+                        # ranked as the local decoder ranks that list: Q6 strategies (sentences of unequal
+                        # length) by mean log-likelihood per token, the one-token answers by their likelihood
+                        per_token = len({len(fa.decoder.encode_ids(c)) for c in so["choice"]}) > 1
+                        reply = fa.decoder.choose(pre, so["choice"], per_token)
                     elif "regex" in so:
                         reply = fa.decoder.actions(pre)
                     else:

@@ -217,10 +217,16 @@ def test_q6_template_mode_picks_a_filled_strategy(tiny, grid):  # noqa: F811
     from labrobfail_vlm.corrections import candidates
     fa = FailureAnalyzer.from_pretrained(tiny, q6_mode="template")
     names = ["small beaker", "target area"]
-    reply = fa._answer("Q6", _q6_prefix(fa, Image.open(grid).convert("RGB"), "pick up the small beaker"), True, 8,
-                       names)
+    pre = _q6_prefix(fa, Image.open(grid).convert("RGB"), "pick up the small beaker")
+    reply = fa._answer("Q6", pre, True, 8, names)
     cands = dict((text, sid) for sid, text in candidates(names))
     assert reply in cands and nearest_strategy(reply) == cands[reply]
+    # ranked by mean log-likelihood per token (end of turn included), not by the sum, which favours short ones
+    d, texts = fa.decoder, list(cands)
+    seqs = [d.encode_ids(t) + [d.eos] for t in texts]
+    lp = d.score_many(pre, seqs)
+    assert reply == max(texts, key=lambda t: lp[texts.index(t)] / len(seqs[texts.index(t)]))
+    assert d.choose_rows(pre, [texts], [False]) == [max(texts, key=lambda t: lp[texts.index(t)])]
     assert all("{" not in text for text in cands)  # every placeholder filled
     with pytest.raises(ValueError, match="q6_mode"):
         FailureAnalyzer.from_pretrained(tiny, q6_mode="beam")
