@@ -12,7 +12,7 @@ import io
 import json
 import re
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from PIL import Image
@@ -24,7 +24,12 @@ from labrobfail_vlm.grid import GridConfig, build_grid, frame_for_keyframe, samp
 from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, Category, Severity
 from data.facts import aux_records, frame_facts
 from sim_backends.goals import object_fell
-from sim_backends.schema import TaskMeta
+from sim_backends.labeler import severity
+from sim_backends.schema import TaskMeta, trace_until
+
+# What a prefix grid may be asked (prefix.questions). Q4 is not: severity is a rule on the final state (a door
+# left open, a vessel lying on its side at the end), which a prefix does not show yet.
+PREFIX_QUESTIONS = ("Q2", "Q3", "Q5", "Q6")
 
 
 @dataclass
@@ -40,8 +45,10 @@ class Annotated:
     aux: list[dict[str, Any]] = field(default_factory=list)  # per-frame fact records (training split only)
 
 
-def failure_context(row: dict[str, Any], meta: dict[str, Any], trace: dict[str, list]) -> Context:
-    """Fill the correction placeholders from task metadata (which step failed, on what, towards where)."""
+def failure_context(row: dict[str, Any], meta: dict[str, Any], trace: dict[str, list],
+                    fatal: bool | None = None) -> Context:
+    """Fill the correction placeholders from task metadata (which step failed, on what, towards where).
+    `fell` is read from `trace` (a prefix's trace: fallen by then); `fatal` defaults to the row's severity."""
     steps, labels = meta["steps"], meta.get("labels", {})
     ran = TaskMeta.from_dict(meta).executed_steps()  # step index (Keyframe.segment) of each executed keyframe
     kf = min(int(row["failure_keyframe"] or 0), len(ran) - 1)
@@ -60,7 +67,8 @@ def failure_context(row: dict[str, Any], meta: dict[str, Any], trace: dict[str, 
     done = set(ran)
     omitted = next((s["action"] for s in steps if s["index"] not in done), st["action"])
     return Context(failure_type=row["failure_type"], action=st["action"], device=device,
-                   fell=object_fell(trace, meta), fatal=row["severity"] == int(Severity.FATAL),
+                   fell=object_fell(trace, meta),
+                   fatal=row["severity"] == int(Severity.FATAL) if fatal is None else fatal,
                    target=word(obj) if obj else "object", destination=destination,
                    source=word(pour["object"]) if pour else word(obj or "container"),
                    omitted=omitted, opening=st["action"] == "open")
@@ -84,11 +92,13 @@ def grid_failure_frame(row: dict[str, Any], picks: list[int]) -> int | None:
 
 
 def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator, prefix_cuts: int = 0,
-             prefix_rng: np.random.Generator | None = None, aux: int = 0, cut_frame: int | None = None) -> Annotated:
-    """`prefix_cuts` > 0 adds that many prefix grids, each with a Q2 and a Q3 record (`prefix_records`); `aux` > 0
-    that many per-frame fact records (data/facts.py). Both draw from `prefix_rng`, so the six main records are the
-    same with or without them. `cut_frame`: the failure frame the prefix cuts are placed around (None: this
-    trajectory's own); the builder passes a pair's so that twins are cut at the same keyframes."""
+             prefix_rng: np.random.Generator | None = None, aux: int = 0, cut_frame: int | None = None,
+             prefix_questions: Sequence[str] = ("Q2", "Q3")) -> Annotated:
+    """`prefix_cuts` > 0 adds that many prefix grids, each with a record per `prefix_questions`
+    (`prefix_records`); `aux` > 0 that many per-frame fact records (data/facts.py). Both draw from `prefix_rng`,
+    so the six main records are the same with or without them. `cut_frame`: the failure frame the prefix cuts are
+    placed around (None: this trajectory's own); the builder passes a pair's so that twins are cut at the same
+    keyframes."""
     meta = json.loads(row["task_meta"])
     trace = json.loads(row["state_trace"])
     picks = grid_picks(row, grid_cfg.max_frames)
@@ -132,8 +142,12 @@ def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator
     }
     ann = Annotated(traj, info["group"], row["variant"], image, grid, records, info)
     if prefix_cuts > 0:
+        def context_at(k: int) -> Context:  # the failure as it stands once grid frame k has been shown
+            until = trace_until(trace, picks[k - 1])
+            return failure_context(row, meta, until, severity(until, meta, row["failure_type"]) == Severity.FATAL)
+
         ann.prefixes = prefix_records(ann, views, grid_cfg, prefix_cuts, prefix_rng or rng,
-                                      frame if cut_frame is None else cut_frame)
+                                      frame if cut_frame is None else cut_frame, prefix_questions, context_at)
     if aux > 0:
         ann.aux = aux_records(traj, image, Q.preamble(task_name, grid_cfg.time_axis), frame_facts(trace, meta, picks),
                               aux, prefix_rng or rng)
@@ -157,25 +171,35 @@ def prefix_cut_points(frames: int, failure_frame: int | None, n: int, rng: np.ra
 
 
 def prefix_records(ann: Annotated, views: list[list[Image.Image]], grid_cfg: GridConfig, n: int,
-                   rng: np.random.Generator, cut_frame: int | None) -> list[Annotated]:
+                   rng: np.random.Generator, cut_frame: int | None, questions: Sequence[str] = ("Q2", "Q3"),
+                   context_at: Callable[[int], Context] | None = None) -> list[Annotated]:
     """Prefix grids for online supervision: the first k keyframes shown, later cells blank. Q2 asks whether a
-    failure has shown up yet (the labeled failure frame is <= k), Q3 the frame when it has, else None. The cuts
-    are placed around `cut_frame`; the answers always come from this trajectory's own label."""
+    failure has shown up yet (the labeled failure frame is <= k), Q3 the frame when it has, else None; Q5 its
+    category; Q6 its correction, from the failure context as it stands at frame k (`context_at`: fallen or
+    fatal by then, not later). The cuts are placed around `cut_frame`; the answers always come from this
+    trajectory's own label."""
     info, out = ann.meta, []
     for k in prefix_cut_points(info["frames"], cut_frame, n, rng):
         failed = info["frame"] is not None and info["frame"] <= k
         traj = f"{ann.trajectory}-p{k}"
         image = f"images/{traj}.png"
+        ctx = context_at(k) if failed and "Q6" in questions and context_at is not None else None
+        fix = correction(ctx) if ctx else (None, "")
+        answers = {"Q3": str(info["frame"]), "Q5": str(info["category"]), "Q6": fix[1]} if failed else \
+            {"Q3": Q.NO_FAILURE, "Q5": Q.NO_FAILURE, "Q6": Q.NO_CORRECTION}
         records = []
-        for dim in ("Q2", "Q3"):
+        for dim in questions:  # Q2 and Q3 draw first, so the default prefixes are what they always were
             v = int(rng.integers(len(Q.VARIANTS[dim])))
-            ans = Q.q2_answer(v, not failed) if dim == "Q2" else str(info["frame"]) if failed else Q.NO_FAILURE
+            ans = Q.q2_answer(v, not failed) if dim == "Q2" else answers[dim]
             records.append({"id": Q.record_id(traj, dim), "image": image, "images": [image], "conversations": [
                 {"from": "human", "value": Q.question_text(dim, v, info["task"], grid_cfg.time_axis)},
                 {"from": "gpt", "value": ans}]})
         meta = {**info, "trajectory": traj, "prefix_of": ann.trajectory, "visible": k, "success": not failed,
                 "frame": info["frame"] if failed else None, "failure_type": info["failure_type"] if failed else None,
                 "category": info["category"] if failed else None, "severity": info["severity"] if failed else None}
+        if "Q6" in questions:  # the prefix's own correction (its trajectory's may follow from a later fall)
+            meta.update(strategy=fix[0], q6_keep=[w for w in (ctx.target, ctx.destination, ctx.source)
+                                                  if w in fix[1]] if ctx else [])
         out.append(Annotated(traj, ann.group, ann.variant, image, build_grid(views, grid_cfg, visible=k), records,
                              meta))
     return out

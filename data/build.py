@@ -26,7 +26,7 @@ import pyarrow.parquet as pq
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from data.annotate import Annotated, annotate, check_record, grid_failure_frame, grid_picks
+from data.annotate import PREFIX_QUESTIONS, Annotated, annotate, check_record, grid_failure_frame, grid_picks
 from data.paraphrase import Paraphraser
 from data.splits import assign
 from labrobfail_vlm import questions as Q
@@ -116,6 +116,12 @@ def build(cfg: DictConfig) -> dict[str, Any]:
         raise ConfigError(f"ratios: three non-negative fractions summing to 1, got {list(cfg.ratios)}")
     if not isinstance(cfg.prefix.pair_cuts, bool):
         raise ConfigError(f"prefix.pair_cuts: true or false, got {cfg.prefix.pair_cuts!r}")
+    got = cfg.prefix.get("questions", ["Q2", "Q3"])
+    questions = list(got) if OmegaConf.is_list(got) else [got]
+    if questions[:2] != ["Q2", "Q3"] or not set(questions) <= set(PREFIX_QUESTIONS) \
+            or len(set(questions)) != len(questions):
+        raise ConfigError(f"prefix.questions: Q2, Q3, then any of Q5, Q6 (Q4's severity is a rule on the final "
+                          f"state, which a prefix does not show), got {questions}")
     marks = _review_marks(cfg.review)
     para = Paraphraser(cfg.paraphrase.base_url, cfg.paraphrase.model, cfg.paraphrase.api_key_env,
                        cfg.paraphrase.timeout_s) if cfg.paraphrase.enabled else None
@@ -144,7 +150,7 @@ def build(cfg: DictConfig) -> dict[str, Any]:
         group = f"{row['variant']}-{row['pair_id']}"
         traj_key = zlib.crc32((group if pair_cuts else f"{row['variant']}-{row['episode_id']}").encode())
         ann = annotate(row, gcfg, rng, int(cfg.prefix.cuts), np.random.default_rng([int(cfg.seed), traj_key]),
-                       int(cfg.aux.per_trajectory), cut_frames.get(group))
+                       int(cfg.aux.per_trajectory), cut_frames.get(group), questions)
         if marks.get(ann.trajectory) == "reject":
             drops["review_rejected"] += 1
             continue
@@ -194,6 +200,7 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     atomic_write_json(out / "trajectories.json", trajectories + [p.meta for a in kept for p in a.prefixes])
     stats = dataset_stats(trajectories, splits, total_rows, drops, para_stats, gcfg)
     stats["prefix"] = {"cuts": int(cfg.prefix.cuts), "pair_cuts": bool(cfg.prefix.pair_cuts),
+                       "questions": questions,
                        "grids": sum(len(a.prefixes) for a in kept)}
     stats["aux"] = {"per_trajectory": int(cfg.aux.per_trajectory),
                     "records": sum(len(a.aux) for a in kept if a.meta["split"] == "train")}

@@ -36,6 +36,13 @@ def samples_in(trace: Trace, seconds: float) -> int:
     return int(seconds * trace_rate(trace))
 
 
+def trace_until(trace: Trace, keyframe: int) -> Trace:
+    """The trace as it stood when executed keyframe `keyframe` (0-based) ended: its samples up to that one."""
+    j = trace["kf_end"][keyframe]
+    return {c: (v if c == "rate_hz" else [e for e in v if e <= j] if c == "kf_end" else v[:j + 1])
+            for c, v in trace.items()}
+
+
 def check_trace(trace: Trace, meta: "TaskMeta | None" = None) -> list[str]:
     """Schema problems of a trace (empty when it is well-formed): columns, lengths, keyframe ends."""
     errs = [f"missing column {c!r}" for c in (*TRACE_COLUMNS, "kf_end") if c not in trace]

@@ -159,7 +159,9 @@ def test_split_groups_are_exact_and_deterministic():
 def test_bad_inputs_are_one_line_errors(run6, tmp_path):
     for args, field in [([f"shards={tmp_path}/none"], "shards"), (["grid.time_axis=diagonal"], "grid.time_axis"),
                         (["ratios=[0.5,0.5,0.5]"], "ratios"), (["bogus=1"], "bogus"),
-                        (["prefix.cuts=1", "prefix.pair_cuts=maybe"], "prefix.pair_cuts")]:
+                        (["prefix.cuts=1", "prefix.pair_cuts=maybe"], "prefix.pair_cuts"),
+                        (["prefix.cuts=1", "prefix.questions=[Q2,Q3,Q4]"], "prefix.questions"),
+                        (["prefix.cuts=1", "prefix.questions=Q6"], "prefix.questions")]:
         r = subprocess.run([sys.executable, "scripts/build_dataset.py", f"out_dir={tmp_path}/o",
                             *([f"shards={run6}"] if not args[0].startswith("shards") else []), *args],
                            cwd=ROOT, capture_output=True, text=True, timeout=120)
@@ -256,10 +258,26 @@ def test_pair_cuts_cut_twins_at_the_same_keyframes(run6, tmp_path):
     assert json.loads((on / "stats.json").read_text())["prefix"]["pair_cuts"] is True
 
 
+def test_trace_until_is_the_state_when_a_keyframe_ended():
+    """A prefix's correction reads the trace as it stood at the cut: a beaker that falls later has not fallen."""
+    from sim_backends.goals import object_fell
+    from sim_backends.schema import trace_until
+    z = [0.8] * 7 + [0.1] * 3  # knocked off the bench during the third keyframe
+    trace = {"t": [i / 40 for i in range(10)], "kf_end": [2, 5, 9], "rate_hz": 40.0,
+             "beaker.pos": [[0.0, 0.0, h] for h in z], "beaker.quat": [[0.0, 0.0, 0.0, 1.0]] * 10}
+    meta = {"objects": {"beaker": {"kind": "vessel"}}, "bench_top": 0.75}
+    assert object_fell(trace, meta) and not object_fell(trace_until(trace, 1), meta)
+    cut = trace_until(trace, 1)
+    assert cut["kf_end"] == [2, 5] and len(cut["t"]) == len(cut["beaker.pos"]) == 6 and cut["rate_hz"] == 40.0
+    assert trace_until(trace, 2) == trace
+
+
 def test_prefix_records_follow_the_failure_frame(run6, ds, tmp_path):
     from data.annotate import prefix_cut_points
+    from labrobfail_vlm.analyzer import nearest_strategy
     out = tmp_path / "p"
-    r = build(run6, out, "prefix.cuts=2", "grid.width=256", "grid.height=128", "grid.max_frames=8", "grid.columns=4")
+    r = build(run6, out, "prefix.cuts=2", "prefix.questions=[Q2,Q3,Q5,Q6]", "grid.width=256", "grid.height=128",
+              "grid.max_frames=8", "grid.columns=4")
     assert r.returncode == 0, r.stderr
     traj = {t["trajectory"]: t for t in load(out, "trajectories")}
     prefixes = [t for t in traj.values() if "prefix_of" in t]
@@ -267,6 +285,7 @@ def test_prefix_records_follow_the_failure_frame(run6, ds, tmp_path):
     recs = load(out, "train") + sum((load(out, f"{s}_prefix") for s in ("val", "test")
                                      if (out / f"{s}_prefix.json").is_file()), [])
     seen_before = seen_after = 0
+    dims: dict[str, list[str]] = {}
     for rec in recs:
         t = traj[Q.traj_of(rec["id"])]
         if "prefix_of" not in t:
@@ -276,12 +295,21 @@ def test_prefix_records_follow_the_failure_frame(run6, ds, tmp_path):
         seen_before += full["frame"] is not None and not failed_yet
         seen_after += failed_yet
         ans = rec["conversations"][1]["value"]
-        if Q.dim_of(rec["id"]) == "Q2":
+        dim = Q.dim_of(rec["id"])
+        dims.setdefault(t["trajectory"], []).append(dim)
+        if dim == "Q2":
             assert ans == Q.q2_answer(Q.q2_variant(rec["conversations"][0]["value"]), not failed_yet)
-        else:
-            assert Q.dim_of(rec["id"]) == "Q3" and ans == (str(full["frame"]) if failed_yet else Q.NO_FAILURE)
+        elif dim == "Q3":
+            assert ans == (str(full["frame"]) if failed_yet else Q.NO_FAILURE)
+        elif dim == "Q5":
+            assert ans == (str(full["category"]) if failed_yet else Q.NO_FAILURE)
+        else:  # Q6: the prefix's own strategy, the trajectory's unless an object fell after the cut (then manual)
+            assert dim == "Q6" and (nearest_strategy(ans) == t["strategy"] if failed_yet else ans == Q.NO_CORRECTION)
+            assert not failed_yet or full["strategy"] == "MANUAL" or t["strategy"] == full["strategy"]
         assert check_record(rec, t) is None
     assert seen_before and seen_after  # a failure gets cuts both before and at/after its frame
+    assert set(map(tuple, dims.values())) == {("Q2", "Q3", "Q5", "Q6")}
+    assert json.loads((out / "stats.json").read_text())["prefix"]["questions"] == ["Q2", "Q3", "Q5", "Q6"]
     # the first hidden time step is blank in every view, the last shown one is not
     g = GridConfig(width=256, height=128, max_frames=8, columns=4)
     for t in prefixes[:6]:
