@@ -61,7 +61,7 @@ def _grounding(cfg: Any, model: Any, grid: dict[str, Any]) -> tuple[dict[str, An
 
 def run(cfg: Any) -> dict[str, Any]:
     import torch
-    from transformers import TrainingArguments
+    from transformers import TrainingArguments, set_seed
     from transformers.trainer_utils import get_last_checkpoint
 
     from labrobfail_vlm.model.hybrid import apply_tuning, count_trainable
@@ -71,6 +71,10 @@ def run(cfg: Any) -> dict[str, Any]:
     from labrobfail_vlm.train.packing import TrajectoryDataset
     from labrobfail_vlm.train.trainer import HybridTrainer, ProgressLog, check_loss_mode
 
+    # Seed before anything random is made: the grounding head is initialised before the Trainer seeds, and a
+    # run that starts from a checkpoint (model.path) builds nothing that would seed it (torch's start-up seed
+    # differs from process to process here).
+    set_seed(int(cfg.seed))
     grid = _check_dataset(cfg)
     check_loss_mode(str(cfg.loss.mode))  # before the model loads
     pairs, warm = bool(cfg.curriculum.pairs), float(cfg.curriculum.polarity_warmup)
