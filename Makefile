@@ -3,7 +3,7 @@ VENV  ?= .venv
 PY    := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: install browser vulkan demo reproduce sim20k test bench clean
+.PHONY: install browser vulkan demo demo-online reproduce sim20k test bench clean
 APT_STAMP := $(VENV)/.apt-stamp
 VULKAN_STAMP := $(VENV)/.vulkan-stamp
 BACKPORTS := /etc/apt/sources.list.d/bookworm-backports.sources
@@ -67,6 +67,23 @@ demo: $(STAMP)
 	$(PY) scripts/supervise.py policy=scripted supervisor=vlm vlm.model=outputs/demo_train/final task=place \
 	  trials=25 loop.query_every=-1 out_dir=outputs/demo_supervise progress=false $(DEMO_WORLD)
 	$(PY) scripts/demo_diagnosis.py outputs/demo_dataset outputs/demo_train/final
+
+# After `make demo`: its model taught to supervise a running trajectory (docs/ARCHITECTURE.md, "Eighth round").
+# A third stage on prefix grids (one per trajectory, twins cut at the same keyframes, each asked Q2, Q3, Q5 and
+# Q6 as the failure stands at the cut), then the bench on whole and prefix grids, then the supervisor asked at
+# every keyframe. About 10 minutes on 2 cores.
+DEMO_ONLINE_PREFIX := prefix.cuts=1 prefix.pair_cuts=true 'prefix.questions=[Q2,Q3,Q5,Q6]'
+demo-online: $(STAMP)
+	@test -d outputs/demo_train/final || { echo "demo-online: run make demo first (no outputs/demo_train/final)" >&2; exit 2; }
+	$(PY) scripts/build_dataset.py shards=outputs/demo_shards out_dir=outputs/demo_online_dataset $(DEMO_GRID) \
+	  $(DEMO_ONLINE_PREFIX) progress=false
+	$(PY) train.py preset=tiny dataset_dir=outputs/demo_online_dataset output_dir=outputs/demo_online_train epochs=8 \
+	  model.path=outputs/demo_train/final grounding.pretrain_epochs=0 curriculum.detect_first=0 \
+	  curriculum.polarity_warmup=0
+	for s in test prefix; do $(PY) scripts/evaluate.py model=outputs/demo_online_train/final \
+	  dataset_dir=outputs/demo_online_dataset split=$$s progress=false || exit 1; done
+	$(PY) scripts/supervise.py policy=scripted supervisor=vlm vlm.model=outputs/demo_online_train/final task=place \
+	  trials=25 out_dir=outputs/demo_online_supervise progress=false $(DEMO_WORLD)
 
 # The from-scratch recipe at full size (docs/RESULTS.md, about 50 min on 2 CPU cores): seen and unseen
 # (object, scene, both) data, one prefix grid per trajectory, the tiny model, every split's bench with
