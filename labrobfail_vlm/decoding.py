@@ -256,7 +256,7 @@ class Decoder:
         """Per row, the candidate (followed by the end of turn) with the highest log-likelihood; None rows skip.
         A row with `per_token` true ranks by the mean log-likelihood per token instead: sentences of 16 to 30
         tokens (the correction strategies) are otherwise decided by their length, a small model's per-token
-        doubt adding up over the longer ones (docs/ARCHITECTURE.md, "Seventh round")."""
+        doubt adding up over the longer ones (docs/ARCHITECTURE.md, "Eighth round")."""
         seqs = [[self.encode_ids(c) + [self.eos] for c in cands] if cands else [] for cands in candidates]
         scores = self.score_rows(pre, seqs)
         norm = per_token or [False] * len(seqs)

@@ -2,8 +2,8 @@
 
 It speaks the part of the API the endpoint path uses, as vLLM does: GET /v1/models, POST /v1/chat/completions
 with one user message (image_url data: URL + text), `structured_outputs.choice` (the reply is one of the
-choices: ranked as the local decoder ranks them), `structured_outputs.regex` (only the Q1 action-list pattern: decoded
-as a constrained action list) and plain free text; optional bearer key. Every request body is recorded.
+choices: ranked as the local decoder ranks them), `structured_outputs.regex` (only the Q1 action-list pattern:
+decoded as a constrained action list) and plain free text; optional bearer key. Every request body is recorded.
 """
 
 from __future__ import annotations
