@@ -74,6 +74,11 @@ def failure_context(row: dict[str, Any], meta: dict[str, Any], trace: dict[str, 
                    omitted=omitted, opening=st["action"] == "open")
 
 
+def q6_keep(ctx: Context | None, text: str) -> list[str]:
+    """The names a (reworded) correction must keep: the objects it acts on, as filled from metadata."""
+    return [w for w in ((ctx.target, ctx.destination, ctx.source) if ctx else ()) if w in text]
+
+
 def decode_views(images: list[list[bytes]], picks: list[int]) -> list[list[Image.Image]]:
     if any(not view[i] for view in images for i in picks):  # b"": the generator's render_frames left it out
         raise ConfigError("grid.max_frames: the shards hold no images of keyframes this grid shows; build with the "
@@ -137,8 +142,7 @@ def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator
         "evidence": row["evidence"], "strategy": correction(ctx)[0] if ctx else None,
         # the scene's object and place names: what a robot stack knows, and what Q6's template mode fills in
         "objects": sorted(set(meta.get("labels", {}).values())),
-        # names a (reworded) correction must keep: the objects it acts on, as filled from metadata
-        "q6_keep": [w for w in ((ctx.target, ctx.destination, ctx.source) if ctx else ()) if w in answers["Q6"]],
+        "q6_keep": q6_keep(ctx, answers["Q6"]),
     }
     ann = Annotated(traj, info["group"], row["variant"], image, grid, records, info)
     if prefix_cuts > 0:
@@ -171,8 +175,8 @@ def prefix_cut_points(frames: int, failure_frame: int | None, n: int, rng: np.ra
 
 
 def prefix_records(ann: Annotated, views: list[list[Image.Image]], grid_cfg: GridConfig, n: int,
-                   rng: np.random.Generator, cut_frame: int | None, questions: Sequence[str] = ("Q2", "Q3"),
-                   context_at: Callable[[int], Context] | None = None) -> list[Annotated]:
+                   rng: np.random.Generator, cut_frame: int | None, questions: Sequence[str],
+                   context_at: Callable[[int], Context]) -> list[Annotated]:
     """Prefix grids for online supervision: the first k keyframes shown, later cells blank. Q2 asks whether a
     failure has shown up yet (the labeled failure frame is <= k), Q3 the frame when it has, else None; Q5 its
     category; Q6 its correction, from the failure context as it stands at frame k (`context_at`: fallen or
@@ -183,7 +187,7 @@ def prefix_records(ann: Annotated, views: list[list[Image.Image]], grid_cfg: Gri
         failed = info["frame"] is not None and info["frame"] <= k
         traj = f"{ann.trajectory}-p{k}"
         image = f"images/{traj}.png"
-        ctx = context_at(k) if failed and "Q6" in questions and context_at is not None else None
+        ctx = context_at(k) if failed and "Q6" in questions else None
         fix = correction(ctx) if ctx else (None, "")
         answers = {"Q3": str(info["frame"]), "Q5": str(info["category"]), "Q6": fix[1]} if failed else \
             {"Q3": Q.NO_FAILURE, "Q5": Q.NO_FAILURE, "Q6": Q.NO_CORRECTION}
@@ -198,8 +202,7 @@ def prefix_records(ann: Annotated, views: list[list[Image.Image]], grid_cfg: Gri
                 "frame": info["frame"] if failed else None, "failure_type": info["failure_type"] if failed else None,
                 "category": info["category"] if failed else None, "severity": info["severity"] if failed else None}
         if "Q6" in questions:  # the prefix's own correction (its trajectory's may follow from a later fall)
-            meta.update(strategy=fix[0], q6_keep=[w for w in (ctx.target, ctx.destination, ctx.source)
-                                                  if w in fix[1]] if ctx else [])
+            meta.update(strategy=fix[0], q6_keep=q6_keep(ctx, fix[1]))
         out.append(Annotated(traj, ann.group, ann.variant, image, build_grid(views, grid_cfg, visible=k), records,
                              meta))
     return out

@@ -116,7 +116,7 @@ def build(cfg: DictConfig) -> dict[str, Any]:
         raise ConfigError(f"ratios: three non-negative fractions summing to 1, got {list(cfg.ratios)}")
     if not isinstance(cfg.prefix.pair_cuts, bool):
         raise ConfigError(f"prefix.pair_cuts: true or false, got {cfg.prefix.pair_cuts!r}")
-    got = cfg.prefix.get("questions", ["Q2", "Q3"])
+    got = cfg.prefix.questions
     questions = list(got) if OmegaConf.is_list(got) else [got]
     if questions[:2] != ["Q2", "Q3"] or not set(questions) <= set(PREFIX_QUESTIONS) \
             or len(set(questions)) != len(questions):
