@@ -114,15 +114,15 @@ def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator
     task_name = meta.get("description") or row["scenario"].replace("_", " ")
     success = bool(row["success"])
     answers: dict[str, str] = {"Q1": Q.format_actions(list(row["actions"]))}
-    ctx = None
+    ctx, strategy = None, None
     if success:
         answers.update(Q3=Q.NO_FAILURE, Q4=Q.NO_FAILURE, Q5=Q.NO_FAILURE, Q6=Q.NO_CORRECTION)
         frame = None
     else:
         frame = grid_failure_frame(row, picks)
         ctx = failure_context(row, meta, trace)
-        answers.update(Q3=str(frame), Q4=str(int(row["severity"])), Q5=str(int(row["category"])),
-                       Q6=correction(ctx)[1])
+        strategy, fix = correction(ctx)
+        answers.update(Q3=str(frame), Q4=str(int(row["severity"])), Q5=str(int(row["category"])), Q6=fix)
     records = []
     for dim in Q.DIMENSIONS:
         v = int(rng.integers(len(Q.VARIANTS[dim])))
@@ -139,7 +139,7 @@ def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator
         "severity": row["severity"], "failure_keyframe": row["failure_keyframe"], "frame": frame,
         "frames": len(picks), "views": len(views), "sampled_keyframes": picks, "horizon": row["horizon"],
         "actions": list(row["actions"]),
-        "evidence": row["evidence"], "strategy": correction(ctx)[0] if ctx else None,
+        "evidence": row["evidence"], "strategy": strategy,
         # the scene's object and place names: what a robot stack knows, and what Q6's template mode fills in
         "objects": sorted(set(meta.get("labels", {}).values())),
         "q6_keep": q6_keep(ctx, answers["Q6"]),
