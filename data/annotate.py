@@ -97,8 +97,8 @@ def grid_failure_frame(row: dict[str, Any], picks: list[int]) -> int | None:
 
 
 def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator, prefix_cuts: int = 0,
-             prefix_rng: np.random.Generator | None = None, aux: int = 0, cut_frame: int | None = None,
-             prefix_questions: Sequence[str] = ("Q2", "Q3")) -> Annotated:
+             prefix_rng: np.random.Generator | None = None, aux: int = 0, cut_frame: int | None = None, *,
+             prefix_questions: Sequence[str]) -> Annotated:
     """`prefix_cuts` > 0 adds that many prefix grids, each with a record per `prefix_questions`
     (`prefix_records`); `aux` > 0 that many per-frame fact records (data/facts.py). Both draw from `prefix_rng`,
     so the six main records are the same with or without them. `cut_frame`: the failure frame the prefix cuts are

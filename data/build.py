@@ -150,7 +150,7 @@ def build(cfg: DictConfig) -> dict[str, Any]:
         group = f"{row['variant']}-{row['pair_id']}"
         traj_key = zlib.crc32((group if pair_cuts else f"{row['variant']}-{row['episode_id']}").encode())
         ann = annotate(row, gcfg, rng, int(cfg.prefix.cuts), np.random.default_rng([int(cfg.seed), traj_key]),
-                       int(cfg.aux.per_trajectory), cut_frames.get(group), questions)
+                       int(cfg.aux.per_trajectory), cut_frames.get(group), prefix_questions=questions)
         if marks.get(ann.trajectory) == "reject":
             drops["review_rejected"] += 1
             continue
