@@ -29,7 +29,7 @@ SCHEMA = pa.schema([
     ("keyframes", pa.string()), ("nominal_keyframes", pa.string()), ("perturbation", pa.string()),
 ])
 LABEL_COLUMNS = ["episode_id", "pair_id", "role", "scenario", "task", "success", "failure_type", "category",
-                 "severity", "actions", "horizon", "evidence"]
+                 "severity", "actions", "horizon", "evidence", "perturbation"]
 
 
 def episode_row(ep: Episode) -> dict[str, Any]:
@@ -81,6 +81,31 @@ def draw_summary(records: list[dict[str, Any]] | None) -> dict[str, Any]:
     }
 
 
+def injection_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """What the injected episodes drew, against the paper's formulas: draws and outcomes per operator, physics
+    events per parameter and sign of delta, gripper faults per direction, and the draws the `min_norm` filter
+    rejected. A draw that caused no failure shows up as a success of its operator."""
+    ops: dict[str, Counter] = {}
+    phys: dict[str, Counter] = {}
+    flips: Counter[str] = Counter()
+    rejected: Counter[str] = Counter()
+    for r in rows:
+        if r.get("role") != "injected" or not r.get("perturbation"):
+            continue
+        prov = json.loads(r["perturbation"])
+        op = f"{prov.get('level', 'none')}:{prov.get('op', 'none')}"
+        ops.setdefault(op, Counter())["success" if r["success"] else "failure"] += 1
+        for ev in prov.get("events", []):
+            phys.setdefault(ev["param"], Counter())["+" if ev.get("delta", ev["scale"] - 1) > 0 else "-"] += 1
+        for f in prov.get("flipped", []):
+            flips[f"to_{f['to']}" if isinstance(f, dict) else "to_open"] += 1  # older shards: closing faults only
+        if prov.get("rejected"):
+            rejected[prov["op"]] += int(prov["rejected"])
+    return {"by_operator": {k: dict(v) for k, v in sorted(ops.items())},
+            "physics_events": {k: dict(sorted(v.items())) for k, v in sorted(phys.items())},
+            "gripper_faults": dict(sorted(flips.items())), "filter_rejections": dict(sorted(rejected.items()))}
+
+
 def manifest(rows: list[dict[str, Any]], extra: dict[str, Any],
              records: list[dict[str, Any]] | None = None) -> dict[str, Any]:
     fails = [r for r in rows if not r["success"]]
@@ -109,4 +134,5 @@ def manifest(rows: list[dict[str, Any]], extra: dict[str, Any],
         # A label is a guess when no detector explained it; the labeler no longer makes them (must stay 0).
         "guessed_labels": sum(1 for r in fails if r["failure_type"] is None or "no earlier signature" in (r["evidence"] or "")),
         **draw_summary(records),
+        "injection": injection_summary(rows),
     }

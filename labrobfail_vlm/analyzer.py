@@ -9,7 +9,8 @@
 Accepts a fine-tuned checkpoint (labrobfail.json: base + adapter + vision weights), a merged
 model, or any local Qwen3-VL directory. Answers are decoded under constraints
 (labrobfail_vlm.decoding), so a Diagnosis is always well-formed; after a "no failure"
-answer, Q3-Q5 are not asked a failure-only option, and vice versa.
+answer, Q3-Q5 are not asked a failure-only option, and vice versa. Q2 also comes as a score:
+`Diagnosis.p_failure`, the constrained decoder's probability of "Yes" (a failure) against "No".
 """
 
 from __future__ import annotations
@@ -38,16 +39,34 @@ class Diagnosis:
     failure: bool
     failure_frame: int | None
     severity: int | None
-    severity_name: str | None
+    severity_name: str | None  # the paper's answer option (appendix), e.g. "Dangerous Level"
     category: int | None
     category_name: str | None
     correction: str
     correction_strategy: str | None  # nearest entry of the paper's correction-strategy table
     primitives: list[dict[str, Any]] | None = None  # the correction through the action dictionary (actions.py)
     raw: dict[str, str] = field(default_factory=dict)  # the six decoded answers
+    # the same level as the paper's main text names it (taxonomy.SEVERITY_MAIN_TEXT: paired by position)
+    severity_main_text: str | None = None
+    # P(failure): softmax over the log-likelihoods of the two admissible Q2 replies; `failure` is p_failure > 0.5
+    # (the argmax). None where the answers came without scores (an endpoint, a replayed reply).
+    p_failure: float | None = None
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), ensure_ascii=False)
+
+
+class Answers(dict[str, str]):
+    """The decoded replies keyed by dimension, plus `p_failure` (P("Yes") for Q2) when the model scored it."""
+
+    p_failure: float | None = None
+
+
+def p_yes(options: Sequence[str], scores: Sequence[float]) -> float:
+    """Softmax probability of "Yes" among the scored Yes/No replies."""
+    z = np.asarray(scores, dtype=np.float64)
+    e = np.exp(z - z.max())
+    return float(e[list(options).index("Yes")] / e.sum())
 
 
 def nearest_strategy(text: str) -> str | None:
@@ -110,16 +129,27 @@ class DiagnosisRequest:
     objects: Sequence[str] = ()
 
 
+def check_threshold(value: Any) -> float:
+    """An operating point on P(failure): a number in (0, 1)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < float(value) < 1.0:
+        raise ValueError(f"threshold: expected a number between 0 and 1 (exclusive), got {value!r}")
+    return float(value)
+
+
 class FailureAnalyzer:
     """`q6_mode`: "free" (greedy text) or "template" (the most likely entry of the paper's correction-strategy
-    table, placeholders filled from the `objects` given to `analyze`, so every correction maps to primitives)."""
+    table, placeholders filled from the `objects` given to `analyze`, so every correction maps to primitives).
+    `threshold`: Q2 answers "Yes" (a failure, and Q3-Q6 are asked as one) when P(failure) >= threshold; 0.5 is
+    the decoder's argmax, a lower value makes a supervisor intervene earlier."""
 
-    def __init__(self, model: Any, processor: Any, grid: GridConfig = GridConfig(), q6_mode: str = "free"):
+    def __init__(self, model: Any, processor: Any, grid: GridConfig = GridConfig(), q6_mode: str = "free",
+                 threshold: float = 0.5):
         from labrobfail_vlm.decoding import Decoder
 
         if q6_mode not in Q6_MODES:
             raise ValueError(f"q6_mode: expected one of {', '.join(Q6_MODES)}, got {q6_mode!r}")
         self.q6_mode = q6_mode
+        self.threshold = check_threshold(threshold)
         self.model, self.processor = model.eval(), processor
         self.processor.tokenizer.padding_side = "left"
         self.decoder = Decoder(self.model, processor)
@@ -129,13 +159,18 @@ class FailureAnalyzer:
 
     @classmethod
     def from_pretrained(cls, path: str | Path, dtype: Any = None, device: str | None = None,
-                        **kwargs: Any) -> "FailureAnalyzer":
+                        max_model_gb: float | None = None, **kwargs: Any) -> "FailureAnalyzer":
+        """`max_model_gb`: the model memory budget (default $LABROBFAIL_MAX_MODEL_GB, else half the machine's
+        memory). The directory is validated before any tensor is built (train.checkpoint.validate_checkpoint): a
+        bad or oversized checkpoint is a one-line ConfigError, not an out-of-memory kill."""
         import torch
 
         from labrobfail_vlm.model.loading import load_model, load_processor
-        from labrobfail_vlm.train.checkpoint import is_finetuned, load_finetuned, trained_grid
+        from labrobfail_vlm.train.checkpoint import is_finetuned, load_finetuned, trained_grid, validate_checkpoint
 
-        model = load_finetuned(path, dtype) if is_finetuned(path) else load_model(path, dtype)
+        validate_checkpoint(path, "model.path", max_model_gb, dtype)
+        model = (load_finetuned(path, dtype, max_model_gb) if is_finetuned(path)
+                 else load_model(path, dtype, max_model_gb))
         dev = device or ("cuda" if torch.cuda.is_available() else "cpu")
         if "grid" not in kwargs and (grid := trained_grid(path)) is not None:
             kwargs["grid"] = grid
@@ -168,6 +203,14 @@ class FailureAnalyzer:
                 out[i] = g
         return out
 
+    def _decide_q2(self, pre: Any, rows: int) -> tuple[list[str], list[float]]:
+        """Q2 for each row of `pre`: the reply at the operating point and P("Yes"). At 0.5 the reply is the argmax
+        that `choose_rows` picks (a tie goes to "Yes", its first option, in both)."""
+        ask = plan_reply("Q2", None, 0)
+        assert isinstance(ask, Ask)
+        probs = [p_yes(ask.options, sc) for sc in self.decoder.option_scores_rows(pre, [ask.options] * rows)]
+        return ["Yes" if p >= self.threshold else "No" for p in probs], probs
+
     def _answer(self, dim: str, pre: Any, failed: bool | None, frames: int, objects: Sequence[str] = ()) -> str:
         return str(self._decode(pre, [plan_reply(dim, failed, frames, objects, self.q6_mode)])[0])
 
@@ -183,12 +226,14 @@ class FailureAnalyzer:
             return self.answers_batch([image], [task], [frames], [objects], [dims])[0]
         frames = frames or self.num_frames
         prompts = {dim: self._prompt(dim, task) for dim in Q.DIMENSIONS if dim in dims or dim == "Q2"}
-        out: dict[str, str] = {}
+        out = Answers()
         failed: bool | None = None
         for dim, pre in self._prefixes(image, prompts):
-            out[dim] = self._answer(dim, pre, failed, frames, objects)
             if dim == "Q2":
+                (out[dim],), (out.p_failure,) = self._decide_q2(pre, 1)
                 failed = out[dim] == "Yes"
+            else:
+                out[dim] = self._answer(dim, pre, failed, frames, objects)
         return out
 
     def answers_batch(self, images: Sequence[Image.Image], tasks: Sequence[str],
@@ -219,7 +264,7 @@ class FailureAnalyzer:
         return out
 
     def _answers_rows(self, images: list[Image.Image], tasks: list[str], frames: list[int],
-                      objects: list[Sequence[str]], dims: list[Collection[str]]) -> list[dict[str, str]]:
+                      objects: list[Sequence[str]], dims: list[Collection[str]]) -> list[Answers]:
         """One pass over a batch: each grid's image and preamble are prefilled once (one forward for the batch);
         a question's own tokens are fed only for the rows whose reply needs the model (Q3-Q6 follow Q2)."""
         d = self.decoder
@@ -239,7 +284,7 @@ class FailureAnalyzer:
             self._ids_checked = True
         lcp = [common_prefix_len(list(x.values())) for x in ids]
         pre = d.prefill_rows([x["Q2"][:k] for x, k in zip(ids, lcp)], px["pixel_values"], px["image_grid_thw"])
-        out: list[dict[str, str]] = [{} for _ in images]
+        out = [Answers() for _ in images]
         failed: list[bool | None] = [None] * len(images)
         for dim in Q.DIMENSIONS:
             plans = [plan_reply(dim, failed[i], frames[i], objects[i], self.q6_mode) if dim in ids[i] else None
@@ -249,7 +294,13 @@ class FailureAnalyzer:
             if rows:  # only these rows are fed the question: the others' replies follow from Q2
                 base = pre if len(rows) == len(images) else d.select(pre, rows)
                 q, _ = d.extend_rows(base, [ids[i][dim][lcp[i]:] for i in rows])
-                for i, r in zip(rows, self._decode(q, [plans[i] for i in rows])):
+                if dim == "Q2":
+                    got, probs = self._decide_q2(q, len(rows))
+                    for i, p in zip(rows, probs):
+                        out[i].p_failure = p
+                else:
+                    got = self._decode(q, [plans[i] for i in rows])
+                for i, r in zip(rows, got):
                     replies[i] = r
                 d.rewind(q, base)
             for i, r in enumerate(replies):
@@ -297,4 +348,6 @@ class FailureAnalyzer:
             severity=sev, severity_name=Severity(sev).title if sev else None,
             category=cat, category_name=Category(cat).title if cat else None,
             correction=a["Q6"], correction_strategy=nearest_strategy(a["Q6"]) if failed else None,
-            primitives=to_primitives(a["Q6"], objects) if failed else [], raw=a)
+            primitives=to_primitives(a["Q6"], objects) if failed else [], raw=dict(a),
+            severity_main_text=Severity(sev).main_text if sev else None,
+            p_failure=None if getattr(a, "p_failure", None) is None else round(float(a.p_failure), 6))

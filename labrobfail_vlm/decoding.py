@@ -257,12 +257,18 @@ class Decoder:
         A row with `per_token` true ranks by the mean log-likelihood per token instead: sentences of 16 to 30
         tokens (the correction strategies) are otherwise decided by their length, a small model's per-token
         doubt adding up over the longer ones (docs/ARCHITECTURE.md, "Eighth round")."""
+        scores = self.option_scores_rows(pre, candidates, per_token)
+        return [cands[max(range(len(cands)), key=sc.__getitem__)] if cands else None
+                for cands, sc in zip(candidates, scores)]
+
+    def option_scores_rows(self, pre: Prefix, candidates: Sequence[Sequence[str] | None],
+                           per_token: Sequence[bool] | None = None) -> list[list[float]]:
+        """Per row, the log-likelihood of each candidate followed by the end of turn (per token where `per_token`);
+        `choose_rows` takes the argmax, a softmax over them is the constrained decoder's distribution."""
         seqs = [[self.encode_ids(c) + [self.eos] for c in cands] if cands else [] for cands in candidates]
         scores = self.score_rows(pre, seqs)
         norm = per_token or [False] * len(seqs)
-        scores = [[v / len(s) for v, s in zip(sc, row)] if n else sc for sc, row, n in zip(scores, seqs, norm)]
-        return [cands[max(range(len(cands)), key=sc.__getitem__)] if cands else None
-                for cands, sc in zip(candidates, scores)]
+        return [[v / len(s) for v, s in zip(sc, row)] if n else sc for sc, row, n in zip(scores, seqs, norm)]
 
     def choose(self, pre: Prefix, candidates: Sequence[str], per_token: bool = False) -> str:
         return str(self.choose_rows(pre, [candidates], [per_token])[0])

@@ -57,12 +57,33 @@ class Severity(IntEnum):
     def definition(self) -> str:
         return SEVERITY_DEFINITIONS[self]
 
+    @property
+    def main_text(self) -> str:
+        return SEVERITY_MAIN_TEXT[self]
+
+    @property
+    def display(self) -> str:
+        """How a person is shown this level: the answer option with the main text's name beside it."""
+        return f"{self.title} (option {self.value}; the paper's main text: {self.main_text})"
+
 
 SEVERITY_TITLES: dict[Severity, str] = {
     Severity.RISK: "Risk Level",
     Severity.DANGEROUS: "Dangerous Level",
     Severity.FATAL: "Fatal Level",
     Severity.MANAGEMENT_INCIDENT: "Management Incident",
+}
+
+# The paper names the four levels twice: its appendix answer options (above; the dataset keeps these) and its
+# main text (Minor, Recoverable, Critical, Catastrophic, "four hierarchical risk levels"). It never pairs them, so
+# the project pairs them by position, option 1 with the first level named, and says so wherever a severity is
+# shown to a person. The definitions differ in places (the main text's Catastrophic is about safety violations or
+# equipment damage, the appendix's option 4 about non-compliant operations): README, "Fidelity to the paper".
+SEVERITY_MAIN_TEXT: dict[Severity, str] = {
+    Severity.RISK: "Minor",
+    Severity.DANGEROUS: "Recoverable",
+    Severity.FATAL: "Critical",
+    Severity.MANAGEMENT_INCIDENT: "Catastrophic",
 }
 
 SEVERITY_DEFINITIONS: dict[Severity, str] = {

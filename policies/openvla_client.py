@@ -1,15 +1,20 @@
 """OpenVLA through its REST deploy server: `POST /act` with the image and the instruction, a 7-D action back.
 
-Request (json-numpy, policies/json_numpy.py): `{"image": uint8 HxWx3, "instruction": str, "unnorm_key"?}` or
-the `{"encoded": "<json-numpy string>"}` form (`encoded: true`). The plain form also carries the project's
-extras, which OpenVLA's server ignores and scripts/serve_policy.py uses: `images` (every view), `proprio`
-(ee_pos, ee_quat, width, grip_cmd) and `episode` (scenario, seed, variant and a fresh id per episode: a new
-episode resets the served policy).
+Request (json-numpy, the real `json_numpy` package behind policies/wire.py): `{"image": uint8 HxWx3,
+"instruction": str, "unnorm_key"?}`, as OpenVLA's own client sends it, or the `{"encoded": "<json-numpy
+string>"}` form (`encoded: true`; note that OpenVLA's deploy.py fails on it, see README). The plain form also
+carries the project's extras, which OpenVLA's server ignores and scripts/serve_policy.py uses: `images` (every
+view), `proprio` (ee_pos, ee_quat, width, grip_cmd) and `episode` (scenario, seed, variant and a fresh id per
+episode: a new episode resets the served policy).
 
 Reply: a json-numpy 7-D action (delta position in metres, delta rotation as roll/pitch/yaw in radians, both
 in the robot base frame, and the gripper in OpenVLA's convention, 1 = open, 0 = closed), or the JSON
-string "error" (HTTP 200) when the server failed. A bad answer, an "error", a timeout or a refused
-connection raise `PolicyError` with one clear line: the loop ends that trial and the run goes on.
+string "error" (HTTP 200) when the server failed. Anything else is refused with `PolicyError` and one clear
+line: "error", an HTTP error, a timeout, a refused or broken connection, a redirect, a reply over
+`max_reply_bytes`, JSON that is malformed or nested too deeply, an object array, a reply that is not a
+real-valued array of 7 numbers (bools, complex, strings and datetimes are refused, not converted), NaN or
+inf, a step longer than `max_step_m` or a rotation over a full turn. The loop ends that trial (outcome
+"policy_error") and the run goes on.
 
 The action is mapped onto the backend's end-effector controller: the target is the current pose plus the
 deltas; a changed gripper command gets time to settle. Three near-zero actions in a row mean the policy is
@@ -18,9 +23,10 @@ done (OpenVLA has no stop signal).
 
 from __future__ import annotations
 
-import json
+import http.client
 import math
 import socket
+import time
 import urllib.error
 import urllib.request
 import uuid
@@ -30,7 +36,7 @@ from urllib.parse import urlparse
 import numpy as np
 
 from labrobfail_vlm.config import ConfigError
-from policies import json_numpy
+from policies import wire
 from policies.base import Action, EpisodeContext, Policy, PolicyError, register_policy
 from sim_backends.perturbations.control import so3_exp
 from sim_backends.source import Observation
@@ -38,6 +44,8 @@ from sim_backends.types import matrix_to_quat, quat_to_matrix
 
 PROPRIO = ("ee_pos", "ee_quat", "width", "grip_cmd")
 IDLE_POS, IDLE_ROT = 1e-3, 1e-3
+MAX_REPLY_BYTES = 1 << 20  # a 7-D action is ~100 bytes; more is a broken or hostile server
+MAX_TURN = 2 * math.pi  # rad per axis in one step: beyond a full turn a delta is garbage (and 1e154 breaks sin())
 
 
 def proprio_vector(state: dict[str, Any]) -> np.ndarray:
@@ -72,6 +80,8 @@ def target_to_action(t: Action, state: dict[str, Any]) -> np.ndarray:
 
 
 def check_reachable(url: str, key: str = "openvla.url", timeout: float = 2.0) -> None:
+    if not isinstance(url, str):
+        raise ConfigError(f"{key}: not an http URL: {url!r}")
     u = urlparse(url)
     if u.scheme not in ("http", "https") or not u.hostname:
         raise ConfigError(f"{key}: not an http URL: {url!r}")
@@ -81,16 +91,30 @@ def check_reachable(url: str, key: str = "openvla.url", timeout: float = 2.0) ->
         raise ConfigError(f"{key}: cannot reach {url} ({e.strerror or e})") from None
 
 
+class _NoRedirect(urllib.request.HTTPRedirectHandler):
+    """OpenVLA's server never redirects; following one would send the robot's images to another host."""
+
+    def redirect_request(self, *args: Any, **kwargs: Any) -> None:
+        return None  # urllib then raises HTTPError with the 3xx code
+
+
+_OPENER = urllib.request.build_opener(_NoRedirect)
+
+
 @register_policy("openvla")
 class OpenVLAClient(Policy):
     name = "openvla"
 
     def __init__(self, url: str = "http://127.0.0.1:8777/act", timeout_s: float = 10.0, unnorm_key: str | None = None,
-                 view: str = "front", encoded: bool = False, idle_stop: int = 3, check: bool = True):
+                 view: str = "front", encoded: bool = False, idle_stop: int = 3, max_step_m: float = 1.0,
+                 max_reply_bytes: int = MAX_REPLY_BYTES, check: bool = True):
+        check_options({"timeout_s": timeout_s, "idle_stop": idle_stop, "max_step_m": max_step_m, "encoded": encoded,
+                       "max_reply_bytes": max_reply_bytes, "view": view, "unnorm_key": unnorm_key})
         if check:
             check_reachable(url)
         self.url, self.timeout, self.unnorm_key, self.view = url, float(timeout_s), unnorm_key, view
-        self.encoded, self.idle_stop = bool(encoded), int(idle_stop)
+        self.encoded, self.idle_stop, self.max_step = bool(encoded), int(idle_stop), float(max_step_m)
+        self.max_reply = int(max_reply_bytes)
         self.ctx: EpisodeContext | None = None
         self.idle = 0
 
@@ -101,11 +125,16 @@ class OpenVLAClient(Policy):
 
     def request(self, payload: dict[str, Any]) -> np.ndarray:
         """POST one request; the 7-D action, or PolicyError naming what went wrong."""
-        body = json_numpy.dumps({"encoded": json_numpy.dumps(payload)} if self.encoded else payload).encode()
+        body = wire.dumps({"encoded": wire.dumps(payload)} if self.encoded else payload).encode()
+        return parse_reply(self._post(body), self.url, self.max_reply, self.max_step)
+
+    def _post(self, body: bytes) -> bytes:
+        """The reply body (at most max_reply + 1 bytes are read); PolicyError for any transport failure."""
         req = urllib.request.Request(self.url, body, {"Content-Type": "application/json"})
+        deadline = time.monotonic() + self.timeout
         try:
-            with urllib.request.urlopen(req, timeout=self.timeout) as r:
-                text = r.read()
+            with _OPENER.open(req, timeout=self.timeout) as r:
+                return self._read_capped(r, deadline)
         except urllib.error.HTTPError as e:
             raise PolicyError(f"{self.url} answered HTTP {e.code}") from None
         except urllib.error.URLError as e:
@@ -116,8 +145,24 @@ class OpenVLAClient(Policy):
         except (socket.timeout, TimeoutError):
             raise PolicyError(f"{self.url} gave no answer within {self.timeout:g} s") from None
         except OSError as e:
-            raise PolicyError(f"{self.url}: connection failed ({e.strerror or e})") from None
-        return parse_reply(text, self.url)
+            raise PolicyError(f"{self.url}: connection failed ({e.strerror or wire.one_line(e)})") from None
+        except (http.client.HTTPException, ValueError) as e:  # a broken status line, headers or chunking
+            raise PolicyError(f"{self.url} answered broken HTTP ({type(e).__name__}: {wire.one_line(e)})") from None
+
+    def _read_capped(self, r: Any, deadline: float) -> bytes:
+        """At most max_reply + 1 bytes of the body, by the deadline: the socket timeout alone bounds each read,
+        so a server dripping a byte at a time could otherwise hold the trial for hours."""
+        chunks: list[bytes] = []
+        size = 0
+        while size <= self.max_reply:
+            chunk = r.read1(min(65536, self.max_reply + 1 - size))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            size += len(chunk)
+            if time.monotonic() > deadline:
+                raise PolicyError(f"{self.url} gave no complete answer within {self.timeout:g} s")
+        return b"".join(chunks)
 
     def act(self, obs: Observation) -> Action | None:
         if self.view not in obs.images:
@@ -140,20 +185,65 @@ class OpenVLAClient(Policy):
         return None if self.idle_stop and self.idle >= self.idle_stop else target
 
 
-def parse_reply(text: bytes, url: str) -> np.ndarray:
+def _is_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def check_options(opts: dict[str, Any]) -> None:
+    """One-line ConfigErrors for client settings (YAML values are untyped: `encoded=maybe` arrives as a string)."""
+    checks = {"timeout_s": (lambda v: _is_number(v) and v > 0, "a positive number of seconds"),
+              "idle_stop": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
+              "max_step_m": (lambda v: _is_number(v) and v > 0, "a positive number of metres"),
+              "max_reply_bytes": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 2,
+                                  "an integer >= 2"),
+              "encoded": (lambda v: isinstance(v, bool), "true or false"),
+              "view": (lambda v: isinstance(v, str) and v != "", "a camera view name"),
+              "unnorm_key": (lambda v: v is None or isinstance(v, str), "null or a string")}
+    for key, (ok, what) in checks.items():
+        if not ok(opts[key]):
+            raise ConfigError(f"openvla.{key}: must be {what}, got {opts[key]!r}")
+
+
+def parse_reply(body: bytes, url: str, max_bytes: int = MAX_REPLY_BYTES, max_step_m: float = 1.0) -> np.ndarray:
     """The 7-D action of a reply body; PolicyError for "error" or anything that is not one."""
+    if len(body) > max_bytes:
+        raise PolicyError(f"{url} answered more than {max_bytes} bytes (a 7-D action takes about 100)")
     try:
-        out = json_numpy.loads(text)
+        out = wire.loads(body, max_bytes)
         if isinstance(out, str) and out != "error":  # the "encoded" form: a json-numpy document in a string
-            out = json_numpy.loads(out)
-    except (ValueError, TypeError, KeyError) as e:
-        raise PolicyError(f"{url} answered malformed JSON ({str(e).splitlines()[0][:80]})") from None
+            out = wire.loads(out, max_bytes)
+    except wire.WireError as e:
+        raise PolicyError(f"{url} answered malformed JSON ({e})") from None
     if isinstance(out, str) and out == "error":
         raise PolicyError(f'{url} answered "error" (the server failed on this request; see its log)')
-    try:
-        a = np.asarray(out, dtype=np.float64)
-    except (ValueError, TypeError):
-        a = np.zeros(0)
-    if a.shape != (7,) or not np.all(np.isfinite(a)):
-        raise PolicyError(f"{url} answered a {type(out).__name__} of shape {a.shape}, not a 7-D finite action")
+    a = as_action(out, url)
+    with np.errstate(over="ignore"):  # finite components whose norm overflows: inf, refused
+        step = float(np.linalg.norm(a[:3]))
+    if step > max_step_m:  # finite but out of reach: an un-normalised or garbage action, not a step
+        raise PolicyError(f"{url} answered a step of {step:.3g} m (over openvla.max_step_m={max_step_m:g})")
+    turn = float(np.max(np.abs(a[3:6])))
+    if turn > MAX_TURN:
+        raise PolicyError(f"{url} answered a rotation of {turn:.3g} rad about one axis (over a full turn)")
+    return a
+
+
+def as_action(out: Any, url: str) -> np.ndarray:
+    """A decoded reply as a finite float64 7-vector: an ndarray of a real number dtype or a list of JSON numbers.
+    Other types are refused rather than converted (numpy would turn "1.5" or True into a number)."""
+    if isinstance(out, np.ndarray):
+        if out.dtype.kind not in "fiu":
+            raise PolicyError(f"{url} answered an array of dtype {out.dtype.str!r}, not real numbers")
+        with np.errstate(over="ignore"):  # a float128 beyond float64's range becomes inf, refused below
+            a = out.astype(np.float64)
+    elif isinstance(out, list) and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in out):
+        try:
+            a = np.array([float(x) for x in out], np.float64)
+        except OverflowError:  # a JSON integer too large for a float
+            raise PolicyError(f"{url} answered a number too large for an action") from None
+    else:
+        raise PolicyError(f"{url} answered a {type(out).__name__}, not a 7-D action")
+    if a.shape != (7,):
+        raise PolicyError(f"{url} answered shape {a.shape}, not a 7-D action")
+    if not np.all(np.isfinite(a)):
+        raise PolicyError(f"{url} answered a 7-D action with NaN or inf")
     return a

@@ -32,12 +32,13 @@ def main(argv: list[str]) -> int:
         raise ConfigError(f"dataset: the test split of {ds} has no failure trajectory")
     from labrobfail_vlm.analyzer import FailureAnalyzer
     from labrobfail_vlm.images import load_image
+    from labrobfail_vlm.taxonomy import Severity
 
     fa = FailureAnalyzer.from_pretrained(model, q6_mode="template")
     diag = fa.analyze(load_image(str(ds / "images" / f"{fail['trajectory']}.png")), task=fail["task"],
                       objects=fail["objects"], frames=fail["frames"])
     print(f"ground truth: {fail['trajectory']} ({fail['scenario']}): {fail['failure_type']} at frame {fail['frame']}, "
-          f"severity {fail['severity']}, category {fail['category']}, strategy {fail['strategy']}")
+          f"severity {Severity(fail['severity']).display}, category {fail['category']}, strategy {fail['strategy']}")
     print(diag.to_json())
     return 0
 

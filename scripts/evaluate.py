@@ -9,8 +9,9 @@ Run as:
     python scripts/evaluate.py model=DIR dataset_dir=DIR executable.enabled=true executable.shards=SHARDS_DIR
 
 results.json: q1..q5 (top-1 %, Q1 exact ordered list, Q3 exact frame), q3_within1, q6 {bleu1..bleu4
-(nltk corpus_bleu, smoothing method1), rougeL (rouge-score, stemmer)}, breakdowns per category and task,
-confusion matrices; plus the same for each baseline. With `executable.enabled`, `q6_executable`: the share
+(nltk corpus_bleu, smoothing method1), rougeL (rouge-score, stemmer)} over ALL trajectories, breakdowns per
+category and task, confusion matrices; `failure_only`: Q3-Q6 over the failed trajectories (the paper-comparable
+scores); `detection`: AUROC, AUPRC and ECE of P(failure) (reliability_q2.png); plus the same for each baseline. With `executable.enabled`, `q6_executable`: the share
 of failures that the model's (and the gold) corrections fix when run in the simulator
 (supervision/executable.py). Defaults: configs/evaluate.yaml.
 """
@@ -27,9 +28,12 @@ from labrobfail_vlm.config import ConfigError, cli_main, load_config  # noqa: E4
 
 
 def main(argv: list[str]) -> int:
+    from labrobfail_vlm import questions as Q
     from labrobfail_vlm.bench import evaluate as ev
     from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
-    from labrobfail_vlm.bench.report import PAPER_ROWS, PAPER_UNSEEN_ROWS, confusion_png, markdown, row
+    from labrobfail_vlm.bench.detection import reliability_png
+    from labrobfail_vlm.bench.report import (PAPER_ROWS, PAPER_UNSEEN_ROWS, confusion_png, detection_markdown,
+                                             markdown, paper_row, row)
 
     cfg = load_config("evaluate.yaml", argv)
     if sum(x is not None for x in (cfg.model, cfg.predictions, cfg.endpoint)) != 1:
@@ -40,6 +44,13 @@ def main(argv: list[str]) -> int:
         raise ConfigError(f"batch_size: expected a positive integer, got {cfg.batch_size!r}")
     if cfg.model is not None and not Path(cfg.model).is_dir():  # before anything is written
         raise ConfigError(f"model: no such directory {cfg.model!r}")
+    if cfg.predictions is not None:  # a folder or an unreadable file is refused before the output folder is made
+        try:
+            with open(str(cfg.predictions), "rb") as f:  # str(): open(5) would read file descriptor 5
+                f.read(1)
+        except OSError as e:
+            raise ConfigError(f"predictions: cannot read {cfg.predictions} ({e.strerror or type(e).__name__})"
+                              ) from None
     recs, traj = ev.load_split(cfg.dataset_dir, cfg.split)
     if cfg.endpoint is not None:
         out = Path(cfg.out_dir or Path("outputs") / f"eval_endpoint_{cfg.split}")
@@ -70,20 +81,25 @@ def main(argv: list[str]) -> int:
             analyzer.q6_mode = "template"
             tmpl = ev.model_predictions(analyzer, cfg.dataset_dir, q6, traj, progress=cfg.progress,
                                         batch_size=cfg.batch_size)
-            results[name + ", Q6 template"] = ev.score(recs, {**preds, **tmpl}, traj)
+            results[name + ", Q6 template"] = ev.score(recs, ev.Predictions({**preds, **tmpl},
+                                                                             p_failure=preds.p_failure), traj)
             analyzer.q6_mode = "free"
     else:
         preds = ev.read_predictions(cfg.predictions)
         name = Path(cfg.predictions).stem
-    atomic_write_bytes(out / "predictions.jsonl", "".join(json.dumps({"id": k, "prediction": v}) + "\n"
-                                                          for k, v in preds.items()).encode())
+    p_fail = getattr(preds, "p_failure", {})
+    atomic_write_bytes(out / "predictions.jsonl", "".join(
+        json.dumps({"id": k, "prediction": v, **({"p_failure": round(p_fail[Q.traj_of(k)], 6)}
+                                                  if k.endswith("_Q2") and Q.traj_of(k) in p_fail else {})}) + "\n"
+        for k, v in preds.items()).encode())
     results = {name: ev.score(recs, preds, traj, log_lines.append), **results}
     for b in cfg.baselines:
         if b == "majority":  # needs training answers: this dataset's train split, or majority_train=DIR's
             train_dir = cfg.majority_train or cfg.dataset_dir
             try:
                 train, _ = ev.load_split(train_dir, "train")
-                results["majority class"] = ev.score(recs, ev.majority_predictions(train, recs), traj)
+                results["majority class"] = ev.score(recs, ev.majority_predictions(train, recs), traj,
+                                                     failure_preds=ev.majority_predictions(train, recs, True))
             except ConfigError as e:
                 note = f"majority baseline skipped: {e} (give majority_train=DATASET_DIR with a train split)"
                 print(note, file=sys.stderr)
@@ -107,13 +123,20 @@ def main(argv: list[str]) -> int:
         for k, v in executable_rows.items():
             if k in results:
                 results[k]["q6_executable"] = v
-    rows = {k: row(v) for k, v in results.items()}
+    main_res = results[name]
+    fo = main_res["failure_only"]
+    rows = {k: paper_row(v) for k, v in results.items()}
     if cfg.reference_rows and cfg.split in ("test", *PAPER_UNSEEN_ROWS):
         # the paper's rows for the same setting (its unseen table has LabRobFail-VLM only)
         rows.update({"LabRobFail-VLM (paper)": PAPER_UNSEEN_ROWS[cfg.split]} if cfg.split in PAPER_UNSEEN_ROWS
                     else PAPER_ROWS)
-    md = markdown(rows, f"LabRobFail-Bench, split {cfg.split} ({len(recs)} records)")
-    main_res = results[name]
+    md = markdown(rows, f"LabRobFail-Bench, split {cfg.split}: paper-comparable (Q1, Q2 over all "
+                        f"{len({Q.traj_of(r['id']) for r in recs})} trajectories; Q3-Q6 "
+                        f"over the {fo['trajectories']} failed ones)")
+    md += "\n" + markdown({k: row(v) for k, v in results.items()},
+                          f"All-trajectory scores (Q3-Q6 over successes too, where the answer is None; not "
+                          f"comparable with the paper), {len(recs)} records")
+    md += "\n" + detection_markdown(results, "Failure detection as a score: P(failure) for Q2")
     payload = {**main_res, "split": cfg.split, "method": name, "baselines": {k: v for k, v in results.items()
                                                                               if k != name}}
     if executable_rows:
@@ -125,9 +148,15 @@ def main(argv: list[str]) -> int:
     atomic_write_json(out / "results.json", payload)
     atomic_write_bytes(out / "results.md", md.encode())
     atomic_write_bytes(out / "unparseable.log", "\n".join(log_lines).encode())
+    curves = {k: v["detection"] for k, v in results.items() if v.get("detection")}
+    if curves:
+        reliability_png(curves, f"Q2 reliability, split {cfg.split}", out / "reliability_q2.png")
+    from labrobfail_vlm.taxonomy import Severity
+    sev_names = {str(s.value): f"{s.value} {s.title.removesuffix(' Level')} / {s.main_text}" for s in Severity}
     for d in ("Q2", "Q4", "Q5"):
         if main_res["confusion"][d]:
-            confusion_png(main_res["confusion"][d], f"{d} confusion ({name})", out / f"confusion_{d.lower()}.png")
+            confusion_png(main_res["confusion"][d], f"{d} confusion ({name})", out / f"confusion_{d.lower()}.png",
+                          sev_names if d == "Q4" else None)
     print(md)
     return 0
 

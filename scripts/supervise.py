@@ -5,11 +5,14 @@ Run as:
     python scripts/supervise.py policy=scripted supervisor=vlm vlm.model=outputs/demo_train/final task=place
     python scripts/supervise.py policy=act act.checkpoint=outputs/act/pick/final supervisor=oracle task=pick
     python scripts/supervise.py policy=openvla openvla.url=http://127.0.0.1:8777/act supervisor=none task=pour
+    python scripts/supervise.py policy=openvla openvla.encoded=true openvla.timeout_s=30 task=pick
 
-Writes out_dir/results.json (per task: successes, rate, difference, query latency p50/p95, interventions),
-out_dir/results.md (the table), out_dir/log.jsonl (every query and episode) and out_dir/grids/.
+Writes out_dir/results.json (per task: successes, rate, difference, query latency p50/p95, interventions,
+policy errors), out_dir/results.md (the table), out_dir/log.jsonl (every query and episode) and out_dir/grids/.
 Defaults: configs/supervise.yaml. A bad setting (unknown policy or task, missing checkpoint, unreachable
-server) is a one-line error and exit code 2.
+server, a client option of the wrong type) is a one-line error and exit code 2. A policy that cannot act (a
+server that answers garbage, "error" or nothing) ends that trial with outcome "policy_error" and a one-line
+reason, said on stderr; the run goes on and writes its results.
 """
 
 from __future__ import annotations

@@ -213,6 +213,10 @@ def detect_place(trace: Trace, meta: Meta) -> Optional[Event]:
         if not j:
             continue
         j = j[0]
+        if trace[f"{obj}.contacts"][j] > 0 and trace["grip_cmd"][j] == 1:
+            # the gripper was still commanded shut and holds the object when the release ends (the recorded
+            # command, as a robot log has it; the width cannot tell a wide vessel from open fingers)
+            return j, "gripper_control_failure", f"the gripper stayed closed on {obj} through its release"
         fin = np.asarray(trace[f"{obj}.pos"][-1])
         dest = np.asarray(st["dest_xy"])
         miss = float(np.linalg.norm(fin[:2] - dest))

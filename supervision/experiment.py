@@ -3,12 +3,15 @@
 Each task runs `trials` trials (trial i: scenario i mod n, seed `seed + i`), once without supervision (the
 baseline, when `baseline` is on) and once under the chosen supervisor, on identical initial states and
 failure injections. results.json holds per-task success counts and rates, the difference, the supervisor's
-query latency (p50/p95) and intervention counts; results.md is the paper's table.
+query latency (p50/p95), intervention counts and the trials that ended on a policy error (`policy_errors`:
+trial and one-line reason; such a trial counts as run, its success judged on the state it left); results.md
+is the paper's table.
 """
 
 from __future__ import annotations
 
 import statistics
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -84,6 +87,8 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
             "interventions": sum(r["interventions"] for r in rows),
             "episodes_with_intervention": sum(r["interventions"] > 0 for r in rows),
             "stopped": sum(r["stopped"] is not None for r in rows),
+            "policy_errors": [{"trial": r["trial"], "reason": r["error"]} for r in rows
+                              if r["outcome"] == "policy_error"],
             "latency_p50_s": percentile(lat, 50), "latency_p95_s": percentile(lat, 95),
             "latency_mean_s": round(statistics.fmean(lat), 4) if lat else None, "queries": len(lat)}
 
@@ -132,6 +137,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                     scenario = fam.scenarios[i % len(fam.scenarios)]
                     rows.append(run_trial(src, policy, supervisors[name], fam, scenario, int(cfg.seed) + i,
                                           cfg.variant, loop, log, f"{fam.name}-{name}-{i:03d}"))
+                    if rows[-1]["outcome"] == "policy_error":  # said once per trial; the run goes on
+                        tqdm.write(f"trial {rows[-1]['trial']}: policy error: {rows[-1]['error']}", file=sys.stderr)
                     bar.update(1)
             results[fam.name] = {"policy": cfg.policy, **{n: summarize(r) for n, r in per.items()}}
             if len(sups) == 2:
@@ -157,4 +164,8 @@ def table_md(res: dict[str, Any]) -> str:
         s = r.get(sup, base)
         lines.append(f"| {task} | {cfg['policy']} | {base['rate'] if base else '-'} | {s['success']}/{s['trials']} | "
                      f"{s['rate']} | {('%+.0f%%' % r['improvement']) if 'improvement' in r else '-'} |")
+    errors = sum(len(v.get("policy_errors", [])) for r in res["tasks"].values() for v in r.values()
+                 if isinstance(v, dict))
+    if errors:
+        lines += ["", f"{errors} trial(s) ended on a policy error (results.json `policy_errors`, log.jsonl `error`)."]
     return "\n".join(lines) + "\n"

@@ -9,7 +9,9 @@
                     workflow"), which is reviewed again when it stops; then src.finish()
 
 Every query is a JSONL record (latency, diagnosis, primitives, the executor's outcome, the grid's path);
-every trial ends with an `episode` record. Success is judged by the task family's goals on the settled
+every trial ends with an `episode` record, whose `outcome` is success, failure or policy_error (the policy
+could not act: a bad reply from a policy server, a dead server; `error` holds its one-line reason: the trial
+ends there, the run goes on). Success is judged by the task family's goals on the settled
 final state (`TaskFamily`: "pick" is the grasp step of a pick-and-place scenario, judged by "held").
 """
 
@@ -148,6 +150,7 @@ class _Trial:
     interventions: int = 0
     latency: list[float] = field(default_factory=list)
     stopped: str | None = None
+    error: str | None = None  # the policy's one-line reason when it could not act (PolicyError): the trial ends
     steps: int = 0  # policy steps
     corrected: bool = False  # the last query's correction ran
 
@@ -162,8 +165,9 @@ def _act(src: FailureSource, policy: Policy, supervisor: Supervisor, executor: C
         obs = src.observe()
         try:
             a = policy.act(obs)
-        except PolicyError as e:
-            t.stopped = f"policy error: {e}"
+        except PolicyError as e:  # a bad reply, a dead server: this trial ends, the run goes on
+            t.error = " ".join(str(e).split()) or type(e).__name__  # one line, whatever the message held
+            t.stopped = f"policy error: {t.error}"
             return
         if a is None:
             return
@@ -208,9 +212,12 @@ def run_trial(src: FailureSource, policy: Policy, supervisor: Supervisor, family
         # policy has re-planned from the corrected state (`after_correction`): it goes on, and is reviewed again
         # when it stops (the budget bounds the rounds).
     ep = src.finish()
+    success = family.success(ep)
+    # `success` is judged on the final state whatever happened; `outcome` also says why a trial ended early
+    outcome = "policy_error" if t.error is not None else ("success" if success else "failure")
     res = {"event": "episode", "trial": trial, "scenario": scenario, "seed": seed, "variant": variant,
-           "family": family.name, "policy": policy.name, "supervisor": supervisor.name,
-           "success": family.success(ep), "steps": t.steps, "keyframes": len(ep.executed_keyframes),
+           "family": family.name, "policy": policy.name, "supervisor": supervisor.name, "outcome": outcome,
+           "error": t.error, "success": success, "steps": t.steps, "keyframes": len(ep.executed_keyframes),
            "queries": t.queries, "interventions": t.interventions, "stopped": t.stopped,
            "labels": ep.labels.to_dict(), "latency_s": t.latency, **policy.info()}
     if log is not None:

@@ -21,12 +21,18 @@ class VLMSupervisor(Supervisor):
     name = "vlm"
 
     def __init__(self, model: str | None = None, q6_mode: str = "template", device: str | None = None,
-                 analyzer: Any = None):
+                 analyzer: Any = None, threshold: float = 0.5):
+        from labrobfail_vlm.analyzer import FailureAnalyzer, check_threshold
+
+        try:
+            threshold = check_threshold(threshold)
+        except ValueError as e:
+            raise ConfigError(f"vlm.{e}") from None
         if analyzer is None:
             if not model or not Path(model).is_dir():
                 raise ConfigError(f"vlm.model: no such model directory {model!r}")
-            from labrobfail_vlm.analyzer import FailureAnalyzer
             analyzer = FailureAnalyzer.from_pretrained(model, device=device, q6_mode=q6_mode)
+        analyzer.threshold = threshold  # intervene when P(failure) >= threshold
         self.fa = analyzer
 
     def query(self, src: FailureSource, final: bool = False) -> Verdict:

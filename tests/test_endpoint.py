@@ -70,8 +70,11 @@ def test_endpoint_template_mode_uses_choices(fake, local, grids):  # noqa: F811
     local.q6_mode = "template"
     objs = ["small beaker", "target area"]
     for g in grids[:2]:
-        assert ep.analyze(g, "pick up the small beaker", objects=objs).to_json() == \
-            local.analyze(g, "pick up the small beaker", objects=objs).to_json()
+        remote = json.loads(ep.analyze(g, "pick up the small beaker", objects=objs).to_json())
+        here = json.loads(local.analyze(g, "pick up the small beaker", objects=objs).to_json())
+        # an endpoint returns replies, not scores: no P(failure) through it
+        assert remote.pop("p_failure") is None and 0.0 <= here.pop("p_failure") <= 1.0
+        assert remote == here
     local.q6_mode = "free"
 
 
@@ -121,13 +124,17 @@ def test_evaluate_through_the_endpoint_matches_the_local_model(fake, mixed_model
 
 def test_evaluate_batch_size_gives_the_same_predictions(mixed_model, small_ds, tmp_path):  # noqa: F811
     common = [f"model={mixed_model}", f"dataset_dir={small_ds}", "split=test", "progress=false", "baselines=[blind]"]
-    outs = []
+    outs, probs = [], []
     for b in (1, 5):
         r = _run("scripts/evaluate.py", f"out_dir={tmp_path / str(b)}", f"batch_size={b}", *common)
         assert r.returncode == 0, r.stderr[-2000:]
-        outs.append((tmp_path / str(b) / "predictions.jsonl").read_text())
+        lines = [json.loads(x) for x in (tmp_path / str(b) / "predictions.jsonl").read_text().splitlines()]
+        probs.append([x.pop("p_failure", None) for x in lines])  # float sums over padded rows: equal to rounding
+        outs.append(json.dumps(lines))
         res = json.loads((tmp_path / str(b) / "results.json").read_text())
         outs.append(json.dumps({k: res["baselines"][k]["q2"] for k in res["baselines"]}))
     assert outs[0] == outs[2] and outs[1] == outs[3]
+    assert [p is None for p in probs[0]] == [p is None for p in probs[1]] and any(p is not None for p in probs[0])
+    assert [p or 0 for p in probs[0]] == pytest.approx([p or 0 for p in probs[1]], abs=1e-4)
     r = _run("scripts/evaluate.py", "batch_size=0", *common)
     assert r.returncode == 2 and "batch_size" in r.stderr

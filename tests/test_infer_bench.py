@@ -13,7 +13,7 @@ from conftest import ROOT
 from test_train import small_ds, tiny  # noqa: F401  (session fixtures)
 
 KEYS = {"task", "actions", "failure", "failure_frame", "severity", "severity_name", "category", "category_name",
-        "correction", "correction_strategy", "primitives", "raw"}
+        "correction", "correction_strategy", "primitives", "raw", "p_failure", "severity_main_text"}
 
 
 def infer(*args):
@@ -33,7 +33,9 @@ def test_infer_prints_a_valid_diagnosis(tiny, grid, tmp_path):  # noqa: F811
     assert set(d) == KEYS and d == json.loads((tmp_path / "d.json").read_text())
     assert set(d["actions"]) <= {"grasp", "place", "open", "close", "pour", "shake", "insert", "stir"}
     assert d["raw"]["Q2"] in ("Yes", "No") and isinstance(d["failure"], bool)
+    assert 0.0 <= d["p_failure"] <= 1.0 and d["failure"] == (d["p_failure"] >= 0.5)  # the score behind the verdict
     if d["failure"]:
+        assert d["severity_main_text"] == ["Minor", "Recoverable", "Critical", "Catastrophic"][d["severity"] - 1]
         assert 1 <= d["failure_frame"] <= 16 and 1 <= d["severity"] <= 4 and 1 <= d["category"] <= 5
     else:
         assert d["failure_frame"] is None and d["raw"]["Q3"] == "None"
@@ -44,8 +46,26 @@ def test_one_pass_matches_six_prompts(tiny, small_ds):  # noqa: F811
     fa = FailureAnalyzer.from_pretrained(tiny)
     for p in sorted((small_ds / "images").glob("*.png"))[:2]:
         img = Image.open(p).convert("RGB")
-        assert fa.answers(img, "pick up the beaker", one_pass=True) == fa.answers(img, "pick up the beaker",
-                                                                                  one_pass=False)
+        one, six = fa.answers(img, "pick up the beaker", one_pass=True), fa.answers(img, "pick up the beaker",
+                                                                                      one_pass=False)
+        assert one == six and one.p_failure == pytest.approx(six.p_failure, abs=1e-4)
+
+
+def test_threshold_moves_the_verdict_and_q3_q6_follow_it(tiny, grid):  # noqa: F811
+    """P(failure) is the softmax of the Yes/No scores; the operating point decides Q2, and Q3-Q6 follow it."""
+    from labrobfail_vlm.analyzer import FailureAnalyzer, p_yes
+    fa = FailureAnalyzer.from_pretrained(tiny)
+    img = Image.open(grid).convert("RGB")
+    d = fa.analyze(img, "pick up the beaker")
+    assert p_yes(("Yes", "No"), [np.log(0.2), np.log(0.6)]) == pytest.approx(0.25)
+    fa.threshold = min(0.999, d.p_failure + 1e-3) if d.p_failure < 0.999 else 0.999
+    low = fa.analyze(img, "pick up the beaker")
+    fa.threshold = max(1e-3, d.p_failure - 1e-3)
+    high = fa.analyze(img, "pick up the beaker")
+    assert low.p_failure == pytest.approx(high.p_failure, abs=1e-6) == pytest.approx(d.p_failure, abs=1e-6)
+    assert not low.failure and low.raw["Q3"] == "None" and high.failure and high.failure_frame is not None
+    with pytest.raises(ValueError, match="threshold"):
+        FailureAnalyzer(fa.model, fa.processor, threshold=1.0)
 
 
 def test_frames_folder_builds_the_grid(tiny, tmp_path):  # noqa: F811
@@ -153,16 +173,22 @@ def test_evaluate_model_and_predictions_file(tiny, small_ds, tmp_path):  # noqa:
         assert 0 <= res[k] <= 100
     assert set(res["q6"]) == {"bleu1", "bleu2", "bleu3", "bleu4", "rougeL"}
     assert {"majority class", "blind (grey grid)"} <= set(res["baselines"])
-    assert "| LabRobFail-VLM (paper) | 94.45" in (tmp_path / "e" / "results.md").read_text()
-    assert (tmp_path / "e" / "confusion_q2.png").is_file()
+    md = (tmp_path / "e" / "results.md").read_text()
+    assert "| LabRobFail-VLM (paper) | 94.45" in md and "All-trajectory scores" in md and "AUROC" in md
+    assert (tmp_path / "e" / "confusion_q2.png").is_file() and (tmp_path / "e" / "reliability_q2.png").is_file()
+    fo, det = res["failure_only"], res["detection"]
+    assert fo["trajectories"] > 0 and all(0 <= fo[k] <= 100 for k in ("q3", "q4", "q5"))
+    assert det["score"] == "probability" and det["auroc"] is not None and 0 <= det["ece"] <= 1
+    assert res["baselines"]["majority class"]["detection"]["auroc"] == 0.5  # a constant score ranks nothing
     # the same predictions, scored from the file they were saved to, give the same numbers
     r = subprocess.run([sys.executable, "scripts/evaluate.py", f"predictions={tmp_path / 'e' / 'predictions.jsonl'}",
                         f"dataset_dir={small_ds}", f"out_dir={tmp_path / 'p'}", "baselines=[majority]"], cwd=ROOT,
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     res2 = json.loads((tmp_path / "p" / "results.json").read_text())
-    assert {k: res2[k] for k in ("q1", "q2", "q3", "q4", "q5", "q6")} == {k: res[k] for k in ("q1", "q2", "q3", "q4",
-                                                                                              "q5", "q6")}
+    keys = ("q1", "q2", "q3", "q4", "q5", "q6", "failure_only")
+    assert {k: res2[k] for k in keys} == {k: res[k] for k in keys}
+    assert res2["detection"]["auroc"] == res["detection"]["auroc"]  # P(failure) travels in the predictions file
     (tmp_path / "bad.jsonl").write_text("{not json}\n")
     r = subprocess.run([sys.executable, "scripts/evaluate.py", f"predictions={tmp_path / 'bad.jsonl'}",
                         f"dataset_dir={small_ds}"], cwd=ROOT, capture_output=True, text=True, timeout=120)
@@ -248,3 +274,63 @@ def test_evaluate_reports_types_template_row_and_skips_majority_without_train(ti
     traj = json.loads((ds / "trajectories.json").read_text())
     types = {t["failure_type"] for t in traj if t["split"] == "test" and not t["success"]}
     assert {f"type:{t}" for t in types} <= set(res["breakdown"])
+
+
+def test_failure_only_scores_a_none_for_every_failure_as_wrong(small_ds, tmp_path):  # noqa: F811
+    """Gold Q1/Q2 and "None" / no correction for every Q3-Q6: the all-trajectory scores reward the successes'
+    None answers, the failure-only scores (the paper's) give 0 on Q3-Q5 and a low ROUGE-L."""
+    from labrobfail_vlm import questions as Q
+    recs = json.loads((small_ds / "test.json").read_text())
+    traj = {t["trajectory"]: t for t in json.loads((small_ds / "trajectories.json").read_text())}
+    assert any(not traj[Q.traj_of(r["id"])]["success"] for r in recs)
+    with open(tmp_path / "p.jsonl", "w") as f:
+        for r in recs:
+            d = Q.dim_of(r["id"])
+            ans = r["conversations"][1]["value"] if d in ("Q1", "Q2") else Q.NO_CORRECTION if d == "Q6" else "None"
+            f.write(json.dumps({"id": r["id"], "prediction": ans}) + "\n")
+    r = subprocess.run([sys.executable, "scripts/evaluate.py", f"predictions={tmp_path / 'p.jsonl'}",
+                        f"dataset_dir={small_ds}", f"out_dir={tmp_path / 'e'}", "baselines=[majority]"], cwd=ROOT,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    res = json.loads((tmp_path / "e" / "results.json").read_text())
+    assert res["q1"] == 100 and res["q2"] == 100 and res["q3"] > 0 and res["q6"]["rougeL"] > 0.2
+    fo = res["failure_only"]
+    assert fo["q3"] == fo["q4"] == fo["q5"] == 0 and fo["q6"]["rougeL"] < 0.2
+    assert res["detection"]["score"] == "hard" and res["detection"]["auroc"] == 1.0  # gold Q2 ranks perfectly
+    maj = res["baselines"]["majority class"]["failure_only"]  # the training failures' most frequent answers
+    assert maj["q4"] > 0 or maj["q5"] > 0
+
+
+# ---- argument hygiene (issue 33): refused before inference, nothing left behind ------------------------------
+def test_json_output_and_frame_count_are_checked_before_inference(tiny, tmp_path):  # noqa: F811
+    import os
+    Image.new("RGB", (256, 128), (9, 9, 9)).save(tmp_path / "g.png")
+    (tmp_path / "out").mkdir()
+    if os.geteuid() != 0:
+        (tmp_path / "ro").mkdir(mode=0o555)
+        unwritable = tmp_path / "ro" / "d.json"
+    else:  # root writes through permission bits: /proc takes no new files, even from root
+        unwritable = "/proc/labrobfail-d.json"
+    before = sorted(p.name for p in tmp_path.iterdir())
+    for args, needle in ((["--json", str(tmp_path / "out")], "is a directory"),
+                         (["--json", str(unwritable)], "cannot write"),
+                         (["--json", str(tmp_path / "nope" / "d.json")], "does not exist"),
+                         (["--num-frames", "0"], "--num-frames")):
+        r = infer("--grid", str(tmp_path / "g.png"), "--model", str(tiny), *args)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and needle in lines[0] and r.stdout == "", (args, r.stderr)
+        assert "Loading weights" not in r.stderr  # refused before the model was loaded
+    assert sorted(p.name for p in tmp_path.iterdir()) == before and not list((tmp_path / "out").iterdir())
+    assert not list(tmp_path.rglob("*.tmp")) and not list(tmp_path.rglob("*.probe"))
+
+
+def test_evaluate_refuses_a_predictions_folder_or_unreadable_file_before_writing(tmp_path):
+    (tmp_path / "preds").mkdir()
+    for pred, needle in ((tmp_path / "preds", "Is a directory"), (_unreadable(tmp_path), "cannot read"),
+                         (tmp_path / "missing.jsonl", "cannot read")):
+        r = subprocess.run([sys.executable, "scripts/evaluate.py", f"predictions={pred}",
+                            f"dataset_dir={tmp_path / 'ds'}"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and "Traceback" not in r.stderr, (pred, r.stderr[-500:])
+        assert lines[0].startswith("error: predictions: ") and str(pred) in lines[0] and needle in lines[0], lines
+    assert not list((tmp_path / "preds").iterdir()) and not (tmp_path / "eval_test").exists()  # no output folder

@@ -106,3 +106,10 @@ def test_wrist_view():
         assert obs.images["wrist"].std() > 0  # it sees something, not a blank frame
     finally:
         s.close()
+
+
+def test_manifest_counts_physics_signs_and_gripper_faults_both_ways(src):
+    """The same forced draws as the PyBullet test, on ManiSkill's pick-and-place: friction and mass of the held
+    object and the grip force on both signs, gripper faults both ways, labelled from state."""
+    from conftest import SIGNS_AND_FAULTS, check_injection_summary, injected_rows
+    check_injection_summary(injected_rows(src, "pick_cube", SIGNS_AND_FAULTS))

@@ -17,6 +17,8 @@ def test_taxonomy_matches_paper():
                        Category.PERCEPTION: 3}
     assert [c.value for c in Category] == [1, 2, 3, 4, 5] and Category.PERCEPTION.title == "Perception Failure"
     assert [s.title for s in Severity] == ["Risk Level", "Dangerous Level", "Fatal Level", "Management Incident"]
+    assert [s.main_text for s in Severity] == ["Minor", "Recoverable", "Critical", "Catastrophic"]
+    assert Severity(2).display == "Dangerous Level (option 2; the paper's main text: Recoverable)"
     assert ATOMIC_ACTIONS == ("grasp", "place", "open", "close", "pour", "shake", "insert", "stir")
     assert [horizon_of(n) for n in (10, 11, 30, 31)] == ["short", "medium", "medium", "long"]
 
@@ -48,7 +50,7 @@ def test_control_operators_touch_only_named_keyframes():
     out, prov = control.rotate(kfs, ["s0_k2"], [0.5, 0, 0], rng, min_norm=0.3)
     assert rotation_angle(out[2].quat, kfs[2].quat) == pytest.approx(np.linalg.norm(prov["xi_rot"]), abs=1e-4)
     out, prov = control.corrupt_gripper(kfs, ["s1_k1"], 1.0, rng)
-    assert prov["flipped"] == ["s1_k1"] and out[4].gripper == 0 and out[1].gripper == 1
+    assert prov["flipped"] == [{"keyframe": "s1_k1", "to": "open"}] and out[4].gripper == 0 and out[1].gripper == 1
     out, prov = control.truncate(kfs, ["s2_k0"], rng)
     assert len(out) == len(kfs) and all(k.pos == kfs[5].pos for k in out[6:])
 
@@ -61,10 +63,10 @@ def test_semantic_and_physics_operators():
     assert 1 not in {k.segment for k in out}
     out, _ = semantic.substitute_target(kfs, 2, "other", {"obj": (0, 0, 0), "other": (0.0, 0.3, 0.5)})
     assert all(np.isclose(b.pos[1] - a.pos[1], 0.3) and b.pos[2] == a.pos[2] for a, b in zip(kfs[6:], out[6:]))
-    ev, _ = physics.sample_event(kfs, "friction", "obj", ["s1_k0"], [-0.5, -0.4], rng)
-    assert 0.5 <= ev.scale <= 0.6 and ev.at_keyframe == 3
+    ev, _ = physics.sample_event(kfs, "friction", "obj", ["s1_k0"], 0.5, rng)
+    assert 0.5 <= ev.scale <= 1.5 and ev.at_keyframe == 3
     with pytest.raises(ValueError, match="unknown parameter"):
-        physics.sample_event(kfs, "gravity", "obj", ["s1_k0"], [-0.5, 0.5], rng)
+        physics.sample_event(kfs, "gravity", "obj", ["s1_k0"], 0.5, rng)
     with pytest.raises(ValueError, match="does not have"):
         semantic.omit(kfs, 7)
 
@@ -76,7 +78,7 @@ def test_a_physics_perturbation_record_replays_to_its_events():
 
     from sim_backends.failure_generator import apply_spec
     spec = {"level": "physics", "at": ["s1_k0"], "params": [{"param": "grip_force", "target": "robot", "alpha": 0.9},
-                                                            {"param": "friction", "target": "obj", "delta": [-0.5, 0]}]}
+                                                            {"param": "friction", "target": "obj", "alpha": 0.5}]}
     _, events, record = apply_spec(spec, _kfs(), {}, np.random.default_rng(4))
     assert len(events) == 2 and physics.events_from_record(json.loads(json.dumps(record))) == events
     old = {"level": "physics", "param": "mass", "target": "obj", "scale": 1.2, "at_keyframe": 3}
@@ -84,3 +86,56 @@ def test_a_physics_perturbation_record_replays_to_its_events():
     assert physics.events_from_record({"level": "control", "op": "translate"}) == []
     with pytest.raises(ValueError, match="lacks"):
         physics.events_from_record({"level": "physics", "events": [{"param": "mass"}]})
+
+
+# ---- the paper's draws (Eq. 1 and 2), seeded ------------------------------------------------------------
+def test_physics_delta_is_uniform_on_both_sides():
+    """psi~ = psi (1 + delta), delta ~ U(-alpha, alpha): both signs, the whole range, a uniform histogram."""
+    kfs, rng = _kfs(), np.random.default_rng(7)
+    d = np.array([physics.sample_event(kfs, "mass", "obj", ["s1_k0"], 0.8, rng)[0].scale - 1 for _ in range(4000)])
+    assert d.min() >= -0.8 and d.max() <= 0.8 and d.min() < -0.78 and d.max() > 0.78
+    assert abs(float(np.mean(d > 0)) - 0.5) < 0.03  # as many heavier as lighter objects
+    hist, _ = np.histogram(d, bins=8, range=(-0.8, 0.8))
+    assert hist.min() > 0.8 * 4000 / 8 and hist.max() < 1.2 * 4000 / 8
+    with pytest.raises(ValueError, match="alpha"):
+        physics.sample_events(kfs, {"at": ["s1_k0"], "param": "mass", "target": "obj", "delta": [-0.9, -0.5]}, rng)
+    with pytest.raises(ValueError, match=r"\[0, 1\)"):
+        physics.alpha_of({"param": "mass", "alpha": 1.0})
+
+
+def test_control_noise_is_the_papers_gaussian_and_the_filter_is_counted():
+    """xi ~ N(0, diag(sigma^2)) without a filter (no draw rejected, the per-axis std is sigma); min_norm redraws
+    the short ones and says how many it rejected."""
+    kfs, rng = _kfs(), np.random.default_rng(8)
+    sig = [0.04, 0.02, 0.0]
+    draws = [control.translate(kfs, ["s1_k1"], sig, rng)[1] for _ in range(3000)]
+    xi = np.array([p["xi_trans"] for p in draws])
+    assert all(p["rejected"] == 0 for p in draws)
+    assert np.allclose(xi.std(0), sig, atol=0.003) and np.allclose(xi.mean(0), 0, atol=0.003)
+    assert float(np.mean(np.linalg.norm(xi, axis=1) < 0.03)) > 0.4  # short draws are kept, as the paper has it
+    filt = [control.translate(kfs, ["s1_k1"], sig, rng, min_norm=0.03)[1] for _ in range(500)]
+    assert all(np.linalg.norm(p["xi_trans"]) >= 0.03 for p in filt)
+    assert sum(p["rejected"] for p in filt) > 300 and all(p["min_norm"] == 0.03 for p in filt)
+
+
+def test_gripper_faults_per_command_both_ways():
+    """Each named command is one Bernoulli(lambda) trial; closed commands open and open commands close, and a
+    fault holds to the end of its segment."""
+    kfs, rng = _kfs(), np.random.default_rng(9)
+    # s0_k1 is closed (1), s1_k2 open (0) in _kfs
+    assert kfs[1].gripper == 1 and kfs[5].gripper == 0
+    to = {"open": 0, "closed": 0}
+    none = 0
+    for _ in range(2000):
+        out, prov = control.corrupt_gripper(kfs, ["s0_k1", "s1_k2"], 0.3, rng)
+        for f in prov["flipped"]:
+            to[f["to"]] += 1
+            k = next(i for i, x in enumerate(kfs) if x.name == f["keyframe"])
+            assert out[k].gripper == 1 - kfs[k].gripper
+            assert all(o.gripper == out[k].gripper for o in out[k:] if o.segment == kfs[k].segment)
+        none += not prov["flipped"]
+    assert abs(to["open"] / 2000 - 0.3) < 0.04 and abs(to["closed"] / 2000 - 0.3) < 0.04
+    assert abs(none / 2000 - 0.49) < 0.04  # (1 - lambda)^2: no fault at all, a labelled success
+    assert control.corrupt_gripper(kfs, ["s0_k1", "s1_k2"], 0.0, rng)[1]["flipped"] == []
+    with pytest.raises(ValueError, match="lambda"):
+        control.corrupt_gripper(kfs, ["s0_k1"], 1.5, rng)

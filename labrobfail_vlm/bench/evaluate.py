@@ -1,8 +1,15 @@
 """LabRobFail-Bench evaluator: predictions (from a model, a baseline or a JSONL file) -> scores and breakdowns.
 
-A prediction is the reply to one record's question, keyed by the record id ("<trajectory>_Q<k>").
-Replies are parsed with bench.parse (an unparseable reply counts as wrong and is logged).
-Q2 is scored as asked: for the "successfully"/"without issues" variants, "Yes" means no failure.
+A prediction is the reply to one record's question, keyed by the record id ("<trajectory>_Q<k>"), plus, where the
+source has one, P(failure) per trajectory (`Predictions.p_failure`). Replies are parsed with bench.parse (an
+unparseable reply counts as wrong and is logged). Q2 is scored as asked: for the "successfully"/"without issues"
+variants, "Yes" means no failure.
+
+Two scopes. Q1 and Q2 are scored over every trajectory. Q3-Q6 are scored twice: over every trajectory (a success's
+reference is "None" / the no-correction sentence; the top-level keys, kept as the project's own table) and over the
+failed trajectories only (`failure_only`), which is what the paper's table can mean: its Q4 and Q5 options have no
+"None", and a success has nothing to localise, rate, classify or correct. Failure detection is also scored as a
+ranking of P(failure) (`detection`: AUROC, AUPRC, ECE; labrobfail_vlm.bench.detection).
 """
 
 from __future__ import annotations
@@ -46,35 +53,54 @@ def load_split(dataset_dir: str | Path, split: str) -> tuple[list[dict], dict[st
     return recs, traj
 
 
-def read_predictions(path: str | Path) -> dict[str, str]:
-    out: dict[str, str] = {}
+FAILURE_ONLY_DIMS = ("Q3", "Q4", "Q5", "Q6")
+
+
+class Predictions(dict[str, str]):
+    """Replies keyed by record id, and P(failure) keyed by trajectory where the source scored it."""
+
+    def __init__(self, *args: Any, p_failure: dict[str, float] | None = None):
+        super().__init__(*args)
+        self.p_failure: dict[str, float] = dict(p_failure or {})
+
+
+def read_predictions(path: str | Path) -> Predictions:
+    """JSONL of {"id", "prediction"}; a line may add "p_failure" (a number in [0, 1]) for its trajectory."""
+    out = Predictions()
     try:
         lines = Path(path).read_text().splitlines()
-    except OSError as e:
-        raise ConfigError(f"predictions: cannot read {path} ({e.strerror})") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"predictions: cannot read {path} ({getattr(e, 'strerror', None) or type(e).__name__})"
+                          ) from None
     for i, line in enumerate(lines, 1):
         if not line.strip():
             continue
         try:
             obj = json.loads(line)
             out[str(obj["id"])] = str(obj["prediction"])
-        except (ValueError, KeyError, TypeError):
-            raise ConfigError(f"predictions: {path} line {i} is not a JSON object with id and prediction") from None
+            if obj.get("p_failure") is not None:
+                p = float(obj["p_failure"])
+                if not 0.0 <= p <= 1.0:
+                    raise ValueError
+                out.p_failure[Q.traj_of(str(obj["id"]))] = p
+        except (ValueError, KeyError, TypeError, AttributeError):
+            raise ConfigError(f"predictions: {path} line {i} is not a JSON object with id, prediction and an "
+                              "optional p_failure in [0, 1]") from None
     return out
 
 
 # ---- prediction sources -----------------------------------------------------------------------------------
 def model_predictions(analyzer: Any, dataset_dir: str | Path, recs: list[dict], traj: dict[str, dict],
-                      blind: bool = False, progress: bool = True, batch_size: int = 1) -> dict[str, str]:
+                      blind: bool = False, progress: bool = True, batch_size: int = 1) -> Predictions:
     """Run the analyzer once per trajectory (one pass over the dimensions its records ask), `batch_size`
-    trajectories per `answers_batch` call; `blind` blanks the grid."""
+    trajectories per `answers_batch` call; `blind` blanks the grid. P(failure) is kept where the analyzer gives it."""
     from tqdm import tqdm
 
     by_traj: dict[str, list[dict]] = defaultdict(list)
     for r in recs:
         by_traj[Q.traj_of(r["id"])].append(r)
     items = list(by_traj.items())
-    out: dict[str, str] = {}
+    out = Predictions()
     bar = tqdm(total=len(items), desc="blind" if blind else "model", disable=not progress)
     for c in range(0, len(items), max(1, batch_size)):
         chunk = items[c:c + max(1, batch_size)]
@@ -86,8 +112,10 @@ def model_predictions(analyzer: Any, dataset_dir: str | Path, recs: list[dict], 
         answers = analyzer.answers_batch(images, [i.get("task", "") for i in infos], [i.get("frames") for i in infos],
                                          [i.get("objects", ()) for i in infos],
                                          [{Q.dim_of(r["id"]) for r in rs} for _, rs in chunk], max_batch=batch_size)
-        for (_, rs), ans in zip(chunk, answers):
+        for (t, rs), ans in zip(chunk, answers):
             failed = ans["Q2"] == "Yes"
+            if getattr(ans, "p_failure", None) is not None:
+                out.p_failure[t] = float(ans.p_failure)
             for r in rs:
                 d = Q.dim_of(r["id"])
                 out[r["id"]] = q2_as_asked(r["conversations"][0]["value"], failed) if d == "Q2" else ans[d]
@@ -96,8 +124,10 @@ def model_predictions(analyzer: Any, dataset_dir: str | Path, recs: list[dict], 
     return out
 
 
-def majority_predictions(train: list[dict], recs: list[dict]) -> dict[str, str]:
-    """The most frequent training answer per dimension (Q2 as the most frequent outcome, asked either way).
+def majority_predictions(train: list[dict], recs: list[dict], failures_only: bool = False) -> Predictions:
+    """The most frequent training answer per dimension (Q2 as the most frequent outcome, asked either way), with
+    P(failure) the training failure rate. `failures_only`: Q3-Q6 take the most frequent answer among training
+    failures (the failure-only scores' baseline; a success's "None" and no-correction answers are not counted).
 
     Needs training answers for every dimension the split asks: a one-line ConfigError names the missing ones."""
     counts: dict[str, Counter] = defaultdict(Counter)
@@ -105,12 +135,16 @@ def majority_predictions(train: list[dict], recs: list[dict]) -> dict[str, str]:
         d, a = Q.dim_of(r["id"]), r["conversations"][1]["value"]
         if d == "Q2":
             a = str(a != q2_as_asked(r["conversations"][0]["value"], failed=False))  # "True" = failed
+        elif failures_only and d in FAILURE_ONLY_DIMS and a in (Q.NO_FAILURE, Q.NO_CORRECTION):
+            continue  # a success's answer: every failure answer is something else
         counts[d][a] += 1
     top = {d: c.most_common(1)[0][0] for d, c in counts.items()}
     missing = sorted({Q.dim_of(r["id"]) for r in recs} - set(top))
     if missing:
         raise ConfigError(f"majority baseline: the training split has no answers for {', '.join(missing)}")
-    out = {}
+    q2 = counts.get("Q2", Counter())
+    rate = q2["True"] / max(1, sum(q2.values()))
+    out = Predictions(p_failure={Q.traj_of(r["id"]): rate for r in recs})
     for r in recs:
         d = Q.dim_of(r["id"])
         q = r["conversations"][0]["value"]
@@ -119,8 +153,51 @@ def majority_predictions(train: list[dict], recs: list[dict]) -> dict[str, str]:
 
 
 # ---- scoring ------------------------------------------------------------------------------------------------
+def failed_records(recs: list[dict], traj: dict[str, dict]) -> list[dict]:
+    """The Q3-Q6 records of failed trajectories: what the failure-only scores are taken over."""
+    return [r for r in recs if Q.dim_of(r["id"]) in FAILURE_ONLY_DIMS
+            and not traj.get(Q.traj_of(r["id"]), {}).get("success", True)]
+
+
+def detection(recs: list[dict], preds: dict[str, str], traj: dict[str, dict]) -> dict[str, Any] | None:
+    """AUROC/AUPRC/ECE of P(failure) over the split's trajectories that are asked Q2 (None when none are).
+    Without a probability for a trajectory, its hard Q2 reply is the score (0 or 1)."""
+    from labrobfail_vlm.bench.detection import detection_metrics
+
+    probs = getattr(preds, "p_failure", {})
+    ys, ps, hard = [], [], False
+    for r in recs:
+        if Q.dim_of(r["id"]) != "Q2":
+            continue
+        t = Q.traj_of(r["id"])
+        ys.append(not traj.get(t, {}).get("success", True))
+        if t in probs:
+            ps.append(probs[t])
+        else:
+            hard = True
+            p = parse("Q2", preds.get(r["id"]) or "")
+            failed_as_asked = q2_as_asked(r["conversations"][0]["value"], failed=True)
+            ps.append(1.0 if p == failed_as_asked else 0.0)
+    return detection_metrics(ys, ps, "hard" if hard else "probability") if ys else None
+
+
 def score(recs: list[dict], preds: dict[str, str], traj: dict[str, dict],
-          log: Callable[[str], None] | None = None) -> dict[str, Any]:
+          log: Callable[[str], None] | None = None, failure_preds: dict[str, str] | None = None) -> dict[str, Any]:
+    """All-trajectory scores (top level), `failure_only` (Q3-Q6 over failed trajectories, from `failure_preds`
+    where a baseline answers failures differently) and `detection` (P(failure) as a score)."""
+    res = _score(recs, preds, traj, log)
+    fails = failed_records(recs, traj)
+    fo = _score(fails, failure_preds if failure_preds is not None else preds, traj) if fails else None
+    res["failure_only"] = {"trajectories": len({Q.traj_of(r["id"]) for r in fails}), "records": len(fails),
+                           **({k: fo[k] for k in ("q3", "q3_within1", "q4", "q5", "q6", "unparseable")} if fo else
+                              dict.fromkeys(("q3", "q3_within1", "q4", "q5", "q6")))}
+    res["detection"] = detection(recs, preds, traj)
+    res["scope"] = {"q1-q6": "all trajectories", "failure_only": "Q3-Q6 over failed trajectories (as the paper)"}
+    return res
+
+
+def _score(recs: list[dict], preds: dict[str, str], traj: dict[str, dict],
+           log: Callable[[str], None] | None = None) -> dict[str, Any]:
     pairs: dict[str, list[tuple[str | None, str]]] = defaultdict(list)
     q6_ref, q6_hyp = [], []
     unparseable: Counter[str] = Counter()

@@ -1,4 +1,9 @@
-"""Bench reports: the Markdown table in the paper's layout, confusion-matrix PNGs, the paper's reference rows."""
+"""Bench reports: the Markdown tables in the paper's layout, confusion-matrix PNGs, the paper's reference rows.
+
+Two tables per split. The paper-comparable one takes Q1 and Q2 over all trajectories and Q3-Q6 over the failed
+trajectories only (`failure_only`), and sits beside the paper's rows. The all-trajectory one (Q3-Q6 over successes
+too, whose answer is "None") is the project's own and carries no paper rows: its numbers are not the paper's.
+"""
 
 from __future__ import annotations
 
@@ -26,9 +31,31 @@ HEADER = ["Method", "Q1", "Q2", "Q3", "Q4", "Q5", "BLEU-1", "BLEU-2", "BLEU-3", 
 
 
 def row(res: dict[str, Any]) -> list[float | None]:
+    """All-trajectory row: Q1-Q6 over every trajectory of the split."""
     q6 = res["q6"]
     return [res["q1"], res["q2"], res["q3"], res["q4"], res["q5"], q6["bleu1"], q6["bleu2"], q6["bleu3"], q6["bleu4"],
             q6["rougeL"]]
+
+
+def paper_row(res: dict[str, Any]) -> list[float | None]:
+    """Paper-comparable row: Q1 and Q2 over all trajectories, Q3-Q6 over the failed ones."""
+    fo = res.get("failure_only") or {}
+    q6 = fo.get("q6") or {}
+    return [res["q1"], res["q2"], fo.get("q3"), fo.get("q4"), fo.get("q5"),
+            *(q6.get(k) for k in ("bleu1", "bleu2", "bleu3", "bleu4", "rougeL"))]
+
+
+def detection_markdown(results: dict[str, dict[str, Any]], title: str) -> str:
+    """Q2 as a score: AUROC, AUPRC and ECE of P(failure) per method."""
+    lines = [f"### {title}", "", "| Method | AUROC | AUPRC | ECE | trajectories (failures) | score |",
+             "|---|---|---|---|---|---|"]
+    for name, res in results.items():
+        d = res.get("detection")
+        if d:
+            f = lambda v: "—" if v is None else f"{v:.4f}"  # noqa: E731
+            lines.append(f"| {name} | {f(d['auroc'])} | {f(d['auprc'])} | {f(d['ece'])} | "
+                         f"{d['trajectories']} ({d['failures']}) | {d['score']} |")
+    return "\n".join(lines) + "\n"
 
 
 def markdown(rows: dict[str, list[float | None]], title: str) -> str:
@@ -39,7 +66,8 @@ def markdown(rows: dict[str, list[float | None]], title: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def confusion_png(conf: list[list[Any]], title: str, path: Path) -> None:
+def confusion_png(conf: list[list[Any]], title: str, path: Path, names: dict[str, str] | None = None) -> None:
+    """`names`: tick labels for answer options (Q4: both severity vocabularies)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -55,8 +83,9 @@ def confusion_png(conf: list[list[Any]], title: str, path: Path) -> None:
         m[idx[str(ref)], idx[str(pred)]] += n
     fig, ax = plt.subplots(figsize=(1 + 0.6 * len(labels), 1 + 0.6 * len(labels)))
     ax.imshow(m, cmap="Blues")
-    ax.set_xticks(range(len(labels)), labels)
-    ax.set_yticks(range(len(labels)), labels)
+    ticks = [(names or {}).get(k, k) for k in labels]
+    ax.set_xticks(range(len(labels)), ticks, rotation=30 if names else 0, ha="right" if names else "center")
+    ax.set_yticks(range(len(labels)), ticks)
     ax.set_xlabel("predicted")
     ax.set_ylabel("reference")
     for i in range(len(labels)):

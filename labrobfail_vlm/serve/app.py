@@ -5,13 +5,19 @@
     GET  /info      model, grid layout, version, batching settings
 
 Errors are one JSON line, {"error": "..."}: 400 bad field or image, 401 missing/wrong token, 404/405,
-413 upload over the limit or a decompression bomb, 415 not multipart, 503 queue full or shutting down,
+408 body not received within `body_timeout_s`, 413 upload over the limit, a decompression bomb or images too
+large to decode (per-request limit), 415 not multipart, 503 queue full, decode budget busy or shutting down,
 500 (never with a traceback) if the model itself fails. The token (if set) is compared in constant time and
-never logged or echoed.
+never logged or echoed. A client that disconnects mid-upload is logged in one line.
+
+Memory: images are priced from their headers (labrobfail_vlm.serve.form) and decoded only within a budget
+shared by all requests (labrobfail_vlm.serve.budget), held until each reply: the image memory of all requests
+together never exceeds `max_decode_bytes`, one request's never `max_request_decode_bytes` (larger: 413).
 """
 
 from __future__ import annotations
 
+import asyncio
 import hmac
 import json
 import logging
@@ -25,11 +31,14 @@ from fastapi.responses import JSONResponse, Response
 from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException
+from starlette.requests import ClientDisconnect
 
+from labrobfail_vlm.analyzer import DiagnosisRequest
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.images import ImageTooLarge
 from labrobfail_vlm.serve.batcher import Batcher, Busy
-from labrobfail_vlm.serve.form import Upload, parse
+from labrobfail_vlm.serve.budget import DecodeBudget, Reservation, mb
+from labrobfail_vlm.serve.form import MAX_REQUEST_DECODE_BYTES, Upload, build, plan
 
 log = logging.getLogger("labrobfail.serve")
 Scope = MutableMapping[str, Any]
@@ -46,6 +55,16 @@ class ServeConfig:
     max_upload_bytes: int = 32 * 1024 * 1024
     max_files: int = 256
     token: str | None = None  # the bearer token; None or "" = no token required
+    max_decode_bytes: int = 1 << 30  # image memory held by all requests together (form.plan prices it)
+    max_request_decode_bytes: int = MAX_REQUEST_DECODE_BYTES  # ... by one request (larger: 413)
+    body_timeout_s: float = 30.0  # the whole body must arrive within this, from its first read (else 408)
+    decode_wait_s: float = 30.0  # how long a request waits for decode budget before a 503
+
+    def __post_init__(self) -> None:
+        if not 0 < self.max_request_decode_bytes <= self.max_decode_bytes:
+            raise ValueError("serve: max_request_decode_bytes must be > 0 and at most max_decode_bytes")
+        if not (self.body_timeout_s > 0 and self.decode_wait_s >= 0):
+            raise ValueError("serve: body_timeout_s must be > 0 and decode_wait_s >= 0")
 
     def public(self) -> dict[str, Any]:
         """The settings /info shows (never the token)."""
@@ -59,12 +78,18 @@ class BodyTooLarge(Exception):
     pass
 
 
+class BodyTimeout(Exception):
+    """The body did not arrive in time (a client that sends less than its Content-Length, or too slowly)."""
+
+
 class Guard:
     """ASGI middleware in front of the app: the bearer token (every path but /health) and the upload size, both
-    checked before the body is read; a body streamed past the limit stops with BodyTooLarge."""
+    checked before the body is read; a body streamed past the limit stops with BodyTooLarge, one that has not
+    fully arrived `body_timeout_s` after the app started reading it with BodyTimeout. A client that goes away
+    before its body is complete is logged here, in one line (the app then drops the request quietly)."""
 
-    def __init__(self, app: Any, token: str | None, max_bytes: int):
-        self.app, self.max_bytes = app, max_bytes
+    def __init__(self, app: Any, token: str | None, max_bytes: int, body_timeout_s: float = 30.0):
+        self.app, self.max_bytes, self.body_timeout_s = app, max_bytes, body_timeout_s
         self._expected = f"Bearer {token}".encode() if token else None
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
@@ -79,15 +104,28 @@ class Guard:
         length = headers.get(b"content-length", b"")
         if length.isdigit() and int(length) > self.max_bytes:
             return await _reply(send, 413, f"upload of {int(length):,} bytes is over the {self.max_bytes:,} byte limit")
-        seen = 0
+        seen, done, deadline = 0, False, 0.0
+        loop = asyncio.get_running_loop()
 
         async def counted() -> MutableMapping[str, Any]:
-            nonlocal seen
-            msg = await receive()
+            nonlocal seen, done, deadline
+            if done:  # body complete: later reads only wait for a disconnect, which has no deadline
+                return await receive()
+            deadline = deadline or loop.time() + self.body_timeout_s
+            try:
+                msg = await asyncio.wait_for(receive(), max(0.0, deadline - loop.time()))
+            except asyncio.TimeoutError:
+                raise BodyTimeout() from None
             if msg["type"] == "http.request":
                 seen += len(msg.get("body", b""))
                 if seen > self.max_bytes:
                     raise BodyTooLarge()
+                done = not msg.get("more_body", False)
+            elif msg["type"] == "http.disconnect":
+                done = True
+                host = ":".join(map(str, scope.get("client") or ("?",)))
+                log.warning("client %s disconnected mid-upload (%s of %s bytes received); request dropped", host,
+                            f"{seen:,}", f"{int(length):,}" if length.isdigit() else "?")
             return msg
 
         await self.app(scope, counted, send)
@@ -119,6 +157,7 @@ def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
         return [d.to_json() for d in analyzer.analyze_batch(batch, max_batch=cfg.max_batch)]
 
     batcher: Batcher[Any, str] = Batcher(run, cfg.max_batch, cfg.max_wait_ms / 1000, cfg.max_queue)
+    budget = DecodeBudget(cfg.max_decode_bytes)
 
     @asynccontextmanager
     async def lifespan(_: Any):  # type: ignore[no-untyped-def]
@@ -144,6 +183,17 @@ def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
     async def too_large(_: Request, __: BodyTooLarge) -> JSONResponse:
         return error(413, f"upload is over the {cfg.max_upload_bytes:,} byte limit")
 
+    @app.exception_handler(BodyTimeout)
+    async def too_slow(_: Request, __: BodyTimeout) -> JSONResponse:
+        # the rest of the body may still come: close the connection rather than read it
+        return JSONResponse({"error": f"request body not received within {cfg.body_timeout_s:g} s (shorter than "
+                                      f"its Content-Length, or too slow)"}, status_code=408,
+                            headers={"connection": "close"})
+
+    @app.exception_handler(ClientDisconnect)
+    async def gone(_: Request, __: ClientDisconnect) -> Response:
+        return Response(status_code=400)  # nobody reads it; the Guard has logged the disconnect
+
     @app.exception_handler(Exception)
     async def internal(_: Request, exc: Exception) -> JSONResponse:
         log.error("internal error: %s: %s", type(exc).__name__, str(exc).splitlines()[0][:200] if str(exc) else "")
@@ -153,7 +203,8 @@ def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
     async def health() -> dict[str, Any]:
         s = batcher.stats
         return {"status": "ok", "queued": batcher.queued, "batches": s.batches, "diagnoses": s.items,
-                "largest_batch": s.largest, "failed": s.failed}
+                "largest_batch": s.largest, "failed": s.failed, "decode_bytes_held": budget.used,
+                "decode_bytes_peak": budget.peak, "decode_budget_bytes": budget.total}
 
     @app.get("/info")
     async def info() -> dict[str, Any]:
@@ -168,22 +219,42 @@ def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
         if not ctype.startswith("multipart/form-data"):
             return error(415, "expected a multipart/form-data upload (grid or frames.<view> files, task, prefix, "
                               "objects)")
-        form = await request.form(max_files=cfg.max_files, max_fields=16, max_part_size=64 * 1024)
         try:
-            items = [(k, Upload(v.filename or "", await v.read()) if isinstance(v, UploadFile) else v)
-                     for k, v in form.multi_items()]
-        finally:
-            await form.close()
-        try:
-            req = await run_in_threadpool(parse, items, analyzer.grid)  # image decoding off the event loop
+            req, held = await prepare(await read_form(request))
         except ImageTooLarge as e:
             return error(413, str(e))
         except ConfigError as e:
             return error(400, str(e))
+        except Busy as e:
+            return error(503, str(e))
         try:
             body = await batcher.submit(req)
         except Busy as e:
             return error(503, str(e))
+        finally:  # the decoded grid waited in the queue until now: its memory counted until the reply
+            await held.release()
         return Response(body, media_type="application/json")
 
-    return Guard(app, cfg.token, cfg.max_upload_bytes)
+    async def read_form(request: Request) -> list[tuple[str, str | Upload]]:
+        form = await request.form(max_files=cfg.max_files, max_fields=16, max_part_size=64 * 1024)
+        try:
+            return [(k, Upload(v.filename or "", await v.read()) if isinstance(v, UploadFile) else v)
+                    for k, v in form.multi_items()]
+        finally:
+            await form.close()
+
+    async def prepare(items: list[tuple[str, str | Upload]]) -> tuple[DiagnosisRequest, Reservation]:
+        """Fields checked and images priced from their headers, memory reserved, then decoded (off the event
+        loop); the reservation shrinks to what the request still holds. The raw uploads are dropped on return."""
+        p = await run_in_threadpool(plan, items, analyzer.grid, cfg.max_request_decode_bytes)
+        held = await budget.reserve(p.cost, cfg.decode_wait_s)
+        try:
+            req = await run_in_threadpool(build, p, analyzer.grid)
+        except BaseException:
+            await held.release()
+            raise
+        await held.shrink(p.kept)
+        log.debug("decoded %s (held now %s of %s)", mb(p.cost), mb(budget.used), mb(budget.total))
+        return req, held
+
+    return Guard(app, cfg.token, cfg.max_upload_bytes, cfg.body_timeout_s)

@@ -7,25 +7,42 @@ Fields (multipart/form-data):
     task            the task in words (optional)
     prefix          k: a partial trajectory, only its first k keyframes shown (optional); Q3 answers 1..k
     objects         comma-separated object/place names of the scene (Q6 template mode; optional)
-Every problem is a ConfigError naming the field (400), or ImageTooLarge for a decompression bomb (413).
+Every problem is a ConfigError naming the field (400), or ImageTooLarge (413) for an image over the pixel limit
+or a request whose images would take more than `max_bytes` decoded.
+
+Two steps, so the server can reserve memory in between: `plan` checks the fields and reads only the image headers
+(the decoded size is known before a pixel is decoded); `build` decodes and composes the grid. `parse` does both.
 """
 
 from __future__ import annotations
 
+import io
 import re
+import warnings
 from dataclasses import dataclass
 from typing import Sequence
+
+from PIL import Image, UnidentifiedImageError
 
 from labrobfail_vlm.analyzer import DiagnosisRequest, frames_to_grid
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import GridConfig
-from labrobfail_vlm.images import decode_image
+from labrobfail_vlm.images import ImageTooLarge, decode_image
+from labrobfail_vlm.serve.budget import mb
 
 FIELDS = "grid or frames.<view> files, task, prefix, objects"
 TEXT_FIELDS = ("task", "prefix", "objects")
 MAX_TEXT = 2000  # characters of a text field
 MAX_VIEWS = 8
+MAX_REQUEST_DECODE_BYTES = 256 << 20  # the default per-request limit (ServeConfig.max_request_decode_bytes)
+RGB_BYTES = 4  # PIL keeps an RGB image at 4 bytes per pixel (padded)
+# bytes per grid pixel a request holds once decoded, until its reply: the RGB grid in the queue (4), the model
+# thread's RGB copy of it (FailureAnalyzer._prepare, 4) and the image processor's float32 RGB arrays (12; measured:
+# ~10 per pixel for a 15 MP grid)
+KEPT_BYTES = 4 + 4 + 12
 _VIEW = re.compile(r"^frames\.([A-Za-z0-9_-]{1,32})$")
+_PREFIX = re.compile(r"[0-9]{1,6}")  # ASCII digits only: str.isdigit() also accepts "²", which int() refuses
+_CONTROL = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f]")  # control characters other than tab and newlines
 
 
 @dataclass(frozen=True)
@@ -36,7 +53,60 @@ class Upload:
     data: bytes
 
 
-def parse(items: Sequence[tuple[str, str | Upload]], grid: GridConfig) -> DiagnosisRequest:
+@dataclass
+class Plan:
+    """A checked form whose images are not decoded yet. `cost`: the most memory its images will take (bytes),
+    reserved before decoding; `kept`: what it still holds once decoded, until its reply (KEPT_BYTES a pixel)."""
+
+    text: dict[str, str]
+    image: Upload | None
+    views: dict[str, list[Upload]]
+    prefix: int | None
+    cost: int
+    kept: int
+
+
+@dataclass(frozen=True)
+class Header:
+    """What an image's header says: size, channels, bytes per sample, and the bytes decoding it to RGB takes."""
+
+    width: int
+    height: int
+    bands: int
+    sample: int
+
+    @property
+    def decode(self) -> int:
+        """PIL holds max(4, channels x bytes per sample) a pixel while decoding (any multi-band image takes 4; a
+        16-bit file is counted at its full depth, 8 for 16-bit RGBA, so the estimate is never below what the
+        decoder allocates), and the RGB copy 4 more."""
+        return self.width * self.height * (max(4, self.bands * self.sample) + RGB_BYTES)
+
+    def describe(self) -> str:
+        return f"{self.width}x{self.height} px with {self.bands} channel(s) of {8 * self.sample} bits"
+
+
+def read_header(u: Upload, fld: str) -> Header:
+    """The header of an uploaded image, without decoding a pixel; a bomb is ImageTooLarge, garbage a ConfigError."""
+    name = _name(u)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            with Image.open(io.BytesIO(u.data)) as im:  # lazy: reads the header, decodes nothing
+                (w, h), bands = im.size, len(im.getbands())
+                raw = " ".join(str(t[3]) for t in im.tile[:1]) + " " + im.mode
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning):
+        raise ImageTooLarge(f"{fld}: {name} is too large (decompression bomb guard)") from None
+    except UnidentifiedImageError:
+        raise ConfigError(f"{fld}: {name} is not an image file") from None
+    except Exception as e:  # noqa: BLE001 - PIL's plugins raise many types on hostile headers; all mean "corrupt"
+        raise ConfigError(f"{fld}: {name} is corrupt ({type(e).__name__})") from None
+    return Header(w, h, bands, 2 if ";16" in raw else 1)
+
+
+def plan(items: Sequence[tuple[str, str | Upload]], grid: GridConfig,
+         max_bytes: int = MAX_REQUEST_DECODE_BYTES) -> Plan:
+    """Check every field and price the images from their headers; ImageTooLarge if they exceed `max_bytes`."""
     text: dict[str, str] = {}
     image: Upload | None = None
     views: dict[str, list[Upload]] = {}
@@ -54,31 +124,74 @@ def parse(items: Sequence[tuple[str, str | Upload]], grid: GridConfig) -> Diagno
                     raise ConfigError(f"{name}: at most {MAX_VIEWS} camera views")
                 views.setdefault(view.group(1), []).append(value)
         elif name in TEXT_FIELDS:
-            if not isinstance(value, str):
-                raise ConfigError(f"{name}: expected a text value, got a file")
-            if name in text:
-                raise ConfigError(f"{name}: given more than once")
-            if len(value) > MAX_TEXT:
-                raise ConfigError(f"{name}: longer than {MAX_TEXT} characters")
-            text[name] = value.strip()
+            text[name] = _text(name, value, text)
         else:
             raise ConfigError(f"unknown field {name[:64]!r}; expected {FIELDS}")
     if image is None and not views:
         raise ConfigError(f"missing image: send a grid file or frames.<view> files ({FIELDS})")
     if image is not None and views:
         raise ConfigError("grid and frames.<view> given together: send one or the other")
-    objects = [o.strip() for o in text.get("objects", "").split(",") if o.strip()]
     if image is not None:
-        img = decode_image(image.data, _name(image), "grid")
-        k = _prefix(text.get("prefix"), grid.max_frames)
-        return DiagnosisRequest(img, text.get("task", ""), k, objects)
+        hd = read_header(image, "grid")
+        kept = hd.width * hd.height * KEPT_BYTES
+        cost = max(hd.decode, kept)
+        if cost > max_bytes:
+            raise ImageTooLarge(f"grid: {_name(image)} is too large to decode: {hd.describe()} takes ~{mb(cost)} "
+                                f"to decode and diagnose, over the {mb(max_bytes)} per-request limit")
+        return Plan(text, image, {}, _prefix(text.get("prefix"), grid.max_frames), cost, kept)
     counts = {v: len(f) for v, f in views.items()}
     if len(set(counts.values())) != 1:
         raise ConfigError(f"frames: views have unequal numbers of frames: {counts}")
-    frames = [[decode_image(u.data, _name(u), f"frames.{v}") for u in fs] for v, fs in views.items()]
-    shown = min(len(frames[0]), grid.max_frames)  # more keyframes than the grid holds are thinned evenly
+    shown = min(next(iter(counts.values())), grid.max_frames)  # more keyframes than the grid holds are thinned
     k = _prefix(text.get("prefix"), shown)
-    return DiagnosisRequest(frames_to_grid(frames, grid, visible=k), text.get("task", ""), k or shown, objects)
+    # every frame stays decoded until the grid (canvas + image) is composed; then the grid is held as any grid
+    px = grid.width * grid.height
+    kept, frames = px * KEPT_BYTES, 2 * px * RGB_BYTES
+    for v, fs in views.items():
+        for u in fs:
+            frames += read_header(u, f"frames.{v}").decode
+            if max(frames, kept) > max_bytes:
+                raise ImageTooLarge(f"frames: the keyframes and the grid composed from them are too large to decode: "
+                                    f"over the {mb(max_bytes)} per-request limit (send fewer or smaller frames)")
+    cost = max(frames, kept)
+    return Plan(text, None, views, k, cost, kept)
+
+
+def build(p: Plan, grid: GridConfig) -> DiagnosisRequest:
+    """Decode the planned images (fully, with images.py's checks) and compose the request."""
+    objects = [o.strip() for o in p.text.get("objects", "").split(",") if o.strip()]
+    task = p.text.get("task", "")
+    if p.image is not None:
+        return DiagnosisRequest(_decode(p.image, "grid"), task, p.prefix, objects)
+    frames = [[_decode(u, f"frames.{v}") for u in fs] for v, fs in p.views.items()]
+    shown = min(len(frames[0]), grid.max_frames)
+    return DiagnosisRequest(frames_to_grid(frames, grid, visible=p.prefix), task, p.prefix or shown, objects)
+
+
+def parse(items: Sequence[tuple[str, str | Upload]], grid: GridConfig,
+          max_bytes: int = MAX_REQUEST_DECODE_BYTES) -> DiagnosisRequest:
+    return build(plan(items, grid, max_bytes), grid)
+
+
+def _decode(u: Upload, fld: str):
+    try:
+        return decode_image(u.data, _name(u), fld)
+    except ConfigError:
+        raise
+    except Exception as e:  # noqa: BLE001 - a PIL plugin failing on hostile data is the upload's fault, not ours
+        raise ConfigError(f"{fld}: {_name(u)} is corrupt ({type(e).__name__})") from None
+
+
+def _text(name: str, value: str | Upload, seen: dict[str, str]) -> str:
+    if not isinstance(value, str):
+        raise ConfigError(f"{name}: expected a text value, got a file")
+    if name in seen:
+        raise ConfigError(f"{name}: given more than once")
+    if len(value) > MAX_TEXT:
+        raise ConfigError(f"{name}: longer than {MAX_TEXT} characters")
+    if _CONTROL.search(value):
+        raise ConfigError(f"{name}: contains control characters")
+    return value.strip()
 
 
 def _name(u: Upload) -> str:
@@ -88,6 +201,6 @@ def _name(u: Upload) -> str:
 def _prefix(value: str | None, hi: int) -> int | None:
     if value is None or value == "":
         return None
-    if not value.isdigit() or not 1 <= int(value) <= hi:
+    if not _PREFIX.fullmatch(value) or not 1 <= int(value) <= hi:
         raise ConfigError(f"prefix: expected an integer from 1 to {hi} (keyframes shown), got {value[:32]!r}")
     return int(value)
