@@ -62,10 +62,10 @@ def _grounding(cfg: Any, model: Any, grid: dict[str, Any]) -> tuple[dict[str, An
 def run(cfg: Any) -> dict[str, Any]:
     import torch
     from transformers import TrainingArguments, set_seed
-    from transformers.trainer_utils import get_last_checkpoint
 
     from labrobfail_vlm.model.hybrid import apply_tuning, count_trainable
     from labrobfail_vlm.model.loading import load_model, load_processor
+    from labrobfail_vlm.train.checkpoint import last_complete_checkpoint
     from labrobfail_vlm.train.curriculum import DetectFirst, PolarityWarmup, Rewording
     from labrobfail_vlm.train.data import Collator, VQADataset
     from labrobfail_vlm.train.packing import TrajectoryDataset
@@ -165,9 +165,12 @@ def run(cfg: Any) -> dict[str, Any]:
                             grounding=grounding, callbacks=callbacks)
     resume = None
     if cfg.resume is True:
-        resume = get_last_checkpoint(str(cfg.output_dir))
-        if resume is None:
-            raise ConfigError(f"resume: no checkpoint-N in {cfg.output_dir}")
+        last, partial = last_complete_checkpoint(cfg.output_dir)
+        for d in partial:  # a kill while saving: the run resumes from the checkpoint before it
+            print(f"resume: skipping {d} (incompletely written)", file=sys.stderr, flush=True)
+        if last is None:
+            raise ConfigError(f"resume: no complete checkpoint-N in {cfg.output_dir}")
+        resume = str(last)
     elif isinstance(cfg.resume, str):
         if not Path(cfg.resume).is_dir():
             raise ConfigError(f"resume: no such checkpoint {cfg.resume!r}")

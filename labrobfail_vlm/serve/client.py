@@ -6,7 +6,9 @@
     diagnosis = c.diagnose(frames={"front": [f0, f1, ...], "side": [...]}, task="...", prefix=3)
 
 One client holds one keep-alive connection: use one per thread. A reply other than 200 raises ServiceError
-with the server's one-line message.
+with the server's one-line message. `retries=N` sends a request again, up to N times `retry_wait_s` apart, when
+the server cannot be reached or drops the connection before replying (a server restarting after a crash); a
+diagnosis is a pure function of its request, so sending it twice is safe.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import http.client
 import io
 import json
 import os
+import time
 import uuid
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -65,12 +68,13 @@ def image_part(name: str, image: Any, filename: str = "image.png") -> Part:
 
 class DiagnosisClient:
     def __init__(self, url: str = "http://127.0.0.1:8100", token_env: str = "LABROBFAIL_API_TOKEN",
-                 timeout_s: float = 120.0):
+                 timeout_s: float = 120.0, retries: int = 0, retry_wait_s: float = 1.0):
         u = urlsplit(url)
         if u.scheme not in ("http", "https") or not u.hostname:
             raise ValueError(f"url: expected http(s)://host:port, got {url!r}")
         self.scheme, self.host, self.port = u.scheme, u.hostname, u.port or (443 if u.scheme == "https" else 80)
         self.timeout = timeout_s
+        self.retries, self.retry_wait_s = max(0, int(retries)), float(retry_wait_s)
         self._token = os.environ.get(token_env, "")
         self._conn: http.client.HTTPConnection | None = None
 
@@ -79,9 +83,10 @@ class DiagnosisClient:
 
     def request(self, method: str, path: str, body: bytes | None = None,
                 headers: Mapping[str, str] | None = None) -> tuple[int, Any]:
-        """(status, decoded JSON body); reconnects once if a kept-alive connection was closed by the server."""
+        """(status, decoded JSON body); reconnects once if a kept-alive connection was closed by the server, and
+        retries `retries` times when the server is unreachable or drops the connection."""
         hdrs = {**({"Authorization": f"Bearer {self._token}"} if self._token else {}), **(headers or {})}
-        for attempt in (0, 1):
+        for attempt in range(self.retries + 2):  # +1: a kept-alive connection the server closed costs one try
             if self._conn is None:
                 cls = http.client.HTTPSConnection if self.scheme == "https" else http.client.HTTPConnection
                 self._conn = cls(self.host, self.port, timeout=self.timeout)
@@ -90,10 +95,12 @@ class DiagnosisClient:
                 r = self._conn.getresponse()
                 data = r.read()
                 break
-            except (http.client.RemoteDisconnected, BrokenPipeError, ConnectionResetError):
+            except (http.client.RemoteDisconnected, http.client.IncompleteRead, ConnectionError) as e:
                 self.close()
-                if attempt:
+                if attempt >= self.retries + (0 if isinstance(e, ConnectionRefusedError) else 1):
                     raise
+                if attempt or isinstance(e, ConnectionRefusedError):
+                    time.sleep(self.retry_wait_s)
         try:
             return r.status, json.loads(data) if data else None
         except ValueError:

@@ -68,6 +68,29 @@ def trained_grid(path: str | Path) -> GridConfig | None:
     return GridConfig.from_dict(grid)
 
 
+def last_complete_checkpoint(output_dir: str | Path) -> tuple[Path | None, list[Path]]:
+    """The newest `checkpoint-N` of a run that was fully written, and the newer ones that were not.
+
+    transformers writes a checkpoint's trainer_state.json last, so a run killed while saving leaves a folder
+    without it (or with it cut short); `get_last_checkpoint` would pick that folder and the resume would fail
+    half-way through loading. A checkpoint counts as complete when its trainer_state.json parses and names step N.
+    """
+    found = []
+    for d in Path(output_dir).glob("checkpoint-*"):
+        if d.is_dir() and (m := re.fullmatch(r"checkpoint-(\d+)", d.name)):
+            found.append((int(m[1]), d))
+    skipped: list[Path] = []
+    for step, d in sorted(found, reverse=True):
+        try:
+            state = json.loads((d / "trainer_state.json").read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            state = None
+        if isinstance(state, dict) and state.get("global_step") == step:
+            return d, skipped
+        skipped.append(d)
+    return None, skipped
+
+
 def read_manifest(p: Path, field: str) -> dict[str, Any]:
     """labrobfail.json as a dict with a known `tuning` (and a `base_model` unless the weights are all here)."""
     f = p / MANIFEST

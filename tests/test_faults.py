@@ -1,0 +1,115 @@
+"""Faults of long runs: training killed mid-run (and mid-save) resumes to the same final step and its model
+evaluates; the diagnosis server killed under load comes back and every request is answered, with the clients'
+request files untouched."""
+
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+from conftest import ROOT, free_port
+from serve_fixtures import grids, mixed_model  # noqa: F401  (fixtures)
+from test_serve import Server
+from test_train import small_ds, tiny  # noqa: F401  (session fixtures)
+
+
+def _wait_for(path, proc, timeout_s=300):
+    t0 = time.monotonic()
+    while not path.is_file():
+        assert proc.poll() is None, "the run ended before it could be killed"
+        assert time.monotonic() - t0 < timeout_s, f"{path} never appeared"
+        time.sleep(0.05)
+
+
+def test_training_killed_mid_run_resumes_to_the_final_step_and_evaluates(tiny, small_ds, tmp_path):  # noqa: F811
+    out = tmp_path / "run"
+    common = [sys.executable, "train.py", "preset=tiny", f"model.path={tiny}", f"dataset_dir={small_ds}",
+              f"output_dir={out}", "global_batch=2", "per_device_batch=2", "grounding.pretrain_epochs=0",
+              "save_steps=2", "save_total_limit=null", "logging_steps=1", "max_steps=8", "wandb.enabled=false",
+              "progress=false"]
+    proc = subprocess.Popen(common, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        _wait_for(out / "checkpoint-2" / "trainer_state.json", proc)
+        time.sleep(0.2)
+        proc.send_signal(signal.SIGKILL)  # no chance to clean up
+    finally:
+        proc.wait(timeout=60)
+    assert proc.returncode == -signal.SIGKILL and not (out / "final").exists()
+    done = sorted(int(d.name.split("-")[1]) for d in out.glob("checkpoint-*"))
+    # what a kill while saving leaves: a newer checkpoint folder whose trainer_state.json (written last) is cut short
+    partial = out / f"checkpoint-{done[-1] + 2}"
+    shutil.copytree(out / f"checkpoint-{done[-1]}", partial)
+    (partial / "trainer_state.json").write_text('{"global_step": ')
+    r = subprocess.run([*common, "resume=true"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert f"skipping {partial}" in r.stderr
+    assert json.loads((out / "train_summary.json").read_text())["global_step"] == 8
+    steps = [row["step"] for row in json.loads((out / "progress.json").read_text())]
+    assert steps == sorted(set(steps)) and steps[-1] == 8  # the learning curve has no duplicated or lost rows
+    r = subprocess.run([sys.executable, "scripts/evaluate.py", f"model={out / 'final'}", f"dataset_dir={small_ds}",
+                        "split=test", "baselines=[]", "q6_template=false", f"out_dir={tmp_path / 'eval'}",
+                        "progress=false"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert json.loads((tmp_path / "eval" / "results.json").read_text())["detection"]["trajectories"] > 0
+    # nothing to resume from is one line
+    r = subprocess.run([*common[:-3], f"output_dir={tmp_path / 'empty'}", "resume=true", "progress=false"], cwd=ROOT,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and "no complete checkpoint" in r.stderr.strip().splitlines()[-1], r.stderr
+
+
+def _sha(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.mark.parametrize("n", [8])
+def test_server_killed_under_load_restarts_and_every_request_is_answered(mixed_model, grids, tmp_path, n):  # noqa: F811
+    from labrobfail_vlm.serve.client import DiagnosisClient
+
+    files = []
+    for i in range(n):
+        f = tmp_path / f"req{i}.png"
+        grids[i % len(grids)].save(f)
+        files.append(f)
+    before = {f: _sha(f) for f in files}
+    port = free_port()
+    args = ["--port", str(port), "--max-batch", "2", "--max-wait-ms", "50"]
+    first = Server(mixed_model, tmp_path / "first.log", *args, token=None)
+    url = first.url
+    got: list = [None] * n
+    errors: list = []
+
+    def ask(i):
+        try:
+            got[i] = DiagnosisClient(url, retries=300, retry_wait_s=0.2).diagnose(grid=files[i], task=f"task {i}")
+        except Exception as e:  # noqa: BLE001 - reported by the assert below
+            errors.append(f"{i}: {type(e).__name__}: {e}")
+
+    threads = [threading.Thread(target=ask, args=(i,)) for i in range(n)]
+    for t in threads:
+        t.start()
+    time.sleep(0.3)
+    first.proc.send_signal(signal.SIGKILL)  # under load: requests queued, decoding, replying
+    first.proc.wait(timeout=30)
+    second = Server(mixed_model, tmp_path / "second.log", *args, token=None)
+    try:
+        for t in threads:
+            t.join(timeout=300)
+        assert not errors and all(g is not None for g in got), errors
+        assert DiagnosisClient(url).health()["batches"] >= 1  # the kill did cut requests off: the restart answered
+    finally:
+        assert second.stop() == 0
+    from labrobfail_vlm.analyzer import FailureAnalyzer
+    fa = FailureAnalyzer.from_pretrained(mixed_model)
+    for i, g in enumerate(got):
+        want = json.loads(fa.analyze(grids[i % len(grids)], f"task {i}").to_json())
+        assert g.pop("p_failure") == pytest.approx(want.pop("p_failure"), abs=1e-4)
+        assert g == want
+    assert {f: _sha(f) for f in files} == before  # the request files are the clients' and stay as they were
+    assert not [p for p in os.listdir(ROOT) if p.endswith(".tmp")]  # and the server left nothing half-written
