@@ -44,6 +44,23 @@ def _check_dataset(cfg: Any) -> dict[str, Any]:
     return grid
 
 
+def _augment(cfg: Any, grid: dict[str, Any]) -> Any:
+    """Twin-consistent grid augmentation for training (labrobfail_vlm/augment.py), or None when off."""
+    a = cfg.augment
+    if not a.enabled:
+        return None
+    from labrobfail_vlm.augment import AugmentConfig
+    from labrobfail_vlm.grid import GridConfig
+    from labrobfail_vlm.train.data import GridAugment
+
+    trajs = json.loads((Path(cfg.dataset_dir) / "trajectories.json").read_text())
+    views = {t.get("views") for t in trajs}
+    if len(views) != 1 or None in views:
+        raise ConfigError("augment.enabled: the dataset's trajectories.json lacks one common 'views' count; rebuild it")
+    return GridAugment(AugmentConfig(float(a.colour), float(a.shift_px), float(a.scale)), GridConfig.from_dict(grid),
+                       int(views.pop()), int(cfg.seed))
+
+
 def _grounding(cfg: Any, model: Any, grid: dict[str, Any]) -> tuple[dict[str, Any] | None, dict | None]:
     """The grounding head and its per-frame targets (labrobfail_vlm/train/grounding.py), or (None, None)."""
     g = cfg.grounding
@@ -63,7 +80,7 @@ def run(cfg: Any) -> dict[str, Any]:
     import torch
     from transformers import TrainingArguments, set_seed
 
-    from labrobfail_vlm.model.hybrid import apply_tuning, count_trainable
+    from labrobfail_vlm.model.hybrid import apply_tuning, count_trainable, freeze_zero_lr
     from labrobfail_vlm.model.loading import load_model, load_processor
     from labrobfail_vlm.train.checkpoint import last_complete_checkpoint
     from labrobfail_vlm.train.curriculum import DetectFirst, PolarityWarmup, Rewording
@@ -98,12 +115,20 @@ def run(cfg: Any) -> dict[str, Any]:
         raise ConfigError("curriculum.detect_first: needs loss.mode=record (it sets per-record loss weights)")
     if cfg.model.path is None:
         raise ConfigError("model.path: give a local Qwen3-VL directory (or use preset=tiny)")
+    from labrobfail_vlm.model.tower import read_card, resolve
+    tower_dir = resolve(cfg.tower)
+    if tower_dir is not None and cfg.preset != "tiny":
+        raise ConfigError(f"tower: {cfg.tower} replaces the random tower of preset=tiny; a real checkpoint keeps its "
+                          "own (set tower=scratch)")
+    if tower_dir is not None and not Path(cfg.model.path).is_dir():
+        read_card(tower_dir)  # before anything is built (a model.path that exists already has its tower)
     if cfg.preset == "tiny" and not Path(cfg.model.path).is_dir():
         from labrobfail_vlm.model.tiny import build_tiny, dataset_texts
         # The vocabulary comes from this dataset's training text (task descriptions, object names).
         build_tiny(cfg.model.path, seed=int(cfg.seed), texts=dataset_texts(cfg.dataset_dir),
                    vision=OmegaConf.to_container(cfg.tiny_arch.vision),  # type: ignore[arg-type]
-                   text=OmegaConf.to_container(cfg.tiny_arch.text))  # type: ignore[arg-type]
+                   text=OmegaConf.to_container(cfg.tiny_arch.text),  # type: ignore[arg-type]
+                   tower=tower_dir)
     dtype = {"bfloat16": torch.bfloat16, "float32": torch.float32}.get(cfg.model.dtype)
     if dtype is None:
         raise ConfigError(f"model.dtype: expected bfloat16 or float32, got {cfg.model.dtype!r}")
@@ -143,6 +168,7 @@ def run(cfg: Any) -> dict[str, Any]:
     model = load_model(cfg.model.path, dtype)
     model.config.use_cache = False
     model = apply_tuning(model, str(cfg.tuning), dict(cfg.lora))
+    freeze_zero_lr(model, dict(cfg.lr))
     counts = count_trainable(model)
     if args.process_index == 0:
         print(json.dumps({"trainable_parameters": counts, "tuning": cfg.tuning, "preset": cfg.preset}), flush=True)
@@ -159,7 +185,7 @@ def run(cfg: Any) -> dict[str, Any]:
     trainer = HybridTrainer(model=model, args=args, train_dataset=train,
                             data_collator=Collator(processor, int(cfg.max_length), dict(cfg.loss.question_weights)
                                                    if cfg.loss.mode == "record" else None, rewording,
-                                                   targets, train.group_of),
+                                                   targets, train.group_of, _augment(cfg, grid)),
                             processing_class=processor, group_lrs=dict(cfg.lr), base_model=str(cfg.model.path),
                             tuning=str(cfg.tuning), loss_mode=str(cfg.loss.mode), grid=grid, pair_batches=pairs,
                             grounding=grounding, callbacks=callbacks)

@@ -79,6 +79,18 @@ def q6_keep(ctx: Context | None, text: str) -> list[str]:
     return [w for w in ((ctx.target, ctx.destination, ctx.source) if ctx else ()) if w in text]
 
 
+def row_images(row: dict[str, Any], views: Sequence[str] | None) -> list[list[bytes]]:
+    """The row's images `[view][keyframe]` of the named camera views, in that order (None: every view)."""
+    if views is None:
+        return row["images"]
+    names = list(row.get("camera_names") or [])
+    missing = [v for v in views if v not in names]
+    if missing:
+        raise ConfigError(f"views: episode {row['episode_id']} has views {names}, not {missing} (generate with "
+                          "backend_kwargs.wrist=true for a wrist view)")
+    return [row["images"][names.index(v)] for v in views]
+
+
 def decode_views(images: list[list[bytes]], picks: list[int]) -> list[list[Image.Image]]:
     if any(not view[i] for view in images for i in picks):  # b"": the generator's render_frames left it out
         raise ConfigError("grid.max_frames: the shards hold no images of keyframes this grid shows; build with the "
@@ -98,7 +110,7 @@ def grid_failure_frame(row: dict[str, Any], picks: list[int]) -> int | None:
 
 def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator, prefix_cuts: int = 0,
              prefix_rng: np.random.Generator | None = None, aux: int = 0, cut_frame: int | None = None, *,
-             prefix_questions: Sequence[str]) -> Annotated:
+             prefix_questions: Sequence[str], views: Sequence[str] | None = None) -> Annotated:
     """`prefix_cuts` > 0 adds that many prefix grids, each with a record per `prefix_questions`
     (`prefix_records`); `aux` > 0 that many per-frame fact records (data/facts.py). Both draw from `prefix_rng`,
     so the six main records are the same with or without them. `cut_frame`: the failure frame the prefix cuts are
@@ -107,7 +119,7 @@ def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator
     meta = json.loads(row["task_meta"])
     trace = json.loads(row["state_trace"])
     picks = grid_picks(row, grid_cfg.max_frames)
-    views = decode_views(row["images"], picks)
+    views = decode_views(row_images(row, views), picks)
     grid = build_grid(views, grid_cfg)
     traj = f"{row['variant']}-{row['episode_id']}"
     image = f"images/{traj}.png"

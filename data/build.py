@@ -36,7 +36,8 @@ from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
 from labrobfail_vlm.taxonomy import SCENE_VARIANTS, SEEN_SPLITS, UNSEEN_SPLITS
 
 READ_COLUMNS = ["episode_id", "pair_id", "variant", "scenario", "success", "failure_type", "category", "severity",
-                "failure_keyframe", "evidence", "actions", "horizon", "images", "state_trace", "task_meta", "keyframes"]
+                "failure_keyframe", "evidence", "actions", "horizon", "images", "state_trace", "task_meta", "keyframes",
+                "camera_names"]
 
 
 def _shard_files(cfg: DictConfig) -> list[Path]:
@@ -122,6 +123,9 @@ def build(cfg: DictConfig) -> dict[str, Any]:
             or len(set(questions)) != len(questions):
         raise ConfigError(f"prefix.questions: Q2, Q3, then any of Q5, Q6 (Q4's severity is a rule on the final "
                           f"state, which a prefix does not show), got {questions}")
+    views = None if cfg.views is None else [str(v) for v in cfg.views]
+    if views is not None and (not views or len(set(views)) != len(views)):
+        raise ConfigError(f"views: expected distinct camera names, e.g. [front, side], got {views}")
     marks = _review_marks(cfg.review)
     para = Paraphraser(cfg.paraphrase.base_url, cfg.paraphrase.model, cfg.paraphrase.api_key_env,
                        cfg.paraphrase.timeout_s) if cfg.paraphrase.enabled else None
@@ -150,7 +154,7 @@ def build(cfg: DictConfig) -> dict[str, Any]:
         group = f"{row['variant']}-{row['pair_id']}"
         traj_key = zlib.crc32((group if pair_cuts else f"{row['variant']}-{row['episode_id']}").encode())
         ann = annotate(row, gcfg, rng, int(cfg.prefix.cuts), np.random.default_rng([int(cfg.seed), traj_key]),
-                       int(cfg.aux.per_trajectory), cut_frames.get(group), prefix_questions=questions)
+                       int(cfg.aux.per_trajectory), cut_frames.get(group), prefix_questions=questions, views=views)
         if marks.get(ann.trajectory) == "reject":
             drops["review_rejected"] += 1
             continue
@@ -202,6 +206,7 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     stats["prefix"] = {"cuts": int(cfg.prefix.cuts), "pair_cuts": bool(cfg.prefix.pair_cuts),
                        "questions": questions,
                        "grids": sum(len(a.prefixes) for a in kept)}
+    stats["views"] = views  # the camera views in each grid, in order (null: every view of the shards)
     stats["aux"] = {"per_trajectory": int(cfg.aux.per_trajectory),
                     "records": sum(len(a.aux) for a in kept if a.meta["split"] == "train")}
     atomic_write_json(out / "stats.json", stats)

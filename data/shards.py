@@ -27,6 +27,7 @@ SCHEMA = pa.schema([
     ("horizon", pa.string()), ("num_keyframes", pa.int32()), ("camera_names", pa.list_(pa.string())),
     ("images", pa.list_(pa.list_(pa.binary()))), ("state_trace", pa.string()), ("task_meta", pa.string()),
     ("keyframes", pa.string()), ("nominal_keyframes", pa.string()), ("perturbation", pa.string()),
+    ("cameras", pa.string()),  # JSON [view][keyframe]: view + projection matrix, or null (Episode.cameras)
 ])
 LABEL_COLUMNS = ["episode_id", "pair_id", "role", "scenario", "task", "success", "failure_type", "category",
                  "severity", "actions", "horizon", "evidence", "perturbation"]
@@ -46,6 +47,7 @@ def episode_row(ep: Episode) -> dict[str, Any]:
         "keyframes": json.dumps([k.to_dict() for k in ep.executed_keyframes]),
         "nominal_keyframes": json.dumps([k.to_dict() for k in ep.nominal_keyframes]),
         "perturbation": json.dumps(ep.perturbation),
+        "cameras": json.dumps(ep.cameras, separators=(",", ":")),
     }
 
 

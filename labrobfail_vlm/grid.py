@@ -114,6 +114,11 @@ def _label(text: str, size: int) -> np.ndarray:
     return np.asarray(img)
 
 
+def index_tag(t: int, cell_height: int) -> np.ndarray:
+    """The temporal index tag drawn at the top-left of time step t's cells (0-based t, shown as t + 1)."""
+    return _label(str(t + 1), max(10, cell_height // 7))
+
+
 def _fit_into(cell: np.ndarray, img: Image.Image | np.ndarray) -> None:
     """Resize keeping the aspect ratio, centred in `cell` (a view into the canvas, already blank).
 
@@ -148,14 +153,13 @@ def build_grid(frames: Sequence[Sequence[Image.Image | np.ndarray]], cfg: GridCo
     cw, ch = cfg.width // cols, cfg.height // rows
     canvas = np.full((cfg.height, cfg.width, 3), BLANK[0], np.uint8)
     shown = m if visible is None else max(0, min(int(visible), m))
-    size = max(10, ch // 7)
     for k in range(views):
         for t in range(shown):
             r, c = cfg.cell(t, k, views)
             y, x = r * ch, c * cw
             _fit_into(canvas[y:y + ch, x:x + cw], frames[k][t])
             if cfg.draw_index:
-                tag = _label(str(t + 1), size)
+                tag = index_tag(t, ch)
                 th, tw = min(tag.shape[0], ch), min(tag.shape[1], cw)
                 canvas[y:y + th, x:x + tw] = tag[:th, :tw]
     return Image.fromarray(canvas)

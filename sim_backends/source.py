@@ -61,6 +61,7 @@ class _Run:
     events: list[PhysicsEvent]
     executed: list[Keyframe] = field(default_factory=list)
     images: list[list[bytes]] = field(default_factory=list)  # [view][keyframe] PNG bytes (b"": not rendered)
+    cameras: list[list[list[float] | None]] = field(default_factory=list)  # [view][keyframe]: see camera_matrices
     last: list[np.ndarray] | None = None  # images rendered at the end of the last step
     render: set[int] | None = None  # keyframe indices to render at the end of their step (None: every one)
 
@@ -122,6 +123,12 @@ class FailureSource(ABC):
     def object_positions(self) -> dict[str, tuple[float, float, float]]:
         """Named object/zone positions, for semantic target substitution."""
 
+    def camera_matrices(self) -> list[list[float]] | None:
+        """Per view, the view and projection matrices of its image now (OpenGL column-major, 16 + 16 floats), so
+        a world point can be placed in the picture (the tower's position targets); None when the backend cannot
+        say. Recorded beside every rendered image (`Episode.cameras`)."""
+        return None
+
     @property
     @abstractmethod
     def camera_names(self) -> list[str]:
@@ -176,7 +183,8 @@ class FailureSource(ABC):
         if not self._fresh:
             raise RuntimeError("begin() needs a fresh reset(): every episode starts from the seeded initial state")
         self._fresh = False
-        self._run = _Run(list(physics_events), images=[[] for _ in self.camera_names], render=render)
+        self._run = _Run(list(physics_events), images=[[] for _ in self.camera_names],
+                         cameras=[[] for _ in self.camera_names], render=render)
         self._begin()
 
     def step(self, kf: Keyframe) -> None:
@@ -190,12 +198,15 @@ class FailureSource(ABC):
         run.executed.append(kf)
         if run.render is not None and i not in run.render:
             run.last = None  # observe() renders on demand
-            for v in run.images:
+            for v, c in zip(run.images, run.cameras):
                 v.append(b"")
+                c.append(None)
             return
         run.last = self.render() if self.camera_names else []
+        mats = self.camera_matrices() if run.last else None
         for v, img in enumerate(run.last):
             run.images[v].append(png_bytes(img))
+            run.cameras[v].append(mats[v] if mats else None)
 
     def observe(self) -> Observation:
         """Images and state now; right after a step, its keyframe images (rendered once)."""
@@ -218,7 +229,8 @@ class FailureSource(ABC):
             episode_id="", backend=self.name, task=self.scenario_info(scenario)["template"], scenario=scenario,
             variant=variant, seed=seed, pair_id="", role="", actions=meta.actions, horizon=horizon_of(len(nominal)),
             nominal_keyframes=nominal, executed_keyframes=list(run.executed), camera_names=list(self.camera_names),
-            images=run.images, state_trace=trace, labels=derive_labels(trace, meta), task_meta=meta)
+            images=run.images, state_trace=trace, labels=derive_labels(trace, meta), task_meta=meta,
+            cameras=run.cameras)
 
     def execute(self, keyframes: Sequence[Keyframe], physics_events: Sequence[PhysicsEvent] = ()) -> Episode:
         """Run keyframes from the state set by the last `reset`, render and label (open loop)."""

@@ -127,3 +127,6 @@ class Episode:
     labels: Labels
     task_meta: TaskMeta  # what the labeler needs besides the trace (JSON in a shard: TaskMeta.to_json())
     perturbation: dict[str, Any] = field(default_factory=dict)  # provenance only
+    # [view][keyframe]: view + projection matrix (16 + 16 floats) of each rendered image, None where the image was
+    # not rendered or the backend cannot say (FailureSource.camera_matrices)
+    cameras: list[list[list[float] | None]] = field(default_factory=list)

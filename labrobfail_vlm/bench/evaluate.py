@@ -22,7 +22,7 @@ from typing import Any, Callable
 from PIL import Image
 
 from labrobfail_vlm import questions as Q
-from labrobfail_vlm.bench.metrics import accuracy, bleu, rouge_l, within_one
+from labrobfail_vlm.bench.metrics import accuracy, bleu, bootstrap_mean, rouge_l_values, wilson, within_one
 from labrobfail_vlm.bench.parse import parse
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.taxonomy import SEEN_SPLITS, UNSEEN_SPLITS
@@ -189,8 +189,8 @@ def score(recs: list[dict], preds: dict[str, str], traj: dict[str, dict],
     fails = failed_records(recs, traj)
     fo = _score(fails, failure_preds if failure_preds is not None else preds, traj) if fails else None
     res["failure_only"] = {"trajectories": len({Q.traj_of(r["id"]) for r in fails}), "records": len(fails),
-                           **({k: fo[k] for k in ("q3", "q3_within1", "q4", "q5", "q6", "unparseable")} if fo else
-                              dict.fromkeys(("q3", "q3_within1", "q4", "q5", "q6")))}
+                           **({k: fo[k] for k in ("q3", "q3_within1", "q4", "q5", "q6", "unparseable", "ci95")}
+                              if fo else dict.fromkeys(("q3", "q3_within1", "q4", "q5", "q6")))}
     res["detection"] = detection(recs, preds, traj)
     res["scope"] = {"q1-q6": "all trajectories", "failure_only": "Q3-Q6 over failed trajectories (as the paper)"}
     return res
@@ -228,9 +228,15 @@ def _score(recs: list[dict], preds: dict[str, str], traj: dict[str, dict],
     res: dict[str, Any] = {d.lower(): round(100 * accuracy(pairs[d]), 2) if pairs[d] else None
                            for d in ("Q1", "Q2", "Q3", "Q4", "Q5")}
     res["q3_within1"] = round(100 * within_one(pairs["Q3"]), 2) if pairs["Q3"] else None
+    rl = rouge_l_values(q6_ref, q6_hyp)
     res["q6"] = ({**{k: round(v, 4) for k, v in bleu(q6_ref, q6_hyp).items()},
-                  "rougeL": round(rouge_l(q6_ref, q6_hyp), 4)} if q6_ref else
+                  "rougeL": round(sum(rl) / len(rl), 4)} if q6_ref else
                  dict.fromkeys(("bleu1", "bleu2", "bleu3", "bleu4", "rougeL")))
+    # 95 % intervals: Wilson for the accuracies (in %), a seeded bootstrap for ROUGE-L's mean
+    res["ci95"] = {d.lower(): [round(100 * x, 2) for x in ci] for d in ("Q1", "Q2", "Q3", "Q4", "Q5")
+                   if (ci := wilson(sum(p == r for p, r in pairs[d]), len(pairs[d])))}
+    if (ci := bootstrap_mean(rl)) is not None:
+        res["ci95"]["rougeL"] = [round(x, 4) for x in ci]
     res["records"] = len(recs)
     res["unparseable"] = dict(unparseable)
     res["breakdown"] = {g: {d: round(100 * sum(v) / len(v), 2) for d, v in dims.items()}

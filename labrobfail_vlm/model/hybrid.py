@@ -53,6 +53,14 @@ def apply_tuning(model: torch.nn.Module, mode: str, lora: dict[str, Any]) -> tor
     return peft_model
 
 
+def freeze_zero_lr(model: torch.nn.Module, lrs: dict[str, float]) -> None:
+    """A group whose learning rate is 0 is frozen outright (no gradients computed): `lr.vision=0 lr.merger=0`
+    keeps a pretrained tower as it is while the rest trains."""
+    for name, p in model.named_parameters():
+        if p.requires_grad and float(lrs.get(group_of(name), 1.0)) == 0.0:
+            p.requires_grad_(False)
+
+
 def param_groups(model: torch.nn.Module, lrs: dict[str, float], weight_decay: float = 0.0) -> list[dict[str, Any]]:
     groups: dict[str, list[torch.nn.Parameter]] = {g: [] for g in GROUPS}
     for name, p in model.named_parameters():

@@ -17,6 +17,8 @@ from typing import Any, Iterable
 
 from tokenizers import Tokenizer, decoders, models, pre_tokenizers, trainers
 
+from labrobfail_vlm.config import ConfigError
+
 SPECIAL = ["<|endoftext|>", "<|im_start|>", "<|im_end|>", "<|vision_start|>", "<|vision_end|>", "<|image_pad|>",
            "<|video_pad|>"]
 
@@ -81,19 +83,28 @@ def train_tokenizer(texts: Iterable[str] = (), vocab_size: int = 1024):
 
 
 def build_tiny(out_dir: str | Path, seed: int = 0, texts: Iterable[str] = (), vision: dict[str, Any] | None = None,
-               text: dict[str, Any] | None = None) -> Path:
+               text: dict[str, Any] | None = None, tower: Path | None = None) -> Path:
     """Write a tiny random Qwen3-VL checkpoint (weights as safetensors, tokenizer, processor, template).
 
-    `texts`: extra tokenizer corpus (a dataset's records); `vision`/`text`: overrides of TINY_VISION/TINY_TEXT.
+    `texts`: extra tokenizer corpus (a dataset's records); `vision`/`text`: overrides of TINY_VISION/TINY_TEXT;
+    `tower`: a folder with a pretrained vision tower (labrobfail_vlm/model/tower.py), whose config replaces
+    `vision` and whose weights replace the random tower's.
     """
     import torch
     from transformers import GenerationConfig, Qwen3VLConfig, Qwen3VLForConditionalGeneration
 
     from labrobfail_vlm.model.processor import LabRobFailProcessor, image_processor
 
+    from labrobfail_vlm.model import tower as T
+
     out = Path(out_dir)
+    card = T.read_card(tower) if tower is not None else None
     tok = train_tokenizer(texts)
-    vis, txt = {**TINY_VISION, **(vision or {})}, {**TINY_TEXT, **(text or {})}
+    vis = {**TINY_VISION, **(T.vision_overrides(card) if card else (vision or {}))}
+    txt = {**TINY_TEXT, **(text or {})}
+    if card and int(card["out_hidden_size"]) != int(txt["hidden_size"]):
+        raise ConfigError(f"tower: {tower} feeds {card['out_hidden_size']}-wide tokens, the decoder is "
+                          f"{txt['hidden_size']} wide (tiny_arch.text.hidden_size)")
     ids = {t: tok.convert_tokens_to_ids(t) for t in SPECIAL}
     cfg = Qwen3VLConfig(
         text_config={**txt, "vocab_size": len(tok), "pad_token_id": ids["<|endoftext|>"]},
@@ -102,6 +113,8 @@ def build_tiny(out_dir: str | Path, seed: int = 0, texts: Iterable[str] = (), vi
         vision_start_token_id=ids["<|vision_start|>"], vision_end_token_id=ids["<|vision_end|>"])
     torch.manual_seed(seed)
     model = Qwen3VLForConditionalGeneration(cfg)
+    if tower is not None:
+        T.load_into(model, tower)
     # A config-built model has no eos in its generation config: without it generate never stops.
     model.generation_config = GenerationConfig(eos_token_id=ids["<|im_end|>"], pad_token_id=ids["<|endoftext|>"],
                                                do_sample=False)

@@ -24,6 +24,26 @@ from labrobfail_vlm.model.processor import common_prefix_len
 IGNORE = -100
 
 
+class GridAugment:
+    """Augments keyframe grids of one layout (labrobfail_vlm/augment.py); `draw()` is one seeded draw."""
+
+    def __init__(self, cfg: Any, grid: Any, views: int, seed: int = 0):
+        import numpy as np
+
+        self.cfg, self.grid, self.views = cfg, grid, int(views)
+        self.rng = np.random.default_rng([int(seed), 0xA06])
+
+    def draw(self) -> Any:
+        from labrobfail_vlm.augment import Augment
+
+        return Augment.draw(self.cfg, self.views, self.rng)
+
+    def __call__(self, img: Image.Image, aug: Any) -> Image.Image:
+        from labrobfail_vlm.augment import augment_grid
+
+        return augment_grid(img, self.grid, self.views, aug)
+
+
 def messages(question: str, answer: str | None = None) -> list[dict[str, Any]]:
     """Chat messages for one record; the record's leading "<image>\\n" becomes the image slot."""
     text = question.removeprefix("<image>\n")
@@ -71,8 +91,10 @@ class Collator:
 
     def __init__(self, processor: Any, max_length: int = 2048, question_weights: dict[str, float] | None = None,
                  rewording: Callable[[list[dict[str, Any]]], list[dict[str, Any]]] | None = None,
-                 frame_targets: dict[str, list[float]] | None = None, group_of: dict[str, str] | None = None):
+                 frame_targets: dict[str, list[float]] | None = None, group_of: dict[str, str] | None = None,
+                 augment: "GridAugment | None" = None):
         self.processor = processor
+        self.augment = augment  # twin-consistent image augmentation (training only)
         # grounding (labrobfail_vlm/train/grounding.py): per-frame targets and twin ids, one row per image
         self.frame_targets, self.group_of = frame_targets, group_of or {}
         self.rewording = rewording  # labrobfail_vlm.train.curriculum.Rewording
@@ -106,6 +128,16 @@ class Collator:
         batch["frame_target"] = torch.tensor([self.frame_targets[t] for t in trajs])
         batch["pair_group"] = torch.tensor([groups[self.group_of.get(t, t)] for t in trajs])
 
+    def images(self, recs: list[dict[str, Any]]) -> list[Image.Image]:
+        """Each record's grid, augmented when `augment` is set: one draw per success/failure pair in the batch,
+        so both twins change alike and still differ by the failure alone."""
+        imgs = [Image.open(r["image"]).convert("RGB") for r in recs]
+        if self.augment is None:
+            return imgs
+        draws: dict[str, Any] = {}
+        groups = [self.group_of.get(Q.traj_of(r["id"]), Q.traj_of(r["id"])) for r in recs]
+        return [self.augment(img, draws.setdefault(g, self.augment.draw())) for img, g in zip(imgs, groups)]
+
     def _ids(self, texts: list[str], grid_thw: torch.Tensor) -> list[list[int]]:
         """Token ids of texts holding one image placeholder, as the processor would make them: the
         placeholder is a special token, so it is tokenized alone and repeated once per visual token after
@@ -130,12 +162,13 @@ class Collator:
         rows, pixels, thws, weights = [], [], [], []
         image_id = proc.tokenizer.convert_tokens_to_ids(self.image_token)
         at = 0
-        for recs in items:
+        grids = self.images([recs[0] for recs in items])
+        for recs, grid in zip(items, grids):
             recs, at = flat[at:at + len(recs)], at + len(recs)
             fulls = [proc.apply_chat_template(messages(b["question"], b["answer"]), tokenize=False) for b in recs]
             prompts = [proc.apply_chat_template(messages(b["question"]), tokenize=False, add_generation_prompt=True)
                        for b in recs]
-            enc = proc(text=fulls[:1], images=[Image.open(recs[0]["image"]).convert("RGB")], return_tensors="pt")
+            enc = proc(text=fulls[:1], images=[grid], return_tensors="pt")
             thw = enc["image_grid_thw"][0]
             ids = self._ids(fulls + prompts, thw)
             f_ids, p_ids = ids[:len(fulls)], ids[len(fulls):]
@@ -176,7 +209,7 @@ class Collator:
         proc, tok = self.processor, self.processor.tokenizer
         if self.rewording is not None:
             batch = self.rewording(batch)
-        images = [Image.open(b["image"]).convert("RGB") for b in batch]
+        images = self.images(batch)
         fulls = [proc.apply_chat_template(messages(b["question"], b["answer"]), tokenize=False) for b in batch]
         prompts = [proc.apply_chat_template(messages(b["question"]), tokenize=False, add_generation_prompt=True)
                    for b in batch]

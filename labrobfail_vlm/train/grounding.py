@@ -30,6 +30,7 @@ VQA epoch); the VQA training then starts from a tower whose tokens already show 
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -76,6 +77,20 @@ def cell_index(grid: GridConfig, views: int, h_tok: int, w_tok: int) -> torch.Te
     return out
 
 
+@lru_cache(maxsize=64)
+def cell_gather(grid: GridConfig, views: int, h_tok: int, w_tok: int) -> torch.Tensor:
+    """(cells, tokens per cell) indices of the merged tokens of a grid image, cell = t * views + view, each cell's
+    tokens in raster order; every cell must cover the same number of tokens (cells of multiples of 32 px)."""
+    idx = cell_index(grid, views, h_tok, w_tok)
+    cells = grid.max_frames * views
+    counts = torch.bincount(idx[idx >= 0], minlength=cells)
+    if counts.min() != counts.max() or counts.min() == 0:
+        raise ConfigError(f"grounding: grid cells cover unequal numbers of visual tokens ({counts.tolist()}); "
+                          "use a grid whose cells are multiples of 32 px")
+    order = torch.argsort(idx * (h_tok * w_tok) + torch.arange(h_tok * w_tok))  # by cell, then raster
+    return order[int((idx < 0).sum()):].view(cells, int(counts[0]))
+
+
 HEADS = ("token", "cell")
 
 
@@ -86,20 +101,10 @@ class _CellHead(nn.Module):
         super().__init__()
         self.grid, self.views = grid, int(views)
         self.cells = grid.max_frames * self.views
-        self._index: dict[tuple[int, int], torch.Tensor] = {}
 
     def gather(self, h_tok: int, w_tok: int) -> torch.Tensor:
         """(cells, tokens per cell) token indices; every cell of a grid covers the same number of tokens."""
-        key = (h_tok, w_tok)
-        if key not in self._index:
-            idx = cell_index(self.grid, self.views, h_tok, w_tok)
-            counts = torch.bincount(idx[idx >= 0], minlength=self.cells)
-            if counts.min() != counts.max() or counts.min() == 0:
-                raise ConfigError(f"grounding: grid cells cover unequal numbers of visual tokens ({counts.tolist()}); "
-                                  "use a grid whose cells are multiples of 32 px")
-            order = torch.argsort(idx * (h_tok * w_tok) + torch.arange(h_tok * w_tok))  # by cell, then raster
-            self._index[key] = order[int((idx < 0).sum()):].view(self.cells, int(counts[0]))
-        return self._index[key]
+        return cell_gather(self.grid, self.views, h_tok, w_tok)
 
     def cell_tokens(self, tokens: torch.Tensor, h_tok: int, w_tok: int) -> torch.Tensor:
         """(cells, tokens per cell, dim) in float: each cell's tokens of one grid, cell = t * views + k."""

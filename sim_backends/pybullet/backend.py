@@ -168,6 +168,10 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         assert self.scene is not None
         return self.renderer.render(self.scene.robot.id) if self.renderer is not None else []
 
+    def camera_matrices(self) -> list[list[float]] | None:
+        assert self.scene is not None
+        return self.renderer.matrices(self.scene.robot.id) if self.renderer is not None else None
+
     @property
     def camera_names(self) -> list[str]:
         return list(self.renderer.views) if self.renderer is not None else []

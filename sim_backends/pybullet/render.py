@@ -56,6 +56,12 @@ class Renderer:
         eye = pos - 0.10 * m[:, 2] + 0.04 * m[:, 0]
         return p.computeViewMatrix(eye, pos + 0.2 * m[:, 2], -m[:, 0])
 
+    def matrices(self, robot_id: int) -> list[list[float]]:
+        """Per view, its view matrix then its projection matrix (OpenGL column-major, 16 + 16 floats): where a
+        world point lands in that view's image now (the wrist camera moves with the hand)."""
+        return [[float(x) for x in (self._wrist_view(robot_id) if v == "wrist" else self.view_mats[v])]
+                + [float(x) for x in self.projs.get(v, self.proj)] for v in self.views]
+
     def render(self, robot_id: int) -> list[np.ndarray]:
         out = []
         for v in self.views:

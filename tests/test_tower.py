@@ -1,0 +1,131 @@
+"""The sim-pretrained vision tower: targets from simulator state, a real tiny pretraining run that resumes and
+exports, the tower loaded into the tiny Qwen3-VL (and the scratch path), the shipped tower's card, bad input."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import ROOT, gen
+
+# 4 keyframes x 2 views of 64 px in square 64 px cells (2 x 2 merged tokens each)
+TOWER_GRID = ["grid.width=128", "grid.height=256", "grid.max_frames=4", "grid.columns=2"]
+TINY_TOWER = ["vision.depth=1", "vision.hidden_size=32", "vision.intermediate_size=64", "vision.num_heads=2"]
+
+
+@pytest.fixture(scope="module")
+def tower_shards(tmp_path_factory):
+    out = tmp_path_factory.mktemp("tower") / "shards"
+    gen(out, "num_episodes=6", "seed=5", "image_size=64", "render_frames=4", "backend_kwargs.wrist=true")
+    return out
+
+
+@pytest.fixture(scope="module")
+def tower_data(tower_shards, tmp_path_factory):
+    out = tmp_path_factory.mktemp("tower") / "data"
+    r = subprocess.run([sys.executable, "scripts/build_tower_data.py", f"data.shards={tower_shards}",
+                        f"data.out_dir={out}", "data.max_frames=4", "data.image_size=64", "data.ratios=[0.6,0.4]",
+                        "data.progress=false"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    return out
+
+
+def _pretrain(data, out, *extra):
+    return subprocess.run([sys.executable, "scripts/pretrain_tower.py", f"data.out_dir={data}", f"out_dir={out}",
+                           *TOWER_GRID, *TINY_TOWER, "batch_size=2", "progress=false", *extra], cwd=ROOT,
+                          capture_output=True, text=True, timeout=600)
+
+
+def test_targets_come_from_simulator_state(tower_shards):
+    import pyarrow.parquet as pq
+
+    from data.annotate import grid_failure_frame, grid_picks
+    from data.frame_targets import CELL_TARGETS, row_targets
+
+    rows = [r for f in sorted(tower_shards.glob("shard-*.parquet")) for r in pq.read_table(f).to_pylist()]
+    assert {r["success"] for r in rows} == {True, False}
+    for r in rows:
+        picks = grid_picks(r, 4)
+        frame = grid_failure_frame(r, picks)
+        cells, points = row_targets(r, picks, range(3), frame, 64)
+        fb = cells[:, 0, CELL_TARGETS.index("failed_by_now")]
+        goals = cells[-1, 0, CELL_TARGETS.index("goals_hold")]
+        if r["success"]:
+            assert goals == 1 and not fb.any()  # every goal holds at the end of a success, and it never failed
+        else:
+            assert goals == 0 and fb[frame - 1:].all() and not fb[:frame - 1].any()
+        assert (cells[:, 0] == cells[:, 1]).all()  # the state is one per frame, whatever the view
+        assert cells[0, 0, CELL_TARGETS.index("arm_moved")] == -1  # nothing to compare the first frame with
+        # the gripper is somewhere in front of every camera: a finite projection in every view
+        assert np.isfinite(points[:, :, 0, 0]).all()
+
+
+def test_pretraining_resumes_exports_and_the_tiny_model_takes_the_tower(tower_data, tmp_path):
+    run = tmp_path / "run"
+    r = _pretrain(tower_data, run, "epochs=1", "layouts=[[front,side],[front,wrist]]")
+    assert r.returncode == 0, r.stderr[-3000:]
+    r = _pretrain(tower_data, run, "epochs=2", "layouts=[[front,side],[front,wrist]]", f"export_dir={tmp_path / 'x'}")
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "resuming after epoch 1" in r.stderr
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert [m["epoch"] for m in metrics] == [1, 2] and all(m["loss_cell"] > 0 for m in metrics)
+    card = json.loads((tmp_path / "x" / "tower.json").read_text())
+    assert card["vision_config"]["depth"] == 1 and set(card["heldout"]) == {"front+side", "front+wrist"}
+    seen = card["heldout"]["front+side"]["seen"]
+    assert "failed_by_now" in seen["cells"] and "gripper" in seen["tokens"]
+    assert (tmp_path / "x" / "TOWER_CARD.md").read_text().startswith("# The LabRobFail vision tower")
+
+    import torch
+    from safetensors.torch import load_file
+
+    from labrobfail_vlm.model.loading import load_model
+    from labrobfail_vlm.model.tiny import build_tiny
+    from labrobfail_vlm.model.tower import read_card
+
+    read_card(tmp_path / "x")  # the sha256 on the card is the file's
+    m = load_model(build_tiny(tmp_path / "tiny", tower=tmp_path / "x"))
+    want = load_file(str(tmp_path / "x" / "tower.safetensors"))
+    got = m.model.visual.state_dict()
+    assert want.keys() == got.keys() and all(torch.equal(want[k], got[k]) for k in want)
+    scratch = load_model(build_tiny(tmp_path / "scratch")).model.visual.state_dict()
+    assert not torch.equal(scratch["blocks.0.attn.qkv.weight"][:4, :4], want["blocks.0.attn.qkv.weight"][:4, :4])
+    # a damaged tower is refused in one line, before any model is built
+    (tmp_path / "x" / "tower.safetensors").write_bytes(b"\0" * 64)
+    with pytest.raises(Exception, match="does not match the sha256"):
+        read_card(tmp_path / "x")
+
+
+def test_train_takes_a_tower_or_scratch(tower_shards, tower_data, tmp_path):
+    run = tmp_path / "run"
+    r = _pretrain(tower_data, run, "epochs=1", "layouts=[[front,side]]")
+    assert r.returncode == 0, r.stderr[-3000:]
+    ds = tmp_path / "ds"
+    r = subprocess.run([sys.executable, "scripts/build_dataset.py", f"shards={tower_shards}",
+                        f"out_dir={ds}", "views=[front,side]", "grid.width=128", "grid.height=256",
+                        "grid.max_frames=4", "grid.columns=2", "progress=false"], cwd=ROOT, capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads((ds / "stats.json").read_text())["views"] == ["front", "side"]
+    common = [sys.executable, "train.py", "preset=tiny", f"dataset_dir={ds}", "max_steps=1", "global_batch=2",
+              "per_device_batch=2", "grounding.pretrain_epochs=0", "wandb.enabled=false", "progress=false",
+              "augment.enabled=true"]
+    for tower in (str(run), "scratch"):
+        out = tmp_path / f"t-{tower == 'scratch'}"
+        r = subprocess.run([*common, f"output_dir={out}", f"tower={tower}"], cwd=ROOT, capture_output=True,
+                           text=True, timeout=600)
+        assert r.returncode == 0, r.stderr[-3000:]
+        cfg = json.loads((out / "tiny_base" / "config.json").read_text())["vision_config"]
+        assert (cfg["depth"], cfg["hidden_size"]) == ((1, 32) if tower != "scratch" else (2, 64))
+    r = subprocess.run([*common, f"output_dir={tmp_path / 'bad'}", f"tower={tmp_path / 'none'}"], cwd=ROOT,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].startswith("error: tower:"), r.stderr
+
+
+def test_bad_tower_settings_are_one_line(tower_data, tmp_path):
+    for args, key in ((["epochs=0"], "epochs"), (["lr=-1"], "lr"), (["layouts=[[front,side],[front]]"], "layouts"),
+                      ([f"data.out_dir={tmp_path}"], "data"), (["grid.width=100"], "grid")):
+        r = _pretrain(tower_data, tmp_path / "r", *args)
+        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-2000:]
+        assert r.stderr.strip().splitlines()[-1].startswith(f"error: {key}"), r.stderr
