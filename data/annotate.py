@@ -141,7 +141,8 @@ def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator
         ans = Q.q2_answer(v, success) if dim == "Q2" else answers[dim]
         records.append({
             "id": Q.record_id(traj, dim), "image": image, "images": [image],  # "images": LLaMA-Factory's column
-            "conversations": [{"from": "human", "value": Q.question_text(dim, v, task_name, grid_cfg.time_axis)},
+            "conversations": [{"from": "human", "value": Q.question_text(dim, v, task_name, grid_cfg.time_axis,
+                                                                        grid_cfg.draw_index)},
                               {"from": "gpt", "value": ans}],
         })
     info = {
@@ -165,7 +166,8 @@ def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator
         ann.prefixes = prefix_records(ann, views, grid_cfg, prefix_cuts, prefix_rng or rng,
                                       frame if cut_frame is None else cut_frame, prefix_questions, context_at)
     if aux > 0:
-        ann.aux = aux_records(traj, image, Q.preamble(task_name, grid_cfg.time_axis), frame_facts(trace, meta, picks),
+        ann.aux = aux_records(traj, image, Q.preamble(task_name, grid_cfg.time_axis, grid_cfg.draw_index),
+                              frame_facts(trace, meta, picks),
                               aux, prefix_rng or rng)
     return ann
 
@@ -208,7 +210,8 @@ def prefix_records(ann: Annotated, views: list[list[Image.Image]], grid_cfg: Gri
             v = int(rng.integers(len(Q.VARIANTS[dim])))
             ans = Q.q2_answer(v, not failed) if dim == "Q2" else answers[dim]
             records.append({"id": Q.record_id(traj, dim), "image": image, "images": [image], "conversations": [
-                {"from": "human", "value": Q.question_text(dim, v, info["task"], grid_cfg.time_axis)},
+                {"from": "human", "value": Q.question_text(dim, v, info["task"], grid_cfg.time_axis,
+                                                           grid_cfg.draw_index)},
                 {"from": "gpt", "value": ans}]})
         meta = {**info, "trajectory": traj, "prefix_of": ann.trajectory, "visible": k, "success": not failed,
                 "frame": info["frame"] if failed else None, "failure_type": info["failure_type"] if failed else None,

@@ -21,7 +21,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from sim_backends.goals import FALLEN_TILT, GOALS, OFF_BENCH, UPRIGHT_TILT, tilt
-from sim_backends.labeler import OPEN_WIDTH, SPILL_PARTICLES, spilled
+from sim_backends.labeler import OPEN_WIDTH, POSE_ERR, SPILL_PARTICLES, spilled
+from sim_backends.types import rotation_angle
 
 CELL_TARGETS: tuple[str, ...] = (
     "held",            # a task object is in contact with the fingers and off its resting height
@@ -34,6 +35,7 @@ CELL_TARGETS: tuple[str, ...] = (
     "liquid_in_dest",  # the poured liquid has reached its vessel; -1: no liquid goal
     "spilled",         # liquid has landed outside every vessel; -1: no liquid
     "gripper_closed",  # the fingers are closed (opening under 6 cm)
+    "hand_twisted",    # the hand is turned more than 0.3 rad away from the plan's orientation for this keyframe
     "arm_moved",       # the hand moved more than 2 cm since the previous grid frame; -1 on the first
     "object_moved",    # a task object moved more than 2 cm since the previous grid frame; -1 on the first
     "goals_hold",      # every goal of the task holds at this frame
@@ -53,7 +55,8 @@ def movables(trace: dict[str, Any], meta: dict[str, Any]) -> list[str]:
     return [o for o, info in meta["objects"].items() if info["kind"] in ("vessel", "rod") and f"{o}.pos" in trace]
 
 
-def _cell_values(trace: dict[str, Any], meta: dict[str, Any], j: int, prev: int | None, failed: bool) -> list[float]:
+def _cell_values(trace: dict[str, Any], meta: dict[str, Any], j: int, prev: int | None, failed: bool,
+                 plan_quat: Sequence[float] | None) -> list[float]:
     objs = movables(trace, meta)
     vessels = [o for o in objs if meta["objects"][o]["kind"] == "vessel"]
     pos = {o: np.asarray(trace[f"{o}.pos"][j], float) for o in objs}
@@ -82,6 +85,7 @@ def _cell_values(trace: dict[str, Any], meta: dict[str, Any], j: int, prev: int 
         goal_kinds("liquid"),
         float(spilled(trace, j) >= SPILL_PARTICLES) if liquid else -1.0,
         float(trace["width"][j] < min(CLOSED_WIDTH, OPEN_WIDTH)),
+        -1.0 if plan_quat is None else float(rotation_angle(trace["ee_quat"][j], plan_quat) > POSE_ERR),
         -1.0 if prev is None else moved(trace["ee_pos"][j], trace["ee_pos"][prev]),
         -1.0 if prev is None or not objs else float(any(moved(trace[f"{o}.pos"][j], trace[f"{o}.pos"][prev])
                                                         for o in objs)),
@@ -121,10 +125,12 @@ def row_targets(row: dict[str, Any], picks: Sequence[int], views: Sequence[int],
     cells = np.zeros((len(picks), len(views), len(CELL_TARGETS)), np.float32)
     points = np.full((len(picks), len(views), len(TOKEN_TARGETS), MAX_POINTS, 2), np.nan, np.float32)
     prev = None
+    plan = {k["name"]: k["quat"] for k in meta["nominal"]}
     for f, kf in enumerate(picks):
         j = trace["kf_end"][kf]
         failed = failure_frame is not None and f + 1 >= failure_frame
-        cells[f, :, :] = _cell_values(trace, meta, j, prev, failed)
+        name = meta["executed"][kf] if kf < len(meta["executed"]) else None
+        cells[f, :, :] = _cell_values(trace, meta, j, prev, failed, plan.get(name))
         groups = [[trace["ee_pos"][j]], [trace[f"{o}.pos"][j] for o in objs],
                   [[*meta["places"][p][:2], meta["bench_top"]] for p in places]]
         for v_out, v in enumerate(views):

@@ -1,7 +1,8 @@
 """Tower pretraining data: simulator shards -> per-trajectory frames and dense per-frame targets.
 
-One output file per source shard (`frames-<variant>-<shard>.parquet`, written atomically; a rerun skips the files
-already written, so a killed build resumes), then `index.json`: the files, the target names, and each pair's split.
+One output file per source shard (`frames-<variant>-<shard>-<signature>.parquet`, written atomically; a rerun skips
+the files already written, so a killed build resumes; the signature names the target definitions and grid, so a
+changed definition rebuilds instead of mixing), then `index.json`: the files, the target names, and each pair's split.
 A row is one trajectory: the PNG bytes of the keyframes a grid of `max_frames` shows, in every rendered view
 (`images[view][frame]`), and its targets from data/frame_targets.py (cells (F, V, K) and points (F, V, C, P, 2) as
 float32 bytes). Seen pairs are split train/val by `ratios` (data/splits.py, grouped by pair, so no held-out frame
@@ -11,6 +12,7 @@ has a training twin); unseen variants are evaluation sets only: the tower never 
 from __future__ import annotations
 
 import json
+import zlib
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -61,9 +63,10 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     max_frames, size = int(cfg.max_frames), int(cfg.image_size)
     if max_frames < 1 or size < 32:
         raise ConfigError(f"max_frames/image_size: expected >= 1 and >= 32, got {max_frames}, {size}")
+    sig = f"{zlib.crc32(json.dumps([CELL_TARGETS, TOKEN_TARGETS, MAX_POINTS, max_frames, size]).encode()):08x}"
     written: list[str] = []
     for f in tqdm(files, desc="tower data", disable=not cfg.progress):
-        name = f"frames-{f.parent.name}-{f.stem}.parquet"
+        name = f"frames-{f.parent.name}-{f.stem}-{sig}.parquet"
         target = out / name
         if not target.is_file():
             recs = [_record(r, max_frames, size) for r in _rows([f], READ)]

@@ -154,7 +154,7 @@ class FailureAnalyzer:
         self.processor.tokenizer.padding_side = "left"
         self.decoder = Decoder(self.model, processor)
         self.grid = grid  # the layout the model was trained on: --frames grids and the Q3 range follow it
-        self.num_frames, self.time_axis = grid.max_frames, grid.time_axis
+        self.num_frames, self.time_axis, self.index = grid.max_frames, grid.time_axis, grid.draw_index
         self._ids_checked = False
 
     @classmethod
@@ -180,7 +180,7 @@ class FailureAnalyzer:
     def _prompt(self, dim: str, task: str) -> str:
         from labrobfail_vlm.train.data import messages
 
-        q = Q.question_text(dim, 0, task, self.time_axis)
+        q = Q.question_text(dim, 0, task, self.time_axis, self.index)
         return self.processor.apply_chat_template(messages(q), tokenize=False, add_generation_prompt=True)
 
     def _decode(self, pre: Any, plans: Sequence[str | Ask | None]) -> list[str | None]:

@@ -49,7 +49,7 @@ class EndpointAnalyzer(FailureAnalyzer):
         if q6_mode not in Q6_MODES:
             raise ValueError(f"q6_mode: expected one of {', '.join(Q6_MODES)}, got {q6_mode!r}")
         self.q6_mode, self.grid = q6_mode, grid
-        self.num_frames, self.time_axis = grid.max_frames, grid.time_axis
+        self.num_frames, self.time_axis, self.index = grid.max_frames, grid.time_axis, grid.draw_index
         self.concurrency, self.max_tokens = max(1, int(concurrency)), int(max_tokens)
         self.client = ChatClient(base_url, model or "", api_key_env, timeout_s)
         if not model:
@@ -94,7 +94,8 @@ class EndpointAnalyzer(FailureAnalyzer):
                 continue
             p = plan_reply(dim, failed, frames, objects, self.q6_mode)
             if isinstance(p, Ask):
-                reply = self._ask(url, Q.question_text(dim, 0, task, self.time_axis).removeprefix("<image>\n"), p)
+                text = Q.question_text(dim, 0, task, self.time_axis, self.index)
+                reply = self._ask(url, text.removeprefix("<image>\n"), p)
                 p = _canonical(dim, reply, p)
             out[dim] = p
             if dim == "Q2":

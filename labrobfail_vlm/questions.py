@@ -41,6 +41,11 @@ PREAMBLE_TIME_ROWS = ("The image consists of a series of sequential frames. Each
                       "viewpoint, and each row corresponds to a later time step, with the time-step label shown in "
                       "the top-left corner. These frames depict the robotic arm's motion during Task: {task_name}.")
 
+# Without drawn time-step labels (the paper's "w/o temporal index" ablation, GridConfig.draw_index=False) the prompt
+# must not point at labels that are not there: the preamble drops its label clause, and Q3 asks for the time step
+# counted from the first one instead of "the frame number in the upper left corner".
+LABEL_CLAUSE = ", with the time-step label shown in the top-left corner"
+
 
 @dataclass(frozen=True)
 class Variant:
@@ -92,21 +97,31 @@ VARIANTS: dict[str, tuple[Variant, ...]] = {
     ),
 }
 
+Q3_NO_INDEX: tuple[Variant, ...] = (
+    Variant("At which frame does the failure occur? (Count the time steps from 1)"),
+    Variant("Counting the time steps from 1, when exactly does the error happen?"),
+    Variant("Identify the timestep where the failure first manifests. (Count the time steps from 1)"),
+    Variant("At what point in the sequence does the anomaly appear? (Specify the time step, counted from 1)"),
+    Variant("Which frame marks the onset of the failure?"),
+)
+
 OPTIONS: dict[str, str] = {
     "Q4": "Options:\n" + "\n".join(f"({s.value}) {s.title}" for s in Severity),
     "Q5": "Options:\n" + "\n".join(f"({c.value}) {c.title}" for c in Category),
 }
 
 
-def preamble(task_name: str, time_axis: str = "columns") -> str:
-    return (PREAMBLE if time_axis == "columns" else PREAMBLE_TIME_ROWS).format(task_name=task_name)
+def preamble(task_name: str, time_axis: str = "columns", index: bool = True) -> str:
+    """`index`: the grid draws time-step labels (False: the preamble does not mention them)."""
+    text = PREAMBLE if time_axis == "columns" else PREAMBLE_TIME_ROWS
+    return (text if index else text.replace(LABEL_CLAUSE, "")).format(task_name=task_name)
 
 
-def question_text(dim: str, variant: int, task_name: str, time_axis: str = "columns") -> str:
+def question_text(dim: str, variant: int, task_name: str, time_axis: str = "columns", index: bool = True) -> str:
     """The human turn: image token, preamble, question and (Q4/Q5) the option list."""
-    q = VARIANTS[dim][variant].text
+    q = (VARIANTS[dim] if index or dim != "Q3" else Q3_NO_INDEX)[variant].text
     opts = OPTIONS.get(dim)
-    return f"<image>\n{preamble(task_name, time_axis)} {q}" + (f"\n{opts}" if opts else "")
+    return f"<image>\n{preamble(task_name, time_axis, index)} {q}" + (f"\n{opts}" if opts else "")
 
 
 def record_id(trajectory: str, dim: str) -> str:

@@ -165,6 +165,7 @@ def main(argv: list[str]) -> int:
     if resumed:
         print(f"resuming after epoch {state['epoch']} (step {state['step']})", file=sys.stderr)
     pos_weight = float(grid.width // grid.columns // T.TOKEN_PX) ** 2 / 2
+    cell_pos_weight = T.positive_weights(train) if cfg.balance_cells else None
     for epoch in range(int(state["epoch"]), int(cfg.epochs)):
         w0, c0 = T.clock()
         rng = np.random.default_rng([int(cfg.seed), epoch])
@@ -178,7 +179,7 @@ def main(argv: list[str]) -> int:
             batch = T.collate([train.sample(int(i), layouts[lay[i]], grid, Augment.draw(aug_cfg, len(layouts[0]), rng))
                                for i in idx], ip)
             zc, zt = T.readout(tower, heads, batch, grid, len(layouts[0]))
-            loss, p = T.tower_loss(zc, zt, batch, float(cfg.token_weight), pos_weight)
+            loss, p = T.tower_loss(zc, zt, batch, float(cfg.token_weight), pos_weight, cell_pos_weight)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(params, 1.0)
             for g in opt.param_groups:
@@ -221,7 +222,7 @@ def main(argv: list[str]) -> int:
                              f"from {', '.join(index['shards'])}; held out: "
                              + ", ".join(f"{k} {len(d)}" for k, d in evals.items()) + " trajectories."),
             "training": {k: cfg[k] for k in ("epochs", "batch_size", "lr", "warmup_ratio", "weight_decay",
-                                             "token_weight", "seed")} | {"augment": dict(cfg.augment),
+                                             "token_weight", "balance_cells", "seed")} | {"augment": dict(cfg.augment),
                                                                          "wall_s": state["wall_s"],
                                                                          "cpu_s": state["cpu_s"]},
             "heldout": heldout,

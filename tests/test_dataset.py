@@ -332,3 +332,16 @@ def test_prefix_records_follow_the_failure_frame(run6, ds, tmp_path):
         cuts = prefix_cut_points(8, 5, 2, rng)
         assert len(cuts) == 2 and cuts[0] < 5 <= cuts[1]
     assert prefix_cut_points(1, None, 2, rng) == []
+
+
+def test_without_drawn_labels_no_prompt_mentions_them(run6, tmp_path):
+    """The paper's "w/o temporal index" ablation: no label on the grid, and no question pointing at one."""
+    recs = {}
+    for name, extra in (("noidx", ["grid.draw_index=false"]), ("idx", [])):
+        r = build(run6, tmp_path / name, *extra)
+        assert r.returncode == 0, r.stderr
+        recs[name] = [x["conversations"][0]["value"] for s in ("train", "val", "test") for x in load(tmp_path / name, s)]
+    assert json.loads((tmp_path / "noidx" / "stats.json").read_text())["grid"]["draw_index"] is False
+    for q in recs["noidx"]:
+        assert not any(w in q.lower() for w in ("label", "upper left", "top-left", "indices", "displayed")), q
+    assert recs["idx"] and all("top-left corner" in q for q in recs["idx"])

@@ -176,13 +176,22 @@ def readout(tower: nn.Module, heads: TowerHeads, batch: dict[str, torch.Tensor],
     return torch.stack(cells), torch.stack(toks)
 
 
+def positive_weights(data: "TowerData", cap: float = 10.0) -> torch.Tensor:
+    """Per cell target, negatives / positives over the training cells where it applies (1 to `cap`): a rare
+    event (a vessel tipped, liquid spilled) then weighs as much as its absence instead of being never predicted."""
+    y = np.concatenate([r["cells"].reshape(-1, len(data.cell_names)) for r in data.rows])
+    pos, neg = (y > 0.5).sum(0), ((y >= 0) & (y < 0.5)).sum(0)
+    return torch.tensor(np.clip(neg / np.maximum(pos, 1), 1.0, cap), dtype=torch.float32)
+
+
 def tower_loss(zc: torch.Tensor, zt: torch.Tensor, batch: dict[str, torch.Tensor], token_weight: float,
-               pos_weight: float) -> tuple[torch.Tensor, dict[str, float]]:
-    """Masked BCE over the cell targets (every target weighs alike) plus `token_weight` x masked BCE over the
-    token targets (positives weighted `pos_weight`: a point fills one token of a cell's 16)."""
+               pos_weight: float, cell_pos_weight: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    """Masked BCE over the cell targets (positives of target k weighted `cell_pos_weight[k]`) plus `token_weight`
+    x masked BCE over the token targets (positives weighted `pos_weight`: a point fills one token of a cell's 16)."""
     yc, yt = batch["cells"], batch["tokens"]
     mc, mt = yc >= 0, yt >= 0
-    lc = F.binary_cross_entropy_with_logits(zc[mc], yc[mc]) if mc.any() else zc.sum() * 0
+    w = None if cell_pos_weight is None else cell_pos_weight.expand_as(yc)[mc]
+    lc = F.binary_cross_entropy_with_logits(zc[mc], yc[mc], pos_weight=w) if mc.any() else zc.sum() * 0
     pw = torch.tensor(float(pos_weight))
     lt = F.binary_cross_entropy_with_logits(zt[mt], yt[mt], pos_weight=pw) if mt.any() else zt.sum() * 0
     return lc + token_weight * lt, {"cell": float(lc.detach()), "token": float(lt.detach())}
