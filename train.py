@@ -120,8 +120,10 @@ def run(cfg: Any) -> dict[str, Any]:
     if tower_dir is not None and cfg.preset != "tiny":
         raise ConfigError(f"tower: {cfg.tower} replaces the random tower of preset=tiny; a real checkpoint keeps its "
                           "own (set tower=scratch)")
+    tower_info: dict[str, Any] = {}
     if tower_dir is not None and not Path(cfg.model.path).is_dir():
-        read_card(tower_dir)  # before anything is built (a model.path that exists already has its tower)
+        card = read_card(tower_dir)  # before anything is built (a model.path that exists already has its tower)
+        tower_info = {"path": str(cfg.tower), "sha256": card["sha256"], "parameters": card.get("parameters")}
     if cfg.preset == "tiny" and not Path(cfg.model.path).is_dir():
         from labrobfail_vlm.model.tiny import build_tiny, dataset_texts
         # The vocabulary comes from this dataset's training text (task descriptions, object names).
@@ -221,15 +223,26 @@ def run(cfg: Any) -> dict[str, Any]:
     losses = [h["loss"] for h in trainer.state.log_history if "loss" in h]
     summary = {"global_step": trainer.state.global_step, "train_loss": result.training_loss,
                "first_loss": losses[0] if losses else None, "last_loss": losses[-1] if losses else None,
-               "trainable_parameters": counts, **({"grounding_pretrain": pre} if pre else {})}
+               "trainable_parameters": counts, **({"grounding_pretrain": pre} if pre else {}),
+               **({"tower": tower_info} if tower_info else {})}
     if args.process_index == 0:
         atomic_write_json(Path(cfg.output_dir) / "train_summary.json", summary)
         print(json.dumps(summary), flush=True)
     return summary
 
 
+def resolve_config(argv: list[str]) -> Any:
+    """train.yaml + preset + (preset tiny) the recipe of its kind of tower + the command line, which wins."""
+    args = [a for a in argv if not a.startswith("--local_rank")]
+    cfg = load_config("train.yaml", args)
+    if cfg.preset == "tiny":
+        kind = "scratch" if str(cfg.tower) == "scratch" else "pretrained"
+        cfg = OmegaConf.merge(cfg, cfg.tiny_towers[kind], OmegaConf.from_dotlist(args))
+    return cfg
+
+
 def main(argv: list[str]) -> int:
-    run(load_config("train.yaml", [a for a in argv if not a.startswith("--local_rank")]))
+    run(resolve_config(argv))
     import torch.distributed as dist
     if dist.is_available() and dist.is_initialized():
         # A rank that exits with its gloo process group alive can abort at interpreter shutdown ("terminate

@@ -30,7 +30,7 @@ def _wait_for(path, proc, timeout_s=300):
 
 def test_training_killed_mid_run_resumes_to_the_final_step_and_evaluates(tiny, small_ds, tmp_path):  # noqa: F811
     out = tmp_path / "run"
-    common = [sys.executable, "train.py", "preset=tiny", f"model.path={tiny}", f"dataset_dir={small_ds}",
+    common = [sys.executable, "train.py", "preset=tiny", "tower=scratch", f"model.path={tiny}", f"dataset_dir={small_ds}",
               f"output_dir={out}", "global_batch=2", "per_device_batch=2", "grounding.pretrain_epochs=0",
               "save_steps=2", "save_total_limit=null", "logging_steps=1", "max_steps=8", "wandb.enabled=false",
               "progress=false"]

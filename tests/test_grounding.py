@@ -70,7 +70,7 @@ def test_head_reads_each_time_step_from_its_own_cells(kind):
 
 def test_training_with_grounding_logs_saves_and_resumes(tiny, small_ds, tmp_path):  # noqa: F811
     out = tmp_path / "g"
-    common = [sys.executable, "train.py", "preset=tiny", f"model.path={tiny}", f"dataset_dir={small_ds}",
+    common = [sys.executable, "train.py", "preset=tiny", "tower=scratch", f"model.path={tiny}", f"dataset_dir={small_ds}",
               f"output_dir={out}", "global_batch=2", "per_device_batch=2", "grounding.weight=1.0", "save_steps=2", "logging_steps=1",
               "wandb.enabled=false", "progress=false"]
     r = subprocess.run([*common, "max_steps=2", "grounding.pretrain_epochs=1"], cwd=ROOT, capture_output=True,
@@ -108,7 +108,7 @@ def test_a_run_from_a_checkpoint_repeats_exactly(tiny, small_ds, tmp_path):  # n
     initialised after train.py seeds, not from torch's start-up seed."""
     got = []
     for name in ("a", "b"):
-        r = subprocess.run([sys.executable, "train.py", "preset=tiny", f"model.path={tiny}", f"dataset_dir={small_ds}",
+        r = subprocess.run([sys.executable, "train.py", "preset=tiny", "tower=scratch", f"model.path={tiny}", f"dataset_dir={small_ds}",
                             f"output_dir={tmp_path / name}", "global_batch=2", "per_device_batch=2", "max_steps=2",
                             "grounding.weight=1.0", "grounding.pretrain_epochs=0", "wandb.enabled=false",
                             "progress=false"], cwd=ROOT, capture_output=True, text=True, timeout=600)
@@ -124,7 +124,7 @@ def test_a_run_from_a_checkpoint_repeats_exactly(tiny, small_ds, tmp_path):  # n
     ("grounding.weight=0", "grounding.pretrain_epochs"),  # the tiny preset's stage A needs the head
     ("deepspeed=configs/ds_zero3.json", "grounding.weight")])
 def test_bad_grounding_config_is_one_line(tiny, small_ds, tmp_path, bad, field):  # noqa: F811
-    r = subprocess.run([sys.executable, "train.py", "preset=tiny", f"model.path={tiny}", f"dataset_dir={small_ds}",
+    r = subprocess.run([sys.executable, "train.py", "preset=tiny", "tower=scratch", f"model.path={tiny}", f"dataset_dir={small_ds}",
                         f"output_dir={tmp_path}/o", bad, "wandb.enabled=false"], cwd=ROOT, capture_output=True,
                        text=True, timeout=300)
     assert r.returncode == 2 and "Traceback" not in r.stderr
@@ -133,7 +133,7 @@ def test_bad_grounding_config_is_one_line(tiny, small_ds, tmp_path, bad, field):
 
 def test_resuming_a_run_made_without_grounding_is_one_line(tiny, small_ds, tmp_path):  # noqa: F811
     """The tiny preset grounds by default; a checkpoint from a run without the head cannot continue with one."""
-    common = [sys.executable, "train.py", "preset=tiny", f"model.path={tiny}", f"dataset_dir={small_ds}",
+    common = [sys.executable, "train.py", "preset=tiny", "tower=scratch", f"model.path={tiny}", f"dataset_dir={small_ds}",
               f"output_dir={tmp_path}/o", "save_steps=1", "wandb.enabled=false", "progress=false"]
     r = subprocess.run([*common, "max_steps=1", "grounding.weight=0", "grounding.pretrain_epochs=0"], cwd=ROOT,
                        capture_output=True, text=True, timeout=600)
