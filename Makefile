@@ -60,13 +60,13 @@ DEMO_WORLD    := backend_kwargs.custom_scene=configs/scenes/demo_bench.yaml back
   backend_kwargs.max_distractors=0 'families.place.scenarios=[pick_place_beaker_large,pick_place_right_beaker_large]'
 demo: $(STAMP)
 	$(PY) scripts/generate.py preset=demo num_episodes=$(DEMO_EPISODES) out_dir=outputs/demo_shards seed=0 workers=2 image_size=128 render_frames=8
-	$(PY) scripts/render_strips.py outputs/demo_shards outputs/demo_strips
-	$(PY) scripts/build_dataset.py shards=outputs/demo_shards out_dir=outputs/demo_dataset $(DEMO_GRID)
+	$(PY) scripts/render_strips.py shards=outputs/demo_shards out=outputs/demo_strips
+	$(PY) -m scripts.build_dataset shards=outputs/demo_shards out_dir=outputs/demo_dataset $(DEMO_GRID)
 	$(PY) train.py preset=tiny dataset_dir=outputs/demo_dataset output_dir=outputs/demo_train epochs=$(DEMO_EPOCHS)
 	$(PY) scripts/evaluate.py model=outputs/demo_train/final dataset_dir=outputs/demo_dataset split=test
 	$(PY) scripts/supervise.py policy=scripted supervisor=vlm vlm.model=outputs/demo_train/final task=place \
 	  trials=25 loop.query_every=-1 out_dir=outputs/demo_supervise progress=false $(DEMO_WORLD)
-	$(PY) scripts/demo_diagnosis.py outputs/demo_dataset outputs/demo_train/final
+	$(PY) scripts/demo_diagnosis.py dataset=outputs/demo_dataset model=outputs/demo_train/final
 
 # After `make demo`: its model taught to supervise a running trajectory (docs/ARCHITECTURE.md, "Eighth round").
 # A third stage on prefix grids (one per trajectory, twins cut at the same keyframes, each asked Q2, Q3, Q5 and
@@ -75,7 +75,7 @@ demo: $(STAMP)
 DEMO_ONLINE_PREFIX := prefix.cuts=1 prefix.pair_cuts=true 'prefix.questions=[Q2,Q3,Q5,Q6]'
 demo-online: $(STAMP)
 	@test -d outputs/demo_train/final || { echo "demo-online: run make demo first (no outputs/demo_train/final)" >&2; exit 2; }
-	$(PY) scripts/build_dataset.py shards=outputs/demo_shards out_dir=outputs/demo_online_dataset $(DEMO_GRID) \
+	$(PY) -m scripts.build_dataset shards=outputs/demo_shards out_dir=outputs/demo_online_dataset $(DEMO_GRID) \
 	  $(DEMO_ONLINE_PREFIX) progress=false
 	$(PY) train.py preset=tiny dataset_dir=outputs/demo_online_dataset output_dir=outputs/demo_online_train epochs=8 \
 	  model.path=outputs/demo_train/final grounding.pretrain_epochs=0 curriculum.detect_first=0 \
@@ -108,7 +108,7 @@ reproduce: $(STAMP)
 	for v in unseen_object unseen_scene unseen_both; do \
 	  $(PY) scripts/generate.py $(REPRO_GEN) num_episodes=$(REPRO_UNSEEN) variant=$$v out_dir=$(R)/shards/$$v || exit 1; done
 	$(call stamp,dataset)
-	$(PY) scripts/build_dataset.py $(REPRO_SHARDS) out_dir=$(R)/dataset $(DEMO_GRID) 'views=[front,side]' progress=false
+	$(PY) -m scripts.build_dataset $(REPRO_SHARDS) out_dir=$(R)/dataset $(DEMO_GRID) 'views=[front,side]' progress=false
 	$(call stamp,train)
 	$(PY) train.py $(REPRO_TRAIN) dataset_dir=$(R)/dataset output_dir=$(R)/train
 	$(call stamp,evaluate)
@@ -116,17 +116,17 @@ reproduce: $(STAMP)
 	$(call stamp,learning_curve)
 	$(PY) scripts/learning_curve.py run_dir=$(R)/train dataset_dir=$(R)/dataset split=val progress=false
 	$(call stamp,done)
-	$(PY) scripts/write_results.py $(R) $(RESULTS)
+	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 
 # After make reproduce, on its data: the scratch tower (the pre-tower recipe) and the front + wrist sensor row.
 reproduce-rows: $(STAMP)
 	@test -f $(R)/train/final/eval_test/results.json || { echo "reproduce-rows: run make reproduce first" >&2; exit 2; }
 	$(PY) train.py $(REPRO_TRAIN) tower=scratch dataset_dir=$(R)/dataset output_dir=$(R)/rows/scratch
 	$(call bench,$(R)/rows/scratch,test object scene both,$(R)/dataset)
-	$(PY) scripts/build_dataset.py $(REPRO_SHARDS) out_dir=$(R)/dataset_wrist $(DEMO_GRID) 'views=[front,wrist]' progress=false
+	$(PY) -m scripts.build_dataset $(REPRO_SHARDS) out_dir=$(R)/dataset_wrist $(DEMO_GRID) 'views=[front,wrist]' progress=false
 	$(PY) train.py $(REPRO_TRAIN) dataset_dir=$(R)/dataset_wrist output_dir=$(R)/rows/wrist
 	$(call bench,$(R)/rows/wrist,test object scene both,$(R)/dataset_wrist)
-	$(PY) scripts/write_results.py $(R) $(RESULTS)
+	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 
 # After make reproduce, on its data: the paper's ablation table (seen split) with the shipped tower: the tower and
 # merger tuned (at 3e-5) against frozen (the recipe's default), and no temporal index (no labels drawn, none named).
@@ -135,11 +135,11 @@ ablate: $(STAMP)
 	mkdir -p $(R)/ablate && ln -sfn ../train $(R)/ablate/frozen
 	$(PY) train.py $(REPRO_TRAIN) lr.vision=3e-5 lr.merger=3e-5 dataset_dir=$(R)/dataset output_dir=$(R)/ablate/tuned
 	$(call bench,$(R)/ablate/tuned,test,$(R)/dataset)
-	$(PY) scripts/build_dataset.py $(REPRO_SHARDS) out_dir=$(R)/dataset_noindex $(DEMO_GRID) 'views=[front,side]' \
+	$(PY) -m scripts.build_dataset $(REPRO_SHARDS) out_dir=$(R)/dataset_noindex $(DEMO_GRID) 'views=[front,side]' \
 	  grid.draw_index=false progress=false
 	$(PY) train.py $(REPRO_TRAIN) grid_index=false dataset_dir=$(R)/dataset_noindex output_dir=$(R)/ablate/no_index
 	$(call bench,$(R)/ablate/no_index,test,$(R)/dataset_noindex)
-	$(PY) scripts/write_results.py $(R) $(RESULTS)
+	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 
 # The sim-pretrained vision tower shipped in labrobfail_vlm/assets/tower (its TOWER_CARD.md says what it learned and
 # how well): seen-catalogue episodes with front, side and wrist views (seed 1000, so none of make reproduce's seed-0
@@ -156,7 +156,7 @@ tower: $(STAMP)
 	$(PY) scripts/generate.py $(TOWER_GEN) num_episodes=$(TOWER_SEEN) out_dir=$(T)/shards/seen
 	for v in unseen_object unseen_scene; do $(PY) scripts/generate.py $(TOWER_GEN) num_episodes=$(TOWER_UNSEEN) \
 	  variant=$$v out_dir=$(T)/shards/$$v || exit 1; done
-	$(PY) scripts/build_tower_data.py 'data.shards=[$(T)/shards/seen,$(T)/shards/unseen_object,$(T)/shards/unseen_scene]' \
+	$(PY) -m scripts.build_tower_data 'data.shards=[$(T)/shards/seen,$(T)/shards/unseen_object,$(T)/shards/unseen_scene]' \
 	  data.out_dir=$(T)/data data.progress=false
 	$(PY) scripts/pretrain_tower.py data.out_dir=$(T)/data out_dir=$(T)/run epochs=$(TOWER_EPOCHS) \
 	  export_dir=$(TOWER_EXPORT) progress=false

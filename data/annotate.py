@@ -17,15 +17,15 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from PIL import Image
 
+from data.facts import aux_records, frame_facts
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.corrections import Context, correction
 from labrobfail_vlm.grid import GridConfig, build_grid, frame_for_keyframe, sample_keyframes
 from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, Category, Severity
-from data.facts import aux_records, frame_facts
-from sim_backends.goals import object_fell
+from sim_backends.failure_context import failure_context
 from sim_backends.labeler import severity
-from sim_backends.schema import TaskMeta, trace_until
+from sim_backends.schema import trace_until
 
 # What a prefix grid may be asked (prefix.questions). Q4 is not: severity is a rule on the final state (a door
 # left open, a vessel lying on its side at the end), which a prefix does not show yet.
@@ -45,35 +45,6 @@ class Annotated:
     aux: list[dict[str, Any]] = field(default_factory=list)  # per-frame fact records (training split only)
 
 
-def failure_context(row: dict[str, Any], meta: dict[str, Any], trace: dict[str, list],
-                    fatal: bool | None = None) -> Context:
-    """Fill the correction placeholders from task metadata (which step failed, on what, towards where).
-    `fell` is read from `trace` (a prefix's trace: fallen by then); `fatal` defaults to the row's severity."""
-    steps, labels = meta["steps"], meta.get("labels", {})
-    ran = TaskMeta.from_dict(meta).executed_steps()  # step index (Keyframe.segment) of each executed keyframe
-    kf = min(int(row["failure_keyframe"] or 0), len(ran) - 1)
-    st = steps[ran[kf]] if ran else steps[0]
-    word = lambda role: labels.get(role, str(role).replace("_", " "))  # noqa: E731
-    obj = st.get("object")
-    kind = meta["objects"].get(obj, {}).get("kind", "")
-    device = {"oven": "door", "button": "button"}.get(kind, "")
-    if row["failure_type"] == "sequence_reversal":  # redo the task's first grasp-and-place
-        st = next((s for s in steps if s["action"] == "grasp"), st)
-        obj = st.get("object")
-    dest = st.get("dest") or next((s["dest"] for s in steps[st["index"]:] if s.get("object") == obj and s.get("dest")),
-                                  None)
-    destination = "its original position" if dest is not None and dest == obj else word(dest or "target")
-    pour = next((s for s in steps if s["action"] == "pour"), None)
-    done = set(ran)
-    omitted = next((s["action"] for s in steps if s["index"] not in done), st["action"])
-    return Context(failure_type=row["failure_type"], action=st["action"], device=device,
-                   fell=object_fell(trace, meta),
-                   fatal=row["severity"] == int(Severity.FATAL) if fatal is None else fatal,
-                   target=word(obj) if obj else "object", destination=destination,
-                   source=word(pour["object"]) if pour else word(obj or "container"),
-                   omitted=omitted, opening=st["action"] == "open")
-
-
 def q6_keep(ctx: Context | None, text: str) -> list[str]:
     """The names a (reworded) correction must keep: the objects it acts on, as filled from metadata."""
     return [w for w in ((ctx.target, ctx.destination, ctx.source) if ctx else ()) if w in text]
@@ -86,15 +57,19 @@ def row_images(row: dict[str, Any], views: Sequence[str] | None) -> list[list[by
     names = list(row.get("camera_names") or [])
     missing = [v for v in views if v not in names]
     if missing:
-        raise ConfigError(f"views: episode {row['episode_id']} has views {names}, not {missing} (generate with "
-                          "backend_kwargs.wrist=true for a wrist view)")
+        raise ConfigError(
+            f"views: episode {row['episode_id']} has views {names}, not {missing} (generate with "
+            "backend_kwargs.wrist=true for a wrist view)"
+        )
     return [row["images"][names.index(v)] for v in views]
 
 
 def decode_views(images: list[list[bytes]], picks: list[int]) -> list[list[Image.Image]]:
     if any(not view[i] for view in images for i in picks):  # b"": the generator's render_frames left it out
-        raise ConfigError("grid.max_frames: the shards hold no images of keyframes this grid shows; build with the "
-                          "generator's render_frames as grid.max_frames, or regenerate with render_frames=null")
+        raise ConfigError(
+            "grid.max_frames: the shards hold no images of keyframes this grid shows; build with the "
+            "generator's render_frames as grid.max_frames, or regenerate with render_frames=null"
+        )
     return [[Image.open(io.BytesIO(view[i])).convert("RGB") for i in picks] for view in images]
 
 
@@ -108,9 +83,18 @@ def grid_failure_frame(row: dict[str, Any], picks: list[int]) -> int | None:
     return None if row["success"] else frame_for_keyframe(picks, int(row["failure_keyframe"]))
 
 
-def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator, prefix_cuts: int = 0,
-             prefix_rng: np.random.Generator | None = None, aux: int = 0, cut_frame: int | None = None, *,
-             prefix_questions: Sequence[str], views: Sequence[str] | None = None) -> Annotated:
+def annotate(
+    row: dict[str, Any],
+    grid_cfg: GridConfig,
+    rng: np.random.Generator,
+    prefix_cuts: int = 0,
+    prefix_rng: np.random.Generator | None = None,
+    aux: int = 0,
+    cut_frame: int | None = None,
+    *,
+    prefix_questions: Sequence[str],
+    views: Sequence[str] | None = None,
+) -> Annotated:
     """`prefix_cuts` > 0 adds that many prefix grids, each with a record per `prefix_questions`
     (`prefix_records`); `aux` > 0 that many per-frame fact records (data/facts.py). Both draw from `prefix_rng`,
     so the six main records are the same with or without them. `cut_frame`: the failure frame the prefix cuts are
@@ -139,36 +123,69 @@ def annotate(row: dict[str, Any], grid_cfg: GridConfig, rng: np.random.Generator
     for dim in Q.DIMENSIONS:
         v = int(rng.integers(len(Q.VARIANTS[dim])))
         ans = Q.q2_answer(v, success) if dim == "Q2" else answers[dim]
-        records.append({
-            "id": Q.record_id(traj, dim), "image": image, "images": [image],  # "images": LLaMA-Factory's column
-            "conversations": [{"from": "human", "value": Q.question_text(dim, v, task_name, grid_cfg.time_axis,
-                                                                        grid_cfg.draw_index)},
-                              {"from": "gpt", "value": ans}],
-        })
+        records.append(
+            {
+                "id": Q.record_id(traj, dim),
+                "image": image,
+                "images": [image],  # "images": LLaMA-Factory's column
+                "conversations": [
+                    {
+                        "from": "human",
+                        "value": Q.question_text(dim, v, task_name, grid_cfg.time_axis, grid_cfg.draw_index),
+                    },
+                    {"from": "gpt", "value": ans},
+                ],
+            }
+        )
     info = {
-        "trajectory": traj, "group": f"{row['variant']}-{row['pair_id']}", "scenario": row["scenario"],
-        "task": task_name, "variant": row["variant"],
-        "success": success, "failure_type": row["failure_type"], "category": row["category"],
-        "severity": row["severity"], "failure_keyframe": row["failure_keyframe"], "frame": frame,
-        "frames": len(picks), "views": len(views), "sampled_keyframes": picks, "horizon": row["horizon"],
+        "trajectory": traj,
+        "group": f"{row['variant']}-{row['pair_id']}",
+        "scenario": row["scenario"],
+        "task": task_name,
+        "variant": row["variant"],
+        "success": success,
+        "failure_type": row["failure_type"],
+        "category": row["category"],
+        "severity": row["severity"],
+        "failure_keyframe": row["failure_keyframe"],
+        "frame": frame,
+        "frames": len(picks),
+        "views": len(views),
+        "sampled_keyframes": picks,
+        "horizon": row["horizon"],
         "actions": list(row["actions"]),
-        "evidence": row["evidence"], "strategy": strategy,
+        "evidence": row["evidence"],
+        "strategy": strategy,
         # the scene's object and place names: what a robot stack knows, and what Q6's template mode fills in
         "objects": sorted(set(meta.get("labels", {}).values())),
         "q6_keep": q6_keep(ctx, answers["Q6"]),
     }
     ann = Annotated(traj, info["group"], row["variant"], image, grid, records, info)
     if prefix_cuts > 0:
+
         def context_at(k: int) -> Context:  # the failure as it stands once grid frame k has been shown
             until = trace_until(trace, picks[k - 1])
             return failure_context(row, meta, until, severity(until, meta, row["failure_type"]) == Severity.FATAL)
 
-        ann.prefixes = prefix_records(ann, views, grid_cfg, prefix_cuts, prefix_rng or rng,
-                                      frame if cut_frame is None else cut_frame, prefix_questions, context_at)
+        ann.prefixes = prefix_records(
+            ann,
+            views,
+            grid_cfg,
+            prefix_cuts,
+            prefix_rng or rng,
+            frame if cut_frame is None else cut_frame,
+            prefix_questions,
+            context_at,
+        )
     if aux > 0:
-        ann.aux = aux_records(traj, image, Q.preamble(task_name, grid_cfg.time_axis, grid_cfg.draw_index),
-                              frame_facts(trace, meta, picks),
-                              aux, prefix_rng or rng)
+        ann.aux = aux_records(
+            traj,
+            image,
+            Q.preamble(task_name, grid_cfg.time_axis, grid_cfg.draw_index),
+            frame_facts(trace, meta, picks),
+            aux,
+            prefix_rng or rng,
+        )
     return ann
 
 
@@ -188,9 +205,16 @@ def prefix_cut_points(frames: int, failure_frame: int | None, n: int, rng: np.ra
     return sorted((first + more)[:n])
 
 
-def prefix_records(ann: Annotated, views: list[list[Image.Image]], grid_cfg: GridConfig, n: int,
-                   rng: np.random.Generator, cut_frame: int | None, questions: Sequence[str],
-                   context_at: Callable[[int], Context]) -> list[Annotated]:
+def prefix_records(
+    ann: Annotated,
+    views: list[list[Image.Image]],
+    grid_cfg: GridConfig,
+    n: int,
+    rng: np.random.Generator,
+    cut_frame: int | None,
+    questions: Sequence[str],
+    context_at: Callable[[int], Context],
+) -> list[Annotated]:
     """Prefix grids for online supervision: the first k keyframes shown, later cells blank. Q2 asks whether a
     failure has shown up yet (the labeled failure frame is <= k), Q3 the frame when it has, else None; Q5 its
     category; Q6 its correction, from the failure context as it stands at frame k (`context_at`: fallen or
@@ -203,23 +227,45 @@ def prefix_records(ann: Annotated, views: list[list[Image.Image]], grid_cfg: Gri
         image = f"images/{traj}.png"
         ctx = context_at(k) if failed and "Q6" in questions else None
         fix = correction(ctx) if ctx else (None, "")
-        answers = {"Q3": str(info["frame"]), "Q5": str(info["category"]), "Q6": fix[1]} if failed else \
-            {"Q3": Q.NO_FAILURE, "Q5": Q.NO_FAILURE, "Q6": Q.NO_CORRECTION}
+        answers = (
+            {"Q3": str(info["frame"]), "Q5": str(info["category"]), "Q6": fix[1]}
+            if failed
+            else {"Q3": Q.NO_FAILURE, "Q5": Q.NO_FAILURE, "Q6": Q.NO_CORRECTION}
+        )
         records = []
         for dim in questions:  # Q2 and Q3 draw first, so the default prefixes are what they always were
             v = int(rng.integers(len(Q.VARIANTS[dim])))
             ans = Q.q2_answer(v, not failed) if dim == "Q2" else answers[dim]
-            records.append({"id": Q.record_id(traj, dim), "image": image, "images": [image], "conversations": [
-                {"from": "human", "value": Q.question_text(dim, v, info["task"], grid_cfg.time_axis,
-                                                           grid_cfg.draw_index)},
-                {"from": "gpt", "value": ans}]})
-        meta = {**info, "trajectory": traj, "prefix_of": ann.trajectory, "visible": k, "success": not failed,
-                "frame": info["frame"] if failed else None, "failure_type": info["failure_type"] if failed else None,
-                "category": info["category"] if failed else None, "severity": info["severity"] if failed else None}
+            records.append(
+                {
+                    "id": Q.record_id(traj, dim),
+                    "image": image,
+                    "images": [image],
+                    "conversations": [
+                        {
+                            "from": "human",
+                            "value": Q.question_text(dim, v, info["task"], grid_cfg.time_axis, grid_cfg.draw_index),
+                        },
+                        {"from": "gpt", "value": ans},
+                    ],
+                }
+            )
+        meta = {
+            **info,
+            "trajectory": traj,
+            "prefix_of": ann.trajectory,
+            "visible": k,
+            "success": not failed,
+            "frame": info["frame"] if failed else None,
+            "failure_type": info["failure_type"] if failed else None,
+            "category": info["category"] if failed else None,
+            "severity": info["severity"] if failed else None,
+        }
         if "Q6" in questions:  # the prefix's own correction (its trajectory's may follow from a later fall)
             meta.update(strategy=fix[0], q6_keep=q6_keep(ctx, fix[1]))
-        out.append(Annotated(traj, ann.group, ann.variant, image, build_grid(views, grid_cfg, visible=k), records,
-                             meta))
+        out.append(
+            Annotated(traj, ann.group, ann.variant, image, build_grid(views, grid_cfg, visible=k), records, meta)
+        )
     return out
 
 
@@ -232,8 +278,14 @@ def check_record(rec: Any, info: dict[str, Any]) -> str | None:
     try:
         rid, conv = rec["id"], rec["conversations"]
         human, gpt = conv
-        if not (isinstance(rid, str) and isinstance(rec["image"], str) and human["from"] == "human"
-                and gpt["from"] == "gpt" and isinstance(human["value"], str) and isinstance(gpt["value"], str)):
+        if not (
+            isinstance(rid, str)
+            and isinstance(rec["image"], str)
+            and human["from"] == "human"
+            and gpt["from"] == "gpt"
+            and isinstance(human["value"], str)
+            and isinstance(gpt["value"], str)
+        ):
             return "malformed"
     except (KeyError, TypeError, ValueError):
         return "malformed"

@@ -35,9 +35,25 @@ from labrobfail_vlm.grid import GridConfig
 from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
 from labrobfail_vlm.taxonomy import SCENE_VARIANTS, SEEN_SPLITS, UNSEEN_SPLITS
 
-READ_COLUMNS = ["episode_id", "pair_id", "variant", "scenario", "success", "failure_type", "category", "severity",
-                "failure_keyframe", "evidence", "actions", "horizon", "images", "state_trace", "task_meta", "keyframes",
-                "camera_names"]
+READ_COLUMNS = [
+    "episode_id",
+    "pair_id",
+    "variant",
+    "scenario",
+    "success",
+    "failure_type",
+    "category",
+    "severity",
+    "failure_keyframe",
+    "evidence",
+    "actions",
+    "horizon",
+    "images",
+    "state_trace",
+    "task_meta",
+    "keyframes",
+    "camera_names",
+]
 
 
 def _shard_files(cfg: DictConfig) -> list[Path]:
@@ -64,9 +80,11 @@ def check_rendered(cfg: DictConfig, max_frames: int) -> None:
         run = Path(d) / "run.json"
         rendered = json.loads(run.read_text()).get("render_frames") if run.is_file() else None
         if rendered is not None and rendered != max_frames:
-            raise ConfigError(f"grid.max_frames: {d} was generated with render_frames={rendered} (images of the "
-                              f"keyframes a {rendered}-frame grid shows); build with grid.max_frames={rendered} "
-                              "or regenerate with render_frames=null")
+            raise ConfigError(
+                f"grid.max_frames: {d} was generated with render_frames={rendered} (images of the "
+                f"keyframes a {rendered}-frame grid shows); build with grid.max_frames={rendered} "
+                "or regenerate with render_frames=null"
+            )
 
 
 def _rows(files: list[Path], columns: list[str] = READ_COLUMNS):
@@ -119,16 +137,24 @@ def build(cfg: DictConfig) -> dict[str, Any]:
         raise ConfigError(f"prefix.pair_cuts: true or false, got {cfg.prefix.pair_cuts!r}")
     got = cfg.prefix.questions
     questions = list(got) if OmegaConf.is_list(got) else [got]
-    if questions[:2] != ["Q2", "Q3"] or not set(questions) <= set(PREFIX_QUESTIONS) \
-            or len(set(questions)) != len(questions):
-        raise ConfigError(f"prefix.questions: Q2, Q3, then any of Q5, Q6 (Q4's severity is a rule on the final "
-                          f"state, which a prefix does not show), got {questions}")
+    if (
+        questions[:2] != ["Q2", "Q3"]
+        or not set(questions) <= set(PREFIX_QUESTIONS)
+        or len(set(questions)) != len(questions)
+    ):
+        raise ConfigError(
+            f"prefix.questions: Q2, Q3, then any of Q5, Q6 (Q4's severity is a rule on the final "
+            f"state, which a prefix does not show), got {questions}"
+        )
     views = None if cfg.views is None else [str(v) for v in cfg.views]
     if views is not None and (not views or len(set(views)) != len(views)):
         raise ConfigError(f"views: expected distinct camera names, e.g. [front, side], got {views}")
     marks = _review_marks(cfg.review)
-    para = Paraphraser(cfg.paraphrase.base_url, cfg.paraphrase.model, cfg.paraphrase.api_key_env,
-                       cfg.paraphrase.timeout_s) if cfg.paraphrase.enabled else None
+    para = (
+        Paraphraser(cfg.paraphrase.base_url, cfg.paraphrase.model, cfg.paraphrase.api_key_env, cfg.paraphrase.timeout_s)
+        if cfg.paraphrase.enabled
+        else None
+    )
     out = Path(cfg.out_dir)
     try:
         (out / "images").mkdir(parents=True, exist_ok=True)
@@ -153,8 +179,17 @@ def build(cfg: DictConfig) -> dict[str, Any]:
         # prefix cuts draw from their own stream: the main records are the same with or without them
         group = f"{row['variant']}-{row['pair_id']}"
         traj_key = zlib.crc32((group if pair_cuts else f"{row['variant']}-{row['episode_id']}").encode())
-        ann = annotate(row, gcfg, rng, int(cfg.prefix.cuts), np.random.default_rng([int(cfg.seed), traj_key]),
-                       int(cfg.aux.per_trajectory), cut_frames.get(group), prefix_questions=questions, views=views)
+        ann = annotate(
+            row,
+            gcfg,
+            rng,
+            int(cfg.prefix.cuts),
+            np.random.default_rng([int(cfg.seed), traj_key]),
+            int(cfg.aux.per_trajectory),
+            cut_frames.get(group),
+            prefix_questions=questions,
+            views=views,
+        )
         if marks.get(ann.trajectory) == "reject":
             drops["review_rejected"] += 1
             continue
@@ -194,41 +229,66 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     for name, recs in splits.items():
         if name in SEEN_SPLITS or recs:
             atomic_write_json(out / f"{name}.json", recs)
-    atomic_write_json(out / "dataset_info.json", {
-        f"labrobfail_{name}": {"file_name": f"{name}.json", "formatting": "sharegpt",
-                               "columns": {"messages": "conversations", "images": "images"},
-                               "tags": {"role_tag": "from", "content_tag": "value", "user_tag": "human",
-                                        "assistant_tag": "gpt"}}
-        for name, recs in splits.items() if name in SEEN_SPLITS or recs})
+    atomic_write_json(
+        out / "dataset_info.json",
+        {
+            f"labrobfail_{name}": {
+                "file_name": f"{name}.json",
+                "formatting": "sharegpt",
+                "columns": {"messages": "conversations", "images": "images"},
+                "tags": {"role_tag": "from", "content_tag": "value", "user_tag": "human", "assistant_tag": "gpt"},
+            }
+            for name, recs in splits.items()
+            if name in SEEN_SPLITS or recs
+        },
+    )
     trajectories = [a.meta for a in kept]
     atomic_write_json(out / "trajectories.json", trajectories + [p.meta for a in kept for p in a.prefixes])
     stats = dataset_stats(trajectories, splits, total_rows, drops, para_stats, gcfg)
-    stats["prefix"] = {"cuts": int(cfg.prefix.cuts), "pair_cuts": bool(cfg.prefix.pair_cuts),
-                       "questions": questions,
-                       "grids": sum(len(a.prefixes) for a in kept)}
+    stats["prefix"] = {
+        "cuts": int(cfg.prefix.cuts),
+        "pair_cuts": bool(cfg.prefix.pair_cuts),
+        "questions": questions,
+        "grids": sum(len(a.prefixes) for a in kept),
+    }
     stats["views"] = views  # the camera views in each grid, in order (null: every view of the shards)
-    stats["aux"] = {"per_trajectory": int(cfg.aux.per_trajectory),
-                    "records": sum(len(a.aux) for a in kept if a.meta["split"] == "train")}
+    stats["aux"] = {
+        "per_trajectory": int(cfg.aux.per_trajectory),
+        "records": sum(len(a.aux) for a in kept if a.meta["split"] == "train"),
+    }
     atomic_write_json(out / "stats.json", stats)
     from data.plots import write_plots
     from data.review import write_review_page
+
     write_plots(trajectories, out / "plots")
     write_review_page(kept, out / "review.html", int(cfg.review_sample), int(cfg.seed))
     return stats
 
 
-def dataset_stats(traj: list[dict[str, Any]], splits: dict[str, list], total_rows: int, drops: Counter,
-                  para: Counter, gcfg: GridConfig) -> dict[str, Any]:
+def dataset_stats(
+    traj: list[dict[str, Any]],
+    splits: dict[str, list],
+    total_rows: int,
+    drops: Counter,
+    para: Counter,
+    gcfg: GridConfig,
+) -> dict[str, Any]:
     fails = [t for t in traj if not t["success"]]
     return {
         "trajectories_in": total_rows,
         "trajectories_kept": len(traj),
         "records": sum(len(r) for r in splits.values()),
-        "filter": {"dropped_trajectories": total_rows - len(traj), "by_reason": dict(drops),
-                   "drop_rate": round((total_rows - len(traj)) / total_rows, 4) if total_rows else 0.0},
+        "filter": {
+            "dropped_trajectories": total_rows - len(traj),
+            "by_reason": dict(drops),
+            "drop_rate": round((total_rows - len(traj)) / total_rows, 4) if total_rows else 0.0,
+        },
         "paraphrase": dict(para),
-        "splits": {k: {"records": len(v), "trajectories": len({Q.traj_of(r["id"]) for r in v})}
-                   for k, v in splits.items() if v or k in SEEN_SPLITS},
+        "splits": {
+            k: {"records": len(v), "trajectories": len({Q.traj_of(r["id"]) for r in v})}
+            for k, v in splits.items()
+            if v or k in SEEN_SPLITS
+        },
         "by_outcome": {"success": len(traj) - len(fails), "failure": len(fails)},
         "by_failure_type": dict(Counter(t["failure_type"] for t in fails).most_common()),
         "by_category": dict(sorted(Counter(str(t["category"]) for t in fails).items())),

@@ -30,7 +30,7 @@ LIFT = 0.03  # m above the object's start height: lifted off the bench
 def _upto(trace: dict[str, Any], j: int) -> dict[str, Any]:
     """The trace as it stood at sample j (goal predicates read its last sample)."""
     n = len(trace["t"])
-    return {c: (v[:j + 1] if isinstance(v, list) and len(v) == n else v) for c, v in trace.items()}
+    return {c: (v[: j + 1] if isinstance(v, list) and len(v) == n else v) for c, v in trace.items()}
 
 
 def _goal_question(g: dict[str, Any], word) -> str | None:
@@ -68,8 +68,9 @@ def frame_facts(trace: dict[str, Any], meta: dict[str, Any], picks: list[int]) -
     return out
 
 
-def aux_records(traj: str, image: str, preamble: str, facts: list[tuple[int, str, bool]], n: int,
-                rng: np.random.Generator) -> list[dict[str, Any]]:
+def aux_records(
+    traj: str, image: str, preamble: str, facts: list[tuple[int, str, bool]], n: int, rng: np.random.Generator
+) -> list[dict[str, Any]]:
     """Up to n fact records, half Yes and half No where the facts allow (a constant answer teaches nothing)."""
     yes = [f for f in facts if f[2]]
     no = [f for f in facts if not f[2]]
@@ -77,7 +78,16 @@ def aux_records(traj: str, image: str, preamble: str, facts: list[tuple[int, str
     for pool, want in ((yes, n // 2), (no, n - n // 2)):
         picked += [pool[i] for i in rng.permutation(len(pool))[:want]]
     rest = [f for f in facts if f not in picked]
-    picked += [rest[i] for i in rng.permutation(len(rest))[:n - len(picked)]]
-    return [{"id": Q.record_id(traj, f"{Q.AUX_PREFIX}{i}"), "image": image, "images": [image], "conversations": [
-        {"from": "human", "value": f"<image>\n{preamble} In frame {frame}, {q} (Yes/No)"},
-        {"from": "gpt", "value": "Yes" if ans else "No"}]} for i, (frame, q, ans) in enumerate(sorted(picked))]
+    picked += [rest[i] for i in rng.permutation(len(rest))[: n - len(picked)]]
+    return [
+        {
+            "id": Q.record_id(traj, f"{Q.AUX_PREFIX}{i}"),
+            "image": image,
+            "images": [image],
+            "conversations": [
+                {"from": "human", "value": f"<image>\n{preamble} In frame {frame}, {q} (Yes/No)"},
+                {"from": "gpt", "value": "Yes" if ans else "No"},
+            ],
+        }
+        for i, (frame, q, ans) in enumerate(sorted(picked))
+    ]

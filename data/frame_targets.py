@@ -25,21 +25,21 @@ from sim_backends.labeler import OPEN_WIDTH, POSE_ERR, SPILL_PARTICLES, spilled
 from sim_backends.types import rotation_angle
 
 CELL_TARGETS: tuple[str, ...] = (
-    "held",            # a task object is in contact with the fingers and off its resting height
-    "lifted",          # a task object is more than 3 cm above where it started
-    "tipped",          # a task vessel leans more than 0.35 rad
-    "fallen",          # a task object is off the bench or lying on its side
-    "at_goal",         # every "at" goal (object at its place) holds; -1: the task has none
-    "door_open",       # the oven door is open more than 0.3 rad; -1: no oven
+    "held",  # a task object is in contact with the fingers and off its resting height
+    "lifted",  # a task object is more than 3 cm above where it started
+    "tipped",  # a task vessel leans more than 0.35 rad
+    "fallen",  # a task object is off the bench or lying on its side
+    "at_goal",  # every "at" goal (object at its place) holds; -1: the task has none
+    "door_open",  # the oven door is open more than 0.3 rad; -1: no oven
     "button_pressed",  # the button has been pressed by now; -1: no button
     "liquid_in_dest",  # the poured liquid has reached its vessel; -1: no liquid goal
-    "spilled",         # liquid has landed outside every vessel; -1: no liquid
+    "spilled",  # liquid has landed outside every vessel; -1: no liquid
     "gripper_closed",  # the fingers are closed (opening under 6 cm)
-    "hand_twisted",    # the hand is turned more than 0.3 rad away from the plan's orientation for this keyframe
-    "arm_moved",       # the hand moved more than 2 cm since the previous grid frame; -1 on the first
-    "object_moved",    # a task object moved more than 2 cm since the previous grid frame; -1 on the first
-    "goals_hold",      # every goal of the task holds at this frame
-    "failed_by_now",   # a failure has happened by this frame (the grid frame of the labeler's failure keyframe)
+    "hand_twisted",  # the hand is turned more than 0.3 rad away from the plan's orientation for this keyframe
+    "arm_moved",  # the hand moved more than 2 cm since the previous grid frame; -1 on the first
+    "object_moved",  # a task object moved more than 2 cm since the previous grid frame; -1 on the first
+    "goals_hold",  # every goal of the task holds at this frame
+    "failed_by_now",  # a failure has happened by this frame (the grid frame of the labeler's failure keyframe)
 )
 TOKEN_TARGETS: tuple[str, ...] = ("gripper", "object", "goal_place")
 LIFT, MOVED, DOOR_OPEN, CLOSED_WIDTH = 0.03, 0.02, 0.3, 0.06
@@ -48,15 +48,21 @@ LIFT, MOVED, DOOR_OPEN, CLOSED_WIDTH = 0.03, 0.02, 0.3, 0.06
 def _upto(trace: dict[str, Any], j: int) -> dict[str, Any]:
     """The trace as it stood at sample j (goal predicates read its last sample)."""
     n = len(trace["t"])
-    return {c: (v[:j + 1] if isinstance(v, list) and len(v) == n else v) for c, v in trace.items()}
+    return {c: (v[: j + 1] if isinstance(v, list) and len(v) == n else v) for c, v in trace.items()}
 
 
 def movables(trace: dict[str, Any], meta: dict[str, Any]) -> list[str]:
     return [o for o, info in meta["objects"].items() if info["kind"] in ("vessel", "rod") and f"{o}.pos" in trace]
 
 
-def _cell_values(trace: dict[str, Any], meta: dict[str, Any], j: int, prev: int | None, failed: bool,
-                 plan_quat: Sequence[float] | None) -> list[float]:
+def _cell_values(
+    trace: dict[str, Any],
+    meta: dict[str, Any],
+    j: int,
+    prev: int | None,
+    failed: bool,
+    plan_quat: Sequence[float] | None,
+) -> list[float]:
     objs = movables(trace, meta)
     vessels = [o for o in objs if meta["objects"][o]["kind"] == "vessel"]
     pos = {o: np.asarray(trace[f"{o}.pos"][j], float) for o in objs}
@@ -77,8 +83,10 @@ def _cell_values(trace: dict[str, Any], meta: dict[str, Any], j: int, prev: int 
         float(any(trace[f"{o}.contacts"][j] >= 1 and pos[o][2] > home[o] + 0.01 for o in objs)),
         float(any(pos[o][2] > home[o] + LIFT for o in objs)),
         float(any(tilt(trace[f"{o}.quat"][j]) > UPRIGHT_TILT for o in vessels)),
-        float(any(pos[o][2] < bench + OFF_BENCH for o in objs)
-              or any(tilt(trace[f"{o}.quat"][j]) > FALLEN_TILT for o in vessels)),
+        float(
+            any(pos[o][2] < bench + OFF_BENCH for o in objs)
+            or any(tilt(trace[f"{o}.quat"][j]) > FALLEN_TILT for o in vessels)
+        ),
         goal_kinds("at"),
         float(any(trace[f"{o}.q"][j] > DOOR_OPEN for o in ovens)) if ovens else -1.0,
         goal_kinds("button") if buttons else -1.0,
@@ -87,8 +95,9 @@ def _cell_values(trace: dict[str, Any], meta: dict[str, Any], j: int, prev: int 
         float(trace["width"][j] < min(CLOSED_WIDTH, OPEN_WIDTH)),
         -1.0 if plan_quat is None else float(rotation_angle(trace["ee_quat"][j], plan_quat) > POSE_ERR),
         -1.0 if prev is None else moved(trace["ee_pos"][j], trace["ee_pos"][prev]),
-        -1.0 if prev is None or not objs else float(any(moved(trace[f"{o}.pos"][j], trace[f"{o}.pos"][prev])
-                                                        for o in objs)),
+        -1.0
+        if prev is None or not objs
+        else float(any(moved(trace[f"{o}.pos"][j], trace[f"{o}.pos"][prev]) for o in objs)),
         float(all(GOALS[g["kind"]](upto, meta, g) for g in goals)),
         float(failed),
     ]
@@ -110,8 +119,9 @@ def project(points: np.ndarray, matrices: Sequence[float], size: int) -> np.ndar
 MAX_POINTS = 4  # per token target and view: the gripper is one point, task objects and places up to four
 
 
-def row_targets(row: dict[str, Any], picks: Sequence[int], views: Sequence[int], failure_frame: int | None,
-                image_size: int) -> tuple[np.ndarray, np.ndarray]:
+def row_targets(
+    row: dict[str, Any], picks: Sequence[int], views: Sequence[int], failure_frame: int | None, image_size: int
+) -> tuple[np.ndarray, np.ndarray]:
     """(cells (F, V, len(CELL_TARGETS)), points (F, V, len(TOKEN_TARGETS), MAX_POINTS, 2)) for the grid frames
     `picks` (executed keyframe indices) of shard row `row`, in the camera views `views` (indices into its
     camera_names). `failure_frame`: the 1-based grid frame where the labeled failure first shows (None: a
@@ -131,8 +141,11 @@ def row_targets(row: dict[str, Any], picks: Sequence[int], views: Sequence[int],
         failed = failure_frame is not None and f + 1 >= failure_frame
         name = meta["executed"][kf] if kf < len(meta["executed"]) else None
         cells[f, :, :] = _cell_values(trace, meta, j, prev, failed, plan.get(name))
-        groups = [[trace["ee_pos"][j]], [trace[f"{o}.pos"][j] for o in objs],
-                  [[*meta["places"][p][:2], meta["bench_top"]] for p in places]]
+        groups = [
+            [trace["ee_pos"][j]],
+            [trace[f"{o}.pos"][j] for o in objs],
+            [[*meta["places"][p][:2], meta["bench_top"]] for p in places],
+        ]
         for v_out, v in enumerate(views):
             mats = cams[v][kf] if v < len(cams) and kf < len(cams[v]) else None
             if not mats:
@@ -140,6 +153,6 @@ def row_targets(row: dict[str, Any], picks: Sequence[int], views: Sequence[int],
             for c, pts in enumerate(groups):
                 pts = pts[:MAX_POINTS]
                 if pts:
-                    points[f, v_out, c, :len(pts)] = project(np.asarray(pts, float), mats, image_size)
+                    points[f, v_out, c, : len(pts)] = project(np.asarray(pts, float), mats, image_size)
         prev = j
     return cells, points

@@ -16,9 +16,11 @@ from typing import Any
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.llm_client import ChatClient
 
-SYSTEM = ("You are an expert annotator for robotic manipulation tasks in chemical laboratory environments. "
-          "Reword the given question (and the answer, when one is given) so that the meaning, every object name "
-          "and every number stay exactly the same. Reply with JSON only: {\"question\": ..., \"answer\": ...}.")
+SYSTEM = (
+    "You are an expert annotator for robotic manipulation tasks in chemical laboratory environments. "
+    "Reword the given question (and the answer, when one is given) so that the meaning, every object name "
+    'and every number stay exactly the same. Reply with JSON only: {"question": ..., "answer": ...}.'
+)
 
 
 class Paraphraser:
@@ -29,8 +31,9 @@ class Paraphraser:
             raise ValueError(f"paraphrase.{e}") from None
 
     def _chat(self, content: str) -> dict[str, Any]:
-        text = self.client.chat([{"role": "system", "content": SYSTEM}, {"role": "user", "content": content}],
-                                temperature=0.7).strip()
+        text = self.client.chat(
+            [{"role": "system", "content": SYSTEM}, {"role": "user", "content": content}], temperature=0.7
+        ).strip()
         if text.startswith("```"):
             text = text.strip("`").removeprefix("json").strip()
         out = json.loads(text)
@@ -44,7 +47,7 @@ class Paraphraser:
         pre = "<image>\n" + Q.preamble(task_name) + " "
         if not human["value"].startswith(pre):
             return None
-        rest = human["value"][len(pre):]
+        rest = human["value"][len(pre) :]
         question, _, options = rest.partition("\nOptions:")
         payload = {"question": question} | ({"answer": gpt["value"]} if dim == "Q6" else {})
         try:

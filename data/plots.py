@@ -14,8 +14,13 @@ import matplotlib.pyplot as plt  # noqa: E402
 from labrobfail_vlm.io import save_figure  # noqa: E402
 from labrobfail_vlm.taxonomy import FAILURE_TYPES, HORIZONS, Category  # noqa: E402
 
-COLORS = {Category.SAFETY: "#d62728", Category.LOGIC: "#9467bd", Category.MOTION: "#1f77b4",
-          Category.GRASPING: "#ff7f0e", Category.PERCEPTION: "#2ca02c"}
+COLORS = {
+    Category.SAFETY: "#d62728",
+    Category.LOGIC: "#9467bd",
+    Category.MOTION: "#1f77b4",
+    Category.GRASPING: "#ff7f0e",
+    Category.PERCEPTION: "#2ca02c",
+}
 
 
 def write_plots(traj: list[dict[str, Any]], out: Path) -> None:

@@ -60,30 +60,39 @@ textarea{width:100%;height:6em}
 
 def _card(a: "Annotated") -> str:
     m = a.meta
-    meta_rows = "".join(f"<tr><td>{_E(str(k))}</td><td>{_E(str(v))}</td></tr>" for k, v in m.items()
-                        if k not in ("sampled_keyframes", "q6_keep"))
+    meta_rows = "".join(
+        f"<tr><td>{_E(str(k))}</td><td>{_E(str(v))}</td></tr>"
+        for k, v in m.items()
+        if k not in ("sampled_keyframes", "q6_keep")
+    )
     qa = "".join(
         f"<tr><td>{_E(r['id'].rsplit('_', 1)[-1])}</td><td class='q'>{_E(r['conversations'][0]['value'])}</td>"
-        f"<td class='a'>{_E(r['conversations'][1]['value'])}</td></tr>" for r in a.records)
+        f"<td class='a'>{_E(r['conversations'][1]['value'])}</td></tr>"
+        for r in a.records
+    )
     tid = _E(a.trajectory, quote=True)
-    return (f"<div class='card' data-trajectory=\"{tid}\" data-state='unmarked'>"
-            f"<h3>{_E(a.trajectory)} &mdash; {_E(str(m.get('task', '')))} &mdash; <span class='state'>unmarked</span>"
-            f"</h3><img src=\"{_E(a.image_name, quote=True)}\" alt='keyframe grid'>"
-            f"<table>{qa}</table><details><summary>metadata</summary><table>{meta_rows}</table></details>"
-            "<p><button data-mark='accept'>accept</button> <button data-mark='reject'>reject</button></p></div>")
+    return (
+        f"<div class='card' data-trajectory=\"{tid}\" data-state='unmarked'>"
+        f"<h3>{_E(a.trajectory)} &mdash; {_E(str(m.get('task', '')))} &mdash; <span class='state'>unmarked</span>"
+        f"</h3><img src=\"{_E(a.image_name, quote=True)}\" alt='keyframe grid'>"
+        f"<table>{qa}</table><details><summary>metadata</summary><table>{meta_rows}</table></details>"
+        "<p><button data-mark='accept'>accept</button> <button data-mark='reject'>reject</button></p></div>"
+    )
 
 
 def write_review_page(items: list["Annotated"], path: Path, n: int, seed: int) -> None:
     rng = np.random.default_rng(seed)
     pick = sorted(rng.choice(len(items), size=min(n, len(items)), replace=False).tolist()) if items else []
     cards = "\n".join(_card(items[i]) for i in pick)
-    page = ("<!DOCTYPE html><html><head><meta charset='utf-8'>"
-            "<meta http-equiv='Content-Security-Policy' content=\"default-src 'none'; img-src 'self' data: file:; "
-            "style-src 'unsafe-inline'; script-src 'unsafe-inline'\">"
-            f"<title>LabRobFail-Data review</title><style>{_STYLE}</style></head><body>"
-            f"<div id='bar'><b>LabRobFail-Data review</b>: {len(pick)} sampled trajectories, "
-            "<span id='count'>0</span> marked. <button id='export'>export marks (JSON)</button>"
-            "<a id='download' style='display:none'>download</a>"
-            "<textarea id='marks-json' readonly></textarea></div>"
-            f"{cards}<script>{_SCRIPT}</script></body></html>")
+    page = (
+        "<!DOCTYPE html><html><head><meta charset='utf-8'>"
+        "<meta http-equiv='Content-Security-Policy' content=\"default-src 'none'; img-src 'self' data: file:; "
+        "style-src 'unsafe-inline'; script-src 'unsafe-inline'\">"
+        f"<title>LabRobFail-Data review</title><style>{_STYLE}</style></head><body>"
+        f"<div id='bar'><b>LabRobFail-Data review</b>: {len(pick)} sampled trajectories, "
+        "<span id='count'>0</span> marked. <button id='export'>export marks (JSON)</button>"
+        "<a id='download' style='display:none'>download</a>"
+        "<textarea id='marks-json' readonly></textarea></div>"
+        f"{cards}<script>{_SCRIPT}</script></body></html>"
+    )
     atomic_write_bytes(path, page.encode())

@@ -20,8 +20,9 @@ def _key(group: str, seed: int) -> str:
     return hashlib.sha256(f"{seed}:{group}".encode()).hexdigest()
 
 
-def assign(groups: Iterable[tuple[str, str]], seed: int = 0, ratios: tuple[float, float, float] = (0.8, 0.1, 0.1)
-           ) -> dict[str, str]:
+def assign(
+    groups: Iterable[tuple[str, str]], seed: int = 0, ratios: tuple[float, float, float] = (0.8, 0.1, 0.1)
+) -> dict[str, str]:
     """Map each (group, variant) to a split name."""
     out: dict[str, str] = {}
     seen: list[str] = []

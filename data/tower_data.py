@@ -30,29 +30,63 @@ from data.splits import assign
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.io import atomic_write_json
 
-READ = ["episode_id", "pair_id", "variant", "scenario", "success", "failure_type", "failure_keyframe", "images",
-        "state_trace", "task_meta", "keyframes", "camera_names", "cameras"]
-SCHEMA = pa.schema([
-    ("trajectory", pa.string()), ("group", pa.string()), ("variant", pa.string()), ("scenario", pa.string()),
-    ("success", pa.bool_()), ("failure_type", pa.string()), ("failure_frame", pa.int32()), ("frames", pa.int32()),
-    ("views", pa.list_(pa.string())), ("images", pa.list_(pa.list_(pa.binary()))),
-    ("cells", pa.binary()), ("points", pa.binary()),
-])
+READ = [
+    "episode_id",
+    "pair_id",
+    "variant",
+    "scenario",
+    "success",
+    "failure_type",
+    "failure_keyframe",
+    "images",
+    "state_trace",
+    "task_meta",
+    "keyframes",
+    "camera_names",
+    "cameras",
+]
+SCHEMA = pa.schema(
+    [
+        ("trajectory", pa.string()),
+        ("group", pa.string()),
+        ("variant", pa.string()),
+        ("scenario", pa.string()),
+        ("success", pa.bool_()),
+        ("failure_type", pa.string()),
+        ("failure_frame", pa.int32()),
+        ("frames", pa.int32()),
+        ("views", pa.list_(pa.string())),
+        ("images", pa.list_(pa.list_(pa.binary()))),
+        ("cells", pa.binary()),
+        ("points", pa.binary()),
+    ]
+)
 
 
 def _record(row: dict[str, Any], max_frames: int, image_size: int) -> dict[str, Any]:
     picks = grid_picks(row, max_frames)
     views = list(row["camera_names"])
     if any(not row["images"][v][k] for v in range(len(views)) for k in picks):
-        raise ConfigError(f"shards: episode {row['episode_id']} lacks images of the keyframes a {max_frames}-frame "
-                          f"grid shows (generate with render_frames={max_frames})")
+        raise ConfigError(
+            f"shards: episode {row['episode_id']} lacks images of the keyframes a {max_frames}-frame "
+            f"grid shows (generate with render_frames={max_frames})"
+        )
     frame = grid_failure_frame(row, picks)
     cells, points = row_targets(row, picks, range(len(views)), frame, image_size)
-    return {"trajectory": f"{row['variant']}-{row['episode_id']}", "group": f"{row['variant']}-{row['pair_id']}",
-            "variant": row["variant"], "scenario": row["scenario"], "success": bool(row["success"]),
-            "failure_type": row["failure_type"], "failure_frame": frame, "frames": len(picks), "views": views,
-            "images": [[row["images"][v][k] for k in picks] for v in range(len(views))],
-            "cells": cells.astype(np.float32).tobytes(), "points": points.astype(np.float32).tobytes()}
+    return {
+        "trajectory": f"{row['variant']}-{row['episode_id']}",
+        "group": f"{row['variant']}-{row['pair_id']}",
+        "variant": row["variant"],
+        "scenario": row["scenario"],
+        "success": bool(row["success"]),
+        "failure_type": row["failure_type"],
+        "failure_frame": frame,
+        "frames": len(picks),
+        "views": views,
+        "images": [[row["images"][v][k] for k in picks] for v in range(len(views))],
+        "cells": cells.astype(np.float32).tobytes(),
+        "points": points.astype(np.float32).tobytes(),
+    }
 
 
 def build(cfg: DictConfig) -> dict[str, Any]:
@@ -74,15 +108,25 @@ def build(cfg: DictConfig) -> dict[str, Any]:
             pq.write_table(pa.Table.from_pylist(recs, schema=SCHEMA), tmp, compression="zstd")
             tmp.replace(target)
         written.append(name)
-    meta = [r for n in written for r in pq.read_table(out / n, columns=["group", "variant", "success",
-                                                                      "failure_type"]).to_pylist()]
+    meta = [
+        r
+        for n in written
+        for r in pq.read_table(out / n, columns=["group", "variant", "success", "failure_type"]).to_pylist()
+    ]
     ratios = tuple(float(x) for x in cfg.ratios)
     split = assign(((r["group"], r["variant"]) for r in meta), int(cfg.seed), (ratios[0], ratios[1], 0.0))
     counts = Counter(split[r["group"]] for r in meta)
-    index = {"files": written, "cell_targets": list(CELL_TARGETS), "token_targets": list(TOKEN_TARGETS),
-             "max_points": MAX_POINTS, "max_frames": max_frames, "image_size": size, "split": split,
-             "trajectories": dict(sorted(counts.items())),
-             "failures": dict(Counter(split[r["group"]] for r in meta if not r["success"])),
-             "shards": sorted({str(f.parent) for f in files})}
+    index = {
+        "files": written,
+        "cell_targets": list(CELL_TARGETS),
+        "token_targets": list(TOKEN_TARGETS),
+        "max_points": MAX_POINTS,
+        "max_frames": max_frames,
+        "image_size": size,
+        "split": split,
+        "trajectories": dict(sorted(counts.items())),
+        "failures": dict(Counter(split[r["group"]] for r in meta if not r["success"])),
+        "shards": sorted({str(f.parent) for f in files}),
+    }
     atomic_write_json(out / "index.json", index)
     return index

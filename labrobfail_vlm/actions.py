@@ -34,10 +34,19 @@ from typing import Any, Callable, Sequence
 from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS
 
 PRIMITIVES: dict[str, tuple[str, ...]] = {  # name -> arguments (paper appendix, plus optional extras)
-    "hold_position": (), "delta_pos": ("direction", "dist", "until", "into"), "oscillate": ("axis", "amp", "n"),
-    "align_to": ("target_id", "stage"), "move_above": ("dest_id", "h", "obj"), "align_above": ("src", "dest"),
-    "move_to_pose": ("pose_id",), "set_orient": ("roll", "pitch"), "hold_orientation": (),
-    "rotate": ("axis", "angle"), "tilt_pour": ("angle", "v"), "hold_gripper": (), "gripper_open": (),
+    "hold_position": (),
+    "delta_pos": ("direction", "dist", "until", "into"),
+    "oscillate": ("axis", "amp", "n"),
+    "align_to": ("target_id", "stage"),
+    "move_above": ("dest_id", "h", "obj"),
+    "align_above": ("src", "dest"),
+    "move_to_pose": ("pose_id",),
+    "set_orient": ("roll", "pitch"),
+    "hold_orientation": (),
+    "rotate": ("axis", "angle"),
+    "tilt_pour": ("angle", "v"),
+    "hold_gripper": (),
+    "gripper_open": (),
     "gripper_close": (),
 }
 MANUAL = "manual"  # not a primitive: a phrase the dictionary cannot map (or the paper's manual strategy)
@@ -55,10 +64,19 @@ TILT_ANGLE = 0.5
 DOOR_HANDLE = "door handle"
 ORIGINAL = "its original position"
 TARGET_POSITION = "target position"
-_SPECIAL = {DOOR_HANDLE: ("door handle", "handle", "door", "handle of door", "oven door", "door of oven"),
-            ORIGINAL: ("its original position", "original position", "its home", "home position", "its place",
-                       "where it came from", "its original place"),
-            TARGET_POSITION: ("target position", "target location", "destination")}
+_SPECIAL = {
+    DOOR_HANDLE: ("door handle", "handle", "door", "handle of door", "oven door", "door of oven"),
+    ORIGINAL: (
+        "its original position",
+        "original position",
+        "its home",
+        "home position",
+        "its place",
+        "where it came from",
+        "its original place",
+    ),
+    TARGET_POSITION: ("target position", "target location", "destination"),
+}
 
 
 def prim(op: str, **args: Any) -> dict[str, Any]:
@@ -114,8 +132,18 @@ _ARM = r"(?:(?:robotic |robot )?arm|gripper|end-effector|end effector|hand)"
 _MOVE = r"(?:move|bring|shift|drive|guide|take|carry)(?: it)?"
 _OBJ = r"(?P<{}>[a-z0-9][a-z0-9 '\-/]*?)"
 _DIRS = r"(?P<dir>forward|forwards|backward|backwards|back|up|upward|upwards|down|downward|downwards|left|right)"
-_DIR_CANON = {"forwards": "forward", "backwards": "backward", "back": "backward", "upward": "up", "upwards": "up",
-              "downward": "down", "downwards": "down", "lower": "down", "raise": "up", "lift": "up"}
+_DIR_CANON = {
+    "forwards": "forward",
+    "backwards": "backward",
+    "back": "backward",
+    "upward": "up",
+    "upwards": "up",
+    "downward": "down",
+    "downwards": "down",
+    "lower": "down",
+    "raise": "up",
+    "lift": "up",
+}
 
 
 def _o(name: str) -> str:
@@ -164,7 +192,7 @@ def _b_align(m: re.Match, n: _Names, stage: str | None = None) -> list[dict[str,
 
 
 def _b_center_last(m: re.Match, n: _Names) -> list[dict[str, Any]] | None:
-    """"keep the gripper open until centered": open, then centre on the object named before."""
+    """ "keep the gripper open until centered": open, then centre on the object named before."""
     if n.last is None:
         return None
     return [prim("gripper_open"), prim("align_to", target_id=n.last)]
@@ -234,62 +262,102 @@ RULES: list[tuple[str, Builder]] = [
     # conditions and purposes that carry no motion of their own
     (r"(?:in order )?to (?:complete|finish) (?:experiment|task|operation)(?: safely)?", _fixed()),
     (r"after (?:completing|finishing) (?:operation|current operation|step|task)", _fixed()),
-    (r"(?:then )?(?:resume|continue)(?: with)? (?:remaining |rest of )?(?:workflow|execution|task|plan|steps)",
-     _fixed()),
+    (
+        r"(?:then )?(?:resume|continue)(?: with)? (?:remaining |rest of )?(?:workflow|execution|task|plan|steps)",
+        _fixed(),
+    ),
     (rf"{_MOVE} {_ARM}", _fixed()),  # "move the robotic arm," whose goal the next clause names (S2)
     # position
-    (rf"(?:keep|hold|maintain) (?:{_ARM} )?position (?:unchanged|fixed|still|steady)|(?:keep|hold) {_ARM} "
-     r"(?:still|in place|stationary)|pause(?: current)? execution|stop(?: {_ARM})?(?: motion| moving)?"
-     r"|hold(?: current)? position", _fixed(prim("hold_position"))),
+    (
+        rf"(?:keep|hold|maintain) (?:{_ARM} )?position (?:unchanged|fixed|still|steady)|(?:keep|hold) {_ARM} "
+        r"(?:still|in place|stationary)|pause(?: current)? execution|stop(?: {_ARM})?(?: motion| moving)?"
+        r"|hold(?: current)? position",
+        _fixed(prim("hold_position")),
+    ),
     (rf"{_MOVE} (?:{_ARM} )?forward to insert(?: it)? into {_o('t')}", _b_insert),
-    (rf"{_MOVE} (?:{_ARM} )?(?P<dir>forward|down|downward) until(?: it is| button is)? pressed",
-     lambda m, n: [prim("delta_pos", direction=_direction(m), dist=PRESS_TRAVEL, until="pressed")]),
-    (rf"{_MOVE} (?:{_ARM} )?{_DIRS} (?:until door is (?:fully )?(?P<state>open|opened|closed|shut)"
-     r"|to (?P<verb>open|close) door)", _b_door),
-    (rf"(?:{_MOVE} (?:{_ARM} )?(?:from )?side to side(?: repeatedly)?|stir(?: liquid)?)"
-     r"(?: until(?: liquid is)? (?:fully |well |thoroughly )?(?:stirred|mixed))?",
-     _fixed(prim("oscillate", axis="y", amp=OSC_AMP, n=OSC_N))),
+    (
+        rf"{_MOVE} (?:{_ARM} )?(?P<dir>forward|down|downward) until(?: it is| button is)? pressed",
+        lambda m, n: [prim("delta_pos", direction=_direction(m), dist=PRESS_TRAVEL, until="pressed")],
+    ),
+    (
+        rf"{_MOVE} (?:{_ARM} )?{_DIRS} (?:until door is (?:fully )?(?P<state>open|opened|closed|shut)"
+        r"|to (?P<verb>open|close) door)",
+        _b_door,
+    ),
+    (
+        rf"(?:{_MOVE} (?:{_ARM} )?(?:from )?side to side(?: repeatedly)?|stir(?: liquid)?)"
+        r"(?: until(?: liquid is)? (?:fully |well |thoroughly )?(?:stirred|mixed))?",
+        _fixed(prim("oscillate", axis="y", amp=OSC_AMP, n=OSC_N)),
+    ),
     (rf"{_MOVE} (?:{_ARM} )?{_DIRS}(?: by (?P<d>[0-9.]+) ?(?P<u>cm|mm|m))?", _b_delta),
     (rf"(?P<dir>lower|raise|lift)(?: {_ARM}| it)?(?: by (?P<d>[0-9.]+) ?(?P<u>cm|mm|m))?", _b_delta),
     (rf"{_MOVE} (?:{_ARM} )?to (?:center|align) (?:gripper )?(?:on|with|over|at) {_o('t')}", _b_align),
-    (rf"(?:keep gripper open and )?{_MOVE} (?:{_ARM} )?until {_o('t')} is centered"
-     r"(?: (?:within|in|between) (?:gripper|fingers))?", _b_align),
+    (
+        rf"(?:keep gripper open and )?{_MOVE} (?:{_ARM} )?until {_o('t')} is centered"
+        r"(?: (?:within|in|between) (?:gripper|fingers))?",
+        _b_align,
+    ),
     (rf"(?:reposition|re-position|realign|re-align) (?:{_ARM} )?to center {_o('t')}", _b_align),
     (rf"(?:center|align) (?:gripper )?(?:on|with|over) {_o('t')}", _b_align),
     (rf"{_MOVE} (?:{_ARM} )?to (?:position|place|put|hold) {_o('t')} (?:above|over) {_o('d')}", _b_above),
     (rf"{_MOVE} (?:{_ARM} )?to align {_o('t')} (?:above|over|with) {_o('d')}", _b_align_above),
-    (rf"(?:return|go back) to (?:perform|do|execute|carry out|redo) (?:omitted|skipped|missing|missed) {_o('a')}"
-     r"(?: step| action)?", _b_omitted),
-    (rf"{_MOVE} (?:{_ARM} )?(?:toward|towards|to approach|closer to) {_o('t')}",
-     lambda m, n: _b_align(m, n, stage="pre")),
+    (
+        rf"(?:return|go back) to (?:perform|do|execute|carry out|redo) (?:omitted|skipped|missing|missed) {_o('a')}"
+        r"(?: step| action)?",
+        _b_omitted,
+    ),
+    (
+        rf"{_MOVE} (?:{_ARM} )?(?:toward|towards|to approach|closer to) {_o('t')}",
+        lambda m, n: _b_align(m, n, stage="pre"),
+    ),
     (rf"(?:{_MOVE} (?:{_ARM} )?to )?(?:grasp|grab|pick up|pick) {_o('t')}(?: with gripper closed)?", _b_grasp),
     (rf"{_MOVE} (?:{_ARM} )?to {_o('d')}{_LEVEL}", _b_move_to),
-    (rf"(?:place|put|set) (?:down )?{_o('t')}(?: down)?(?: (?:at|on|in|into) {_o('d')})?"
-     r"(?: steadily| stably| carefully| gently| upright)?", _b_place),
+    (
+        rf"(?:place|put|set) (?:down )?{_o('t')}(?: down)?(?: (?:at|on|in|into) {_o('d')})?"
+        r"(?: steadily| stably| carefully| gently| upright)?",
+        _b_place,
+    ),
     # orientation
-    (rf"(?:keep|adjust|set|return|restore|maintain|hold|level)(?:ing)? (?:{_ARM} )?(?:orientation )?(?:to )?"
-     r"(?:horizontal|level)(?: orientation)?|(?:while )?(?:maintaining|keeping) orientation (?:horizontal|level)",
-     _fixed(prim("set_orient", roll=0.0, pitch=0.0))),
-    (rf"(?:keep|maintain|hold)(?:ing)? (?:{_ARM} )?orientation(?: unchanged| fixed| constant| same)?"
-     r"|orientation (?:unchanged|fixed|constant)", _fixed(prim("hold_orientation"))),
-    (rf"(?:progressively |gradually |slowly )?tilt (?:{_ARM}|it|{_o('s')})(?: progressively| gradually)? until "
-     r"(?:liquid is |it is )?(?:fully |completely )?poured(?: out)?|pour (?:out )?(?:liquid|it)(?: into .*)?",
-     _fixed(prim("tilt_pour", angle=POUR_ANGLE, v=POUR_V))),
+    (
+        rf"(?:keep|adjust|set|return|restore|maintain|hold|level)(?:ing)? (?:{_ARM} )?(?:orientation )?(?:to )?"
+        r"(?:horizontal|level)(?: orientation)?|(?:while )?(?:maintaining|keeping) orientation (?:horizontal|level)",
+        _fixed(prim("set_orient", roll=0.0, pitch=0.0)),
+    ),
+    (
+        rf"(?:keep|maintain|hold)(?:ing)? (?:{_ARM} )?orientation(?: unchanged| fixed| constant| same)?"
+        r"|orientation (?:unchanged|fixed|constant)",
+        _fixed(prim("hold_orientation")),
+    ),
+    (
+        rf"(?:progressively |gradually |slowly )?tilt (?:{_ARM}|it|{_o('s')})(?: progressively| gradually)? until "
+        r"(?:liquid is |it is )?(?:fully |completely )?poured(?: out)?|pour (?:out )?(?:liquid|it)(?: into .*)?",
+        _fixed(prim("tilt_pour", angle=POUR_ANGLE, v=POUR_V)),
+    ),
     (rf"tilt (?:{_ARM}|it)", _fixed(prim("rotate", axis="y", angle=TILT_ANGLE))),
     # gripper
-    (rf"(?:keep|maintain|hold) (?:current )?gripper state(?: unchanged)?|maintain gripper",
-     _fixed(prim("hold_gripper"))),
+    (
+        r"(?:keep|maintain|hold) (?:current )?gripper state(?: unchanged)?|maintain gripper",
+        _fixed(prim("hold_gripper")),
+    ),
     (r"keep gripper open until (?:it is )?centered", _b_center_last),
-    (r"keep (?:gripper )?open|open (?:gripper|fingers)(?: to (?:release|place|let go|drop))?"
-     rf"|release(?: gripper| it| {_o('t')})?|let go(?: of .*)?", _fixed(prim("gripper_open"))),
-    (r"(?:close|shut) (?:gripper|fingers)(?: firmly| tightly)?(?: to (?:grasp|grip|secure|hold)"
-     rf"(?: (?:grasp|grip|it|{_o('t')}))?)?|grip (?:it )?(?:firmly|tightly)|secure (?:grasp|grip)", _b_close),
+    (
+        r"keep (?:gripper )?open|open (?:gripper|fingers)(?: to (?:release|place|let go|drop))?"
+        rf"|release(?: gripper| it| {_o('t')})?|let go(?: of .*)?",
+        _fixed(prim("gripper_open")),
+    ),
+    (
+        r"(?:close|shut) (?:gripper|fingers)(?: firmly| tightly)?(?: to (?:grasp|grip|secure|hold)"
+        rf"(?: (?:grasp|grip|it|{_o('t')}))?)?|grip (?:it )?(?:firmly|tightly)|secure (?:grasp|grip)",
+        _b_close,
+    ),
     (rf"(?:keep|hold) (?:gripper )?closed(?: (?:on|to secure|around) {_o('t')})?", _b_close),
 ]
 _COMPILED = [(re.compile(p), b) for p, b in RULES]
 # clause boundaries: commas, "then", "and", and before a trailing purpose ("... to complete the experiment")
-_SPLIT = re.compile(r"\s*(?:,\s*(?:and\s+)?(?:then\s+)?|;\s*|\s+then\s+|\s+and\s+(?:then\s+)?"
-                    r"|\s+(?=(?:in order )?to (?:complete|finish) ))")
+_SPLIT = re.compile(
+    r"\s*(?:,\s*(?:and\s+)?(?:then\s+)?|;\s*|\s+then\s+|\s+and\s+(?:then\s+)?"
+    r"|\s+(?=(?:in order )?to (?:complete|finish) ))"
+)
 _LEAD = re.compile(r"^(?:first|then|and|finally|next|afterwards|after that)\s+")
 _MANUAL_TEXT = re.compile(r"\bmanual(?:ly)?\b|\bhuman\b|\boperator\b")
 

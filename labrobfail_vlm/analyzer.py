@@ -76,8 +76,9 @@ def nearest_strategy(text: str) -> str | None:
     return max(scores, key=scores.__getitem__)
 
 
-def frames_to_grid(frames: Sequence[Sequence[Image.Image | np.ndarray]], cfg: GridConfig = GridConfig(),
-                   visible: int | None = None) -> Image.Image:
+def frames_to_grid(
+    frames: Sequence[Sequence[Image.Image | np.ndarray]], cfg: GridConfig = GridConfig(), visible: int | None = None
+) -> Image.Image:
     """Per-view keyframe lists -> grid; more keyframes than the grid holds are thinned evenly."""
     n = len(frames[0])
     picks = sample_keyframes(list(range(n)), cfg.max_frames) if n > cfg.max_frames else list(range(n))
@@ -97,8 +98,9 @@ class Ask:
     per_token: bool = False  # "choose": rank options by mean log-likelihood per token (options of unequal length)
 
 
-def plan_reply(dim: str, failed: bool | None, frames: int, objects: Sequence[str] = (), q6_mode: str = "free"
-               ) -> str | Ask:
+def plan_reply(
+    dim: str, failed: bool | None, frames: int, objects: Sequence[str] = (), q6_mode: str = "free"
+) -> str | Ask:
     """The reply to `dim` when the Q2 verdict (`failed`; None before Q2) already settles it, else what the model
     must decode. Shared by the local decoder and the endpoint path, so both ask the same things."""
     if dim == "Q1":
@@ -142,8 +144,9 @@ class FailureAnalyzer:
     `threshold`: Q2 answers "Yes" (a failure, and Q3-Q6 are asked as one) when P(failure) >= threshold; 0.5 is
     the decoder's argmax, a lower value makes a supervisor intervene earlier."""
 
-    def __init__(self, model: Any, processor: Any, grid: GridConfig = GridConfig(), q6_mode: str = "free",
-                 threshold: float = 0.5):
+    def __init__(
+        self, model: Any, processor: Any, grid: GridConfig = GridConfig(), q6_mode: str = "free", threshold: float = 0.5
+    ):
         from labrobfail_vlm.decoding import Decoder
 
         if q6_mode not in Q6_MODES:
@@ -158,8 +161,14 @@ class FailureAnalyzer:
         self._ids_checked = False
 
     @classmethod
-    def from_pretrained(cls, path: str | Path, dtype: Any = None, device: str | None = None,
-                        max_model_gb: float | None = None, **kwargs: Any) -> "FailureAnalyzer":
+    def from_pretrained(
+        cls,
+        path: str | Path,
+        dtype: Any = None,
+        device: str | None = None,
+        max_model_gb: float | None = None,
+        **kwargs: Any,
+    ) -> "FailureAnalyzer":
         """`max_model_gb`: the model memory budget (default $LABROBFAIL_MAX_MODEL_GB, else half the machine's
         memory). The directory is validated before any tensor is built (train.checkpoint.validate_checkpoint): a
         bad or oversized checkpoint is a one-line ConfigError, not an out-of-memory kill."""
@@ -169,8 +178,9 @@ class FailureAnalyzer:
         from labrobfail_vlm.train.checkpoint import is_finetuned, load_finetuned, trained_grid, validate_checkpoint
 
         validate_checkpoint(path, "model.path", max_model_gb, dtype)
-        model = (load_finetuned(path, dtype, max_model_gb) if is_finetuned(path)
-                 else load_model(path, dtype, max_model_gb))
+        model = (
+            load_finetuned(path, dtype, max_model_gb) if is_finetuned(path) else load_model(path, dtype, max_model_gb)
+        )
         dev = device or ("cuda" if torch.cuda.is_available() else "cpu")
         if "grid" not in kwargs and (grid := trained_grid(path)) is not None:
             kwargs["grid"] = grid
@@ -219,8 +229,15 @@ class FailureAnalyzer:
         for dim, p in prompts.items():
             yield dim, self.decoder.prefill(dict(self.processor(text=[p], images=[image], return_tensors="pt")))
 
-    def answers(self, image: Image.Image, task: str, one_pass: bool = True, frames: int | None = None,
-                objects: Sequence[str] = (), dims: Collection[str] = Q.DIMENSIONS) -> dict[str, str]:
+    def answers(
+        self,
+        image: Image.Image,
+        task: str,
+        one_pass: bool = True,
+        frames: int | None = None,
+        objects: Sequence[str] = (),
+        dims: Collection[str] = Q.DIMENSIONS,
+    ) -> dict[str, str]:
         """The replies to `dims` (Q2 is always asked: the others follow its verdict)."""
         if one_pass:
             return self.answers_batch([image], [task], [frames], [objects], [dims])[0]
@@ -236,10 +253,15 @@ class FailureAnalyzer:
                 out[dim] = self._answer(dim, pre, failed, frames, objects)
         return out
 
-    def answers_batch(self, images: Sequence[Image.Image], tasks: Sequence[str],
-                      frames: Sequence[int | None] | None = None, objects: Sequence[Sequence[str]] | None = None,
-                      dims: Sequence[Collection[str]] | None = None, max_batch: int | None = None
-                      ) -> list[dict[str, str]]:
+    def answers_batch(
+        self,
+        images: Sequence[Image.Image],
+        tasks: Sequence[str],
+        frames: Sequence[int | None] | None = None,
+        objects: Sequence[Sequence[str]] | None = None,
+        dims: Sequence[Collection[str]] | None = None,
+        max_batch: int | None = None,
+    ) -> list[dict[str, str]]:
         """`answers` (one pass) for many grids: grids of one size are decoded together, `max_batch` at a time, with
         the same replies as one at a time. Per-grid `frames`, `objects` and `dims` as in `answers`."""
         n = len(images)
@@ -255,27 +277,39 @@ class FailureAnalyzer:
         out: list[dict[str, str]] = [{} for _ in range(n)]
         for idx in groups.values():
             for c in range(0, len(idx), step):
-                part = idx[c:c + step]
-                got = self._answers_rows([images[i] for i in part], [tasks[i] for i in part],
-                                         [frames[i] or self.num_frames for i in part], [objects[i] for i in part],
-                                         [dims[i] for i in part])
+                part = idx[c : c + step]
+                got = self._answers_rows(
+                    [images[i] for i in part],
+                    [tasks[i] for i in part],
+                    [frames[i] or self.num_frames for i in part],
+                    [objects[i] for i in part],
+                    [dims[i] for i in part],
+                )
                 for i, a in zip(part, got):
                     out[i] = a
         return out
 
-    def _answers_rows(self, images: list[Image.Image], tasks: list[str], frames: list[int],
-                      objects: list[Sequence[str]], dims: list[Collection[str]]) -> list[Answers]:
+    def _answers_rows(
+        self,
+        images: list[Image.Image],
+        tasks: list[str],
+        frames: list[int],
+        objects: list[Sequence[str]],
+        dims: list[Collection[str]],
+    ) -> list[Answers]:
         """One pass over a batch: each grid's image and preamble are prefilled once (one forward for the batch);
         a question's own tokens are fed only for the rows whose reply needs the model (Q3-Q6 follow Q2)."""
         d = self.decoder
-        prompts = [{dim: self._prompt(dim, t) for dim in Q.DIMENSIONS if dim in ds or dim == "Q2"}
-                   for t, ds in zip(tasks, dims)]
+        prompts = [
+            {dim: self._prompt(dim, t) for dim in Q.DIMENSIONS if dim in ds or dim == "Q2"}
+            for t, ds in zip(tasks, dims)
+        ]
         import torch
 
         # one image per call: the image processor on a list of large grids is ~3x slower per image (measured)
         one = [self.processor.image_processor(images=[im], return_tensors="pt") for im in images]
         px = {k: torch.cat([o[k] for o in one]) for k in ("pixel_values", "image_grid_thw")}
-        visual = (px["image_grid_thw"].prod(-1) // self.processor.image_processor.merge_size ** 2).tolist()
+        visual = (px["image_grid_thw"].prod(-1) // self.processor.image_processor.merge_size**2).tolist()
         ids = [{dim: d.prompt_ids(p, v) for dim, p in pr.items()} for pr, v in zip(prompts, visual)]
         if not self._ids_checked:  # once: the hand-made token ids equal the processor's
             ref = self.processor(text=[prompts[0]["Q2"]], images=images[:1], return_tensors="pt")["input_ids"][0]
@@ -287,13 +321,15 @@ class FailureAnalyzer:
         out = [Answers() for _ in images]
         failed: list[bool | None] = [None] * len(images)
         for dim in Q.DIMENSIONS:
-            plans = [plan_reply(dim, failed[i], frames[i], objects[i], self.q6_mode) if dim in ids[i] else None
-                     for i in range(len(images))]
+            plans = [
+                plan_reply(dim, failed[i], frames[i], objects[i], self.q6_mode) if dim in ids[i] else None
+                for i in range(len(images))
+            ]
             replies: list[str | None] = [p if isinstance(p, str) else None for p in plans]
             rows = [i for i, p in enumerate(plans) if isinstance(p, Ask)]
             if rows:  # only these rows are fed the question: the others' replies follow from Q2
                 base = pre if len(rows) == len(images) else d.select(pre, rows)
-                q, _ = d.extend_rows(base, [ids[i][dim][lcp[i]:] for i in rows])
+                q, _ = d.extend_rows(base, [ids[i][dim][lcp[i] :] for i in rows])
                 if dim == "Q2":
                     got, probs = self._decide_q2(q, len(rows))
                     for i, p in zip(rows, probs):
@@ -310,8 +346,9 @@ class FailureAnalyzer:
                 failed = [o.get("Q2") == "Yes" for o in out]
         return out
 
-    def _prepare(self, grid_or_frames: Image.Image | np.ndarray | Sequence[Sequence[Any]], task: str,
-                 frames: int | None) -> tuple[Image.Image, str, int | None]:
+    def _prepare(
+        self, grid_or_frames: Image.Image | np.ndarray | Sequence[Sequence[Any]], task: str, frames: int | None
+    ) -> tuple[Image.Image, str, int | None]:
         """(RGB grid, task text, keyframes shown) from a grid image or per-view keyframe lists."""
         if isinstance(grid_or_frames, (Image.Image, np.ndarray)):
             img = grid_or_frames if isinstance(grid_or_frames, Image.Image) else Image.fromarray(grid_or_frames)
@@ -320,21 +357,33 @@ class FailureAnalyzer:
             img = frames_to_grid(grid_or_frames, self.grid)
         return img.convert("RGB"), task or "a laboratory manipulation task", frames
 
-    def analyze_batch(self, requests: Sequence[DiagnosisRequest | Image.Image], one_pass: bool = True,
-                      max_batch: int | None = None) -> list[Diagnosis]:
+    def analyze_batch(
+        self, requests: Sequence[DiagnosisRequest | Image.Image], one_pass: bool = True, max_batch: int | None = None
+    ) -> list[Diagnosis]:
         """`analyze` for many grids at once (batched decoding, `max_batch` grids per forward), same answers."""
         reqs = [r if isinstance(r, DiagnosisRequest) else DiagnosisRequest(r) for r in requests]
         ready = [self._prepare(r.grid, r.task, r.frames) for r in reqs]
         if one_pass:
-            ans = self.answers_batch([g for g, _, _ in ready], [t for _, t, _ in ready], [f for *_, f in ready],
-                                     [r.objects for r in reqs], max_batch=max_batch)
+            ans = self.answers_batch(
+                [g for g, _, _ in ready],
+                [t for _, t, _ in ready],
+                [f for *_, f in ready],
+                [r.objects for r in reqs],
+                max_batch=max_batch,
+            )
         else:
             ans = [self.answers(g, t, False, f, r.objects) for (g, t, f), r in zip(ready, reqs)]
         return [self.analyze(g, t, frames=f, objects=r.objects, answers=a) for (g, t, f), r, a in zip(ready, reqs, ans)]
 
-    def analyze(self, grid_or_frames: Image.Image | np.ndarray | Sequence[Sequence[Any]], task: str = "",
-                one_pass: bool = True, frames: int | None = None, objects: Sequence[str] = (),
-                answers: dict[str, str] | None = None) -> Diagnosis:
+    def analyze(
+        self,
+        grid_or_frames: Image.Image | np.ndarray | Sequence[Sequence[Any]],
+        task: str = "",
+        one_pass: bool = True,
+        frames: int | None = None,
+        objects: Sequence[str] = (),
+        answers: dict[str, str] | None = None,
+    ) -> Diagnosis:
         """`objects`: the scene's object and place names (used by q6_mode="template"); `answers`: replies already
         decoded for this grid (analyze_batch)."""
         img, task, frames = self._prepare(grid_or_frames, task, frames)
@@ -343,11 +392,18 @@ class FailureAnalyzer:
         sev = int(a["Q4"]) if failed and a["Q4"].isdigit() else None
         cat = int(a["Q5"]) if failed and a["Q5"].isdigit() else None
         return Diagnosis(
-            task=task, actions=[s.strip() for s in a["Q1"].split(",") if s.strip()], failure=failed,
+            task=task,
+            actions=[s.strip() for s in a["Q1"].split(",") if s.strip()],
+            failure=failed,
             failure_frame=int(a["Q3"]) if failed and a["Q3"].isdigit() else None,
-            severity=sev, severity_name=Severity(sev).title if sev else None,
-            category=cat, category_name=Category(cat).title if cat else None,
-            correction=a["Q6"], correction_strategy=nearest_strategy(a["Q6"]) if failed else None,
-            primitives=to_primitives(a["Q6"], objects) if failed else [], raw=dict(a),
+            severity=sev,
+            severity_name=Severity(sev).title if sev else None,
+            category=cat,
+            category_name=Category(cat).title if cat else None,
+            correction=a["Q6"],
+            correction_strategy=nearest_strategy(a["Q6"]) if failed else None,
+            primitives=to_primitives(a["Q6"], objects) if failed else [],
+            raw=dict(a),
             severity_main_text=Severity(sev).main_text if sev else None,
-            p_failure=None if getattr(a, "p_failure", None) is None else round(float(a.p_failure), 6))
+            p_failure=None if getattr(a, "p_failure", None) is None else round(float(a.p_failure), 6),
+        )

@@ -38,11 +38,21 @@ class Augment:
 
     @classmethod
     def draw(cls, cfg: AugmentConfig, views: int, rng: np.random.Generator) -> "Augment":
-        v = tuple((float(rng.uniform(1 - cfg.scale, 1 + cfg.scale)), float(rng.uniform(-cfg.shift_px, cfg.shift_px)),
-                   float(rng.uniform(-cfg.shift_px, cfg.shift_px))) for _ in range(views))
+        v = tuple(
+            (
+                float(rng.uniform(1 - cfg.scale, 1 + cfg.scale)),
+                float(rng.uniform(-cfg.shift_px, cfg.shift_px)),
+                float(rng.uniform(-cfg.shift_px, cfg.shift_px)),
+            )
+            for _ in range(views)
+        )
         c = cfg.colour
-        col = (float(rng.uniform(1 - c, 1 + c)), float(rng.uniform(1 - c, 1 + c)), float(rng.uniform(1 - c, 1 + c)),
-               float(rng.uniform(-c / 5, c / 5)))
+        col = (
+            float(rng.uniform(1 - c, 1 + c)),
+            float(rng.uniform(1 - c, 1 + c)),
+            float(rng.uniform(1 - c, 1 + c)),
+            float(rng.uniform(-c / 5, c / 5)),
+        )
         return cls(v, col)
 
     def matrix(self, view: int, size: tuple[int, int]) -> np.ndarray:
@@ -54,8 +64,9 @@ class Augment:
     def image(self, img: np.ndarray, view: int) -> np.ndarray:
         """An HxWx3 uint8 view image, shifted, zoomed and recoloured."""
         h, w = img.shape[:2]
-        out = cv2.warpAffine(img, self.matrix(view, (w, h)), (w, h), flags=cv2.INTER_LINEAR,
-                             borderMode=cv2.BORDER_REPLICATE)
+        out = cv2.warpAffine(
+            img, self.matrix(view, (w, h)), (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
         bright, contrast, sat, hue = self.colour
         x = out.astype(np.float32)
         mean = x.mean()
@@ -92,13 +103,13 @@ def augment_grid(img: Image.Image, grid: GridConfig, views: int, aug: Augment) -
     for k in range(views):
         for t in range(grid.max_frames):
             r, c = grid.cell(t, k, views)
-            cell = canvas[r * ch:(r + 1) * ch, c * cw:(c + 1) * cw]
+            cell = canvas[r * ch : (r + 1) * ch, c * cw : (c + 1) * cw]
             if (cell == BLANK[0]).all():  # a cell the grid leaves blank (no such frame, or past a prefix cut)
                 continue
             tag = index_tag(t, ch) if grid.draw_index else None
             th, tw = (min(tag.shape[0], ch - 1), min(tag.shape[1], cw)) if tag is not None else (0, 0)
             if tag is not None:
-                cell[:th, :tw] = cell[th:th + 1, :tw]
+                cell[:th, :tw] = cell[th : th + 1, :tw]
             cell[:] = aug.image(cell, k)
             if tag is not None:
                 cell[:th, :tw] = tag[:th, :tw]

@@ -1,36 +1,82 @@
-"""OmegaConf loading shared by every entry point: YAML defaults + command-line dotlist, one-line errors.
+"""The one command line of every entry point: YAML defaults + the command line, checked, one-line errors.
 
-Entry points call `cli_main(fn)`: a ConfigError or ValueError becomes `error: <message>` on stderr
-and exit code 2, never a traceback.
+A setting is given as `key=value`, `--key value` or `--key=value` (in `--key`, dashes read as underscores:
+`--max-model-gb 8` is `max_model_gb=8`; a `--flag` with no value is `true`); dotted keys reach nested sections
+(`lr.vision=0`). Unknown keys are one-line errors. `-h` / `--help` prints the entry point's docstring and its
+documented defaults. Entry points call `cli_main(fn, __doc__)`: a ConfigError or ValueError becomes
+`error: <message>` on stderr and exit code 2, never a traceback.
 """
 
 from __future__ import annotations
 
+import os
 import sys
+from importlib import resources
 from pathlib import Path
 from typing import Callable
 
 from omegaconf import DictConfig, OmegaConf
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+# Every YAML default ships inside the package (the repository's top-level configs/ links here): entry points and
+# backends find them through importlib.resources, from a checkout or an installed wheel alike.
+CONFIG_DIR = Path(str(resources.files("labrobfail_vlm") / "configs"))
 
 
 class ConfigError(ValueError):
     """A bad configuration value or input; the message names the field or file."""
 
 
-def load_config(defaults: str | Path, dotlist: list[str]) -> DictConfig:
-    """Defaults from a YAML file under configs/ (struct: unknown keys are errors) merged with `key=value` args.
-    A top-level mapping that is empty in the defaults (`backend_kwargs: {}`) is a free-form section: its keys
-    are checked by whoever reads it (a backend checks its own options)."""
-    base = OmegaConf.load(CONFIG_DIR / defaults if not Path(defaults).is_absolute() else defaults)
+class HelpRequested(Exception):
+    """-h / --help: the documented defaults, for cli_main to print after the entry point's docstring."""
+
+
+def dotlist(argv: list[str]) -> list[str]:
+    """`key=value`, `--key value`, `--key=value` and `--flag` -> OmegaConf's `key=value` dotlist."""
+    out, i = [], 0
+    while i < len(argv):
+        a = argv[i]
+        if a.startswith("--") and len(a) > 2:
+            key, eq, val = a[2:].partition("=")
+            key = key.replace("-", "_")
+            if not eq:
+                nxt = argv[i + 1] if i + 1 < len(argv) else None
+                if nxt is not None and not nxt.startswith("--"):
+                    val, i = nxt, i + 1
+                else:
+                    val = "true"
+            out.append(f"{key}={val}")
+        elif "=" in a and not a.startswith("-"):
+            out.append(a)
+        else:
+            raise ConfigError(f"argument {a!r}: expected key=value, --key value or --key=value (see --help)")
+        i += 1
+    return out
+
+
+def _defaults(defaults: str | Path) -> tuple[DictConfig, str]:
+    """(the defaults, their YAML text): a file under configs/, an absolute path, or YAML text itself."""
+    text = str(defaults)
+    if "\n" in text:  # a script's own small defaults, written inline
+        return OmegaConf.create(text), text
+    path = CONFIG_DIR / defaults if not Path(defaults).is_absolute() else Path(defaults)
+    return OmegaConf.load(path), path.read_text()
+
+
+def load_config(defaults: str | Path, argv: list[str]) -> DictConfig:
+    """Defaults (a YAML file under configs/, or YAML text; struct: unknown keys are errors) merged with the command
+    line (`dotlist`). A top-level mapping that is empty in the defaults (`backend_kwargs: {}`) is a free-form
+    section: its keys are checked by whoever reads it (a backend checks its own options)."""
+    base, text = _defaults(defaults)
+    if any(a in ("-h", "--help") for a in argv):
+        raise HelpRequested(text)
     OmegaConf.set_struct(base, True)
     for key in base:
         node = base[key]
         if isinstance(node, DictConfig) and len(node) == 0:
             OmegaConf.set_struct(node, False)
+    args = dotlist(argv)
     try:
-        cli = OmegaConf.from_dotlist(dotlist)
+        cli = OmegaConf.from_dotlist(args)
         layers = [base]
         if "presets" in base:  # `preset=NAME` applies presets.NAME between the defaults and the command line
             name = cli.get("preset", base.get("preset"))
@@ -47,9 +93,15 @@ def load_config(defaults: str | Path, dotlist: list[str]) -> DictConfig:
     return cfg
 
 
-def cli_main(fn: Callable[[list[str]], int]) -> None:
+def cli_main(fn: Callable[[list[str]], int], doc: str | None = None) -> None:
     try:
         code = fn(sys.argv[1:])
+    except HelpRequested as h:
+        try:
+            print(((doc or "").strip() + "\n\nSettings (key=value, --key value or --key=value):\n\n" + str(h)).strip())
+        except BrokenPipeError:  # `--help | head`: the reader has gone, which is fine
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        code = 0
     except (ValueError, OSError) as e:  # ConfigError is a ValueError
         print(f"error: {e}", file=sys.stderr)
         code = 2

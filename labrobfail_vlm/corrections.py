@@ -25,38 +25,84 @@ from dataclasses import dataclass, replace
 from typing import Sequence
 
 STRATEGIES: dict[str, tuple[str, str]] = {  # id -> (category of the paper's table, instruction)
-    "S1": ("Safety", "Keep the robotic arm position unchanged, maintain gripper state, and keep the arm horizontal "
-                     "to complete the experiment safely."),
-    "S2": ("Safety", "After completing the operation, keep the gripper horizontal, move the robotic arm, and place "
-                     "the {target} steadily."),
-    "L1": ("Logic", "First move the robotic arm to grasp the {target} with gripper closed, then move to the "
-                    "{destination} and open the gripper to place."),
-    "L2": ("Logic", "Pause current execution, return to perform the omitted {action}, then resume the remaining "
-                    "workflow."),
-    "M1": ("Motion", "Adjust the gripper orientation to horizontal, keep the gripper closed, then move the robotic "
-                     "arm forward to insert into the {target}."),
-    "M2": ("Motion", "Keep the gripper closed and orientation unchanged, move the robotic arm side to side "
-                     "repeatedly until the liquid is fully stirred."),
-    "M3": ("Motion", "Keep the gripper closed on the door handle and move the robotic arm {direction} until the "
-                     "door is fully {open_closed}."),
-    "M4": ("Motion", "Move the robotic arm to align the {source} above the {destination}, keep the gripper closed, "
-                     "then progressively tilt the gripper until the liquid is fully poured."),
-    "G1": ("Grasping", "Keep the gripper open and move the robotic arm until the {target} is centered within the "
-                       "gripper, then close the gripper to secure the grasp."),
-    "G2": ("Grasping", "Move the robotic arm toward the {target}, adjust the gripper orientation to horizontal, keep "
-                       "the gripper open until centered, then close the gripper to grasp."),
-    "G3": ("Grasping", "Keep the gripper closed to secure the {target} and move the robotic arm to the "
-                       "{destination} while maintaining orientation horizontal."),
-    "P1": ("Perception", "Move the robotic arm to center the gripper on the door handle, close the gripper to "
-                         "grasp, then move {direction} to {open_close} the door."),
-    "P2": ("Perception", "Move the robotic arm to position the {target} above the {destination}, keep the gripper "
-                         "orientation horizontal, then open the gripper to release."),
-    "P3": ("Perception", "Move the robotic arm to align the gripper with the {target}, keep the gripper closed, "
-                         "then move forward until pressed."),
-    "P4": ("Perception", "Open the gripper to release, reposition the robotic arm to center the {target}, then "
-                         "close the gripper firmly to secure."),
-    "MANUAL": ("Manual Operation", "The object has fallen or critical failure occurred, please correct it manually "
-                                   "right away."),
+    "S1": (
+        "Safety",
+        "Keep the robotic arm position unchanged, maintain gripper state, and keep the arm horizontal "
+        "to complete the experiment safely.",
+    ),
+    "S2": (
+        "Safety",
+        "After completing the operation, keep the gripper horizontal, move the robotic arm, and place "
+        "the {target} steadily.",
+    ),
+    "L1": (
+        "Logic",
+        "First move the robotic arm to grasp the {target} with gripper closed, then move to the "
+        "{destination} and open the gripper to place.",
+    ),
+    "L2": (
+        "Logic",
+        "Pause current execution, return to perform the omitted {action}, then resume the remaining workflow.",
+    ),
+    "M1": (
+        "Motion",
+        "Adjust the gripper orientation to horizontal, keep the gripper closed, then move the robotic "
+        "arm forward to insert into the {target}.",
+    ),
+    "M2": (
+        "Motion",
+        "Keep the gripper closed and orientation unchanged, move the robotic arm side to side "
+        "repeatedly until the liquid is fully stirred.",
+    ),
+    "M3": (
+        "Motion",
+        "Keep the gripper closed on the door handle and move the robotic arm {direction} until the "
+        "door is fully {open_closed}.",
+    ),
+    "M4": (
+        "Motion",
+        "Move the robotic arm to align the {source} above the {destination}, keep the gripper closed, "
+        "then progressively tilt the gripper until the liquid is fully poured.",
+    ),
+    "G1": (
+        "Grasping",
+        "Keep the gripper open and move the robotic arm until the {target} is centered within the "
+        "gripper, then close the gripper to secure the grasp.",
+    ),
+    "G2": (
+        "Grasping",
+        "Move the robotic arm toward the {target}, adjust the gripper orientation to horizontal, keep "
+        "the gripper open until centered, then close the gripper to grasp.",
+    ),
+    "G3": (
+        "Grasping",
+        "Keep the gripper closed to secure the {target} and move the robotic arm to the "
+        "{destination} while maintaining orientation horizontal.",
+    ),
+    "P1": (
+        "Perception",
+        "Move the robotic arm to center the gripper on the door handle, close the gripper to "
+        "grasp, then move {direction} to {open_close} the door.",
+    ),
+    "P2": (
+        "Perception",
+        "Move the robotic arm to position the {target} above the {destination}, keep the gripper "
+        "orientation horizontal, then open the gripper to release.",
+    ),
+    "P3": (
+        "Perception",
+        "Move the robotic arm to align the gripper with the {target}, keep the gripper closed, "
+        "then move forward until pressed.",
+    ),
+    "P4": (
+        "Perception",
+        "Open the gripper to release, reposition the robotic arm to center the {target}, then "
+        "close the gripper firmly to secure.",
+    ),
+    "MANUAL": (
+        "Manual Operation",
+        "The object has fallen or critical failure occurred, please correct it manually right away.",
+    ),
 }
 
 _MOTION_BY_ACTION = {"insert": "M1", "stir": "M2", "pour": "M4", "place": "P2", "grasp": "G2", "shake": "G3"}
@@ -111,10 +157,15 @@ def choose(ctx: Context) -> str:
 
 def instruction(strategy: str, ctx: Context) -> str:
     text = STRATEGIES[strategy][1]
-    return text.format(target=ctx.target, destination=ctx.destination, source=ctx.source, action=ctx.omitted,
-                       direction="backward" if ctx.opening else "forward",
-                       open_closed="open" if ctx.opening else "closed",
-                       open_close="open" if ctx.opening else "close")
+    return text.format(
+        target=ctx.target,
+        destination=ctx.destination,
+        source=ctx.source,
+        action=ctx.omitted,
+        direction="backward" if ctx.opening else "forward",
+        open_closed="open" if ctx.opening else "closed",
+        open_close="open" if ctx.opening else "close",
+    )
 
 
 def correction(ctx: Context) -> tuple[str, str]:
@@ -133,14 +184,23 @@ def candidates(names: Sequence[str]) -> list[tuple[str, str]]:
     from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS
 
     names = list(dict.fromkeys(n for n in names if n)) or ["object"]
-    choices = {"target": names, "source": names, "destination": [*names, *GENERIC_DESTINATIONS],
-               "action": list(ATOMIC_ACTIONS), "opening": [True, False]}
+    choices = {
+        "target": names,
+        "source": names,
+        "destination": [*names, *GENERIC_DESTINATIONS],
+        "action": list(ATOMIC_ACTIONS),
+        "opening": [True, False],
+    }
     out: list[tuple[str, str]] = []
     for sid, (_, text) in STRATEGIES.items():
         fields = {f for _, f, _, _ in string.Formatter().parse(text) if f}
         # direction/open_closed/open_close all follow whether a door is being opened
-        keys = sorted({"opening" if f in ("direction", "open_closed", "open_close") else
-                       "omitted" if f == "action" else f for f in fields})
+        keys = sorted(
+            {
+                "opening" if f in ("direction", "open_closed", "open_close") else "omitted" if f == "action" else f
+                for f in fields
+            }
+        )
         pools = [choices["action" if k == "omitted" else k] for k in keys]
         for combo in itertools.product(*pools):
             ctx = replace(Context(failure_type="", action=""), **dict(zip(keys, combo)))

@@ -56,8 +56,9 @@ class Prefix:
 
 
 class Decoder:
-    def __init__(self, model: Any, processor: Any, max_new_tokens: int = 96, no_repeat_ngram: int = 3,
-                 logit_rows: int = 256):
+    def __init__(
+        self, model: Any, processor: Any, max_new_tokens: int = 96, no_repeat_ngram: int = 3, logit_rows: int = 256
+    ):
         self.model, self.proc = model, processor
         # peft keeps the LoRA layers inside the base model's modules, so its forward is the adapted model's
         self.lm = model.get_base_model() if hasattr(model, "get_base_model") else model
@@ -106,21 +107,30 @@ class Decoder:
         pos = mask.sum(1) + (delta.view(-1).to(self.device) if delta is not None else 0)
         return Prefix(out.past_key_values, int(ids.shape[1]), out.logits[:, -1].float(), mask, pos.long())
 
-    def prefill_rows(self, rows: Sequence[Sequence[int]], pixel_values: torch.Tensor,
-                     image_grid_thw: torch.Tensor) -> Prefix:
+    def prefill_rows(
+        self, rows: Sequence[Sequence[int]], pixel_values: torch.Tensor, image_grid_thw: torch.Tensor
+    ) -> Prefix:
         """Prefill token sequences (one image each, in order), left-padded to one length."""
         n = max(len(r) for r in rows)
         ids = torch.full((len(rows), n), self.pad, dtype=torch.long)
         mask = torch.zeros((len(rows), n), dtype=torch.long)
         for i, r in enumerate(rows):
-            ids[i, n - len(r):] = torch.tensor(list(r), dtype=torch.long)
-            mask[i, n - len(r):] = 1
-        return self.prefill({"input_ids": ids, "attention_mask": mask, "pixel_values": pixel_values,
-                             "mm_token_type_ids": (ids == self.image_id).int(), "image_grid_thw": image_grid_thw})
+            ids[i, n - len(r) :] = torch.tensor(list(r), dtype=torch.long)
+            mask[i, n - len(r) :] = 1
+        return self.prefill(
+            {
+                "input_ids": ids,
+                "attention_mask": mask,
+                "pixel_values": pixel_values,
+                "mm_token_type_ids": (ids == self.image_id).int(),
+                "image_grid_thw": image_grid_thw,
+            }
+        )
 
     @torch.no_grad()
-    def _forward(self, pre: Prefix, chunks: Sequence[Sequence[int]], parents: Sequence[Sequence[int]] | None = None
-                 ) -> torch.Tensor:
+    def _forward(
+        self, pre: Prefix, chunks: Sequence[Sequence[int]], parents: Sequence[Sequence[int]] | None = None
+    ) -> torch.Tensor:
         """Feed one chunk of tokens per row after `pre` (appending to its cache); hidden states (B, m, H).
 
         `parents[i][j]`: the chunk index token j follows (-1: the prefix); None means a plain run (j - 1). A token
@@ -143,21 +153,28 @@ class Decoder:
                         depth[i, j] = depth[i, p] + 1
                     tree[i, j, j] = True
             tree[i, range(k, m), range(k, m)] = True  # padding attends to itself only (no empty softmax row)
-        allowed = torch.cat([pre.mask[:, None, :].expand(b, m, pre.length),
-                             torch.from_numpy(tree).to(self.device)], dim=2)[:, None]
+        allowed = torch.cat(
+            [pre.mask[:, None, :].expand(b, m, pre.length), torch.from_numpy(tree).to(self.device)], dim=2
+        )[:, None]
         mask4 = torch.zeros(allowed.shape, dtype=self.dtype, device=self.device)
         mask4.masked_fill_(~allowed, torch.finfo(self.dtype).min)
         pos = pre.pos[:, None] + torch.from_numpy(depth).to(self.device)
-        out = self.lm.model(input_ids=torch.from_numpy(tok).to(self.device), attention_mask=mask4,
-                            position_ids=pos[None].expand(3, b, m), past_key_values=pre.cache, use_cache=True)
+        out = self.lm.model(
+            input_ids=torch.from_numpy(tok).to(self.device),
+            attention_mask=mask4,
+            position_ids=pos[None].expand(3, b, m),
+            past_key_values=pre.cache,
+            use_cache=True,
+        )
         return out.last_hidden_state
 
     @torch.no_grad()
     def _logits(self, hidden: torch.Tensor) -> torch.Tensor:
         return self.lm.lm_head(hidden).float()
 
-    def extend_rows(self, pre: Prefix, seqs: Sequence[Sequence[int]], all_logits: bool = False
-                    ) -> tuple[Prefix, torch.Tensor | None]:
+    def extend_rows(
+        self, pre: Prefix, seqs: Sequence[Sequence[int]], all_logits: bool = False
+    ) -> tuple[Prefix, torch.Tensor | None]:
         """Feed `seqs[i]` after row i (mutating the shared cache; an empty sequence leaves the row as it is).
         Returns the new prefix and, with `all_logits`, the logits (B, m, V) of every fed position."""
         lens = [len(s) for s in seqs]
@@ -238,7 +255,7 @@ class Decoder:
         ask_row = torch.tensor([index[(i, at)] for i, _, at, _ in deep])
         ask_tok = torch.tensor([t for *_, t in deep])
         for c in range(0, len(where), self.logit_rows):  # vocab-sized rows, a bounded number at a time
-            logits = self._logits(h[rows_i[c:c + self.logit_rows], rows_j[c:c + self.logit_rows]]).cpu()
+            logits = self._logits(h[rows_i[c : c + self.logit_rows], rows_j[c : c + self.logit_rows]]).cpu()
             sel = (ask_row >= c) & (ask_row < c + self.logit_rows)
             r = ask_row[sel] - c
             lp[sel] = logits[r, ask_tok[sel]] - torch.logsumexp(logits, -1)[r]
@@ -251,18 +268,22 @@ class Decoder:
         return self.score_rows(pre, [seqs])[0]
 
     # ---- answers -----------------------------------------------------------------------------------------
-    def choose_rows(self, pre: Prefix, candidates: Sequence[Sequence[str] | None],
-                    per_token: Sequence[bool] | None = None) -> list[str | None]:
+    def choose_rows(
+        self, pre: Prefix, candidates: Sequence[Sequence[str] | None], per_token: Sequence[bool] | None = None
+    ) -> list[str | None]:
         """Per row, the candidate (followed by the end of turn) with the highest log-likelihood; None rows skip.
         A row with `per_token` true ranks by the mean log-likelihood per token instead: sentences of 16 to 30
         tokens (the correction strategies) are otherwise decided by their length, a small model's per-token
         doubt adding up over the longer ones (docs/ARCHITECTURE.md, "Eighth round")."""
         scores = self.option_scores_rows(pre, candidates, per_token)
-        return [cands[max(range(len(cands)), key=sc.__getitem__)] if cands else None
-                for cands, sc in zip(candidates, scores)]
+        return [
+            cands[max(range(len(cands)), key=sc.__getitem__)] if cands else None
+            for cands, sc in zip(candidates, scores)
+        ]
 
-    def option_scores_rows(self, pre: Prefix, candidates: Sequence[Sequence[str] | None],
-                           per_token: Sequence[bool] | None = None) -> list[list[float]]:
+    def option_scores_rows(
+        self, pre: Prefix, candidates: Sequence[Sequence[str] | None], per_token: Sequence[bool] | None = None
+    ) -> list[list[float]]:
         """Per row, the log-likelihood of each candidate followed by the end of turn (per token where `per_token`);
         `choose_rows` takes the argmax, a softmax over them is the constrained decoder's distribution."""
         seqs = [[self.encode_ids(c) + [self.eos] for c in cands] if cands else [] for cands in candidates]
@@ -281,10 +302,14 @@ class Decoder:
         for _ in range(max_actions):
             if not any(going):
                 break
-            opts = [[(", " if chosen[i] else "") + a for a in ATOMIC_ACTIONS] if going[i] else [] for i in
-                    range(len(active))]
-            seqs = [[self.encode_ids(o) for o in opts[i]] + ([[self.eos]] if going[i] and chosen[i] else [])
-                    for i in range(len(active))]
+            opts = [
+                [(", " if chosen[i] else "") + a for a in ATOMIC_ACTIONS] if going[i] else []
+                for i in range(len(active))
+            ]
+            seqs = [
+                [self.encode_ids(o) for o in opts[i]] + ([[self.eos]] if going[i] and chosen[i] else [])
+                for i in range(len(active))
+            ]
             scores = self.score_rows(cur, seqs)
             feed: list[list[int]] = []
             for i, sc in enumerate(scores):
@@ -303,8 +328,9 @@ class Decoder:
     def actions(self, pre: Prefix, max_actions: int = 12) -> str:
         return str(self.actions_rows(pre, [True], max_actions)[0])
 
-    def free_tokens_rows(self, pre: Prefix, avoid: Sequence[Sequence[str]], active: Sequence[bool]
-                         ) -> list[list[int] | None]:
+    def free_tokens_rows(
+        self, pre: Prefix, avoid: Sequence[Sequence[str]], active: Sequence[bool]
+    ) -> list[list[int] | None]:
         """Per active row, greedy token ids until the end of turn (see `free_tokens`)."""
         out: list[list[int]] = [[] for _ in active]
         going = list(active)
@@ -324,8 +350,8 @@ class Decoder:
                 if not o and barred[i]:
                     logits[i, barred[i]] = float("-inf")
                 if n and len(o) >= n - 1:
-                    tail = o[len(o) - n + 1:]
-                    seen = [o[j + n - 1] for j in range(len(o) - n + 1) if o[j:j + n - 1] == tail]
+                    tail = o[len(o) - n + 1 :]
+                    seen = [o[j + n - 1] for j in range(len(o) - n + 1) if o[j : j + n - 1] == tail]
                     if seen:
                         logits[i, seen] = float("-inf")
                 t = int(logits[i].argmax())

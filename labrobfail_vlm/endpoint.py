@@ -43,9 +43,17 @@ class EndpointAnalyzer(FailureAnalyzer):
     unless `frames` is given). `one_pass` arguments are accepted and ignored: every question is its own request
     and the server's prefix cache shares the image between them."""
 
-    def __init__(self, base_url: str, model: str | None = None, api_key_env: str = "OPENAI_API_KEY",
-                 timeout_s: float = 120.0, grid: GridConfig = GridConfig(), q6_mode: str = "free",
-                 concurrency: int = 8, max_tokens: int = 96):
+    def __init__(
+        self,
+        base_url: str,
+        model: str | None = None,
+        api_key_env: str = "OPENAI_API_KEY",
+        timeout_s: float = 120.0,
+        grid: GridConfig = GridConfig(),
+        q6_mode: str = "free",
+        concurrency: int = 8,
+        max_tokens: int = 96,
+    ):
         if q6_mode not in Q6_MODES:
             raise ValueError(f"q6_mode: expected one of {', '.join(Q6_MODES)}, got {q6_mode!r}")
         self.q6_mode, self.grid = q6_mode, grid
@@ -64,8 +72,10 @@ class EndpointAnalyzer(FailureAnalyzer):
         except TRANSPORT_ERRORS as e:
             raise EndpointError(f"endpoint: cannot list models at {self.client.base}/models ({_why(e)})") from None
         if len(names) != 1:
-            raise EndpointError(f"endpoint: the server lists {len(names)} models ({', '.join(names[:5])}); "
-                                "name one (--endpoint-model / endpoint_model=)")
+            raise EndpointError(
+                f"endpoint: the server lists {len(names)} models ({', '.join(names[:5])}); "
+                "name one (--endpoint-model / endpoint_model=)"
+            )
         return names[0]
 
     def _ask(self, image_url: str, question: str, ask: Ask) -> str:
@@ -83,8 +93,15 @@ class EndpointAnalyzer(FailureAnalyzer):
                 err = e
         raise EndpointError(f"endpoint: request to {self.client.url} failed ({_why(err)})")
 
-    def answers(self, image: Image.Image, task: str, one_pass: bool = True, frames: int | None = None,
-                objects: Sequence[str] = (), dims: Collection[str] = Q.DIMENSIONS) -> dict[str, str]:
+    def answers(
+        self,
+        image: Image.Image,
+        task: str,
+        one_pass: bool = True,
+        frames: int | None = None,
+        objects: Sequence[str] = (),
+        dims: Collection[str] = Q.DIMENSIONS,
+    ) -> dict[str, str]:
         frames = frames or self.num_frames
         url = image_data_url(image)
         out: dict[str, str] = {}
@@ -102,17 +119,23 @@ class EndpointAnalyzer(FailureAnalyzer):
                 failed = p == "Yes"
         return out
 
-    def answers_batch(self, images: Sequence[Image.Image], tasks: Sequence[str],
-                      frames: Sequence[int | None] | None = None, objects: Sequence[Sequence[str]] | None = None,
-                      dims: Sequence[Collection[str]] | None = None, max_batch: int | None = None
-                      ) -> list[dict[str, str]]:
+    def answers_batch(
+        self,
+        images: Sequence[Image.Image],
+        tasks: Sequence[str],
+        frames: Sequence[int | None] | None = None,
+        objects: Sequence[Sequence[str]] | None = None,
+        dims: Sequence[Collection[str]] | None = None,
+        max_batch: int | None = None,
+    ) -> list[dict[str, str]]:
         """`answers` for many grids, `concurrency` (or `max_batch`) grids in flight at once."""
         n = len(images)
         frames, objects = list(frames or [None] * n), list(objects or [()] * n)
         dims = list(dims or [Q.DIMENSIONS] * n)
         with ThreadPoolExecutor(max(1, min(n, max_batch or self.concurrency))) as pool:
-            jobs = [pool.submit(self.answers, images[i], tasks[i], True, frames[i], objects[i], dims[i])
-                    for i in range(n)]
+            jobs = [
+                pool.submit(self.answers, images[i], tasks[i], True, frames[i], objects[i], dims[i]) for i in range(n)
+            ]
             return [j.result() for j in jobs]
 
 

@@ -133,11 +133,12 @@ def _fit_into(cell: np.ndarray, img: Image.Image | np.ndarray) -> None:
     if (nw, nh) != (a.shape[1], a.shape[0]):
         a = cv2.resize(a, (nw, nh), interpolation=cv2.INTER_LINEAR)
     y0, x0 = (h - nh) // 2, (w - nw) // 2
-    cell[y0:y0 + nh, x0:x0 + nw] = a
+    cell[y0 : y0 + nh, x0 : x0 + nw] = a
 
 
-def build_grid(frames: Sequence[Sequence[Image.Image | np.ndarray]], cfg: GridConfig = GridConfig(),
-               visible: int | None = None) -> Image.Image:
+def build_grid(
+    frames: Sequence[Sequence[Image.Image | np.ndarray]], cfg: GridConfig = GridConfig(), visible: int | None = None
+) -> Image.Image:
     """Compose `frames[view][t]` (already sampled, at most cfg.max_frames per view) into the grid.
 
     `visible`: show only the first `visible` time steps (a prefix grid); later cells stay blank.
@@ -157,9 +158,9 @@ def build_grid(frames: Sequence[Sequence[Image.Image | np.ndarray]], cfg: GridCo
         for t in range(shown):
             r, c = cfg.cell(t, k, views)
             y, x = r * ch, c * cw
-            _fit_into(canvas[y:y + ch, x:x + cw], frames[k][t])
+            _fit_into(canvas[y : y + ch, x : x + cw], frames[k][t])
             if cfg.draw_index:
                 tag = index_tag(t, ch)
                 th, tw = min(tag.shape[0], ch), min(tag.shape[1], cw)
-                canvas[y:y + th, x:x + tw] = tag[:th, :tw]
+                canvas[y : y + th, x : x + tw] = tag[:th, :tw]
     return Image.fromarray(canvas)

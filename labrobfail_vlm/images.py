@@ -25,7 +25,7 @@ class ImageTooLarge(ConfigError):
     """An image over the pixel limit (a decompression bomb): a server answers 413 rather than 400."""
 
 
-def load_image(path: str | Path, field: str = "--grid") -> Image.Image:
+def load_image(path: str | Path, field: str = "grid") -> Image.Image:
     p = Path(path)
     if not p.exists():
         raise ConfigError(f"{field}: {path} does not exist")
@@ -71,18 +71,18 @@ def open_image(src: str | Path | BinaryIO, name: str, field: str) -> Image.Image
 
 
 def load_frames(folder: str | Path) -> tuple[list[str], list[list[Image.Image]]]:
-    """`--frames DIR`: one sub-folder per camera view, each with the same number of keyframe images."""
+    """`frames=DIR`: one sub-folder per camera view, each with the same number of keyframe images."""
     root = Path(folder)
     if not root.is_dir():
-        raise ConfigError(f"--frames: {folder} is not a directory")
+        raise ConfigError(f"frames: {folder} is not a directory")
     views = sorted(d for d in root.iterdir() if d.is_dir())
     if not views:
-        raise ConfigError(f"--frames: {folder} has no view sub-folders (expected DIR/<view>/<frame>.png)")
+        raise ConfigError(f"frames: {folder} has no view sub-folders (expected DIR/<view>/<frame>.png)")
     exts = {".png", ".jpg", ".jpeg", ".bmp", ".webp"}
     files = [sorted(f for f in v.iterdir() if f.suffix.lower() in exts) for v in views]
     counts = {v.name: len(f) for v, f in zip(views, files)}
     if len(set(counts.values())) != 1:
-        raise ConfigError(f"--frames: views have unequal numbers of frames: {counts}")
+        raise ConfigError(f"frames: views have unequal numbers of frames: {counts}")
     if not next(iter(counts.values())):
-        raise ConfigError(f"--frames: no images in {folder}")
-    return [v.name for v in views], [[load_image(f, "--frames") for f in fs] for fs in files]
+        raise ConfigError(f"frames: no images in {folder}")
+    return [v.name for v in views], [[load_image(f, "frames") for f in fs] for fs in files]

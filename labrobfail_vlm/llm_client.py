@@ -42,12 +42,15 @@ class ChatClient:
         with urllib.request.urlopen(req, timeout=self.timeout) as r:  # noqa: S310 - scheme checked above
             return json.loads(r.read())
 
-    def chat(self, messages: list[dict[str, Any]], temperature: float = 0.0, max_tokens: int = 256,
-             **extra: Any) -> str:
+    def chat(
+        self, messages: list[dict[str, Any]], temperature: float = 0.0, max_tokens: int = 256, **extra: Any
+    ) -> str:
         """The reply text; `extra` goes into the request body as is (e.g. vLLM's `structured_outputs`).
         Raises OSError/ValueError/KeyError on transport or format problems."""
-        reply = self._call(self.url, {"model": self.model, "temperature": temperature, "max_tokens": max_tokens,
-                                      "messages": messages, **extra})
+        reply = self._call(
+            self.url,
+            {"model": self.model, "temperature": temperature, "max_tokens": max_tokens, "messages": messages, **extra},
+        )
         return str(reply["choices"][0]["message"]["content"])
 
     def models(self) -> list[str]:

@@ -24,8 +24,14 @@ from dataclasses import dataclass
 from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, Category, Severity
 
 DIMENSIONS = ("Q1", "Q2", "Q3", "Q4", "Q5", "Q6")
-DIMENSION_NAMES = {"Q1": "Task Understanding", "Q2": "Failure Detection", "Q3": "Temporal Localization",
-                   "Q4": "Severity Assessment", "Q5": "Failure Classification", "Q6": "Correction Strategy"}
+DIMENSION_NAMES = {
+    "Q1": "Task Understanding",
+    "Q2": "Failure Detection",
+    "Q3": "Temporal Localization",
+    "Q4": "Severity Assessment",
+    "Q5": "Failure Classification",
+    "Q6": "Correction Strategy",
+}
 
 # Auxiliary training records (data/facts.py: per-frame state facts) end in _A<i>; the benchmark never asks them.
 AUX_PREFIX = "A"
@@ -33,13 +39,17 @@ AUX_PREFIX = "A"
 NO_FAILURE = "None"
 NO_CORRECTION = "No correction is needed; the task was completed successfully."
 
-PREAMBLE = ("The image consists of a series of sequential frames. Each row presents a different camera viewpoint, "
-            "and each column corresponds to a later time step, with the time-step label shown in the top-left "
-            "corner. These frames depict the robotic arm's motion during Task: {task_name}.")
+PREAMBLE = (
+    "The image consists of a series of sequential frames. Each row presents a different camera viewpoint, "
+    "and each column corresponds to a later time step, with the time-step label shown in the top-left "
+    "corner. These frames depict the robotic arm's motion during Task: {task_name}."
+)
 # The same preamble for grids whose rows are time steps (GridConfig.time_axis="rows").
-PREAMBLE_TIME_ROWS = ("The image consists of a series of sequential frames. Each column presents a different camera "
-                      "viewpoint, and each row corresponds to a later time step, with the time-step label shown in "
-                      "the top-left corner. These frames depict the robotic arm's motion during Task: {task_name}.")
+PREAMBLE_TIME_ROWS = (
+    "The image consists of a series of sequential frames. Each column presents a different camera "
+    "viewpoint, and each row corresponds to a later time step, with the time-step label shown in "
+    "the top-left corner. These frames depict the robotic arm's motion during Task: {task_name}."
+)
 
 # Without drawn time-step labels (the paper's "w/o temporal index" ablation, GridConfig.draw_index=False) the prompt
 # must not point at labels that are not there: the preamble drops its label clause, and Q3 asks for the time step
@@ -56,8 +66,10 @@ class Variant:
 _ACTIONS = ", ".join(ATOMIC_ACTIONS)
 VARIANTS: dict[str, tuple[Variant, ...]] = {
     "Q1": (
-        Variant(f"What atomic actions does the current task consist of? Please choose from: {_ACTIONS}, "
-                "and list them in execution order."),
+        Variant(
+            f"What atomic actions does the current task consist of? Please choose from: {_ACTIONS}, "
+            "and list them in execution order."
+        ),
         Variant(f"Break down the robot's operation into primitive actions. Available primitives: {_ACTIONS}."),
         Variant(f"Identify the sequence of manipulation primitives performed in this task. Options: {_ACTIONS}."),
         Variant(f"Which atomic actions are executed in this task and in what order? Choose from: {_ACTIONS}."),
@@ -134,7 +146,7 @@ def dim_of(rid: str) -> str:
 
 
 def is_aux(dim: str) -> bool:
-    return dim.startswith(AUX_PREFIX) and dim[len(AUX_PREFIX):].isdigit()
+    return dim.startswith(AUX_PREFIX) and dim[len(AUX_PREFIX) :].isdigit()
 
 
 def traj_of(rid: str) -> str:

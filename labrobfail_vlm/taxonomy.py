@@ -105,28 +105,45 @@ class FailureType:
 FAILURE_TYPES: dict[str, FailureType] = {
     ft.name: ft
     for ft in (
-        FailureType("protocol_violation", Category.SAFETY,
-                    "A laboratory protocol is broken, e.g. reagent delivered to the wrong vessel."),
-        FailureType("improper_handling", Category.SAFETY,
-                    "Equipment is not returned to its designated place after use."),
-        FailureType("sequence_reversal", Category.LOGIC,
-                    "Steps of the workflow are executed in the wrong order."),
-        FailureType("step_omission", Category.LOGIC,
-                    "A required step of the workflow is skipped."),
-        FailureType("pose_control_error", Category.MOTION,
-                    "An abnormal end-effector twist spoils the placement or operation."),
-        FailureType("incomplete_trajectory", Category.MOTION,
-                    "The motion stops before the task's final keyframes are reached."),
-        FailureType("gripper_control_failure", Category.GRASPING,
-                    "The gripper does not close enough to acquire an aligned object."),
-        FailureType("object_slippage", Category.GRASPING,
-                    "A grasped object drifts out of the gripper during transport."),
-        FailureType("target_positioning_deviation", Category.PERCEPTION,
-                    "The object is released outside the designated target region."),
-        FailureType("operation_position_error", Category.PERCEPTION,
-                    "The end effector misses a handle or button, so the operation has no effect."),
-        FailureType("grasp_target_misalignment", Category.PERCEPTION,
-                    "The gripper closes beside the object and fails to acquire it."),
+        FailureType(
+            "protocol_violation",
+            Category.SAFETY,
+            "A laboratory protocol is broken, e.g. reagent delivered to the wrong vessel.",
+        ),
+        FailureType(
+            "improper_handling", Category.SAFETY, "Equipment is not returned to its designated place after use."
+        ),
+        FailureType("sequence_reversal", Category.LOGIC, "Steps of the workflow are executed in the wrong order."),
+        FailureType("step_omission", Category.LOGIC, "A required step of the workflow is skipped."),
+        FailureType(
+            "pose_control_error", Category.MOTION, "An abnormal end-effector twist spoils the placement or operation."
+        ),
+        FailureType(
+            "incomplete_trajectory", Category.MOTION, "The motion stops before the task's final keyframes are reached."
+        ),
+        FailureType(
+            "gripper_control_failure",
+            Category.GRASPING,
+            "The gripper does not close enough to acquire an aligned object.",
+        ),
+        FailureType(
+            "object_slippage", Category.GRASPING, "A grasped object drifts out of the gripper during transport."
+        ),
+        FailureType(
+            "target_positioning_deviation",
+            Category.PERCEPTION,
+            "The object is released outside the designated target region.",
+        ),
+        FailureType(
+            "operation_position_error",
+            Category.PERCEPTION,
+            "The end effector misses a handle or button, so the operation has no effect.",
+        ),
+        FailureType(
+            "grasp_target_misalignment",
+            Category.PERCEPTION,
+            "The gripper closes beside the object and fails to acquire it.",
+        ),
     )
 }
 
@@ -150,12 +167,17 @@ def category_of(failure_type: str) -> Category:
     try:
         return FAILURE_TYPES[failure_type].category
     except KeyError:
-        raise ValueError(f"unknown failure type {failure_type!r}; expected one of {', '.join(FAILURE_TYPE_NAMES)}") from None
+        raise ValueError(
+            f"unknown failure type {failure_type!r}; expected one of {', '.join(FAILURE_TYPE_NAMES)}"
+        ) from None
 
 
 # Scene variants (paper: seen / unseen object / unseen scene / both) and the dataset split each one feeds.
 # The one home of these names: the simulator backends, the generator, the split logic and the bench import them.
 SCENE_VARIANTS: tuple[str, ...] = ("seen", "unseen_object", "unseen_scene", "unseen_both")
 SEEN_SPLITS: tuple[str, ...] = ("train", "val", "test")  # the seen variant is cut 8:1:1 into these
-UNSEEN_SPLITS: dict[str, str] = {"unseen_object": "test_object", "unseen_scene": "test_scene",
-                                 "unseen_both": "test_both"}  # each unseen variant is a test set of its own
+UNSEEN_SPLITS: dict[str, str] = {
+    "unseen_object": "test_object",
+    "unseen_scene": "test_scene",
+    "unseen_both": "test_both",
+}  # each unseen variant is a test set of its own

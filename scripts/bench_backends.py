@@ -1,7 +1,9 @@
 """Compare LabRobFail-Sim throughput across simulator backends: one table from scripts/bench_sim.py's JSON.
 
 Run as:
-    python scripts/bench_backends.py [backends=[pybullet,maniskill]] [episodes=28] [image_size=192] [out=outputs/bench_backends.json]
+    python scripts/bench_backends.py [backends=[pybullet,maniskill]] [episodes=28] [image_size=192]
+                                     [out=outputs/bench_backends.json]
+    python scripts/bench_backends.py --backends pybullet --episodes 8
 
 Each backend runs `scripts/bench_sim.py backend=NAME` in a child process of its own (so peak memory is its
 own), on its own scenario mix (the generator's pair plan for seed 0). Writes `out` (backend -> bench_sim's
@@ -15,14 +17,20 @@ import json
 import subprocess
 import sys
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
 
-from omegaconf import OmegaConf  # noqa: E402
+SCRIPTS = Path(__file__).resolve().parent  # bench_sim.py runs from here, with the repository root as its cwd
 
-from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json  # noqa: E402
+DEFAULTS = """
+backends: [pybullet, maniskill]    # simulator backends to compare (a list, or one name / comma-separated names)
+episodes: 28                       # episodes per bench_sim row, per backend
+image_size: 192                    # square rendered views, px
+out: outputs/bench_backends.json   # the JSON result (the Markdown table goes next to it, .md)
+"""
 
 ROWS = [  # (key, label) of the table, in order; "rendered" = the first rendered_2x* key bench_sim wrote
     ("physics_only_episodes_per_hour_per_core", "physics only, episodes/h/core"),
@@ -51,16 +59,33 @@ def table(results: dict[str, dict]) -> str:
 
 
 def main(argv: list[str]) -> int:
-    args = OmegaConf.from_dotlist(argv)
-    n, size = int(args.get("episodes", 28)), int(args.get("image_size", 192))
-    out = Path(args.get("out", "outputs/bench_backends.json"))
+    cfg = load_config(DEFAULTS, argv)
+    backends = cfg.backends.split(",") if isinstance(cfg.backends, str) else cfg.backends
+    if not isinstance(backends, Sequence) or not backends or not all(isinstance(b, str) and b for b in backends):
+        raise ConfigError(f"backends: expected a list of backend names, got {cfg.backends!r}")
+    for key, low in (("episodes", 2), ("image_size", 1)):
+        v = cfg[key]
+        if isinstance(v, bool) or not isinstance(v, int) or v < low:
+            raise ConfigError(f"{key}: expected an integer >= {low}, got {v!r}")
+    n, size = cfg.episodes, cfg.image_size
+    out = Path(str(cfg.out))
     results = {}
     with tempfile.TemporaryDirectory() as d:
-        for backend in list(args.get("backends", ["pybullet", "maniskill"])):
+        for backend in list(backends):
             one = Path(d) / f"{backend}.json"
-            r = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_sim.py"), f"backend={backend}",
-                                f"episodes={n}", f"image_size={size}", f"out={one}"], cwd=ROOT,
-                               capture_output=True, text=True)
+            r = subprocess.run(
+                [
+                    sys.executable,
+                    str(SCRIPTS / "bench_sim.py"),
+                    f"backend={backend}",
+                    f"episodes={n}",
+                    f"image_size={size}",
+                    f"out={one}",
+                ],
+                cwd=SCRIPTS.parent,
+                capture_output=True,
+                text=True,
+            )
             if r.returncode != 0:
                 tail = (r.stderr.strip().splitlines() or ["no output"])[-1]
                 print(f"error: {backend}: {tail}", file=sys.stderr)
@@ -73,4 +98,4 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    cli_main(main, __doc__)

@@ -2,13 +2,13 @@
 batched diagnosis (analyze_batch) against one grid at a time.
 
 Run as:
-    python scripts/bench_infer.py [--model DIR] [--repeats 7] [--batch 8] [--out outputs/bench_infer.json]
-    python scripts/bench_infer.py --dataset outputs/demo_dataset --split test   # + evaluate.py's predictions
+    python scripts/bench_infer.py [model=DIR] [repeats=7] [batch=8] [out=outputs/bench_infer.json]
+    python scripts/bench_infer.py dataset=outputs/demo_dataset split=test   # + evaluate.py's predictions
 
-Tiny model on CPU by default (built on the fly if --model is not given); the same script on a GPU
+Tiny model on CPU by default (built on the fly if model is not given); the same script on a GPU
 machine measures whatever checkpoint it is pointed at. Target (issue 5): one pass >= 4x faster.
-With --dataset, the bench's model predictions for a split (what scripts/evaluate.py runs) are timed with
-batch_size 1 and --batch, and must be equal.
+With dataset, the bench's model predictions for a split (what scripts/evaluate.py runs) are timed with
+batch_size 1 and `batch`, and must be equal.
 The two modes alternate repeat by repeat, so a burst of load from other processes on a shared machine
 hits both alike; wall and CPU seconds are both reported, with the load average before and after.
 scripts/profile_infer.py shows where the one-pass time goes.
@@ -16,22 +16,32 @@ scripts/profile_infer.py shows where the one-pass time goes.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from labrobfail_vlm.config import ConfigError, cli_main, load_config
+
+DEFAULTS = """
+model: null                    # model folder to measure; null = a tiny random model, built on the fly
+repeats: 7                     # timed repeats of each mode (one pass, six prompts), alternating
+batch: 8                       # grids per analyze_batch call in the batching rows
+dataset: null                  # also time evaluate.py's predictions on this dataset (null = skip)
+split: test                    # the dataset split for those predictions
+out: outputs/bench_infer.json  # the JSON result
+"""
 
 
 def stats(ts: list[float]) -> dict[str, float]:
-    return {"p50_s": round(float(np.percentile(ts, 50)), 4), "p95_s": round(float(np.percentile(ts, 95)), 4),
-            "min_s": round(min(ts), 4)}
+    return {
+        "p50_s": round(float(np.percentile(ts, 50)), 4),
+        "p95_s": round(float(np.percentile(ts, 95)), 4),
+        "min_s": round(min(ts), 4),
+    }
 
 
 def evaluate_rows(fa: object, dataset: str, split: str, batch: int) -> dict[str, object]:
@@ -47,20 +57,27 @@ def evaluate_rows(fa: object, dataset: str, split: str, batch: int) -> dict[str,
     assert preds[1] == preds[batch], "batched predictions differ"
     n = len({r["id"].rsplit("_", 1)[0] for r in recs})
     failed = sum(v != "None" for k, v in preds[1].items() if k.endswith("_Q3"))  # Q3 is a frame after "failed"
-    return {"dataset": dataset, "split": split, "trajectories": n, "records": len(recs),
-            "batch_1_s": round(times[1], 2), f"batch_{batch}_s": round(times[batch], 2),
-            "speedup": round(times[1] / times[batch], 2), "failure_verdicts": failed}
+    return {
+        "dataset": dataset,
+        "split": split,
+        "trajectories": n,
+        "records": len(recs),
+        "batch_1_s": round(times[1], 2),
+        f"batch_{batch}_s": round(times[batch], 2),
+        "speedup": round(times[1] / times[batch], 2),
+        "failure_verdicts": failed,
+    }
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--model", default=None)
-    ap.add_argument("--repeats", type=int, default=7)
-    ap.add_argument("--batch", type=int, default=8, help="grids per analyze_batch call in the batching rows")
-    ap.add_argument("--dataset", default=None, help="also time evaluate.py's predictions on this dataset")
-    ap.add_argument("--split", default="test")
-    ap.add_argument("--out", default="outputs/bench_infer.json")
-    a = ap.parse_args()
+def main(argv: list[str]) -> int:
+    a = load_config(DEFAULTS, argv)
+    for key in ("repeats", "batch"):
+        v = a[key]
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ConfigError(f"{key}: expected an integer >= 1, got {v!r}")
+    for key in ("model", "dataset"):
+        if a[key] is not None and not isinstance(a[key], str):
+            raise ConfigError(f"{key}: expected a folder path, got {a[key]!r}")
     import torch
     from PIL import Image
 
@@ -71,6 +88,7 @@ def main() -> None:
     model = a.model
     if model is None:
         from labrobfail_vlm.model.tiny import build_tiny
+
         model = str(build_tiny(Path(tempfile.mkdtemp()) / "tiny"))
     fa = FailureAnalyzer.from_pretrained(model)
     rng = np.random.default_rng(0)
@@ -98,22 +116,33 @@ def main() -> None:
     together = fa.analyze_batch(reqs, max_batch=a.batch)
     t_batch = time.perf_counter() - t
     assert [d.raw for d in together] == [d.raw for d in one_by_one], "batched answers differ"
-    res = {"model": "tiny (random)" if a.model is None else a.model, "grid": "1536x768",
-           "device": str(next(fa.model.parameters()).device), "threads": torch.get_num_threads(), "rows": rows,
-           "speedup_one_pass": round(rows["six_prompts"]["p50_s"] / rows["one_pass"]["p50_s"], 2),
-           "speedup_one_pass_cpu": round(rows["six_prompts"]["cpu_p50_s"] / rows["one_pass"]["cpu_p50_s"], 2),
-           "target": 4.0, "q2": one_by_one[0].raw["Q2"],
-           "batch": {"grids": a.batch, "one_at_a_time_s_per_grid": round(t_single / a.batch, 4),
-                     "analyze_batch_s_per_grid": round(t_batch / a.batch, 4),
-                     "speedup": round(t_single / t_batch, 2)},
-           "load_average": [round(load_start, 2), round(os.getloadavg()[0], 2)]}
+    res = {
+        "model": "tiny (random)" if a.model is None else a.model,
+        "grid": "1536x768",
+        "device": str(next(fa.model.parameters()).device),
+        "threads": torch.get_num_threads(),
+        "rows": rows,
+        "speedup_one_pass": round(rows["six_prompts"]["p50_s"] / rows["one_pass"]["p50_s"], 2),
+        "speedup_one_pass_cpu": round(rows["six_prompts"]["cpu_p50_s"] / rows["one_pass"]["cpu_p50_s"], 2),
+        "target": 4.0,
+        "q2": one_by_one[0].raw["Q2"],
+        "batch": {
+            "grids": a.batch,
+            "one_at_a_time_s_per_grid": round(t_single / a.batch, 4),
+            "analyze_batch_s_per_grid": round(t_batch / a.batch, 4),
+            "speedup": round(t_single / t_batch, 2),
+        },
+        "load_average": [round(load_start, 2), round(os.getloadavg()[0], 2)],
+    }
     if a.dataset:
-        res["evaluate"] = evaluate_rows(fa, a.dataset, a.split, a.batch)
+        res["evaluate"] = evaluate_rows(fa, a.dataset, str(a.split), a.batch)
         res["load_average"][1] = round(os.getloadavg()[0], 2)
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(Path(a.out), res)
+    out = Path(str(a.out))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out, res)
     print(json.dumps(res))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    cli_main(main, __doc__)

@@ -1,17 +1,18 @@
 """Benchmark the diagnosis server on loopback: latency, throughput with and without batching, memory, a load run.
 
 Run as:
-    python scripts/bench_serve.py [--model DIR] [--grid 512x512] [--seconds 8] [--load-requests 2000]
-                                  [--load-clients 16] [--malformed 0.1] [--out outputs/bench_serve.json]
+    python scripts/bench_serve.py [model=DIR] [grid=512x512] [seconds=8] [load_requests=2000]
+                                  [load_clients=16] [malformed=0.1] [out=outputs/bench_serve.json]
+    python scripts/bench_serve.py --seconds 2 --load-requests 0
 
-Starts scripts/serve.py as its own process (the tiny random model, built on the fly, unless --model is given)
+Starts scripts/serve.py as its own process (the tiny random model, built on the fly, unless model is given)
 and measures, with real HTTP clients in threads:
   - single-request latency p50/p95 (one client, sequential);
   - throughput (diagnoses/s) at 1, 4 and 16 concurrent clients, for a fixed time each, with batching
-    (--max-batch 8) and without (--max-batch 1; a second server);
+    (max_batch=8) and without (max_batch=1; a second server);
   - the server's peak RSS (VmHWM) under each;
-  - a bounded load run (a third server, Q6 in template mode): --load-requests requests from --load-clients
-    clients, a --malformed share of them bad (not an image, no image, bad prefix, unknown field, decompression
+  - a bounded load run (a third server, Q6 in template mode): load_requests requests from load_clients
+    clients, a `malformed` share of them bad (not an image, no image, bad prefix, unknown field, decompression
     bomb), each good one with its own task text, which its reply must echo: every request must get exactly one
     reply, its own, and the server must be alive at the end with as many diagnoses counted as good requests sent.
 The default run takes about 4-5 minutes on 2 CPU cores shared with other work.
@@ -19,7 +20,6 @@ The default run takes about 4-5 minutes on 2 CPU cores shared with other work.
 
 from __future__ import annotations
 
-import argparse
 import io
 import json
 import os
@@ -33,10 +33,23 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from labrobfail_vlm.serve.client import DiagnosisClient, Part
 
-from labrobfail_vlm.serve.client import DiagnosisClient, Part  # noqa: E402
+SCRIPTS = Path(__file__).resolve().parent  # serve.py runs from here, with the repository root as its cwd
+
+DEFAULTS = """
+model: null                    # model folder to serve; null = a tiny random model, built on the fly
+grid: 512x512                  # uploaded grid size WxH (512x512: 256 visual tokens)
+seconds: 8.0                   # seconds per throughput level
+clients: "1,4,16"              # concurrent clients of the throughput levels, comma-separated
+max_batch: 8                   # the batched server's max_batch (the unbatched one runs max_batch=1)
+max_wait_ms: 10.0              # every server's max_wait_ms
+load_requests: 2000            # requests in the load run (0 = no load run)
+load_clients: 16               # concurrent clients in the load run
+malformed: 0.1                 # share of the load run's requests that are bad (0-1)
+out: outputs/bench_serve.json  # the JSON result
+"""
 
 
 def png(img: Any) -> bytes:
@@ -49,9 +62,13 @@ class ServerProcess:
     def __init__(self, model: str, log: Path, *args: str):
         env = {k: v for k, v in os.environ.items() if k != "LABROBFAIL_API_TOKEN"}
         self.log = log
-        self.proc = subprocess.Popen([sys.executable, str(ROOT / "scripts/serve.py"), "--model", model, "--port", "0",
-                                      "--log-level", "warning", *args], cwd=ROOT, env=env, stdout=open(log, "w"),
-                                     stderr=subprocess.STDOUT)
+        self.proc = subprocess.Popen(
+            [sys.executable, str(SCRIPTS / "serve.py"), f"model={model}", "port=0", "log_level=warning", *args],
+            cwd=SCRIPTS.parent,
+            env=env,
+            stdout=open(log, "w"),
+            stderr=subprocess.STDOUT,
+        )
         self.url = ""
         for _ in range(1200):
             text = log.read_text()
@@ -107,9 +124,12 @@ def latency(url: str, grids: list[bytes], n: int = 20) -> dict[str, float]:
         ts.append(time.perf_counter() - t)
         assert code == 200, code
     # a failure verdict costs Q3-Q6 (Q6: up to 96 tokens of free text from a random model) on top of Q1-Q2
-    return {"p50_ms": round(1000 * float(np.percentile(ts, 50)), 1),
-            "p95_ms": round(1000 * float(np.percentile(ts, 95)), 1), "requests": n,
-            "grids_with_failure_verdict": f"{sum(verdicts)}/{len(grids)}"}
+    return {
+        "p50_ms": round(1000 * float(np.percentile(ts, 50)), 1),
+        "p95_ms": round(1000 * float(np.percentile(ts, 95)), 1),
+        "requests": n,
+        "grids_with_failure_verdict": f"{sum(verdicts)}/{len(grids)}",
+    }
 
 
 def throughput(url: str, grids: list[bytes], clients: int, seconds: float) -> dict[str, float]:
@@ -128,8 +148,13 @@ def throughput(url: str, grids: list[bytes], clients: int, seconds: float) -> di
                 errors[k] += 1
 
     wall = in_threads(run, clients)  # includes the requests in flight at the deadline
-    return {"clients": clients, "diagnoses_per_s": round(sum(done) / wall, 2), "diagnoses": sum(done),
-            "errors": sum(errors), "seconds": round(wall, 1)}
+    return {
+        "clients": clients,
+        "diagnoses_per_s": round(sum(done) / wall, 2),
+        "diagnoses": sum(done),
+        "errors": sum(errors),
+        "seconds": round(wall, 1),
+    }
 
 
 def malformed_parts(kind: int, grid: bytes) -> tuple[list[Part], int]:
@@ -148,8 +173,9 @@ def malformed_parts(kind: int, grid: bytes) -> tuple[list[Part], int]:
     return [("grid", ("bomb.png", bomb.getvalue(), "image/png"))], 413
 
 
-def load_run(server: ServerProcess, grids: list[bytes], requests: int, clients: int, malformed: float
-             ) -> dict[str, Any]:
+def load_run(
+    server: ServerProcess, grids: list[bytes], requests: int, clients: int, malformed: float
+) -> dict[str, Any]:
     rng = np.random.default_rng(1)
     bad = set(rng.choice(requests, int(round(requests * malformed)), replace=False).tolist())
     bad_parts = [malformed_parts(k, grids[0]) for k in range(5)]
@@ -161,8 +187,11 @@ def load_run(server: ServerProcess, grids: list[bytes], requests: int, clients: 
     def run(k: int) -> None:
         c = DiagnosisClient(server.url)
         for i in range(k, requests, clients):
-            parts, _ = bad_parts[i % 5] if i in bad else ([("grid", ("g.png", grids[i % len(grids)], "image/png")),
-                                                            ("task", f"load request {i}")], 200)
+            parts, _ = (
+                bad_parts[i % 5]
+                if i in bad
+                else ([("grid", ("g.png", grids[i % len(grids)], "image/png")), ("task", f"load request {i}")], 200)
+            )
             try:
                 got = c.post_form(parts)
             except OSError as e:  # a lost reply
@@ -189,27 +218,65 @@ def load_run(server: ServerProcess, grids: list[bytes], requests: int, clients: 
         else:
             wrong += 1
     h = DiagnosisClient(server.url).health()
-    return {"requests": requests, "clients": clients, "malformed_sent": len(bad), "answered_ok": ok,
-            "rejected_4xx": rejected, "wrong_or_crossed": wrong, "lost": sum(1 for rs in replies.values() if not rs),
-            "duplicated": sum(1 for rs in replies.values() if len(rs) > 1), "transport_errors": len(failures),
-            "diagnoses_counted_by_server": h["diagnoses"] - before, "server_alive": h["status"] == "ok",
-            "all_accounted_for": ok + rejected == requests and h["diagnoses"] - before == requests - len(bad),
-            "seconds": round(wall, 1), "requests_per_s": round(requests / wall, 1), "largest_batch": h["largest_batch"]}
+    return {
+        "requests": requests,
+        "clients": clients,
+        "malformed_sent": len(bad),
+        "answered_ok": ok,
+        "rejected_4xx": rejected,
+        "wrong_or_crossed": wrong,
+        "lost": sum(1 for rs in replies.values() if not rs),
+        "duplicated": sum(1 for rs in replies.values() if len(rs) > 1),
+        "transport_errors": len(failures),
+        "diagnoses_counted_by_server": h["diagnoses"] - before,
+        "server_alive": h["status"] == "ok",
+        "all_accounted_for": ok + rejected == requests and h["diagnoses"] - before == requests - len(bad),
+        "seconds": round(wall, 1),
+        "requests_per_s": round(requests / wall, 1),
+        "largest_batch": h["largest_batch"],
+    }
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--model", default=None)
-    ap.add_argument("--grid", default="512x512", help="uploaded grid size WxH (512x512: 256 visual tokens)")
-    ap.add_argument("--seconds", type=float, default=8.0, help="per throughput level")
-    ap.add_argument("--clients", default="1,4,16")
-    ap.add_argument("--max-batch", type=int, default=8)
-    ap.add_argument("--max-wait-ms", type=float, default=10.0)
-    ap.add_argument("--load-requests", type=int, default=2000)
-    ap.add_argument("--load-clients", type=int, default=16)
-    ap.add_argument("--malformed", type=float, default=0.1)
-    ap.add_argument("--out", default="outputs/bench_serve.json")
-    a = ap.parse_args()
+def check(a: Any) -> tuple[tuple[int, int], list[int]]:
+    """Every setting, one-line errors; returns the grid's (W, H) and the throughput levels."""
+
+    def number(key: str, low: float, integer: bool = False, strict: bool = True) -> None:
+        v = a[key]
+        ok = isinstance(v, int) if integer else isinstance(v, (int, float))
+        if isinstance(v, bool) or not ok or (v <= low if strict else v < low):
+            raise ConfigError(
+                f"{key}: expected {'an integer' if integer else 'a number'} "
+                f"{'>' if strict else '>='} {low:g}, got {v!r}"
+            )
+
+    if a.model is not None and not isinstance(a.model, str):
+        raise ConfigError(f"model: expected a folder path, got {a.model!r}")
+    try:
+        w, h = (int(x) for x in str(a.grid).lower().split("x"))
+    except ValueError:
+        w = h = 0
+    if w < 1 or h < 1:
+        raise ConfigError(f"grid: expected a positive WxH (e.g. 512x512), got {a.grid!r}")
+    try:
+        levels = [int(x) for x in str(a.clients).split(",")]
+    except ValueError:
+        levels = []
+    if not levels or min(levels) < 1:
+        raise ConfigError(f"clients: expected positive client counts, comma-separated (e.g. 1,4,16), got {a.clients!r}")
+    number("seconds", 0)
+    number("max_batch", 0, integer=True)
+    number("max_wait_ms", 0, strict=False)
+    number("load_requests", 0, integer=True, strict=False)
+    number("load_clients", 0, integer=True)
+    number("malformed", 0, strict=False)
+    if a.malformed > 1:
+        raise ConfigError(f"malformed: expected a share between 0 and 1, got {a.malformed!r}")
+    return (w, h), levels
+
+
+def main(argv: list[str]) -> int:
+    a = load_config(DEFAULTS, argv)
+    (w, h), levels = check(a)
     import torch
 
     from labrobfail_vlm.io import atomic_write_json
@@ -218,21 +285,24 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp())
     if model is None:
         from labrobfail_vlm.model.tiny import build_tiny
+
         model = str(build_tiny(tmp / "tiny"))
-    w, h = (int(x) for x in a.grid.lower().split("x"))
     grids = grid_parts((w, h))
-    levels = [int(x) for x in a.clients.split(",")]
-    res: dict[str, Any] = {"model": "tiny (random)" if a.model is None else a.model, "grid": f"{w}x{h}",
-                           "cpu_cores": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-                           "load_average_start": os.getloadavg()[0]}
+    res: dict[str, Any] = {
+        "model": "tiny (random)" if a.model is None else a.model,
+        "grid": f"{w}x{h}",
+        "cpu_cores": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "load_average_start": os.getloadavg()[0],
+    }
     t0 = time.perf_counter()
-    runs = [("batched", ["--max-batch", str(a.max_batch)]), ("unbatched", ["--max-batch", "1"])]
+    runs = [("batched", [f"max_batch={a.max_batch}"]), ("unbatched", ["max_batch=1"])]
     if a.load_requests:
         # every load request carries its own task text, which flips the random model's Q2 verdict for many of
         # them; Q6 template mode keeps a failure verdict at a few forward calls (free text would run 96 tokens)
-        runs.append(("load_run", ["--max-batch", str(a.max_batch), "--q6-mode", "template"]))
+        runs.append(("load_run", [f"max_batch={a.max_batch}", "q6_mode=template"]))
     for name, args in runs:
-        s = ServerProcess(model, tmp / f"{name}.log", *args, "--max-wait-ms", str(a.max_wait_ms))
+        s = ServerProcess(model, tmp / f"{name}.log", *args, f"max_wait_ms={a.max_wait_ms}")
         try:
             row: dict[str, Any] = {"server_args": " ".join(args)}
             if name == "load_run":
@@ -248,15 +318,17 @@ def main() -> None:
                 s.proc.kill()
         res[name] = row
         print(json.dumps({name: row}), flush=True)
-    res["speedup_batching_at_16"] = round(res["batched"]["throughput"][-1]["diagnoses_per_s"]
-                                          / res["unbatched"]["throughput"][-1]["diagnoses_per_s"], 2)
+    res["speedup_batching_at_16"] = round(
+        res["batched"]["throughput"][-1]["diagnoses_per_s"] / res["unbatched"]["throughput"][-1]["diagnoses_per_s"], 2
+    )
     res["load_average_end"] = os.getloadavg()[0]
     res["total_s"] = round(time.perf_counter() - t0, 1)
-    out = Path(a.out)
+    out = Path(str(a.out))
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out, res)
     print(json.dumps(res))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    cli_main(main, __doc__)

@@ -1,7 +1,9 @@
 """Benchmark LabRobFail-Sim throughput on this machine and write JSON.
 
 Run as:
-    python scripts/bench_sim.py [backend=pybullet] [episodes=48] [image_size=192] [out=outputs/bench_sim.json]
+    python scripts/bench_sim.py [backend=pybullet] [episodes=48] [image_size=192]
+                                [out=outputs/bench_sim_BACKEND.json]
+    python scripts/bench_sim.py --backend maniskill --episodes 8
 
 Every row runs the same episodes: the generator's own pair plan for seed 0 (the same scenario mix,
 short, medium and long, with its oversampling), so rows compare side by side in one run:
@@ -15,18 +17,22 @@ from __future__ import annotations
 
 import json
 import resource
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from labrobfail_vlm.io import atomic_write_json
+from sim_backends.generate import generate, labelable_pair, scenario_order
+from sim_backends.generate import load_config as generate_config
+from sim_backends.registry import available_backends, backend_spec, make_backend
 
-from omegaconf import OmegaConf  # noqa: E402
-
-from data.generate import generate, labelable_pair, load_config, scenario_order  # noqa: E402
-from labrobfail_vlm.io import atomic_write_json  # noqa: E402
-from sim_backends.registry import backend_spec, make_backend  # noqa: E402
+DEFAULTS = """
+backend: pybullet                       # registered FailureSource (sim_backends/registry.py)
+episodes: 48                            # episodes per row (even: they run as nominal/injected pairs)
+image_size: 192                         # square rendered views, px
+out: outputs/bench_sim_${backend}.json  # the JSON result (${backend}: the backend above)
+"""
 
 # Rendering variants compared per backend (backend kwargs); the first is the backend's default.
 RENDER_VARIANTS = {"pybullet": {"lowpoly_robot": {"lowpoly_robot": True}, "stock_meshes": {"lowpoly_robot": False}}}
@@ -51,41 +57,62 @@ def in_process(backend: str, pairs: int, render_frames: int | None = None, **kwa
 
 def end_to_end(backend: str, workers: int, n: int, image_size: int) -> float:
     with tempfile.TemporaryDirectory() as d:
-        cfg = load_config([f"backend={backend}", f"out_dir={d}/s", f"num_episodes={n}", f"workers={workers}",
-                           "progress=false", "episodes_per_shard=2", "seed=0", f"image_size={image_size}"])
+        cfg = generate_config(
+            [
+                f"backend={backend}",
+                f"out_dir={d}/s",
+                f"num_episodes={n}",
+                f"workers={workers}",
+                "progress=false",
+                "episodes_per_shard=2",
+                "seed=0",
+                f"image_size={image_size}",
+            ]
+        )
         t = time.perf_counter()
         generate(cfg)
         return time.perf_counter() - t
 
 
 def main(argv: list[str]) -> int:
-    args = OmegaConf.from_dotlist(argv)
-    backend = str(args.get("backend", "pybullet"))
-    n = int(args.get("episodes", 48))
-    size = int(args.get("image_size", 192))
-    out = Path(args.get("out", f"outputs/bench_sim_{backend}.json"))
+    cfg = load_config(DEFAULTS, argv)
+    backend = str(cfg.backend)
+    if backend not in available_backends():
+        raise ConfigError(f"backend: unknown backend {backend!r}; available: {', '.join(available_backends())}")
+    for key, low in (("episodes", 2), ("image_size", 1)):
+        v = cfg[key]
+        if isinstance(v, bool) or not isinstance(v, int) or v < low:
+            raise ConfigError(f"{key}: expected an integer >= {low}, got {v!r}")
+    n, size = cfg.episodes, cfg.image_size
+    out = Path(str(cfg.out))
     pairs = n // 2
-    res: dict = {"backend": backend, "episodes": n, "image_size": size,
-                 "scenario_mix": "the generator's pair plan for seed 0 (all scenarios, oversampled by horizon)",
-                 "scenarios": len(backend_spec(backend).cls.list_scenarios()),
-                 "physics_only_episodes_per_hour_per_core": in_process(backend, pairs, cameras=[])}
+    res: dict = {
+        "backend": backend,
+        "episodes": n,
+        "image_size": size,
+        "scenario_mix": "the generator's pair plan for seed 0 (all scenarios, oversampled by horizon)",
+        "scenarios": len(backend_spec(backend).cls.list_scenarios()),
+        "physics_only_episodes_per_hour_per_core": in_process(backend, pairs, cameras=[]),
+    }
     for name, kw in RENDER_VARIANTS.get(backend, {"default": {}}).items():
-        res[f"rendered_2x{size}_{name}_episodes_per_hour_per_core"] = in_process(backend, pairs, image_size=size,
-                                                                                  **kw)
+        res[f"rendered_2x{size}_{name}_episodes_per_hour_per_core"] = in_process(backend, pairs, image_size=size, **kw)
     # The backend's default rendering, only at the keyframes a grid of `render_frames` shows (the generator's
     # default), against every keyframe in the row above.
-    rf = int(load_config([]).render_frames)
+    rf = int(generate_config([]).render_frames)
     res[f"rendered_2x{size}_grid_keyframes_{rf}_episodes_per_hour_per_core"] = in_process(
-        backend, pairs, render_frames=rf, image_size=size)
+        backend, pairs, render_frames=rf, image_size=size
+    )
     t1 = end_to_end(backend, 1, n, size)
     t2 = end_to_end(backend, 2, n, size)
-    res.update({
-        "end_to_end_episodes_per_hour_per_core": per_hour(n, t1),
-        "end_to_end_2_workers_episodes_per_hour": per_hour(n, t2),
-        "speedup_2_workers": round(t1 / t2, 2),
-        "peak_rss_mb_main_process": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
-        "peak_rss_mb_worker": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1),
-    })
+    res.update(
+        {
+            "end_to_end_episodes_per_hour_per_core": per_hour(n, t1),
+            "end_to_end_2_workers_episodes_per_hour": per_hour(n, t2),
+            "speedup_2_workers": round(t1 / t2, 2),
+            "peak_rss_mb_main_process": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+            "peak_rss_mb_worker": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1),
+        }
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out, res, indent=2)
     print(json.dumps(res, indent=2))
@@ -93,4 +120,4 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    cli_main(main, __doc__)

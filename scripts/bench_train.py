@@ -1,7 +1,8 @@
 """Benchmark training throughput of the tiny preset on CPU (and Qwen3-VL-8B dimensions on a GPU when present).
 
 Run as:
-    python scripts/bench_train.py [--steps 6] [--out outputs/bench_train.json]
+    python scripts/bench_train.py [steps=6] [batch=4] [out=outputs/bench_train.json]
+    python scripts/bench_train.py --steps 2
 
 Rows side by side in one run, same batch: hybrid vs full tuning, at the 1536x768 grid (1152 visual tokens)
 and a 768x384 grid (288). Reports samples/s, tokens/s and peak RSS. The GPU row (random weights with the
@@ -10,19 +11,24 @@ real 8B dimensions) runs only where CUDA is available; CI and the CPU machines s
 
 from __future__ import annotations
 
-import argparse
 import json
 import resource
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from labrobfail_vlm.config import ConfigError, cli_main, load_config
+
+DEFAULTS = """
+steps: 6                       # timed optimizer steps per row (after one warm-up step)
+batch: 4                       # samples per step (the same sample repeated)
+out: outputs/bench_train.json  # the JSON result
+"""
 
 
 def step_rate(model, batch, steps: int) -> dict[str, float]:
     import torch
+
     opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-5)
     model.train()
     model(**batch).loss.backward()  # warm-up
@@ -38,19 +44,19 @@ def step_rate(model, batch, steps: int) -> dict[str, float]:
     return {"step_s": round(dt, 4), "samples_per_s": round(n / dt, 2), "tokens_per_s": round(tok / dt, 1)}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--steps", type=int, default=6)
-    ap.add_argument("--batch", type=int, default=4)
-    ap.add_argument("--out", default="outputs/bench_train.json")
-    a = ap.parse_args()
+def main(argv: list[str]) -> int:
+    a = load_config(DEFAULTS, argv)
+    for key in ("steps", "batch"):
+        v = a[key]
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ConfigError(f"{key}: expected an integer >= 1, got {v!r}")
     import torch
     from PIL import Image
 
+    from labrobfail_vlm.io import atomic_write_json
     from labrobfail_vlm.model.hybrid import apply_tuning
     from labrobfail_vlm.model.loading import load_model, load_processor
     from labrobfail_vlm.model.tiny import build_tiny
-    from labrobfail_vlm.io import atomic_write_json
     from labrobfail_vlm.train.data import Collator
 
     torch.manual_seed(0)
@@ -62,24 +68,38 @@ def main() -> None:
     for w, h in ((1536, 768), (768, 384)):
         img = tmp / f"g{w}.png"
         Image.new("RGB", (w, h), (90, 120, 150)).save(img)
-        item = {"id": "x_Q6", "image": str(img), "question": "<image>\nThe image consists of a series of frames. "
-                "What is the correction solution for this failure?", "answer": "Keep the gripper closed to secure "
-                "the small beaker and move the robotic arm to the target area while maintaining orientation "
-                "horizontal."}
+        item = {
+            "id": "x_Q6",
+            "image": str(img),
+            "question": "<image>\nThe image consists of a series of frames. "
+            "What is the correction solution for this failure?",
+            "answer": "Keep the gripper closed to secure "
+            "the small beaker and move the robotic arm to the target area while maintaining orientation "
+            "horizontal.",
+        }
         batch = Collator(proc, 4096)([item] * a.batch)
         for mode in ("hybrid", "full"):
             model = apply_tuning(load_model(path), mode, {"r": 32, "alpha": 64, "dropout": 0.0})
             rows[f"tiny_{mode}_{w}x{h}"] = step_rate(model, batch, a.steps)
-    res = {"device": "cpu", "threads": torch.get_num_threads(), "batch": a.batch, "rows": rows,
-           "full_over_hybrid_step_ratio_1536": round(rows["tiny_full_1536x768"]["step_s"]
-                                                     / rows["tiny_hybrid_1536x768"]["step_s"], 3),
-           "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
-           "gpu": "not measured: no CUDA device on this machine (the device tool lent none to this task)"
-           if not torch.cuda.is_available() else "see gpu_rows"}
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(Path(a.out), res)
+    res = {
+        "device": "cpu",
+        "threads": torch.get_num_threads(),
+        "batch": a.batch,
+        "rows": rows,
+        "full_over_hybrid_step_ratio_1536": round(
+            rows["tiny_full_1536x768"]["step_s"] / rows["tiny_hybrid_1536x768"]["step_s"], 3
+        ),
+        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        "gpu": "not measured: no CUDA device on this machine (the device tool lent none to this task)"
+        if not torch.cuda.is_available()
+        else "see gpu_rows",
+    }
+    out = Path(str(a.out))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out, res)
     print(json.dumps(res))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    cli_main(main, __doc__)

@@ -1,7 +1,7 @@
 """Build the vision tower's pretraining data: simulator shards -> frames and dense per-frame targets.
 
 Run as:
-    python scripts/build_tower_data.py 'data.shards=[outputs/tower/shards/seen,outputs/tower/shards/unseen_object]'
+    python -m scripts.build_tower_data 'data.shards=[outputs/tower/shards/seen,outputs/tower/shards/unseen_object]'
 
 Defaults: configs/tower.yaml (section `data`). Resumable: a rerun skips the source shards already converted.
 Writes frames-*.parquet and index.json (targets, splits, counts) into data.out_dir (data/tower_data.py).
@@ -10,13 +10,9 @@ Writes frames-*.parquet and index.json (targets, splits, counts) into data.out_d
 from __future__ import annotations
 
 import json
-import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from data.tower_data import build  # noqa: E402
-from labrobfail_vlm.config import cli_main, load_config  # noqa: E402
+from data.tower_data import build
+from labrobfail_vlm.config import cli_main, load_config
 
 
 def main(argv: list[str]) -> int:
@@ -27,4 +23,4 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    cli_main(main)
+    cli_main(main, __doc__)

@@ -1,7 +1,7 @@
 """Diagnose one failure trajectory of a dataset's test split and print it beside its ground truth (make demo).
 
 Run as:
-    python scripts/demo_diagnosis.py outputs/demo_dataset outputs/demo_train/final
+    python scripts/demo_diagnosis.py dataset=outputs/demo_dataset model=outputs/demo_train/final
 
 The grid, the task text and the scene's object names come from the dataset; Q6 is chosen among the paper's
 correction strategies with those names filled in (q6_mode="template"), so the correction is an instruction
@@ -11,18 +11,19 @@ that maps to robot primitives. The same call a robot stack makes: FailureAnalyze
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from labrobfail_vlm.config import ConfigError, cli_main, load_config
 
-from labrobfail_vlm.config import ConfigError, cli_main  # noqa: E402
+DEFAULTS = """
+dataset: outputs/demo_dataset      # a dataset built by scripts/build_dataset.py (its test split)
+model: outputs/demo_train/final    # the checkpoint that diagnoses
+"""
 
 
 def main(argv: list[str]) -> int:
-    if len(argv) != 2:
-        raise ConfigError("usage: demo_diagnosis.py DATASET_DIR MODEL_DIR")
-    ds, model = Path(argv[0]), Path(argv[1])
+    cfg = load_config(DEFAULTS, argv)
+    ds, model = Path(str(cfg.dataset)), Path(str(cfg.model))
     meta = ds / "trajectories.json"
     if not meta.is_file():
         raise ConfigError(f"dataset: {meta} not found (build it with scripts/build_dataset.py)")
@@ -35,13 +36,19 @@ def main(argv: list[str]) -> int:
     from labrobfail_vlm.taxonomy import Severity
 
     fa = FailureAnalyzer.from_pretrained(model, q6_mode="template")
-    diag = fa.analyze(load_image(str(ds / "images" / f"{fail['trajectory']}.png")), task=fail["task"],
-                      objects=fail["objects"], frames=fail["frames"])
-    print(f"ground truth: {fail['trajectory']} ({fail['scenario']}): {fail['failure_type']} at frame {fail['frame']}, "
-          f"severity {Severity(fail['severity']).display}, category {fail['category']}, strategy {fail['strategy']}")
+    diag = fa.analyze(
+        load_image(str(ds / "images" / f"{fail['trajectory']}.png")),
+        task=fail["task"],
+        objects=fail["objects"],
+        frames=fail["frames"],
+    )
+    print(
+        f"ground truth: {fail['trajectory']} ({fail['scenario']}): {fail['failure_type']} at frame {fail['frame']}, "
+        f"severity {Severity(fail['severity']).display}, category {fail['category']}, strategy {fail['strategy']}"
+    )
     print(diag.to_json())
     return 0
 
 
 if __name__ == "__main__":
-    cli_main(main)
+    cli_main(main, __doc__)

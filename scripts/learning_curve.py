@@ -13,12 +13,9 @@ from __future__ import annotations
 
 import json
 import re
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from labrobfail_vlm.config import ConfigError, cli_main, load_config  # noqa: E402
+from labrobfail_vlm.config import ConfigError, cli_main, load_config
 
 DIMS = ("Q2", "Q3", "Q4", "Q5")
 
@@ -37,8 +34,9 @@ def main(argv: list[str]) -> int:
     if not progress.is_file():
         raise ConfigError(f"run_dir: {run} has no progress.json (a run of train.py with checkpoints)")
     rows = {r["step"]: r for r in json.loads(progress.read_text())}
-    ckpts = sorted((int(m.group(1)), p) for p in run.glob("checkpoint-*") if (m := re.fullmatch(r"checkpoint-(\d+)",
-                                                                                                 p.name)))
+    ckpts = sorted(
+        (int(m.group(1)), p) for p in run.glob("checkpoint-*") if (m := re.fullmatch(r"checkpoint-(\d+)", p.name))
+    )
     ckpts = [(s, p) for s, p in ckpts if s in rows]
     if not ckpts:
         raise ConfigError(f"run_dir: no checkpoint-N in {run} matches progress.json (train with save_total_limit=null)")
@@ -46,8 +44,11 @@ def main(argv: list[str]) -> int:
     recs = [r for r in recs if Q.dim_of(r["id"]) in DIMS]
     points = []
     for step, path in tqdm(ckpts, desc="checkpoints", disable=not cfg.progress):
-        res = ev.score(recs, ev.model_predictions(FailureAnalyzer.from_pretrained(path), cfg.dataset_dir, recs, traj,
-                                                  progress=False), traj)
+        res = ev.score(
+            recs,
+            ev.model_predictions(FailureAnalyzer.from_pretrained(path), cfg.dataset_dir, recs, traj, progress=False),
+            traj,
+        )
         points.append({**rows[step], **{d.lower(): res[d.lower()] for d in DIMS}})
     out = Path(str(cfg.out or run / "learning_curve.png"))
     atomic_write_json(out.with_suffix(".json"), {"split": cfg.split, "run_dir": str(run), "points": points})
@@ -58,8 +59,10 @@ def main(argv: list[str]) -> int:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
-    for ax, key, label in ((axes[0], "examples", "training examples (records)"),
-                           (axes[1], "cpu_s", "CPU minutes (all threads)")):
+    for ax, key, label in (
+        (axes[0], "examples", "training examples (records)"),
+        (axes[1], "cpu_s", "CPU minutes (all threads)"),
+    ):
         for d in DIMS:
             xs = [p[key] / (60 if key == "cpu_s" else 1) for p in points]
             ax.plot(xs, [p[d.lower()] for p in points], marker="o", label=f"{d} {Q.DIMENSION_NAMES[d]}")
@@ -74,4 +77,4 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    cli_main(main)
+    cli_main(main, __doc__)

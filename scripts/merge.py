@@ -1,7 +1,7 @@
 """Merge a fine-tuned checkpoint (LoRA adapter + vision/merger weights) into a standalone Hugging Face model.
 
 Run as:
-    python scripts/merge.py outputs/demo_train/final outputs/demo_merged
+    python scripts/merge.py src=outputs/demo_train/final out=outputs/demo_merged
 
 The output loads with `Qwen3VLForConditionalGeneration.from_pretrained(OUT)` and carries the processor and
 chat template, so infer.py and any transformers/vLLM stack can use it without peft.
@@ -9,21 +9,24 @@ chat template, so infer.py and any transformers/vLLM stack can use it without pe
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from labrobfail_vlm.config import ConfigError, cli_main, load_config
 
-from labrobfail_vlm.config import ConfigError, cli_main  # noqa: E402
+DEFAULTS = """
+src: null                  # a fine-tuned checkpoint (train.py's output_dir/final)
+out: null                  # the standalone model folder to write (must not exist)
+"""
 
 
 def main(argv: list[str]) -> int:
-    if len(argv) != 2:
-        raise ConfigError("usage: python scripts/merge.py CHECKPOINT_DIR OUT_DIR")
+    cfg = load_config(DEFAULTS, argv)
+    if not isinstance(cfg.src, str) or not isinstance(cfg.out, str):
+        raise ConfigError("src/out: give the checkpoint and the output folder (src=DIR out=DIR)")
     from labrobfail_vlm.model.loading import load_processor
     from labrobfail_vlm.train.checkpoint import is_finetuned, load_finetuned
 
-    src, out = argv
+    src, out = cfg.src, cfg.out
     if not is_finetuned(src):
         raise ConfigError(f"checkpoint: {src} is not a LabRobFail fine-tuned checkpoint (no labrobfail.json)")
     model = load_finetuned(src)
@@ -40,4 +43,4 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    cli_main(main)
+    cli_main(main, __doc__)

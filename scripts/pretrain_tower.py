@@ -20,12 +20,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from labrobfail_vlm.config import ConfigError, cli_main, load_config
 
-from labrobfail_vlm.config import ConfigError, cli_main, load_config  # noqa: E402
-
-EVAL_SETS = {"seen": ({"val"}, {"seen"}), "unseen_object": ((), {"unseen_object"}),
-             "unseen_scene": ((), {"unseen_scene"})}
+EVAL_SETS = {
+    "seen": ({"val"}, {"seen"}),
+    "unseen_object": ((), {"unseen_object"}),
+    "unseen_scene": ((), {"unseen_scene"}),
+}
 
 
 def _check(cfg: Any) -> None:
@@ -43,9 +44,11 @@ def _check(cfg: Any) -> None:
     rows, cols = g.shape(len(cfg.layouts[0]))
     cw, ch = g.width // cols, g.height // rows
     if cw != ch or cw % 32 or g.width % cols or g.height % rows:
-        raise ConfigError(f"grid: {g.width}x{g.height} with {g.max_frames} frames in {g.columns} columns and "
-                          f"{len(cfg.layouts[0])} views makes {cw}x{ch} px cells; the tower needs square cells of a "
-                          "multiple of 32 px (whole merged tokens)")
+        raise ConfigError(
+            f"grid: {g.width}x{g.height} with {g.max_frames} frames in {g.columns} columns and "
+            f"{len(cfg.layouts[0])} views makes {cw}x{ch} px cells; the tower needs square cells of a "
+            "multiple of 32 px (whole merged tokens)"
+        )
 
 
 def _save(out: Path, tower: Any, heads: Any, opt: Any, state: dict[str, Any]) -> None:
@@ -86,42 +89,82 @@ def _resume(out: Path, tower: Any, heads: Any, opt: Any) -> dict[str, Any] | Non
 def card_markdown(card: dict[str, Any]) -> str:
     """TOWER_CARD.md: what the tower is, what it learned from, how well it reads each target held out."""
     v = card["vision_config"]
-    lines = ["# The LabRobFail vision tower (sim-pretrained)", "",
-             f"A Qwen3-VL vision tower and merger ({card['parameters']:,} parameters, {card['bytes'] / 1e6:.1f} MB "
-             f"float32 safetensors; depth {v['depth']}, width {v['hidden_size']}, MLP {v['intermediate_size']}, "
-             f"{v['num_heads']} heads, 16 px patches merged 2x2, output {v['out_hidden_size']} = the tiny decoder's "
-             "width), pretrained on rendered frames with exact simulator state. Made by `make tower`; "
-             "`make demo` and `make reproduce` start from it (`tower=scratch` keeps the random tower).", "",
-             "## Data", "", card["data_summary"], "",
-             "## Targets", "", "Per frame and view, from simulator state (data/frame_targets.py): "
-             + ", ".join(card["targets"]["cells"]) + "; and per 32 px token, where the "
-             + ", ".join(card["targets"]["tokens"]) + " project. Never from the injected perturbation.", "",
-             "## Held-out accuracy", "",
-             "Cell targets: balanced accuracy (mean recall of the two classes; 0.5 = chance) over the cells where "
-             "the target applies, and the positive rate. Token targets: how often the cell's top-scoring token "
-             "holds the point, against chance. Seen = held-out pairs of the seen catalogue; unseen object and "
-             "unseen scene = the simulator's unseen variants, never trained on.", ""]
+    lines = [
+        "# The LabRobFail vision tower (sim-pretrained)",
+        "",
+        f"A Qwen3-VL vision tower and merger ({card['parameters']:,} parameters, {card['bytes'] / 1e6:.1f} MB "
+        f"float32 safetensors; depth {v['depth']}, width {v['hidden_size']}, MLP {v['intermediate_size']}, "
+        f"{v['num_heads']} heads, 16 px patches merged 2x2, output {v['out_hidden_size']} = the tiny decoder's "
+        "width), pretrained on rendered frames with exact simulator state. Made by `make tower`; "
+        "`make demo` and `make reproduce` start from it (`tower=scratch` keeps the random tower).",
+        "",
+        "## Data",
+        "",
+        card["data_summary"],
+        "",
+        "## Targets",
+        "",
+        "Per frame and view, from simulator state (data/frame_targets.py): "
+        + ", ".join(card["targets"]["cells"])
+        + "; and per 32 px token, where the "
+        + ", ".join(card["targets"]["tokens"])
+        + " project. Never from the injected perturbation.",
+        "",
+        "## Held-out accuracy",
+        "",
+        "Cell targets: balanced accuracy (mean recall of the two classes; 0.5 = chance) over the cells where "
+        "the target applies, and the positive rate. Token targets: how often the cell's top-scoring token "
+        "holds the point, against chance. Seen = held-out pairs of the seen catalogue; unseen object and "
+        "unseen scene = the simulator's unseen variants, never trained on.",
+        "",
+    ]
     for lay, sets in card["heldout"].items():
         names = list(sets)
         if not names:
             continue
-        lines += [f"### Layout {lay}", "", "| target | " + " | ".join(names) + " |",
-                  "|---|" + "---|" * len(names)]
+        lines += [f"### Layout {lay}", "", "| target | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
         first = sets[names[0]]
         for t in first["cells"]:
-            lines.append(f"| {t} | " + " | ".join(
-                f"{s['cells'][t]['balanced']:.3f} (pos {s['cells'][t]['positive']:.2f})" if t in s["cells"] else "–"
-                for s in sets.values()) + " |")
+            lines.append(
+                f"| {t} | "
+                + " | ".join(
+                    f"{s['cells'][t]['balanced']:.3f} (pos {s['cells'][t]['positive']:.2f})" if t in s["cells"] else "–"
+                    for s in sets.values()
+                )
+                + " |"
+            )
         for t in first["tokens"]:
-            lines.append(f"| position: {t} | " + " | ".join(
-                f"{s['tokens'][t]['top1']:.3f} (chance {s['tokens'][t]['chance']:.2f})" if t in s["tokens"] else "–"
-                for s in sets.values()) + " |")
-        lines.append("| detection (last frame, failed_by_now) | " + " | ".join(
-            f"{s['detection']['accuracy']:.3f} (majority {s['detection']['majority']:.3f})" if "detection" in s
-            else "–" for s in sets.values()) + " |")
+            lines.append(
+                f"| position: {t} | "
+                + " | ".join(
+                    f"{s['tokens'][t]['top1']:.3f} (chance {s['tokens'][t]['chance']:.2f})" if t in s["tokens"] else "–"
+                    for s in sets.values()
+                )
+                + " |"
+            )
+        lines.append(
+            "| detection (last frame, failed_by_now) | "
+            + " | ".join(
+                f"{s['detection']['accuracy']:.3f} (majority {s['detection']['majority']:.3f})"
+                if "detection" in s
+                else "–"
+                for s in sets.values()
+            )
+            + " |"
+        )
         lines.append("")
-    lines += ["## Use", "", card["use"], "", "## Reproduce", "", f"```\n{card['command']}\n```", "",
-              f"sha256 of {card['file']}: `{card['sha256']}`", ""]
+    lines += [
+        "## Use",
+        "",
+        card["use"],
+        "",
+        "## Reproduce",
+        "",
+        f"```\n{card['command']}\n```",
+        "",
+        f"sha256 of {card['file']}: `{card['sha256']}`",
+        "",
+    ]
     return "\n".join(lines)
 
 
@@ -175,9 +218,11 @@ def main(argv: list[str]) -> int:
         parts: dict[str, list[float]] = {"cell": [], "token": []}
         bar = tqdm(total=steps, desc=f"tower epoch {epoch + 1}/{cfg.epochs}", disable=not cfg.progress)
         for b in range(steps):
-            idx = order[b * bs:(b + 1) * bs]
-            batch = T.collate([train.sample(int(i), layouts[lay[i]], grid, Augment.draw(aug_cfg, len(layouts[0]), rng))
-                               for i in idx], ip)
+            idx = order[b * bs : (b + 1) * bs]
+            batch = T.collate(
+                [train.sample(int(i), layouts[lay[i]], grid, Augment.draw(aug_cfg, len(layouts[0]), rng)) for i in idx],
+                ip,
+            )
             zc, zt = T.readout(tower, heads, batch, grid, len(layouts[0]))
             loss, p = T.tower_loss(zc, zt, batch, float(cfg.token_weight), pos_weight, cell_pos_weight)
             loss.backward()
@@ -193,44 +238,87 @@ def main(argv: list[str]) -> int:
             bar.set_postfix(cell=f"{np.mean(parts['cell'][-50:]):.3f}", token=f"{np.mean(parts['token'][-50:]):.3f}")
         bar.close()
         w1, c1 = T.clock()
-        row: dict[str, Any] = {"epoch": epoch + 1, "step": state["step"], "loss_cell": round(float(np.mean(parts["cell"])), 4),
-                               "loss_token": round(float(np.mean(parts["token"])), 4),
-                               "wall_s": round(state["wall_s"] + w1 - w0, 1), "cpu_s": round(state["cpu_s"] + c1 - c0, 1)}
+        row: dict[str, Any] = {
+            "epoch": epoch + 1,
+            "step": state["step"],
+            "loss_cell": round(float(np.mean(parts["cell"])), 4),
+            "loss_token": round(float(np.mean(parts["token"])), 4),
+            "wall_s": round(state["wall_s"] + w1 - w0, 1),
+            "cpu_s": round(state["cpu_s"] + c1 - c0, 1),
+        }
         if "seen" in evals and ((epoch + 1) % int(cfg.eval_every) == 0 or epoch + 1 == int(cfg.epochs)):
             row["seen"] = T.evaluate(tower, heads, evals["seen"], layouts[0], grid, ip)
         state.update(epoch=epoch + 1, wall_s=row["wall_s"], cpu_s=row["cpu_s"])
         state["metrics"].append(row)
-        print(json.dumps({k: v for k, v in row.items() if k != "seen"}
-                         | ({"seen_detection": row["seen"].get("detection"),
-                             "seen_balanced": {k: v["balanced"] for k, v in row["seen"]["cells"].items()}}
-                            if "seen" in row else {})), flush=True)
+        print(
+            json.dumps(
+                {k: v for k, v in row.items() if k != "seen"}
+                | (
+                    {
+                        "seen_detection": row["seen"].get("detection"),
+                        "seen_balanced": {k: v["balanced"] for k, v in row["seen"]["cells"].items()},
+                    }
+                    if "seen" in row
+                    else {}
+                )
+            ),
+            flush=True,
+        )
         _save(out, tower, heads, opt, state)
         atomic_write_json(out / "metrics.json", state["metrics"])
-    heldout = {"+".join(lay): {k: T.evaluate(tower, heads, d, lay, grid, ip) for k, d in evals.items()}
-               for lay in layouts}
+    heldout = {
+        "+".join(lay): {k: T.evaluate(tower, heads, d, lay, grid, ip) for k, d in evals.items()} for lay in layouts
+    }
     index = json.loads((Path(cfg.data.out_dir) / "index.json").read_text())
     frames = sum(int(r["frames"]) * len(r["views"]) for r in train.rows)
-    card = {"vision_config": T.vision_config(vision, int(cfg.out_hidden_size)).to_dict(),
-            "out_hidden_size": int(cfg.out_hidden_size), "grid": dict(cfg.grid), "layouts": layouts,
-            "image_processor": {"patch_size": 16, "merge_size": 2,
-                                "temporal_patch_size": int(cfg.vision.temporal_patch_size)},
-            "targets": {"cells": train.cell_names, "tokens": train.token_names},
-            "data": {"shards": index["shards"], "trajectories": index["trajectories"], "failures": index["failures"],
-                     "training_trajectories": len(train), "training_view_frames": frames},
-            "data_summary": (f"{len(train):,} seen training trajectories ({frames:,} view-frames of "
-                             f"{index['image_size']} px, views {sorted({v for r in train.rows for v in r['views']})}) "
-                             f"from {', '.join(index['shards'])}; held out: "
-                             + ", ".join(f"{k} {len(d)}" for k, d in evals.items()) + " trajectories."),
-            "training": {k: cfg[k] for k in ("epochs", "batch_size", "lr", "warmup_ratio", "weight_decay",
-                                             "token_weight", "balance_cells", "seed")} | {"augment": dict(cfg.augment),
-                                                                         "wall_s": state["wall_s"],
-                                                                         "cpu_s": state["cpu_s"]},
-            "heldout": heldout,
-            "use": ("The tiny Qwen3-VL of `preset=tiny` (train.py) takes this tower and merger in place of its random "
-                    "ones (`tower=shipped`, the default; `tower=scratch` or a folder holding tower.safetensors + "
-                    "tower.json). A real Qwen3-VL keeps its own pretrained tower: its card's targets are a recipe "
-                    "for sim-specific pretraining of that tower (same data, same heads) before the hybrid fine-tune."),
-            "command": " ".join(shlex.quote(a) for a in ["python", "scripts/pretrain_tower.py", *argv])}
+    card = {
+        "vision_config": T.vision_config(vision, int(cfg.out_hidden_size)).to_dict(),
+        "out_hidden_size": int(cfg.out_hidden_size),
+        "grid": dict(cfg.grid),
+        "layouts": layouts,
+        "image_processor": {
+            "patch_size": 16,
+            "merge_size": 2,
+            "temporal_patch_size": int(cfg.vision.temporal_patch_size),
+        },
+        "targets": {"cells": train.cell_names, "tokens": train.token_names},
+        "data": {
+            "shards": index["shards"],
+            "trajectories": index["trajectories"],
+            "failures": index["failures"],
+            "training_trajectories": len(train),
+            "training_view_frames": frames,
+        },
+        "data_summary": (
+            f"{len(train):,} seen training trajectories ({frames:,} view-frames of "
+            f"{index['image_size']} px, views {sorted({v for r in train.rows for v in r['views']})}) "
+            f"from {', '.join(index['shards'])}; held out: "
+            + ", ".join(f"{k} {len(d)}" for k, d in evals.items())
+            + " trajectories."
+        ),
+        "training": {
+            k: cfg[k]
+            for k in (
+                "epochs",
+                "batch_size",
+                "lr",
+                "warmup_ratio",
+                "weight_decay",
+                "token_weight",
+                "balance_cells",
+                "seed",
+            )
+        }
+        | {"augment": dict(cfg.augment), "wall_s": state["wall_s"], "cpu_s": state["cpu_s"]},
+        "heldout": heldout,
+        "use": (
+            "The tiny Qwen3-VL of `preset=tiny` (train.py) takes this tower and merger in place of its random "
+            "ones (`tower=shipped`, the default; `tower=scratch` or a folder holding tower.safetensors + "
+            "tower.json). A real Qwen3-VL keeps its own pretrained tower: its card's targets are a recipe "
+            "for sim-specific pretraining of that tower (same data, same heads) before the hybrid fine-tune."
+        ),
+        "command": " ".join(shlex.quote(a) for a in ["python", "scripts/pretrain_tower.py", *argv]),
+    }
     card = T.export(tower, out, card)
     atomic_write_bytes(out / T.CARD_MD, card_markdown(card).encode())
     if cfg.export_dir:
@@ -244,4 +332,4 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    cli_main(main)
+    cli_main(main, __doc__)

@@ -3,19 +3,17 @@ encoder, the language-model prefill, the six question suffixes, answer decoding 
 and the rest (Python overhead).
 
 Run as:
-    python scripts/profile_infer.py [--model DIR] [--grid 1536x768] [--batch 8] [--repeats 5]
-                                    [--out outputs/profile_infer.json]
+    python scripts/profile_infer.py [model=DIR] [grid=1536x768] [batch=8] [repeats=5]
+                                    [out=outputs/profile_infer.json]
 
 Wall-clock timers wrap the analyzer's own components on this instance only (no profiler overhead), in one
-pass, in six-prompt mode and per grid of a batch (`answers_batch` of --batch grids). Same grid as bench_infer.
+pass, in six-prompt mode and per grid of a batch (`answers_batch` of `batch` grids). Same grid as bench_infer.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import sys
 import tempfile
 import time
 from collections import defaultdict
@@ -25,7 +23,15 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from labrobfail_vlm.config import ConfigError, cli_main, load_config
+
+DEFAULTS = """
+model: null                      # model folder to profile; null = a tiny random model, built on the fly
+repeats: 5                       # timed repeats of each mode (after one warm-up)
+grid: 1536x768                   # grid size WxH, px
+batch: 8                         # grids per answers_batch call in the batch row
+out: outputs/profile_infer.json  # the JSON result
+"""
 
 
 class Sections:
@@ -53,6 +59,7 @@ class Sections:
         def timed(*a: Any, **k: Any) -> Any:
             with self(name(*a, **k) if callable(name) else name):
                 return fn(*a, **k)
+
         setattr(obj, attr, timed)
 
 
@@ -70,8 +77,11 @@ def instrument(fa: Any, s: Sections) -> None:
     s.wrap(dec, "prefill", "LM prefill (image + preamble)")
     decoding = ("answer decoding", "python: answer logic")
     # an extend outside answer decoding feeds a question's own tokens after the shared prefix
-    s.wrap(dec, "extend_rows", lambda *a, **k: "answer decoding" if s.stack and s.stack[-1][0] in decoding
-           else "question suffixes")
+    s.wrap(
+        dec,
+        "extend_rows",
+        lambda *a, **k: "answer decoding" if s.stack and s.stack[-1][0] in decoding else "question suffixes",
+    )
     s.wrap(fa, "_decode", "python: answer logic")
     for f in ("score_rows", "actions_rows", "free_tokens_rows"):
         s.wrap(dec, f, "answer decoding")
@@ -82,14 +92,20 @@ def _timed(s: Sections, name: str, fn: Callable[..., Any], *a: Any, **k: Any) ->
         return fn(*a, **k)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--model", default=None)
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--grid", default="1536x768", help="grid size WxH")
-    ap.add_argument("--batch", type=int, default=8, help="grids per answers_batch call in the batch row")
-    ap.add_argument("--out", default="outputs/profile_infer.json")
-    a = ap.parse_args()
+def main(argv: list[str]) -> int:
+    a = load_config(DEFAULTS, argv)
+    for key in ("repeats", "batch"):
+        v = a[key]
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ConfigError(f"{key}: expected an integer >= 1, got {v!r}")
+    if a.model is not None and not isinstance(a.model, str):
+        raise ConfigError(f"model: expected a folder path, got {a.model!r}")
+    try:
+        w, h = (int(x) for x in str(a.grid).lower().split("x"))
+    except ValueError:
+        w = h = 0
+    if w < 1 or h < 1:
+        raise ConfigError(f"grid: expected a positive WxH (e.g. 1536x768), got {a.grid!r}")
     import torch
 
     from labrobfail_vlm.analyzer import FailureAnalyzer
@@ -98,21 +114,29 @@ def main() -> None:
     model = a.model
     if model is None:
         from labrobfail_vlm.model.tiny import build_tiny
+
         model = str(build_tiny(Path(tempfile.mkdtemp()) / "tiny"))
     fa = FailureAnalyzer.from_pretrained(model)
     from PIL import Image
-    w, h = (int(x) for x in a.grid.lower().split("x"))
+
     rng = np.random.default_rng(0)
     grid = Image.fromarray(rng.integers(0, 255, (h, w, 3), dtype=np.uint8))
     batch = [Image.fromarray(rng.integers(0, 255, (h, w, 3), dtype=np.uint8)) for _ in range(a.batch)]
     task = "pick up the small beaker"
-    res: dict[str, Any] = {"model": "tiny (random)" if a.model is None else a.model, "grid": f"{w}x{h}",
-                           "threads": torch.get_num_threads(), "load_average": os.getloadavg()[0], "modes": {}}
+    res: dict[str, Any] = {
+        "model": "tiny (random)" if a.model is None else a.model,
+        "grid": f"{w}x{h}",
+        "threads": torch.get_num_threads(),
+        "load_average": os.getloadavg()[0],
+        "modes": {},
+    }
     s = Sections()
     instrument(fa, s)
-    runs = {"one_pass": (lambda: [fa.answers(grid, task)], 1),
-            "six_prompts": (lambda: [fa.answers(grid, task, one_pass=False)], 1),
-            f"batch_{a.batch}_per_grid": (lambda: fa.answers_batch(batch, [task] * a.batch), a.batch)}
+    runs = {
+        "one_pass": (lambda: [fa.answers(grid, task)], 1),
+        "six_prompts": (lambda: [fa.answers(grid, task, one_pass=False)], 1),
+        f"batch_{a.batch}_per_grid": (lambda: fa.answers_batch(batch, [task] * a.batch), a.batch),
+    }
     for mode, (run, n) in runs.items():
         run()  # warm-up
         s.total.clear()
@@ -122,12 +146,17 @@ def main() -> None:
                 ans = run()
         k = a.repeats * n
         per = {x: round(v / k * 1000, 1) for x, v in sorted(s.total.items(), key=lambda kv: -kv[1])}
-        res["modes"][mode] = {"wall_ms": round((time.perf_counter() - t) / k * 1000, 1), "sections_ms": per,
-                              "q2": [x["Q2"] for x in ans]}
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(Path(a.out), res)
+        res["modes"][mode] = {
+            "wall_ms": round((time.perf_counter() - t) / k * 1000, 1),
+            "sections_ms": per,
+            "q2": [x["Q2"] for x in ans],
+        }
+    out = Path(str(a.out))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out, res)
     print(json.dumps(res, indent=1))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    cli_main(main, __doc__)

@@ -1,7 +1,7 @@
 """Write one keyframe strip per failure type and four random successes from generated shards, to look at.
 
 Run as:
-    python scripts/render_strips.py outputs/demo_shards outputs/demo_strips
+    python scripts/render_strips.py shards=outputs/demo_shards out=outputs/demo_strips
 
 Each PNG shows the failure episode's keyframes (rows = camera views) with the
 keyframe index in each cell and a red frame on the labeled failure keyframe,
@@ -11,16 +11,19 @@ above its paired success episode.
 from __future__ import annotations
 
 import io
-import sys
 from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
 from PIL import Image, ImageDraw
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from labrobfail_vlm.taxonomy import FAILURE_TYPE_NAMES
 
-from labrobfail_vlm.taxonomy import FAILURE_TYPE_NAMES  # noqa: E402
+DEFAULTS = """
+shards: outputs/demo_shards   # a shard folder from scripts/generate.py
+out: outputs/demo_strips      # where the strips go
+"""
 
 
 CELL = 128  # px: cells are shown at most this wide (a 50-keyframe strip at 192 px would be 9,600 px wide)
@@ -37,8 +40,12 @@ def strip(row: dict, mark: int | None) -> Image.Image:
         mark = next((kf for kf in shown if kf >= mark), shown[-1])
     out = Image.new("RGB", (w * n, h * len(views) + 18), "white")
     d = ImageDraw.Draw(out)
-    d.text((4, 3), f"{row['scenario']} | {row['role']} | success={row['success']} | {row['failure_type'] or ''} "
-                   f"| failure keyframe={row['failure_keyframe']}", fill="black")
+    d.text(
+        (4, 3),
+        f"{row['scenario']} | {row['role']} | success={row['success']} | {row['failure_type'] or ''} "
+        f"| failure keyframe={row['failure_keyframe']}",
+        fill="black",
+    )
     for r, v in enumerate(views):
         for c, (kf, img) in enumerate(zip(shown, v)):
             out.paste(img, (c * w, 18 + r * h))
@@ -48,13 +55,16 @@ def strip(row: dict, mark: int | None) -> Image.Image:
     return out
 
 
-def main(shards: str, out_dir: str) -> int:
+def main(argv: list[str]) -> int:
+    cfg = load_config(DEFAULTS, argv)
+    shards, out_dir = str(cfg.shards), str(cfg.out)
+    if not Path(shards).is_dir():
+        raise ConfigError(f"shards: no such directory {shards!r}")
     rows = []
     for p in sorted(Path(shards).glob("shard-*.parquet")):
         rows.extend(pq.read_table(p).to_pylist())
     if not rows:
-        print(f"error: no shards in {shards}", file=sys.stderr)
-        return 2
+        raise ConfigError(f"shards: no shard-*.parquet files in {shards}")
     by_pair = {}
     for r in rows:
         by_pair.setdefault(r["pair_id"], {})[r["role"]] = r
@@ -62,8 +72,9 @@ def main(shards: str, out_dir: str) -> int:
     out.mkdir(parents=True, exist_ok=True)
     written = 0
     for ftype in FAILURE_TYPE_NAMES:
-        hit = next((r for r in rows if r["failure_type"] == ftype and r["role"] == "injected"), None) \
-            or next((r for r in rows if r["failure_type"] == ftype), None)
+        hit = next((r for r in rows if r["failure_type"] == ftype and r["role"] == "injected"), None) or next(
+            (r for r in rows if r["failure_type"] == ftype), None
+        )
         if hit is None:
             continue
         a = strip(hit, hit["failure_keyframe"])
@@ -86,7 +97,4 @@ def main(shards: str, out_dir: str) -> int:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 3:
-        print("usage: python scripts/render_strips.py SHARDS_DIR OUT_DIR", file=sys.stderr)
-        sys.exit(2)
-    sys.exit(main(sys.argv[1], sys.argv[2]))
+    cli_main(main, __doc__)

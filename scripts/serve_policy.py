@@ -26,15 +26,12 @@ import json
 import sys
 import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-from labrobfail_vlm.config import ConfigError, cli_main, load_config  # noqa: E402
-from policies import wire  # noqa: E402
+from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from sim_backends.policies import wire
 
 
 def numbers(x: Any, n: int, name: str) -> np.ndarray:
@@ -84,8 +81,12 @@ def proprio_state(p: Any) -> dict[str, Any]:
 
 def arm_state(state: dict[str, Any]) -> dict[str, Any]:
     """The part of a backend state sample that a client's proprio carries."""
-    return {"ee_pos": list(state["ee_pos"]), "ee_quat": list(state["ee_quat"]), "width": float(state["width"]),
-            "grip_cmd": int(state["grip_cmd"])}
+    return {
+        "ee_pos": list(state["ee_pos"]),
+        "ee_quat": list(state["ee_quat"]),
+        "width": float(state["width"]),
+        "grip_cmd": int(state["grip_cmd"]),
+    }
 
 
 class PolicyService:
@@ -95,13 +96,14 @@ class PolicyService:
         from omegaconf import OmegaConf
 
         from sim_backends.registry import backend_options
-        from supervision.experiment import build_policy
+        from sim_backends.supervision.experiment import build_policy
 
         if cfg.policy == "openvla":
             raise ConfigError("policy: openvla is the client; serve a project policy (act, scripted)")
         self.cfg = cfg
-        self.backend_kwargs = backend_options(cfg.backend,
-                                              OmegaConf.to_container(cfg.backend_kwargs, resolve=True) or {})
+        self.backend_kwargs = backend_options(
+            cfg.backend, OmegaConf.to_container(cfg.backend_kwargs, resolve=True) or {}
+        )
         self.src: Any = None
         self.default = self._default_episode(cfg.default_episode)
         self.policy = build_policy(cfg)
@@ -119,19 +121,21 @@ class PolicyService:
         from labrobfail_vlm.taxonomy import SCENE_VARIANTS
 
         if d.variant not in SCENE_VARIANTS:
-            raise ConfigError(f"default_episode.variant: expected one of {', '.join(SCENE_VARIANTS)}, "
-                              f"got {d.variant!r}")
+            raise ConfigError(
+                f"default_episode.variant: expected one of {', '.join(SCENE_VARIANTS)}, got {d.variant!r}"
+            )
         if not isinstance(d.seed, int):
             raise ConfigError(f"default_episode.seed: must be an integer, got {d.seed!r}")
         if d.scenario is not None and str(d.scenario) not in self._backend().scenarios():
-            raise ConfigError(f"default_episode.scenario: unknown scenario {d.scenario!r} of the {self.cfg.backend} "
-                              "backend")
+            raise ConfigError(
+                f"default_episode.scenario: unknown scenario {d.scenario!r} of the {self.cfg.backend} backend"
+            )
         return {"scenario": None if d.scenario is None else str(d.scenario), "seed": d.seed, "variant": d.variant}
 
     def _reset(self, episode: dict[str, Any] | None, instruction: str) -> None:
         """Start an episode: the request's `episode` fields over `default_episode`."""
-        from policies.base import EpisodeContext
-        from supervision.loop import TaskFamily, episode_context
+        from sim_backends.policies.base import EpisodeContext
+        from sim_backends.supervision.loop import TaskFamily, episode_context
 
         ep = {**self.default, **(episode or {})}
         scenario, seed, variant = ep["scenario"], int(ep["seed"]), str(ep["variant"])
@@ -157,7 +161,7 @@ class PolicyService:
         return arm_state(src.observe().state)
 
     def answer(self, payload: dict[str, Any]) -> np.ndarray:
-        from policies.openvla_client import target_to_action
+        from sim_backends.policies.openvla_client import target_to_action
         from sim_backends.source import Observation
 
         image, instruction = check_request(payload)
@@ -289,12 +293,14 @@ def main(argv: list[str]) -> int:
         raise ConfigError(f"request_timeout_s: must be a positive number, got {cfg.request_timeout_s!r}")
     service = PolicyService(cfg)
     try:
-        server = Server((str(cfg.host), int(cfg.port)),
-                        handler(service, int(cfg.max_body_mb) << 20, float(cfg.request_timeout_s)))
+        server = Server(
+            (str(cfg.host), int(cfg.port)), handler(service, int(cfg.max_body_mb) << 20, float(cfg.request_timeout_s))
+        )
     except (OSError, OverflowError) as e:
         service.close()
-        raise ConfigError(f"port: cannot listen on {cfg.host}:{cfg.port} ({getattr(e, 'strerror', None) or e})") \
-            from None
+        raise ConfigError(
+            f"port: cannot listen on {cfg.host}:{cfg.port} ({getattr(e, 'strerror', None) or e})"
+        ) from None
     host, port = server.server_address[:2]
     print(f"serving {cfg.policy} on http://{host}:{port}/act", flush=True)
     try:
@@ -308,4 +314,4 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    cli_main(main)
+    cli_main(main, __doc__)

@@ -13,19 +13,15 @@ checkpoints/step-N and train_log.json (demos, steps, minutes, loss curve). Defau
 from __future__ import annotations
 
 import json
-import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from labrobfail_vlm.config import cli_main, load_config  # noqa: E402
+from labrobfail_vlm.config import cli_main, load_config
 
 
 def main(argv: list[str]) -> int:
     from labrobfail_vlm.config import ConfigError
-    from policies.act.train import train
+    from sim_backends.policies.act.train import train
     from sim_backends.registry import available_backends, make_backend
-    from supervision.experiment import families, resolve_tasks, scenario_templates
+    from sim_backends.supervision.experiment import families, resolve_tasks, scenario_templates
 
     cfg = load_config("act.yaml", argv)
     if cfg.backend not in available_backends():
@@ -44,4 +40,4 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    cli_main(main)
+    cli_main(main, __doc__)

@@ -1,7 +1,7 @@
 """Write docs/RESULTS.md from a `make reproduce` run (and, where they exist, `make reproduce-rows` and `make ablate`).
 
 Run as:
-    python scripts/write_results.py outputs/reproduce docs/RESULTS.md
+    python scripts/write_results.py run=outputs/reproduce out=docs/RESULTS.md
 
 Reads <run>/dataset/stats.json, <run>/timeline.txt (one "<step> <unix seconds>" line per step), the main model's
 <run>/train/{train_summary,progress}.json and final/eval_<split>/results.json, the tower card it started from, and
@@ -15,22 +15,32 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from labrobfail_vlm.config import ConfigError, cli_main, load_config
 
-from labrobfail_vlm.config import ConfigError, cli_main  # noqa: E402
-
-SPLIT_TITLES = {"test": "Seen (test split)", "object": "Unseen objects", "scene": "Unseen scene",
-                "both": "Unseen objects and scene"}
+DEFAULTS = """
+run: outputs/reproduce     # the make reproduce run folder
+out: docs/RESULTS.md       # the page to write
+"""
+SPLIT_TITLES = {
+    "test": "Seen (test split)",
+    "object": "Unseen objects",
+    "scene": "Unseen scene",
+    "both": "Unseen objects and scene",
+}
 # optional training runs beside the main one: folder under the run -> row title
-ROWS = {"rows/scratch": "scratch tower (random init, stage A grounding: the pre-tower recipe)",
-        "train": "sim-pretrained tower (shipped), front + side",
-        "rows/wrist": "sim-pretrained tower, front + wrist (sensor ablation, not the paper's views)"}
-ABLATIONS = {"ablate/tuned": "tuned tower and merger", "ablate/frozen": "frozen tower and merger",
-             "ablate/no_index": "no temporal index (no labels drawn, none mentioned)"}
+ROWS = {
+    "rows/scratch": "scratch tower (random init, stage A grounding: the pre-tower recipe)",
+    "train": "sim-pretrained tower (shipped), front + side",
+    "rows/wrist": "sim-pretrained tower, front + wrist (sensor ablation, not the paper's views)",
+}
+ABLATIONS = {
+    "ablate/tuned": "tuned tower and merger",
+    "ablate/frozen": "frozen tower and merger",
+    "ablate/no_index": "no temporal index (no labels drawn, none mentioned)",
+}
 
 
 def _load(path: Path) -> Any:
@@ -52,20 +62,31 @@ def _ci(res: dict[str, Any], key: str, fo: bool = False) -> str:
     ci = (src.get("ci95") or {}).get(key)
     if v is None:
         return "–"
-    return f"{v:.4f} [{ci[0]:.3f}, {ci[1]:.3f}]" if key == "rougeL" and ci else \
-        f"{v:.1f} [{ci[0]:.1f}, {ci[1]:.1f}]" if ci else f"{v}"
+    return (
+        f"{v:.4f} [{ci[0]:.3f}, {ci[1]:.3f}]"
+        if key == "rougeL" and ci
+        else f"{v:.1f} [{ci[0]:.1f}, {ci[1]:.1f}]"
+        if ci
+        else f"{v}"
+    )
 
 
 def targets(evals: dict[str, Any]) -> list[str]:
     """The tower issue's goals, measured with the bench's failure-only scoring for Q3 and Q5."""
     t, both = evals["test"], evals.get("both")
     major = t["baselines"].get("majority class", {}).get("q2")
-    rows = [("seen Q2", t["q2"], 80, _ci(t, "q2")),
-            ("seen Q2 minus the majority class", None if major is None else round(t["q2"] - major, 2), 15,
-             f"majority {major}"),
-            ("seen failure-only Q3", t["failure_only"]["q3"], 50, _ci(t, "q3", True)),
-            ("seen failure-only Q5", t["failure_only"]["q5"], 50, _ci(t, "q5", True)),
-            ("unseen objects and scene Q2", both["q2"] if both else None, 70, _ci(both, "q2") if both else "–")]
+    rows = [
+        ("seen Q2", t["q2"], 80, _ci(t, "q2")),
+        (
+            "seen Q2 minus the majority class",
+            None if major is None else round(t["q2"] - major, 2),
+            15,
+            f"majority {major}",
+        ),
+        ("seen failure-only Q3", t["failure_only"]["q3"], 50, _ci(t, "q3", True)),
+        ("seen failure-only Q5", t["failure_only"]["q5"], 50, _ci(t, "q5", True)),
+        ("unseen objects and scene Q2", both["q2"] if both else None, 70, _ci(both, "q2") if both else "–"),
+    ]
     out = ["| goal | reached | target | met | 95 % interval / note |", "|---|---|---|---|---|"]
     for name, got, want, note in rows:
         out.append(f"| {name} | {got} | >= {want} | {'yes' if got is not None and got >= want else 'no'} | {note} |")
@@ -74,8 +95,11 @@ def targets(evals: dict[str, Any]) -> list[str]:
 
 def rows_table(run: Path) -> list[str]:
     """Tower and sensor rows side by side: seen Q2 and AUROC, failure-only Q3/Q5/ROUGE-L, unseen Q2."""
-    head = ["| row | seen Q2 | seen AUROC | seen Q3 (failures) | seen Q5 (failures) | ROUGE-L (failures) | "
-            "object Q2 | scene Q2 | both Q2 |", "|---|---|---|---|---|---|---|---|---|"]
+    head = [
+        "| row | seen Q2 | seen AUROC | seen Q3 (failures) | seen Q5 (failures) | ROUGE-L (failures) | "
+        "object Q2 | scene Q2 | both Q2 |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     lines = []
     for folder, title in ROWS.items():
         ev = _evals(run / folder)
@@ -83,9 +107,12 @@ def rows_table(run: Path) -> list[str]:
             continue
         t = ev["test"]
         det = (t.get("detection") or {}).get("auroc")
-        lines.append(f"| {title} | {_ci(t, 'q2')} | {det} | {_ci(t, 'q3', True)} | {_ci(t, 'q5', True)} | "
-                     f"{_ci(t, 'rougeL', True)} | " + " | ".join(_ci(ev[s], 'q2') if s in ev else "–"
-                                                                for s in ("object", "scene", "both")) + " |")
+        lines.append(
+            f"| {title} | {_ci(t, 'q2')} | {det} | {_ci(t, 'q3', True)} | {_ci(t, 'q5', True)} | "
+            f"{_ci(t, 'rougeL', True)} | "
+            + " | ".join(_ci(ev[s], "q2") if s in ev else "–" for s in ("object", "scene", "both"))
+            + " |"
+        )
     return head + lines if lines else []
 
 
@@ -98,12 +125,17 @@ def ablation_table(run: Path, main_title: str) -> list[str]:
         ev = _evals(run / folder, ("test",))
         if ev:
             t = ev["test"]
-            lines.append(f"| {title} | {_ci(t, 'q2')} | {_ci(t, 'q3', True)} | {_ci(t, 'q5', True)} | "
-                         f"{_ci(t, 'rougeL', True)} |")
+            lines.append(
+                f"| {title} | {_ci(t, 'q2')} | {_ci(t, 'q3', True)} | {_ci(t, 'q5', True)} | {_ci(t, 'rougeL', True)} |"
+            )
     if not lines:
         return []
-    return ["| variant | Q2 | Q3 (failures) | Q5 (failures) | Q6 ROUGE-L (failures) |", "|---|---|---|---|---|",
-            *lines, *(f"| {k} | {v[0]} | {v[1]} | {v[2]} | {v[3]} |" for k, v in PAPER_ABLATION.items())]
+    return [
+        "| variant | Q2 | Q3 (failures) | Q5 (failures) | Q6 ROUGE-L (failures) |",
+        "|---|---|---|---|---|",
+        *lines,
+        *(f"| {k} | {v[0]} | {v[1]} | {v[2]} | {v[3]} |" for k, v in PAPER_ABLATION.items()),
+    ]
 
 
 def per_type(run: Path, res: dict[str, Any]) -> list[str]:
@@ -118,20 +150,25 @@ def per_type(run: Path, res: dict[str, Any]) -> list[str]:
     for key, dims in sorted(res["breakdown"].items()):
         if key.startswith("type:") and "Q2" in dims:
             name = key.split(":", 1)[1]
-            n = counts.get(name) if name != "success" else sum(1 for t in traj if t.get("split") == "test"
-                                                                and t["success"] and "prefix_of" not in t)
+            n = (
+                counts.get(name)
+                if name != "success"
+                else sum(1 for t in traj if t.get("split") == "test" and t["success"] and "prefix_of" not in t)
+            )
             ci = wilson(round(dims["Q2"] * n / 100), n) if n else None
-            out.append(f"| {name} | {dims['Q2']:.1f} | " + (f"{100 * ci[0]:.0f}-{100 * ci[1]:.0f}" if ci else "–")
-                       + f" | {n or '–'} |")
+            out.append(
+                f"| {name} | {dims['Q2']:.1f} | "
+                + (f"{100 * ci[0]:.0f}-{100 * ci[1]:.0f}" if ci else "–")
+                + f" | {n or '–'} |"
+            )
     return out
 
 
 def main(argv: list[str]) -> int:
     from labrobfail_vlm.bench.report import PAPER_ROWS, PAPER_UNSEEN_ROWS, detection_markdown, markdown, paper_row, row
 
-    if len(argv) != 2:
-        raise ConfigError("usage: write_results.py RUN_DIR OUT_MD")
-    run, out = Path(argv[0]), Path(argv[1])
+    cfg = load_config(DEFAULTS, argv)
+    run, out = Path(str(cfg.run)), Path(str(cfg.out))
     stats = _load(run / "dataset" / "stats.json")
     summary = _load(run / "train" / "train_summary.json")
     progress = _load(run / "train" / "progress.json")
@@ -141,90 +178,149 @@ def main(argv: list[str]) -> int:
     total_min = (int(stamps[-1][1]) - int(stamps[0][1])) / 60 if len(stamps) > 1 else None
     grid = stats["grid"]
     card = summary.get("tower")
-    lines = ["# LabRobFail-Bench results of the CPU recipe", "",
-             "Made by `make reproduce` (2 CPU cores, no GPU, no downloaded weights): PyBullet generation of seen and "
-             "unseen data, the dataset, the tiny Qwen3-VL (`preset=tiny`) starting from the project's sim-pretrained "
-             "vision tower (`labrobfail_vlm/assets/tower`, made by `make tower`), the bench on every split with the "
-             "majority and blind baselines, and the learning curve; the tower and sensor rows come from `make "
-             "reproduce-rows` and the ablation table from `make ablate` on the same data. Everything here is "
-             "written by `scripts/write_results.py`; nothing is edited by hand.", ""]
+    lines = [
+        "# LabRobFail-Bench results of the CPU recipe",
+        "",
+        "Made by `make reproduce` (2 CPU cores, no GPU, no downloaded weights): PyBullet generation of seen and "
+        "unseen data, the dataset, the tiny Qwen3-VL (`preset=tiny`) starting from the project's sim-pretrained "
+        "vision tower (`labrobfail_vlm/assets/tower`, made by `make tower`), the bench on every split with the "
+        "majority and blind baselines, and the learning curve; the tower and sensor rows come from `make "
+        "reproduce-rows` and the ablation table from `make ablate` on the same data. Everything here is "
+        "written by `scripts/write_results.py`; nothing is edited by hand.",
+        "",
+    ]
     if total_min is not None:
-        lines += [f"`make reproduce` end to end: **{total_min:.1f} min** wall-clock. Steps: "
-                  + ", ".join(f"{n} {s / 60:.1f} min" for n, s in steps) + ".", ""]
+        lines += [
+            f"`make reproduce` end to end: **{total_min:.1f} min** wall-clock. Steps: "
+            + ", ".join(f"{n} {s / 60:.1f} min" for n, s in steps)
+            + ".",
+            "",
+        ]
     params = sum(v for k, v in summary["trainable_parameters"].items() if k != "frozen")
     frozen = summary["trainable_parameters"].get("frozen", 0)
     man_file = run / "shards" / "seen" / "manifest.json"
     inj = json.loads(man_file.read_text()).get("injection") if man_file.is_file() else None
-    lines += ["## Data and model", "",
-              f"- Trajectories: {stats['trajectories_kept']} kept of {stats['trajectories_in']} "
-              f"({stats['by_outcome']['success']} success, {stats['by_outcome']['failure']} failure); split sizes "
-              "(trajectories): " + ", ".join(f"{k} {v['trajectories']}" for k, v in stats["splits"].items()) + ".",
-              *([f"- Injections of the seen run, drawn as the paper writes them (outcome per operator: "
-                 + "; ".join(f"{k} {v.get('failure', 0)} failed / {v.get('success', 0)} succeeded"
-                             for k, v in inj["by_operator"].items())
-                 + "). Physics events by parameter and sign of delta: "
-                 + ", ".join(f"{k} {v}" for k, v in inj["physics_events"].items())
-                 + f"; gripper faults {inj['gripper_faults']}; draws rejected by the min_norm filter "
-                 + f"{inj['filter_rejections']}."] if inj else []),
-              f"- Grid: {grid['width']}x{grid['height']} px, {grid['max_frames']} keyframes x 2 views "
-              f"({', '.join(stats.get('views') or ['every view'])}), {grid['columns']} time steps per band "
-              f"({(grid['width'] // 32) * (grid['height'] // 32)} visual tokens).",
-              f"- Model: Qwen3-VL architecture at tiny size, {params / 1e6:.2f} M parameters trained"
-              + (f", {frozen / 1e6:.2f} M frozen" if frozen else "") + f"; {summary['global_step']} optimizer steps, "
-              f"{progress[-1]['examples'] if progress else '?'} training records, "
-              f"{progress[-1]['wall_s'] / 60 if progress else 0:.1f} min of training.",
-              *([f"- Vision tower: `{card['path']}` (sha256 `{card['sha256'][:16]}...`, {card['parameters']:,} "
-                 f"parameters; what it learned and how well, held out: its TOWER_CARD.md)."] if card else []), ""]
+    lines += [
+        "## Data and model",
+        "",
+        f"- Trajectories: {stats['trajectories_kept']} kept of {stats['trajectories_in']} "
+        f"({stats['by_outcome']['success']} success, {stats['by_outcome']['failure']} failure); split sizes "
+        "(trajectories): " + ", ".join(f"{k} {v['trajectories']}" for k, v in stats["splits"].items()) + ".",
+        *(
+            [
+                "- Injections of the seen run, drawn as the paper writes them (outcome per operator: "
+                + "; ".join(
+                    f"{k} {v.get('failure', 0)} failed / {v.get('success', 0)} succeeded"
+                    for k, v in inj["by_operator"].items()
+                )
+                + "). Physics events by parameter and sign of delta: "
+                + ", ".join(f"{k} {v}" for k, v in inj["physics_events"].items())
+                + f"; gripper faults {inj['gripper_faults']}; draws rejected by the min_norm filter "
+                + f"{inj['filter_rejections']}."
+            ]
+            if inj
+            else []
+        ),
+        f"- Grid: {grid['width']}x{grid['height']} px, {grid['max_frames']} keyframes x 2 views "
+        f"({', '.join(stats.get('views') or ['every view'])}), {grid['columns']} time steps per band "
+        f"({(grid['width'] // 32) * (grid['height'] // 32)} visual tokens).",
+        f"- Model: Qwen3-VL architecture at tiny size, {params / 1e6:.2f} M parameters trained"
+        + (f", {frozen / 1e6:.2f} M frozen" if frozen else "")
+        + f"; {summary['global_step']} optimizer steps, "
+        f"{progress[-1]['examples'] if progress else '?'} training records, "
+        f"{progress[-1]['wall_s'] / 60 if progress else 0:.1f} min of training.",
+        *(
+            [
+                f"- Vision tower: `{card['path']}` (sha256 `{card['sha256'][:16]}...`, {card['parameters']:,} "
+                f"parameters; what it learned and how well, held out: its TOWER_CARD.md)."
+            ]
+            if card
+            else []
+        ),
+        "",
+    ]
     lines += ["## Targets of the tower issue", "", *targets(evals), ""]
     rt = rows_table(run)
     if rt:
-        lines += ["## Tower and sensor rows", "", "The same data and bench; only the tower or the views differ. "
-                  "95 % intervals: Wilson for accuracies, bootstrap for ROUGE-L.", "", *rt, ""]
+        lines += [
+            "## Tower and sensor rows",
+            "",
+            "The same data and bench; only the tower or the views differ. "
+            "95 % intervals: Wilson for accuracies, bootstrap for ROUGE-L.",
+            "",
+            *rt,
+            "",
+        ]
     at = ablation_table(run, ROWS["train"])
     if at:
         lines += ["## Ablation (the paper's table, seen split)", "", *at, ""]
 
     def named(res: dict[str, Any]) -> dict[str, dict[str, Any]]:
-        return {"tiny LabRobFail-VLM (ours, free Q6)": res,
-                **{f"tiny LabRobFail-VLM (ours, {k.split(', ')[-1]})" if k.endswith("Q6 template") else k: v
-                   for k, v in res["baselines"].items()}}
+        return {
+            "tiny LabRobFail-VLM (ours, free Q6)": res,
+            **{
+                f"tiny LabRobFail-VLM (ours, {k.split(', ')[-1]})" if k.endswith("Q6 template") else k: v
+                for k, v in res["baselines"].items()
+            },
+        }
 
-    lines += ["## Paper-comparable tables", "",
-              "Q1 and Q2 over every trajectory of the split; Q3, Q4, Q5 and Q6 (BLEU, ROUGE-L) over its failed "
-              "trajectories only, as the paper's table can be read (its Q4 and Q5 options have no \"None\"). The "
-              "majority class answers Q3-Q6 with the most frequent answer among training failures. Where the blind "
-              "baseline reaches Q1 = 100 (the preamble names the task), a tie at 100 counts as \"above blind\". "
-              "Severity options are the paper's appendix ones; its main text names the same four levels Minor, "
-              "Recoverable, Critical, Catastrophic (paired by position: option 1 = Minor ... 4 = Catastrophic).", ""]
+    lines += [
+        "## Paper-comparable tables",
+        "",
+        "Q1 and Q2 over every trajectory of the split; Q3, Q4, Q5 and Q6 (BLEU, ROUGE-L) over its failed "
+        'trajectories only, as the paper\'s table can be read (its Q4 and Q5 options have no "None"). The '
+        "majority class answers Q3-Q6 with the most frequent answer among training failures. Where the blind "
+        'baseline reaches Q1 = 100 (the preamble names the task), a tie at 100 counts as "above blind". '
+        "Severity options are the paper's appendix ones; its main text names the same four levels Minor, "
+        "Recoverable, Critical, Catastrophic (paired by position: option 1 = Minor ... 4 = Catastrophic).",
+        "",
+    ]
     for split, title in SPLIT_TITLES.items():
         res = evals[split]
         fo = res["failure_only"]
         rows = {k: paper_row(v) for k, v in named(res).items()}
-        rows.update({"LabRobFail-VLM (paper, 8B)": PAPER_UNSEEN_ROWS[split]} if split in PAPER_UNSEEN_ROWS else
-                    {k: v for k, v in PAPER_ROWS.items()})
+        rows.update(
+            {"LabRobFail-VLM (paper, 8B)": PAPER_UNSEEN_ROWS[split]}
+            if split in PAPER_UNSEEN_ROWS
+            else {k: v for k, v in PAPER_ROWS.items()}
+        )
         n_traj = res["detection"]["trajectories"] if res.get("detection") else "?"
-        lines += [markdown(rows, f"{title}: {n_traj} trajectories, Q3-Q6 over the {fo['trajectories']} failed "
-                                 "ones"),
-                  "95 % intervals (ours, free Q6): " + ", ".join(
-                      f"{k} {_ci(res, k.lower(), k in ('Q3', 'Q4', 'Q5'))}" for k in ("Q1", "Q2", "Q3", "Q4", "Q5"))
-                  + f", ROUGE-L {_ci(res, 'rougeL', True)}.", ""]
-    lines += ["## Failure detection as a score (Q2)", "",
-              "P(failure) is the model's softmax over its two admissible Q2 replies; the majority class scores every "
-              "grid with the training failure rate (AUROC 0.5). ECE: ten equal-width bins. Reliability diagrams: "
-              "`docs/reliability_<split>.png`.", ""]
+        lines += [
+            markdown(rows, f"{title}: {n_traj} trajectories, Q3-Q6 over the {fo['trajectories']} failed ones"),
+            "95 % intervals (ours, free Q6): "
+            + ", ".join(f"{k} {_ci(res, k.lower(), k in ('Q3', 'Q4', 'Q5'))}" for k in ("Q1", "Q2", "Q3", "Q4", "Q5"))
+            + f", ROUGE-L {_ci(res, 'rougeL', True)}.",
+            "",
+        ]
+    lines += [
+        "## Failure detection as a score (Q2)",
+        "",
+        "P(failure) is the model's softmax over its two admissible Q2 replies; the majority class scores every "
+        "grid with the training failure rate (AUROC 0.5). ECE: ten equal-width bins. Reliability diagrams: "
+        "`docs/reliability_<split>.png`.",
+        "",
+    ]
     for split, title in SPLIT_TITLES.items():
         lines += [detection_markdown(named(evals[split]), title), ""]
         png = run / "train" / "final" / f"eval_{split}" / "reliability_q2.png"
         if png.is_file():
             shutil.copyfile(png, out.parent / f"reliability_{split}.png")
             lines += [f"![reliability, {title}](reliability_{split}.png)", ""]
-    lines += ["## All-trajectory tables (the project's own; not comparable with the paper)", "",
-              "Q3-Q6 over every trajectory: a success's reference is \"None\" / the no-correction sentence, so the "
-              "majority class scores high on them.", ""]
+    lines += [
+        "## All-trajectory tables (the project's own; not comparable with the paper)",
+        "",
+        'Q3-Q6 over every trajectory: a success\'s reference is "None" / the no-correction sentence, so the '
+        "majority class scores high on them.",
+        "",
+    ]
     for split, title in SPLIT_TITLES.items():
         res = evals[split]
-        lines += [markdown({k: row(v) for k, v in named(res).items()},
-                           f"{title}: {res['records']} records, all trajectories"), ""]
+        lines += [
+            markdown(
+                {k: row(v) for k, v in named(res).items()}, f"{title}: {res['records']} records, all trajectories"
+            ),
+            "",
+        ]
     lines += ["## Failure detection (Q2) per failure type, seen test split", "", *per_type(run, evals["test"])]
     curve = run / "train" / "learning_curve.png"
     if curve.is_file():
@@ -232,10 +328,11 @@ def main(argv: list[str]) -> int:
         lines += ["", "## Learning curve (validation split)", "", "![learning curve](learning_curve.png)"]
     lines += ["", f"Run timeline (unix seconds): {json.dumps({n: int(t) for n, t in stamps})}", ""]
     from labrobfail_vlm.io import atomic_write_bytes
+
     atomic_write_bytes(out, "\n".join(lines).encode())
     print(out)
     return 0
 
 
 if __name__ == "__main__":
-    cli_main(main)
+    cli_main(main, __doc__)

@@ -115,8 +115,14 @@ class CorrectionExecutor:
                 res.executed, res.error = False, f"{p['op']}: {e}"
             except TypeError as e:  # wrong argument names from a hand-written primitive list
                 res.executed, res.error = False, f"{p['op']}: bad arguments ({e})"
-            res.log.append({"op": p["op"], "args": dict(p.get("args", {})), "keyframes": self.count - n0,
-                            **({"note": self.note} if self.note else {})})
+            res.log.append(
+                {
+                    "op": p["op"],
+                    "args": dict(p.get("args", {})),
+                    "keyframes": self.count - n0,
+                    **({"note": self.note} if self.note else {}),
+                }
+            )
             if not res.executed:
                 break
         res.keyframes = self.count
@@ -138,20 +144,35 @@ class CorrectionExecutor:
     def _state(self) -> dict[str, Any]:
         return self.src.observe().state
 
-    def _go(self, pos: Sequence[float], rot: np.ndarray | None = None, grip: int | None = None,
-            speed: float = SPEED, settle: int = 0, kf: Keyframe | None = None) -> None:
+    def _go(
+        self,
+        pos: Sequence[float],
+        rot: np.ndarray | None = None,
+        grip: int | None = None,
+        speed: float = SPEED,
+        settle: int = 0,
+        kf: Keyframe | None = None,
+    ) -> None:
         """Step one keyframe from the current state (as `kf`'s name and step when given)."""
         base = kf or self.cur
         self.pos = np.asarray(pos, float)
         self.rot = self.rot if rot is None else rot
         self.grip = self.grip if grip is None else int(grip)
-        target = dataclasses.replace(base, pos=tuple(float(v) for v in self.pos), quat=matrix_to_quat(self.rot),
-                                     gripper=self.grip, speed=speed, settle_steps=settle)
+        target = dataclasses.replace(
+            base,
+            pos=tuple(float(v) for v in self.pos),
+            quat=matrix_to_quat(self.rot),
+            gripper=self.grip,
+            speed=speed,
+            settle_steps=settle,
+        )
         self.src.step(target)
         self.count += 1
         s = self._state()
-        if float(np.linalg.norm(np.asarray(s["ee_pos"]) - self.pos)) > MISS_POS \
-                or rotation_angle(tuple(s["ee_quat"]), target.quat) > MISS_ROT:
+        if (
+            float(np.linalg.norm(np.asarray(s["ee_pos"]) - self.pos)) > MISS_POS
+            or rotation_angle(tuple(s["ee_quat"]), target.quat) > MISS_ROT
+        ):
             # the joint controller can end a move short or past (after a long hold the arm's null space
             # has drifted); closed loop, the executor commands the same target once more
             self.src.step(dataclasses.replace(target, speed=SLOW, settle_steps=max(settle, 30)))
@@ -223,7 +244,7 @@ class CorrectionExecutor:
         st = next((s for s in self._steps(oven) if s.contact_kf and s.target_angle is not None), None)
         if st is None:
             return
-        names = st.keyframes[st.keyframes.index(st.contact_kf) + 1:]
+        names = st.keyframes[st.keyframes.index(st.contact_kf) + 1 :]
         arc = []
         for n in names:
             k = self._nominal(n)
@@ -244,8 +265,14 @@ class CorrectionExecutor:
 
     def _direction(self, word: str) -> np.ndarray:
         a = self._approach_axis()
-        table = {"forward": a, "backward": -a, "up": AXES["z"], "down": -AXES["z"], "left": AXES["y"],
-                 "right": -AXES["y"]}
+        table = {
+            "forward": a,
+            "backward": -a,
+            "up": AXES["z"],
+            "down": -AXES["z"],
+            "left": AXES["y"],
+            "right": -AXES["y"],
+        }
         if word not in table:
             raise PrimitiveError(f"unknown direction {word!r}; expected one of {', '.join(table)}")
         return table[word]
@@ -256,8 +283,11 @@ class CorrectionExecutor:
             oven = self._role(DOOR_HANDLE)
             lo = float(goals.get("door", {}).get("min", 1.1)) if until == "door_open" else None
             hi = float(goals.get("door", {}).get("max", 0.12)) if until == "door_closed" else None
-            return lambda: (float(self._state()[f"{oven}.q"]) >= lo) if lo is not None else \
-                (float(self._state()[f"{oven}.q"]) <= hi)
+            return (
+                lambda: (float(self._state()[f"{oven}.q"]) >= lo)
+                if lo is not None
+                else (float(self._state()[f"{oven}.q"]) <= hi)
+            )
         if until == "pressed":
             buttons = [r for r, o in self.meta.objects.items() if o.kind == "button"]
             if not buttons:
@@ -307,7 +337,7 @@ class CorrectionExecutor:
         st = next((s for s in self._steps(role) if s.contact_kf), None)
         if st is None:
             raise PrimitiveError(f"the plan never operates the {role}")
-        names = st.keyframes[:st.keyframes.index(st.contact_kf)]
+        names = st.keyframes[: st.keyframes.index(st.contact_kf)]
         if stage == "pre":
             names = names[:-1]
         if float(np.linalg.norm(self.pos - np.asarray(self._nominal(names[-1]).pos))) > 0.02:
@@ -390,8 +420,9 @@ class CorrectionExecutor:
             if step is None:
                 raise PrimitiveError(f"no {action} step was omitted")
             for kf in [k for k in self.nominal if k.segment == step.index]:
-                self._go(kf.pos, quat_to_matrix(kf.quat), grip=kf.gripper, speed=kf.speed, settle=kf.settle_steps,
-                         kf=kf)
+                self._go(
+                    kf.pos, quat_to_matrix(kf.quat), grip=kf.gripper, speed=kf.speed, settle=kf.settle_steps, kf=kf
+                )
             self.cur = self.src.executed_so_far()[-1]
             return
         kf = self._nominal(pose_id)

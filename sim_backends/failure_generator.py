@@ -17,8 +17,9 @@ from sim_backends.source import FailureSource
 from sim_backends.types import Episode, Keyframe
 
 
-def apply_spec(spec: dict[str, Any], kfs: Sequence[Keyframe], positions: dict, rng: np.random.Generator
-               ) -> tuple[list[Keyframe], list[PhysicsEvent], dict]:
+def apply_spec(
+    spec: dict[str, Any], kfs: Sequence[Keyframe], positions: dict, rng: np.random.Generator
+) -> tuple[list[Keyframe], list[PhysicsEvent], dict]:
     level, op = spec.get("level"), spec.get("op")
     if level == "control":
         names = spec.get("keyframes", [])

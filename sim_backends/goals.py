@@ -12,6 +12,7 @@ from typing import Any, Callable
 import numpy as np
 
 from sim_backends.schema import Trace
+
 Meta = dict[str, Any]
 
 UPRIGHT_TILT = 0.35  # rad; beyond this a vessel counts as tipped over
@@ -81,8 +82,10 @@ def rod_in_vessel(trace: Trace, meta: Meta, rod: str, vessel: str, i: int) -> bo
     v = meta["objects"][vessel]
     vp = np.asarray(trace[f"{vessel}.pos"][i])
     rp = np.asarray(trace[f"{rod}.pos"][i])
-    return (float(np.linalg.norm(rp[:2] - vp[:2])) < v["dims"]["radius"]
-            and bottom_z(trace, meta, rod, i) < vp[2] + v["dims"]["height"] - 0.01)
+    return (
+        float(np.linalg.norm(rp[:2] - vp[:2])) < v["dims"]["radius"]
+        and bottom_z(trace, meta, rod, i) < vp[2] + v["dims"]["height"] - 0.01
+    )
 
 
 def stir_samples(trace: Trace, meta: Meta) -> list[int]:
@@ -105,12 +108,22 @@ def _stirred(trace: Trace, meta: Meta, g: dict) -> bool:
 def _still(trace: Trace, meta: Meta, g: dict) -> bool:
     home = np.asarray(meta["objects"][g["object"]]["home"][:2])
     pos = np.asarray(final(trace, f"{g['object']}.pos"))
-    return float(np.linalg.norm(pos[:2] - home)) <= g["tol"] and tilt(final(trace, f"{g['object']}.quat")) < UPRIGHT_TILT
+    return (
+        float(np.linalg.norm(pos[:2] - home)) <= g["tol"] and tilt(final(trace, f"{g['object']}.quat")) < UPRIGHT_TILT
+    )
 
 
 GOALS: dict[str, Callable[[Trace, Meta, dict], bool]] = {
-    "at": _at, "upright": _upright, "released": _released, "held": _held, "below": _below,
-    "button": _button, "door": _door, "liquid": _liquid, "stirred": _stirred, "still": _still,
+    "at": _at,
+    "upright": _upright,
+    "released": _released,
+    "held": _held,
+    "below": _below,
+    "button": _button,
+    "door": _door,
+    "liquid": _liquid,
+    "stirred": _stirred,
+    "still": _still,
 }
 
 

@@ -82,8 +82,14 @@ def detect_logic(trace: Trace, meta: Meta) -> Optional[Event]:
     kind = "step_omission" if expected not in ran else "sequence_reversal"
     i = next(i for i, n in enumerate(meta["executed"]) if seg[n] == s)
     j = trace["kf_end"][i - 1] + 1 if i > 0 else 0
-    return j, kind, (f"step {s} ({meta['steps'][s]['action']}) ran where step {expected} "
-                     f"({meta['steps'][expected]['action']}) was due; steps ran in order {ran}")
+    return (
+        j,
+        kind,
+        (
+            f"step {s} ({meta['steps'][s]['action']}) ran where step {expected} "
+            f"({meta['steps'][expected]['action']}) was due; steps ran in order {ran}"
+        ),
+    )
 
 
 def detect_grasp(trace: Trace, meta: Meta) -> Optional[Event]:
@@ -99,7 +105,11 @@ def detect_grasp(trace: Trace, meta: Meta) -> Optional[Event]:
         grasp_pt = np.asarray(trace[f"{obj}.pos"][j]) + np.asarray(st["grip_offset"])
         off = float(np.linalg.norm(np.asarray(trace["ee_pos"][j])[:2] - grasp_pt[:2]))
         if trace["width"][j] >= OPEN_WIDTH:
-            return j, "gripper_control_failure", f"fingers stayed open (width {trace['width'][j]:.3f} m) at {st['close_kf']}"
+            return (
+                j,
+                "gripper_control_failure",
+                f"fingers stayed open (width {trace['width'][j]:.3f} m) at {st['close_kf']}",
+            )
         if off > MISALIGN_XY:
             return j, "grasp_target_misalignment", f"fingers closed {off:.3f} m beside {obj} with no contact"
         return j, "gripper_control_failure", f"fingers closed on {obj} without contact (offset {off:.3f} m)"
@@ -136,7 +146,11 @@ def detect_slip(trace: Trace, meta: Meta) -> Optional[Event]:
                 # Fingers commanded open before the release keyframe: the object was let go, not lost.
                 opened = next((k for k in range(j0, j + 1) if trace["grip_cmd"][k] == 0), None)
                 if opened is not None:
-                    return opened, "gripper_control_failure", f"the gripper opened while carrying {obj}, before its release"
+                    return (
+                        opened,
+                        "gripper_control_failure",
+                        f"the gripper opened while carrying {obj}, before its release",
+                    )
                 return j, "object_slippage", f"{obj} drifted {np.linalg.norm(d - d0):.3f} m from the gripper while held"
     return None
 
@@ -147,8 +161,10 @@ def _stopped_after(trace: Trace, meta: Meta, st: dict, j: int) -> bool:
     names = [n for n in st["keyframes"] if n in plan]
     planned = max(float(np.linalg.norm(plan[n] - plan[st["contact_kf"]])) for n in names)
     ends = [e for e in _kf_samples(trace, meta, set(names)) if e >= j]
-    moved = max((float(np.linalg.norm(np.asarray(trace["ee_pos"][e]) - np.asarray(trace["ee_pos"][j]))) for e in ends),
-                default=0.0)
+    moved = max(
+        (float(np.linalg.norm(np.asarray(trace["ee_pos"][e]) - np.asarray(trace["ee_pos"][j]))) for e in ends),
+        default=0.0,
+    )
     return planned > 0.05 and moved < 0.5 * planned
 
 
@@ -193,7 +209,11 @@ def detect_incomplete(trace: Trace, meta: Meta) -> Optional[Event]:
     left = sum(float(np.linalg.norm(plan[i + 1] - plan[i])) for i in range(k, len(plan) - 1))
     if k >= len(ee) - 1 or left < 0.03:
         return None
-    return ends[k] + 1, "incomplete_trajectory", f"arm stood still from keyframe {k + 1} on with {left:.3f} m of planned motion left"
+    return (
+        ends[k] + 1,
+        "incomplete_trajectory",
+        f"arm stood still from keyframe {k + 1} on with {left:.3f} m of planned motion left",
+    )
 
 
 def detect_place(trace: Trace, meta: Meta) -> Optional[Event]:
@@ -207,8 +227,13 @@ def detect_place(trace: Trace, meta: Meta) -> Optional[Event]:
         obj = st["object"]
         for i in ids:
             j = trace["kf_end"][i]
-            if rotation_angle(trace["ee_quat"][j], _nominal(meta, meta["executed"][i])["quat"]) > POSE_ERR:
-                return j, "pose_control_error", f"gripper twisted {rotation_angle(trace['ee_quat'][j], _nominal(meta, meta['executed'][i])['quat']):.2f} rad off the plan while placing {obj}"
+            twist = rotation_angle(trace["ee_quat"][j], _nominal(meta, meta["executed"][i])["quat"])
+            if twist > POSE_ERR:
+                return (
+                    j,
+                    "pose_control_error",
+                    f"gripper twisted {twist:.2f} rad off the plan while placing {obj}",
+                )
         j = _kf_samples(trace, meta, {st["release_kf"]})
         if not j:
             continue
@@ -222,7 +247,9 @@ def detect_place(trace: Trace, meta: Meta) -> Optional[Event]:
         miss = float(np.linalg.norm(fin[:2] - dest))
         if miss <= 0.04:
             continue
-        ee_off = float(np.linalg.norm(np.asarray(trace["ee_pos"][j]) - np.asarray(_nominal(meta, st["release_kf"])["pos"])))
+        ee_off = float(
+            np.linalg.norm(np.asarray(trace["ee_pos"][j]) - np.asarray(_nominal(meta, st["release_kf"])["pos"]))
+        )
         if st.get("returning") and ee_off > WRONG_PLACE:
             return j, "improper_handling", f"{obj} was set down {miss:.3f} m from its home instead of being returned"
         return j, "target_positioning_deviation", f"{obj} released {miss:.3f} m from the target"
@@ -290,8 +317,16 @@ def detect_stir(trace: Trace, meta: Meta) -> Optional[Event]:
 
 # Order breaks ties between detectors firing at the same sample (causes before effects).
 DETECTORS: list[Callable[[Trace, Meta], Optional[Event]]] = [
-    detect_logic, detect_grasp, detect_operation, detect_slip, detect_place, detect_insert, detect_liquid, detect_spill,
-    detect_stir, detect_incomplete,
+    detect_logic,
+    detect_grasp,
+    detect_operation,
+    detect_slip,
+    detect_place,
+    detect_insert,
+    detect_liquid,
+    detect_spill,
+    detect_stir,
+    detect_incomplete,
 ]
 
 
@@ -316,12 +351,16 @@ def severity(trace: Trace, meta: Meta, failure_type: str) -> Severity:
     Management incident: an oven door left open, equipment not returned.
     Dangerous: anything else (the task cannot proceed without someone stepping in)."""
     movables = [k for k, o in meta["objects"].items() if o["kind"] in ("vessel", "rod")]
-    if any(trace[f"{m}.pos"][-1][2] < meta["bench_top"] + OFF_BENCH for m in movables) \
-            or any(impact_speed(trace, m) >= BREAK_SPEED for m in movables):
+    if any(trace[f"{m}.pos"][-1][2] < meta["bench_top"] + OFF_BENCH for m in movables) or any(
+        impact_speed(trace, m) >= BREAK_SPEED for m in movables
+    ):
         return Severity.FATAL
     vessels = [m for m in movables if meta["objects"][m]["kind"] == "vessel"]
-    if any(tilt(trace[f"{m}.quat"][-1]) > UPRIGHT_TILT for m in vessels) or spilled(trace) >= SPILL_PARTICLES \
-            or failure_type == "object_slippage":
+    if (
+        any(tilt(trace[f"{m}.quat"][-1]) > UPRIGHT_TILT for m in vessels)
+        or spilled(trace) >= SPILL_PARTICLES
+        or failure_type == "object_slippage"
+    ):
         return Severity.RISK
     ovens = [k for k, o in meta["objects"].items() if o["kind"] == "oven"]
     if failure_type == "improper_handling" or any(trace[f"{o}.q"][-1] > 0.3 for o in ovens):
@@ -340,6 +379,11 @@ def derive_labels(trace: Trace, meta: Union[TaskMeta, Meta]) -> Labels:
         return Labels(success=False, evidence=f"unexplained: no detector fired; failed goals: {failed}")
     (j, ftype, why), _ = min(events, key=lambda er: (er[0][0], er[1]))
     kf = next((i for i, e in enumerate(trace["kf_end"]) if e >= j), len(trace["kf_end"]) - 1)
-    return Labels(success=False, failure_type=ftype, category=int(category_of(ftype)),
-                  severity=int(severity(trace, meta, ftype)), failure_keyframe=kf,
-                  evidence=f"{why}; failed goals: {failed}")
+    return Labels(
+        success=False,
+        failure_type=ftype,
+        category=int(category_of(ftype)),
+        severity=int(severity(trace, meta, ftype)),
+        failure_keyframe=kf,
+        evidence=f"{why}; failed goals: {failed}",
+    )

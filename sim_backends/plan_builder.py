@@ -31,8 +31,19 @@ class PlanBuilder:
         """Append a keyframe to the current step; returns its full name."""
         st, speed = self.steps[-1], self.DEFAULT_SPEED if speed is None else speed
         full = f"s{st.index}_{name}"
-        self.keyframes.append(Keyframe(full, tuple(float(v) for v in pos), tuple(float(v) for v in quat),
-                                       int(gripper), target, st.index, st.action, speed, settle))
+        self.keyframes.append(
+            Keyframe(
+                full,
+                tuple(float(v) for v in pos),
+                tuple(float(v) for v in quat),
+                int(gripper),
+                target,
+                st.index,
+                st.action,
+                speed,
+                settle,
+            )
+        )
         st.keyframes.append(full)
         return full
 

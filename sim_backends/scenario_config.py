@@ -44,7 +44,7 @@ class ScenarioConfig:
             if "expand" not in sc:
                 out[name] = sc
                 continue
-            (role, objects), = sc["expand"].items()
+            ((role, objects),) = sc["expand"].items()
             for obj in objects:
                 layout = {**sc["layout"], role: {**sc["layout"][role], "object": obj}}
                 out[f"{name}_{obj}"] = {k: v for k, v in sc.items() if k != "expand"} | {"layout": layout}
@@ -74,8 +74,12 @@ class ScenarioConfig:
     def scenario_info(self, scenario: str) -> dict[str, Any]:
         sc = self._scenario(scenario)
         tmpl = self.cfg["templates"].get(sc["template"], {})
-        return {"template": sc["template"], "perturbations": sc.get("perturbations", tmpl.get("perturbations", [])),
-                "substitutes": sc.get("substitutes", {}), "repeat": self._repeat(self.cfg, sc)}
+        return {
+            "template": sc["template"],
+            "perturbations": sc.get("perturbations", tmpl.get("perturbations", [])),
+            "substitutes": sc.get("substitutes", {}),
+            "repeat": self._repeat(self.cfg, sc),
+        }
 
     def _scenario(self, scenario: str) -> dict[str, Any]:
         if scenario not in self.cfg["scenarios"]:

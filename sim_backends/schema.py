@@ -39,8 +39,10 @@ def samples_in(trace: Trace, seconds: float) -> int:
 def trace_until(trace: Trace, keyframe: int) -> Trace:
     """The trace as it stood when executed keyframe `keyframe` (0-based) ended: its samples up to that one."""
     j = trace["kf_end"][keyframe]
-    return {c: (v if c == "rate_hz" else [e for e in v if e <= j] if c == "kf_end" else v[:j + 1])
-            for c, v in trace.items()}
+    return {
+        c: (v if c == "rate_hz" else [e for e in v if e <= j] if c == "kf_end" else v[: j + 1])
+        for c, v in trace.items()
+    }
 
 
 def check_trace(trace: Trace, meta: "TaskMeta | None" = None) -> list[str]:
@@ -51,8 +53,11 @@ def check_trace(trace: Trace, meta: "TaskMeta | None" = None) -> list[str]:
     if errs:
         return errs
     n = len(trace["t"])
-    errs += [f"column {c!r} has {len(v)} samples, not {n}" for c, v in trace.items()
-             if c not in ("kf_end", "rate_hz") and len(v) != n]
+    errs += [
+        f"column {c!r} has {len(v)} samples, not {n}"
+        for c, v in trace.items()
+        if c not in ("kf_end", "rate_hz") and len(v) != n
+    ]
     if any(not 0 <= j < n for j in trace["kf_end"]) or trace["kf_end"] != sorted(trace["kf_end"]):
         errs.append("kf_end must be increasing sample indices")
     if meta is not None:
@@ -164,8 +169,10 @@ class TaskMeta:
             "goals": [g.to_dict() for g in self.goals],
             "objects": {k: {"kind": o.kind, "dims": o.dims, "home": o.home} for k, o in self.objects.items()},
             "places": self.places,
-            "nominal": [{"name": k.name, "pos": k.pos, "quat": k.quat, "gripper": k.gripper, "segment": k.segment}
-                        for k in self.nominal],
+            "nominal": [
+                {"name": k.name, "pos": k.pos, "quat": k.quat, "gripper": k.gripper, "segment": k.segment}
+                for k in self.nominal
+            ],
             "executed": self.executed,
             "bench_top": self.bench_top,
             "liquid_total": self.liquid_total,
@@ -183,10 +190,16 @@ class TaskMeta:
             goals=[Goal.from_dict(g) for g in d["goals"]],
             objects={k: ObjectInfo(o["kind"], dict(o["dims"]), list(o["home"])) for k, o in d["objects"].items()},
             places={k: list(v) for k, v in d["places"].items()},
-            nominal=[NominalKeyframe(k["name"], list(k["pos"]), list(k["quat"]), int(k["gripper"]), int(k["segment"]))
-                     for k in d["nominal"]],
-            executed=list(d["executed"]), bench_top=float(d["bench_top"]), liquid_total=dict(d["liquid_total"]),
-            labels=dict(d.get("labels", {})), description=str(d.get("description", "")))
+            nominal=[
+                NominalKeyframe(k["name"], list(k["pos"]), list(k["quat"]), int(k["gripper"]), int(k["segment"]))
+                for k in d["nominal"]
+            ],
+            executed=list(d["executed"]),
+            bench_top=float(d["bench_top"]),
+            liquid_total=dict(d["liquid_total"]),
+            labels=dict(d.get("labels", {})),
+            description=str(d.get("description", "")),
+        )
 
     @classmethod
     def from_json(cls, text: str) -> "TaskMeta":

@@ -183,8 +183,12 @@ class FailureSource(ABC):
         if not self._fresh:
             raise RuntimeError("begin() needs a fresh reset(): every episode starts from the seeded initial state")
         self._fresh = False
-        self._run = _Run(list(physics_events), images=[[] for _ in self.camera_names],
-                         cameras=[[] for _ in self.camera_names], render=render)
+        self._run = _Run(
+            list(physics_events),
+            images=[[] for _ in self.camera_names],
+            cameras=[[] for _ in self.camera_names],
+            render=render,
+        )
         self._begin()
 
     def step(self, kf: Keyframe) -> None:
@@ -226,11 +230,25 @@ class FailureSource(ABC):
         nominal = self.scripted_keyframes()
         scenario, seed, variant = self._key
         return Episode(
-            episode_id="", backend=self.name, task=self.scenario_info(scenario)["template"], scenario=scenario,
-            variant=variant, seed=seed, pair_id="", role="", actions=meta.actions, horizon=horizon_of(len(nominal)),
-            nominal_keyframes=nominal, executed_keyframes=list(run.executed), camera_names=list(self.camera_names),
-            images=run.images, state_trace=trace, labels=derive_labels(trace, meta), task_meta=meta,
-            cameras=run.cameras)
+            episode_id="",
+            backend=self.name,
+            task=self.scenario_info(scenario)["template"],
+            scenario=scenario,
+            variant=variant,
+            seed=seed,
+            pair_id="",
+            role="",
+            actions=meta.actions,
+            horizon=horizon_of(len(nominal)),
+            nominal_keyframes=nominal,
+            executed_keyframes=list(run.executed),
+            camera_names=list(self.camera_names),
+            images=run.images,
+            state_trace=trace,
+            labels=derive_labels(trace, meta),
+            task_meta=meta,
+            cameras=run.cameras,
+        )
 
     def execute(self, keyframes: Sequence[Keyframe], physics_events: Sequence[PhysicsEvent] = ()) -> Episode:
         """Run keyframes from the state set by the last `reset`, render and label (open loop)."""

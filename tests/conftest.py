@@ -6,18 +6,26 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+ROOT = Path(__file__).resolve().parents[1]  # the tests run their subprocesses from the checkout root
 
 # render_frames=null: every keyframe rendered, so the data tests can build grids of any size from the same run.
-SMALL = ["scenarios=[press_button_red,open_oven_center,pick_place_bottle]", "image_size=48", "episodes_per_shard=2",
-         "render_frames=null", "progress=false"]
+SMALL = [
+    "scenarios=[press_button_red,open_oven_center,pick_place_bottle]",
+    "image_size=48",
+    "episodes_per_shard=2",
+    "render_frames=null",
+    "progress=false",
+]
 
 
 def gen(out, *extra, check=True):
-    r = subprocess.run([sys.executable, "scripts/generate.py", f"out_dir={out}", *SMALL, *extra], cwd=ROOT,
-                       capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [sys.executable, "scripts/generate.py", f"out_dir={out}", *SMALL, *extra],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     if check:
         assert r.returncode == 0, r.stderr
     return r
@@ -31,8 +39,10 @@ def free_port() -> int:
 
 
 def rows(out):
-    return sorted((r for p in sorted(Path(out).glob("shard-*.parquet")) for r in pq.read_table(p).to_pylist()),
-                  key=lambda r: r["episode_id"])
+    return sorted(
+        (r for p in sorted(Path(out).glob("shard-*.parquet")) for r in pq.read_table(p).to_pylist()),
+        key=lambda r: r["episode_id"],
+    )
 
 
 @pytest.fixture(scope="session")
@@ -48,8 +58,8 @@ def injected_rows(src, scenario: str, specs: list[dict], seed: int = 1) -> list[
     """Manifest rows of real injected episodes, one per perturbation spec (drawn as the generator draws them)."""
     import numpy as np
 
-    from data.shards import episode_row
     from sim_backends.failure_generator import apply_spec
+    from sim_backends.shards import episode_row
 
     out = []
     for k, spec in enumerate(specs):
@@ -64,17 +74,30 @@ def injected_rows(src, scenario: str, specs: list[dict], seed: int = 1) -> list[
 # the paper's draws, forced so that one short run shows each direction: a several-parameter physics draw (mixed
 # signs), a closed command that opens (the carry) and an open command that stays shut (the release)
 SIGNS_AND_FAULTS = [
-    {"level": "physics", "at": ["s1_carry"], "params": [{"param": p, "target": t, "alpha": 0.9} for p, t in
-                                                          (("grip_force", "robot"), ("friction", "obj"), ("mass", "obj"))]},
-    {"level": "physics", "at": ["s1_carry"], "params": [{"param": p, "target": t, "alpha": 0.9} for p, t in
-                                                          (("grip_force", "robot"), ("friction", "obj"), ("mass", "obj"))]},
+    {
+        "level": "physics",
+        "at": ["s1_carry"],
+        "params": [
+            {"param": p, "target": t, "alpha": 0.9}
+            for p, t in (("grip_force", "robot"), ("friction", "obj"), ("mass", "obj"))
+        ],
+    },
+    {
+        "level": "physics",
+        "at": ["s1_carry"],
+        "params": [
+            {"param": p, "target": t, "alpha": 0.9}
+            for p, t in (("grip_force", "robot"), ("friction", "obj"), ("mass", "obj"))
+        ],
+    },
     {"level": "control", "op": "corrupt_gripper", "keyframes": ["s1_carry"], "lambda": 1.0},
     {"level": "control", "op": "corrupt_gripper", "keyframes": ["s1_release"], "lambda": 1.0},
 ]
 
 
 def check_injection_summary(rows: list[dict]) -> None:
-    from data.shards import injection_summary
+    from sim_backends.shards import injection_summary
+
     inj = injection_summary(rows)
     signs = {s for v in inj["physics_events"].values() for s in v}
     assert set(inj["physics_events"]) == {"grip_force", "friction", "mass"} and signs == {"+", "-"}, inj

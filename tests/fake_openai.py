@@ -67,8 +67,9 @@ class FakeOpenAI:
                 if "regex" in so and so["regex"] != ACTIONS_REGEX:
                     return self._send(400, {"error": {"message": "unsupported regex"}})
                 fa = fake.fa
-                prompt = fa.processor.apply_chat_template(messages(text_part["text"]), tokenize=False,
-                                                          add_generation_prompt=True)
+                prompt = fa.processor.apply_chat_template(
+                    messages(text_part["text"]), tokenize=False, add_generation_prompt=True
+                )
                 with lock:
                     pre = fa.decoder.prefill(dict(fa.processor(text=[prompt], images=[image], return_tensors="pt")))
                     if "choice" in so:
@@ -81,9 +82,17 @@ class FakeOpenAI:
                     else:
                         fa.decoder.max_new_tokens = int(body.get("max_tokens", 96))
                         reply = fa.decoder.free_text(pre)
-                self._send(200, {"id": "chatcmpl-fake", "object": "chat.completion", "model": fake.name,
-                                 "choices": [{"index": 0, "finish_reason": "stop",
-                                              "message": {"role": "assistant", "content": reply}}]})
+                self._send(
+                    200,
+                    {
+                        "id": "chatcmpl-fake",
+                        "object": "chat.completion",
+                        "model": fake.name,
+                        "choices": [
+                            {"index": 0, "finish_reason": "stop", "message": {"role": "assistant", "content": reply}}
+                        ],
+                    },
+                )
 
         self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
         self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/v1"

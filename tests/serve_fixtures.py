@@ -41,6 +41,8 @@ def grids():
     small = GridConfig(width=256, height=128, max_frames=8, columns=4)
     out = [frames_to_grid(frame_lists(s), small) for s in range(3)]
     out += [Image.new("RGB", (256, 128), (v, v, v)) for v in (128, 200, 255)]
-    out += [frames_to_grid(frame_lists(9), GridConfig(width=512, height=256, max_frames=8, columns=4)),
-            Image.new("RGB", (512, 256), (200, 200, 200))]
+    out += [
+        frames_to_grid(frame_lists(9), GridConfig(width=512, height=256, max_frames=8, columns=4)),
+        Image.new("RGB", (512, 256), (200, 200, 200)),
+    ]
     return out

@@ -8,17 +8,28 @@ import sys
 import numpy as np
 import pytest
 import torch
-
-from labrobfail_vlm.config import ConfigError
-from policies.act.checkpoint import load_checkpoint, save_checkpoint
-from policies.act.configuration_act import ACTConfig
-from policies.act.data import from_rot6d, rot6d
-from policies.act.modeling_act import ACTModel, ChunkRunner, TemporalEnsembler
 from conftest import ROOT
 
-TOY = dict(cameras=["front"], image_size=32, chunk_size=4, backbone_channels=[8, 8, 16, 16], dim_model=32, n_heads=2,
-           dim_feedforward=64, n_encoder_layers=1, n_decoder_layers=1, n_vae_encoder_layers=1, latent_dim=4,
-           dropout=0.0)
+from labrobfail_vlm.config import ConfigError
+from sim_backends.policies.act.checkpoint import load_checkpoint, save_checkpoint
+from sim_backends.policies.act.configuration_act import ACTConfig
+from sim_backends.policies.act.data import from_rot6d, rot6d
+from sim_backends.policies.act.modeling_act import ACTModel, ChunkRunner, TemporalEnsembler
+
+TOY = dict(
+    cameras=["front"],
+    image_size=32,
+    chunk_size=4,
+    backbone_channels=[8, 8, 16, 16],
+    dim_model=32,
+    n_heads=2,
+    dim_feedforward=64,
+    n_encoder_layers=1,
+    n_decoder_layers=1,
+    n_vae_encoder_layers=1,
+    latent_dim=4,
+    dropout=0.0,
+)
 
 
 def test_temporal_ensembling_weights_the_oldest_chunk_most():
@@ -53,6 +64,7 @@ def test_chunks_run_open_loop_without_ensembling():
 
 def test_rotation_6d_round_trip():
     from sim_backends.perturbations.control import so3_exp
+
     r = so3_exp(np.array([0.3, -1.2, 0.7]))
     assert np.allclose(from_rot6d(rot6d(r)), r, atol=1e-9)
     assert np.allclose(from_rot6d(rot6d(r) + 0.01), from_rot6d(rot6d(r) + 0.01) @ np.eye(3))
@@ -60,8 +72,10 @@ def test_rotation_6d_round_trip():
 
 def test_act_trains_a_few_steps_and_predicts_chunks(tmp_path):
     torch.manual_seed(0)
-    cfg = ACTConfig(**TOY, stats={"state_mean": [0.0] * 9, "state_std": [1.0] * 9, "action_mean": [0.0] * 10,
-                                  "action_std": [1.0] * 10})
+    cfg = ACTConfig(
+        **TOY,
+        stats={"state_mean": [0.0] * 9, "state_std": [1.0] * 9, "action_mean": [0.0] * 10, "action_std": [1.0] * 10},
+    )
     model = ACTModel(cfg)
     img, state = torch.rand(4, 1, 3, 32, 32), torch.randn(4, 9)
     actions, pad = torch.randn(4, 4, 10), torch.zeros(4, 4, dtype=torch.bool)
@@ -90,7 +104,8 @@ def test_bad_checkpoints_are_one_line_errors(tmp_path):
     (tmp_path / "ck" / "model.safetensors").write_bytes(b"not a safetensors file")
     with pytest.raises(ValueError, match="act.checkpoint: cannot load"):
         load_checkpoint(tmp_path / "ck")
-    from policies.act.policy import ACTPolicy
+    from sim_backends.policies.act.policy import ACTPolicy
+
     with pytest.raises(ConfigError, match="no checkpoint directory"):
         ACTPolicy(checkpoint=None)
 
@@ -98,9 +113,24 @@ def test_bad_checkpoints_are_one_line_errors(tmp_path):
 def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
     out = tmp_path / "act"
     toy = [f"model.{k}={json.dumps(v).replace(' ', '')}" for k, v in TOY.items() if k != "cameras"]
-    r = subprocess.run([sys.executable, "scripts/train_act.py", "task=pick_place_bottle", "demos=1", "train.steps=3",
-                        "train.batch_size=4", "model.cameras=[front]", *toy, "progress=false", f"out_dir={out}"],
-                       cwd=ROOT, capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "scripts/train_act.py",
+            "task=pick_place_bottle",
+            "demos=1",
+            "train.steps=3",
+            "train.batch_size=4",
+            "model.cameras=[front]",
+            *toy,
+            "progress=false",
+            f"out_dir={out}",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout.strip().splitlines()[-1])
     assert summary["steps"] == 3 and summary["demos"]["recorded"] == 1
@@ -108,22 +138,49 @@ def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
     log = json.loads((out / "train_log.json").read_text())
     assert log["curve"][0]["step"] == 1 and log["demos"]["ticks"] > 10
     sup = tmp_path / "sup"
-    r = subprocess.run([sys.executable, "scripts/supervise.py", "policy=act", f"act.checkpoint={out / 'final'}",
-                        "act.max_ticks=12", "task=pick_place_bottle", "trials=1", "image_size=48", "cameras=[front]",
-                        "progress=false", f"out_dir={sup}"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "scripts/supervise.py",
+            "policy=act",
+            f"act.checkpoint={out / 'final'}",
+            "act.max_ticks=12",
+            "task=pick_place_bottle",
+            "trials=1",
+            "image_size=48",
+            "cameras=[front]",
+            "progress=false",
+            f"out_dir={sup}",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr
     eps = [json.loads(x) for x in (sup / "log.jsonl").read_text().splitlines() if '"episode"' in x]
     assert len(eps) == 2 and all(0 < e["steps"] <= 12 and e["policy"] == "act" for e in eps)
     # the same checkpoint behind the OpenVLA protocol
-    p = subprocess.Popen([sys.executable, "scripts/serve_policy.py", "policy=act", f"act.checkpoint={out / 'final'}",
-                          "port=0"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen(
+        [sys.executable, "scripts/serve_policy.py", "policy=act", f"act.checkpoint={out / 'final'}", "port=0"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         url = p.stdout.readline().split()[-1]
-        from policies.openvla_client import OpenVLAClient
+        from sim_backends.policies.openvla_client import OpenVLAClient
+
         state = {"ee_pos": [0.4, 0.0, 0.3], "ee_quat": [0.0, 0.7071, 0.0, 0.7071], "width": 0.08, "grip_cmd": 0}
-        a = OpenVLAClient(url).request({"image": np.zeros((48, 48, 3), np.uint8), "instruction": "pick",
-                                        "images": {"front": np.zeros((48, 48, 3), np.uint8)},
-                                        "proprio": np.array([*state["ee_pos"], *state["ee_quat"], 0.08, 0], np.float32)})
+        a = OpenVLAClient(url).request(
+            {
+                "image": np.zeros((48, 48, 3), np.uint8),
+                "instruction": "pick",
+                "images": {"front": np.zeros((48, 48, 3), np.uint8)},
+                "proprio": np.array([*state["ee_pos"], *state["ee_quat"], 0.08, 0], np.float32),
+            }
+        )
         assert a.shape == (7,) and np.all(np.isfinite(a))
     finally:
         p.terminate()

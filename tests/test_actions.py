@@ -6,8 +6,16 @@ from labrobfail_vlm.actions import PRIMITIVES, clauses, executable, format_primi
 from labrobfail_vlm.corrections import STRATEGIES, candidates
 from labrobfail_vlm.questions import NO_CORRECTION
 
-SCENE = ["small beaker", "target area", "drying oven", "Erlenmeyer flask", "large beaker", "glass rod",
-         "hole 1 of the test tube rack", "red button"]
+SCENE = [
+    "small beaker",
+    "target area",
+    "drying oven",
+    "Erlenmeyer flask",
+    "large beaker",
+    "glass rod",
+    "hole 1 of the test tube rack",
+    "red button",
+]
 
 
 def ops(text, objects=SCENE):
@@ -26,56 +34,79 @@ def test_every_filled_template_maps_without_manual_phrases():
             assert all(p["op"] in PRIMITIVES for p in prims)
 
 
-@pytest.mark.parametrize("sid, want", [
-    ("S1", ["hold_position", "hold_gripper", "set_orient"]),
-    ("S2", ["set_orient", "move_above", "gripper_open"]),
-    ("L1", ["gripper_open", "align_to", "gripper_close", "move_above", "gripper_open"]),
-    ("L2", ["hold_position", "move_to_pose"]),
-    ("M1", ["set_orient", "gripper_close", "delta_pos"]),
-    ("M2", ["gripper_close", "hold_orientation", "oscillate"]),
-    ("M3", ["gripper_close", "delta_pos"]),
-    ("M4", ["align_above", "gripper_close", "tilt_pour"]),
-    ("G1", ["gripper_open", "align_to", "gripper_close"]),
-    ("G2", ["align_to", "set_orient", "gripper_open", "align_to", "gripper_close"]),
-    ("G3", ["gripper_close", "move_above", "set_orient"]),
-    ("P1", ["align_to", "gripper_close", "delta_pos"]),
-    ("P2", ["move_above", "set_orient", "gripper_open"]),
-    ("P3", ["align_to", "gripper_close", "delta_pos"]),
-    ("P4", ["gripper_open", "align_to", "gripper_close"]),
-])
+@pytest.mark.parametrize(
+    "sid, want",
+    [
+        ("S1", ["hold_position", "hold_gripper", "set_orient"]),
+        ("S2", ["set_orient", "move_above", "gripper_open"]),
+        ("L1", ["gripper_open", "align_to", "gripper_close", "move_above", "gripper_open"]),
+        ("L2", ["hold_position", "move_to_pose"]),
+        ("M1", ["set_orient", "gripper_close", "delta_pos"]),
+        ("M2", ["gripper_close", "hold_orientation", "oscillate"]),
+        ("M3", ["gripper_close", "delta_pos"]),
+        ("M4", ["align_above", "gripper_close", "tilt_pour"]),
+        ("G1", ["gripper_open", "align_to", "gripper_close"]),
+        ("G2", ["align_to", "set_orient", "gripper_open", "align_to", "gripper_close"]),
+        ("G3", ["gripper_close", "move_above", "set_orient"]),
+        ("P1", ["align_to", "gripper_close", "delta_pos"]),
+        ("P2", ["move_above", "set_orient", "gripper_open"]),
+        ("P3", ["align_to", "gripper_close", "delta_pos"]),
+        ("P4", ["gripper_open", "align_to", "gripper_close"]),
+    ],
+)
 def test_each_strategy_maps_to_the_paper_primitives(sid, want):
     text = next(t for s, t in candidates(SCENE) if s == sid)
     assert ops(text) == want
 
 
 def test_placeholders_resolve_to_scene_names_and_arguments():
-    p = to_primitives("Move the robotic arm to position the small beaker above the target area, keep the gripper "
-                      "orientation horizontal, then open the gripper to release.", SCENE)
+    p = to_primitives(
+        "Move the robotic arm to position the small beaker above the target area, keep the gripper "
+        "orientation horizontal, then open the gripper to release.",
+        SCENE,
+    )
     assert p[0] == {"op": "move_above", "args": {"dest_id": "target area", "h": 0.01, "obj": "small beaker"}}
-    door = to_primitives("Keep the gripper closed on the door handle and move the robotic arm forward until the door "
-                         "is fully closed.", SCENE)
+    door = to_primitives(
+        "Keep the gripper closed on the door handle and move the robotic arm forward until the door is fully closed.",
+        SCENE,
+    )
     assert door[1]["args"] == {"direction": "forward", "dist": 0.4, "until": "door_closed"}
-    assert to_primitives("Pause current execution, return to perform the omitted grasp, then resume the remaining "
-                         "workflow.", SCENE)[1]["args"] == {"pose_id": "omitted:grasp"}
-    g3 = to_primitives("Keep the gripper closed to secure the Erlenmeyer flask and move the robotic arm to its "
-                       "original position while maintaining orientation horizontal.", SCENE)
+    assert to_primitives(
+        "Pause current execution, return to perform the omitted grasp, then resume the remaining workflow.", SCENE
+    )[1]["args"] == {"pose_id": "omitted:grasp"}
+    g3 = to_primitives(
+        "Keep the gripper closed to secure the Erlenmeyer flask and move the robotic arm to its "
+        "original position while maintaining orientation horizontal.",
+        SCENE,
+    )
     assert g3[1]["args"] == {"dest_id": "its original position", "h": 0.01, "obj": "Erlenmeyer flask"}
     assert format_primitive(g3[0]) == "gripper_close()"
 
 
-@pytest.mark.parametrize("text, want", [
-    ("Release the gripper, re-align the arm to center the small beaker, then grip it firmly.",
-     ["gripper_open", "align_to", "gripper_close"]),
-    ("Hold the arm still, keep the gripper state unchanged and keep the gripper level.",
-     ["hold_position", "hold_gripper", "set_orient"]),
-    ("Grab the beaker, carry it to the target area and release it.",  # two beakers in the scene: ambiguous
-     ["manual", "move_above", "gripper_open"]),
-    ("Grab the flask, carry it to the target area and release it.",
-     ["gripper_open", "align_to", "gripper_close", "move_above", "gripper_open"]),
-    ("Lower the arm by 2 cm", ["delta_pos"]),
-    ("Move the arm side to side until the liquid is well mixed.", ["oscillate"]),
-    ("Gradually tilt the flask until it is completely poured out.", ["tilt_pour"]),
-])
+@pytest.mark.parametrize(
+    "text, want",
+    [
+        (
+            "Release the gripper, re-align the arm to center the small beaker, then grip it firmly.",
+            ["gripper_open", "align_to", "gripper_close"],
+        ),
+        (
+            "Hold the arm still, keep the gripper state unchanged and keep the gripper level.",
+            ["hold_position", "hold_gripper", "set_orient"],
+        ),
+        (
+            "Grab the beaker, carry it to the target area and release it.",  # two beakers in the scene: ambiguous
+            ["manual", "move_above", "gripper_open"],
+        ),
+        (
+            "Grab the flask, carry it to the target area and release it.",
+            ["gripper_open", "align_to", "gripper_close", "move_above", "gripper_open"],
+        ),
+        ("Lower the arm by 2 cm", ["delta_pos"]),
+        ("Move the arm side to side until the liquid is well mixed.", ["oscillate"]),
+        ("Gradually tilt the flask until it is completely poured out.", ["tilt_pour"]),
+    ],
+)
 def test_paraphrases_map(text, want):
     assert ops(text) == want
 
@@ -92,4 +123,6 @@ def test_unmappable_text_becomes_manual_with_the_phrase_never_a_guess():
 
 def test_clause_splitting_keeps_purposes_out_of_actions():
     assert clauses("Keep the arm horizontal to complete the experiment safely.") == [
-        "keep arm horizontal", "to complete experiment safely"]
+        "keep arm horizontal",
+        "to complete experiment safely",
+    ]

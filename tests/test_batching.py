@@ -5,19 +5,20 @@ from dataclasses import asdict
 
 import pytest
 from PIL import Image
-
 from serve_fixtures import TASKS, frame_lists, grids, mixed_model  # noqa: F401  (fixtures)
 
 
 @pytest.fixture(scope="module")
 def fa(mixed_model):  # noqa: F811
     from labrobfail_vlm.analyzer import FailureAnalyzer
+
     return FailureAnalyzer.from_pretrained(mixed_model)
 
 
 @pytest.mark.parametrize("q6_mode", ["free", "template"])
 def test_analyze_batch_equals_one_at_a_time(fa, grids, q6_mode):  # noqa: F811
     from labrobfail_vlm.analyzer import DiagnosisRequest
+
     fa.q6_mode = q6_mode
     objects = ["small beaker", "target area"]
     reqs = [DiagnosisRequest(g, TASKS[i % 3], 8, objects) for i, g in enumerate(grids)]
@@ -28,8 +29,7 @@ def test_analyze_batch_equals_one_at_a_time(fa, grids, q6_mode):  # noqa: F811
         together = fa.analyze_batch(reqs, max_batch=max_batch)
         # P(failure) comes from float sums over padded rows: equal to rounding, the answers exactly
         assert [d.p_failure for d in together] == pytest.approx([d.p_failure for d in alone], abs=1e-4)
-        assert [{**asdict(d), "p_failure": None} for d in together] == [{**asdict(d), "p_failure": None}
-                                                                       for d in alone]
+        assert [{**asdict(d), "p_failure": None} for d in together] == [{**asdict(d), "p_failure": None} for d in alone]
     fa.q6_mode = "free"
 
 
@@ -38,7 +38,7 @@ def test_prompt_ids_equal_the_processor_tokenization(fa, grids):  # noqa: F811
     for dim in ("Q1", "Q4", "Q6"):
         p = fa._prompt(dim, "pick up the small beaker")
         ref = fa.processor(text=[p], images=[grids[-1]], return_tensors="pt")
-        n = int(ref["image_grid_thw"][0].prod()) // fa.processor.image_processor.merge_size ** 2
+        n = int(ref["image_grid_thw"][0].prod()) // fa.processor.image_processor.merge_size**2
         assert d.prompt_ids(p, n) == ref["input_ids"][0].tolist()
 
 
@@ -50,8 +50,7 @@ def test_lockstep_decoder_ops_equal_single_rows(fa, grids):  # noqa: F811
     prompts = [fa._prompt("Q6", t) for t in tasks]
     px = fa.processor.image_processor(images=imgs, return_tensors="pt")
     n = (px["image_grid_thw"].prod(-1) // 4).tolist()
-    batch = d.prefill_rows([d.prompt_ids(p, k) for p, k in zip(prompts, n)], px["pixel_values"],
-                           px["image_grid_thw"])
+    batch = d.prefill_rows([d.prompt_ids(p, k) for p, k in zip(prompts, n)], px["pixel_values"], px["image_grid_thw"])
     singles = [next(fa._prefixes(img, {"Q6": p}))[1] for img, p in zip(imgs, prompts)]
     cands = [["Yes", "No"], [str(i) for i in range(1, 9)], None]
     assert d.choose_rows(batch, cands) == [d.choose(s, c) if c else None for s, c in zip(singles, cands)]

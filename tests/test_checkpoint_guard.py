@@ -13,9 +13,8 @@ import subprocess
 import sys
 
 import pytest
-from PIL import Image
-
 from conftest import ROOT
+from PIL import Image
 from test_train import tiny  # noqa: F401  (session fixture)
 
 MEMORY_GUARD = 6 << 30  # bytes of address space; a tiny model's infer.py peaks at ~1.6 GB virtual (measured)
@@ -28,10 +27,18 @@ def _cap_memory() -> None:
 
 def guarded(args, env_extra=None, timeout=300):
     import os
+
     env = {k: v for k, v in os.environ.items() if k != BUDGET_ENV}
     env.update(env_extra or {})
-    return subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout,
-                          preexec_fn=_cap_memory, env=env)
+    return subprocess.run(
+        [sys.executable, *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        preexec_fn=_cap_memory,
+        env=env,
+    )
 
 
 def _clone(src, dst, config=None, raw=None):
@@ -74,22 +81,44 @@ def bad_models(tiny, tmp_path_factory):  # noqa: F811
     (over_empty / "labrobfail.json").write_text(json.dumps({**man, "base_model": str(empty)}))
     return [
         ("empty config", empty, {}, "has no model_type"),
-        ("other model_type", _clone(tiny, root / "llama", config={**cfg, "model_type": "llama",
-                                                                  "architectures": ["LlamaForCausalLM"]}), {},
-         "model_type 'llama'"),
-        ("other architecture", _clone(tiny, root / "arch", config={**cfg, "architectures": ["Qwen3VLModel"]}), {},
-         "architectures ['Qwen3VLModel']"),
+        (
+            "other model_type",
+            _clone(tiny, root / "llama", config={**cfg, "model_type": "llama", "architectures": ["LlamaForCausalLM"]}),
+            {},
+            "model_type 'llama'",
+        ),
+        (
+            "other architecture",
+            _clone(tiny, root / "arch", config={**cfg, "architectures": ["Qwen3VLModel"]}),
+            {},
+            "architectures ['Qwen3VLModel']",
+        ),
         ("list config", _clone(tiny, root / "list", config=[cfg]), {}, "holds a JSON list"),
         ("non-JSON config", _clone(tiny, root / "notjson", raw="{model_type: qwen3_vl"), {}, "not valid JSON"),
         ("truncated safetensors", trunc, {}, "is truncated"),
-        ("mismatched shapes", _clone(tiny, root / "shapes", config={
-            **cfg, "text_config": {**cfg["text_config"], "intermediate_size": 512}}), {},
-         "does not match config.json"),
-        ("more layers than weights", _clone(tiny, root / "layers", config={
-            **cfg, "text_config": {**cfg["text_config"], "num_hidden_layers": 3}}), {}, "lacks"),
+        (
+            "mismatched shapes",
+            _clone(
+                tiny, root / "shapes", config={**cfg, "text_config": {**cfg["text_config"], "intermediate_size": 512}}
+            ),
+            {},
+            "does not match config.json",
+        ),
+        (
+            "more layers than weights",
+            _clone(
+                tiny, root / "layers", config={**cfg, "text_config": {**cfg["text_config"], "num_hidden_layers": 3}}
+            ),
+            {},
+            "lacks",
+        ),
         # the default Qwen3-VL (what a config naming no sizes becomes): 12.6 B parameters, ~50 GB in float32
-        ("too large for the budget", _clone(tiny, root / "defaults", config=arch), {BUDGET_ENV: "8"},
-         "over the 8.0 GB model memory budget"),
+        (
+            "too large for the budget",
+            _clone(tiny, root / "defaults", config=arch),
+            {BUDGET_ENV: "8"},
+            "over the 8.0 GB model memory budget",
+        ),
         ("fine-tuned over an empty-config base", over_empty, {}, "base_model of"),
     ]
 
@@ -133,8 +162,11 @@ def test_budget_argument_and_good_checkpoints(tiny, bad_models, tmp_path):  # no
 
 def test_from_pretrained_and_the_vlm_supervisor_validate_first(bad_models):
     """The supervisor loads through FailureAnalyzer.from_pretrained: same checks, a ConfigError (one line)."""
-    code = ("import sys\nfrom labrobfail_vlm.config import ConfigError\nfrom supervision.vlm import VLMSupervisor\n"
-            "try:\n    VLMSupervisor(model=sys.argv[1])\nexcept ConfigError as e:\n    print(e)\n    sys.exit(2)\n")
+    code = (
+        "import sys\nfrom labrobfail_vlm.config import ConfigError\n"
+        "from sim_backends.supervision.vlm import VLMSupervisor\n"
+        "try:\n    VLMSupervisor(model=sys.argv[1])\nexcept ConfigError as e:\n    print(e)\n    sys.exit(2)\n"
+    )
     for what, model, env, needle in bad_models:
         if what not in ("empty config", "truncated safetensors", "too large for the budget"):
             continue
@@ -197,23 +229,27 @@ def test_fine_tuned_and_sharded_checkpoints_are_checked_piece_by_piece(tiny, bad
     def cut(f):
         f.write_bytes(f.read_bytes()[:-100])
 
-    manifest = lambda d, **kw: (d / "labrobfail.json").write_text(json.dumps(  # noqa: E731
-        {**json.loads((d / "labrobfail.json").read_text()), **kw}))
+    def manifest(d, **kw):
+        (d / "labrobfail.json").write_text(json.dumps({**json.loads((d / "labrobfail.json").read_text()), **kw}))
+
     assert "adapter_model.safetensors is truncated" in broken("a", lambda d: cut(d / "adapter_model.safetensors"))
     assert "vision_merger.safetensors is truncated" in broken("v", lambda d: cut(d / "vision_merger.safetensors"))
     assert "tuning 'lora'" in broken("t", lambda d: manifest(d, tuning="lora"))
     assert "no such model directory" in broken("b", lambda d: manifest(d, base_model=str(tmp_path / "gone")))
     assert "holds a JSON list" in broken("m", lambda d: (d / "labrobfail.json").write_text("[]"))
-    assert "adapter_config.json is not a JSON object" in broken("c", lambda d: (d / "adapter_config.json")
-                                                                 .write_text("nope"))
+    assert "adapter_config.json is not a JSON object" in broken(
+        "c", lambda d: (d / "adapter_config.json").write_text("nope")
+    )
     # an adapter trained on another base: its LoRA shapes do not fit this base's layers
     other = tmp_path / "other_base"
     from labrobfail_vlm.model.tiny import build_tiny
+
     build_tiny(other, text={"intermediate_size": 192})
     assert "does not fit the base weight" in broken("o", lambda d: manifest(d, base_model=str(other)))
 
     # sharded weights: the index and every shard are checked
     from labrobfail_vlm.model.loading import load_model
+
     sharded = tmp_path / "sharded"
     shutil.copytree(tiny, sharded)
     (sharded / "model.safetensors").unlink()

@@ -10,9 +10,9 @@ from http.server import BaseHTTPRequestHandler, HTTPServer
 
 import numpy as np
 import pytest
+from conftest import ROOT, gen
 from PIL import Image
 
-from conftest import ROOT, gen
 from data.annotate import check_record
 from data.splits import assign
 from labrobfail_vlm import questions as Q
@@ -20,8 +20,13 @@ from labrobfail_vlm.grid import BLANK, GridConfig, build_grid, frame_for_keyfram
 
 
 def build(shards, out, *extra):
-    return subprocess.run([sys.executable, "scripts/build_dataset.py", f"shards={shards}", f"out_dir={out}",
-                           "progress=false", *extra], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", "scripts.build_dataset", f"shards={shards}", f"out_dir={out}", "progress=false", *extra],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -60,8 +65,8 @@ def test_grid_layout_index_and_prefix():
     tag = (slice(0, 20), slice(0, 20))
     assert (g[tag] != plain[tag]).any() and (g[200:300, 50:150] == plain[200:300, 50:150]).all()
     prefix = np.asarray(build_grid(frames(), cfg, visible=3))
-    assert (prefix[:384, 3 * 192:] == BLANK).all() and (prefix[384:] == BLANK).all()
-    assert (prefix[:384, :3 * 192] == g[:384, :3 * 192]).all()
+    assert (prefix[:384, 3 * 192 :] == BLANK).all() and (prefix[384:] == BLANK).all()
+    assert (prefix[:384, : 3 * 192] == g[:384, : 3 * 192]).all()
     rows = np.asarray(build_grid(frames(), GridConfig(time_axis="rows")))
     assert rows.shape == (768, 1536, 3) and not (rows == g).all()
     with pytest.raises(ValueError, match="unequal"):
@@ -118,6 +123,7 @@ def test_answers_follow_the_labels(ds):
 
 def test_exports_load_with_hf_datasets_and_stats_plots_exist(ds):
     import datasets
+
     d = datasets.load_dataset("json", data_files={"train": str(ds / "train.json")}, split="train")
     assert len(d) == len(load(ds, "train")) and set(d.column_names) >= {"id", "image", "conversations"}
     stats = load(ds, "stats")
@@ -157,14 +163,29 @@ def test_split_groups_are_exact_and_deterministic():
 
 
 def test_bad_inputs_are_one_line_errors(run6, tmp_path):
-    for args, field in [([f"shards={tmp_path}/none"], "shards"), (["grid.time_axis=diagonal"], "grid.time_axis"),
-                        (["ratios=[0.5,0.5,0.5]"], "ratios"), (["bogus=1"], "bogus"),
-                        (["prefix.cuts=1", "prefix.pair_cuts=maybe"], "prefix.pair_cuts"),
-                        (["prefix.cuts=1", "prefix.questions=[Q2,Q3,Q4]"], "prefix.questions"),
-                        (["prefix.cuts=1", "prefix.questions=Q6"], "prefix.questions")]:
-        r = subprocess.run([sys.executable, "scripts/build_dataset.py", f"out_dir={tmp_path}/o",
-                            *([f"shards={run6}"] if not args[0].startswith("shards") else []), *args],
-                           cwd=ROOT, capture_output=True, text=True, timeout=120)
+    for args, field in [
+        ([f"shards={tmp_path}/none"], "shards"),
+        (["grid.time_axis=diagonal"], "grid.time_axis"),
+        (["ratios=[0.5,0.5,0.5]"], "ratios"),
+        (["bogus=1"], "bogus"),
+        (["prefix.cuts=1", "prefix.pair_cuts=maybe"], "prefix.pair_cuts"),
+        (["prefix.cuts=1", "prefix.questions=[Q2,Q3,Q4]"], "prefix.questions"),
+        (["prefix.cuts=1", "prefix.questions=Q6"], "prefix.questions"),
+    ]:
+        r = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "scripts.build_dataset",
+                f"out_dir={tmp_path}/o",
+                *([f"shards={run6}"] if not args[0].startswith("shards") else []),
+                *args,
+            ],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert r.returncode == 2 and "Traceback" not in r.stderr and field in r.stderr, r.stderr
         assert len(r.stderr.strip().splitlines()) == 1
 
@@ -212,10 +233,24 @@ def test_paraphrase_through_openai_compatible_endpoint(run6, tmp_path, mode):
     _FakeLLM.mode, _FakeLLM.seen_auth = mode, []
     env = {**os.environ, "LRF_TEST_KEY": "sk-secret-123"}
     out = tmp_path / "p"
-    r = subprocess.run([sys.executable, "scripts/build_dataset.py", f"shards={run6}", f"out_dir={out}", "progress=false",
-                        "paraphrase.enabled=true", f"paraphrase.base_url=http://127.0.0.1:{srv.server_port}/v1",
-                        "paraphrase.api_key_env=LRF_TEST_KEY"], cwd=ROOT, capture_output=True, text=True, env=env,
-                       timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "scripts.build_dataset",
+            f"shards={run6}",
+            f"out_dir={out}",
+            "progress=false",
+            "paraphrase.enabled=true",
+            f"paraphrase.base_url=http://127.0.0.1:{srv.server_port}/v1",
+            "paraphrase.api_key_env=LRF_TEST_KEY",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     srv.shutdown()
     assert r.returncode == 0, r.stderr
     assert _FakeLLM.seen_auth and set(_FakeLLM.seen_auth) == {"Bearer sk-secret-123"}
@@ -262,9 +297,15 @@ def test_trace_until_is_the_state_when_a_keyframe_ended():
     """A prefix's correction reads the trace as it stood at the cut: a beaker that falls later has not fallen."""
     from sim_backends.goals import object_fell
     from sim_backends.schema import trace_until
+
     z = [0.8] * 7 + [0.1] * 3  # knocked off the bench during the third keyframe
-    trace = {"t": [i / 40 for i in range(10)], "kf_end": [2, 5, 9], "rate_hz": 40.0,
-             "beaker.pos": [[0.0, 0.0, h] for h in z], "beaker.quat": [[0.0, 0.0, 0.0, 1.0]] * 10}
+    trace = {
+        "t": [i / 40 for i in range(10)],
+        "kf_end": [2, 5, 9],
+        "rate_hz": 40.0,
+        "beaker.pos": [[0.0, 0.0, h] for h in z],
+        "beaker.quat": [[0.0, 0.0, 0.0, 1.0]] * 10,
+    }
     meta = {"objects": {"beaker": {"kind": "vessel"}}, "bench_top": 0.75}
     assert object_fell(trace, meta) and not object_fell(trace_until(trace, 1), meta)
     cut = trace_until(trace, 1)
@@ -275,15 +316,25 @@ def test_trace_until_is_the_state_when_a_keyframe_ended():
 def test_prefix_records_follow_the_failure_frame(run6, ds, tmp_path):
     from data.annotate import prefix_cut_points
     from labrobfail_vlm.analyzer import nearest_strategy
+
     out = tmp_path / "p"
-    r = build(run6, out, "prefix.cuts=2", "prefix.questions=[Q2,Q3,Q5,Q6]", "grid.width=256", "grid.height=128",
-              "grid.max_frames=8", "grid.columns=4")
+    r = build(
+        run6,
+        out,
+        "prefix.cuts=2",
+        "prefix.questions=[Q2,Q3,Q5,Q6]",
+        "grid.width=256",
+        "grid.height=128",
+        "grid.max_frames=8",
+        "grid.columns=4",
+    )
     assert r.returncode == 0, r.stderr
     traj = {t["trajectory"]: t for t in load(out, "trajectories")}
     prefixes = [t for t in traj.values() if "prefix_of" in t]
     assert prefixes and all(t["visible"] < traj[t["prefix_of"]]["frames"] for t in prefixes)
-    recs = load(out, "train") + sum((load(out, f"{s}_prefix") for s in ("val", "test")
-                                     if (out / f"{s}_prefix.json").is_file()), [])
+    recs = load(out, "train") + sum(
+        (load(out, f"{s}_prefix") for s in ("val", "test") if (out / f"{s}_prefix.json").is_file()), []
+    )
     seen_before = seen_after = 0
     dims: dict[str, list[str]] = {}
     for rec in recs:
@@ -318,9 +369,9 @@ def test_prefix_records_follow_the_failure_frame(run6, ds, tmp_path):
         h, w = 128 // rows, 256 // cols
         for k in range(2):
             r_, c_ = g.cell(t["visible"], k, 2)
-            assert (img[r_ * h:(r_ + 1) * h, c_ * w:(c_ + 1) * w] == BLANK[0]).all()
+            assert (img[r_ * h : (r_ + 1) * h, c_ * w : (c_ + 1) * w] == BLANK[0]).all()
             r_, c_ = g.cell(t["visible"] - 1, k, 2)
-            assert not (img[r_ * h:(r_ + 1) * h, c_ * w:(c_ + 1) * w] == BLANK[0]).all()
+            assert not (img[r_ * h : (r_ + 1) * h, c_ * w : (c_ + 1) * w] == BLANK[0]).all()
     # the main records are the same with and without prefixes; evaluation prefixes stay out of test.json
     base = tmp_path / "b"
     assert build(run6, base, "grid.width=256", "grid.height=128", "grid.max_frames=8", "grid.columns=4").returncode == 0
@@ -340,7 +391,9 @@ def test_without_drawn_labels_no_prompt_mentions_them(run6, tmp_path):
     for name, extra in (("noidx", ["grid.draw_index=false"]), ("idx", [])):
         r = build(run6, tmp_path / name, *extra)
         assert r.returncode == 0, r.stderr
-        recs[name] = [x["conversations"][0]["value"] for s in ("train", "val", "test") for x in load(tmp_path / name, s)]
+        recs[name] = [
+            x["conversations"][0]["value"] for s in ("train", "val", "test") for x in load(tmp_path / name, s)
+        ]
     assert json.loads((tmp_path / "noidx" / "stats.json").read_text())["grid"]["draw_index"] is False
     for q in recs["noidx"]:
         assert not any(w in q.lower() for w in ("label", "upper left", "top-left", "indices", "displayed")), q

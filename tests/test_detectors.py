@@ -33,50 +33,96 @@ def _twist(angle: float) -> tuple[float, ...]:
 def _pick_place_plan(dest=TARGET, returning=False) -> list[tuple[str, tuple, int]]:
     x, y, z = HOME
     dx, dy, _ = dest
-    return [("s0_pre", (x - 0.1, y, 0.05), 0), ("s0_reach", (x, y, 0.05), 0), ("s0_close", (x, y, 0.05), 1),
-            ("s0_lift", (x, y, 0.17), 1), ("s1_carry", (dx, dy, 0.17), 1), ("s1_lower", (dx, dy, 0.05), 1),
-            ("s1_release", (dx, dy, 0.05), 0), ("s1_retreat", (dx - 0.1, dy, 0.05), 0)]
+    return [
+        ("s0_pre", (x - 0.1, y, 0.05), 0),
+        ("s0_reach", (x, y, 0.05), 0),
+        ("s0_close", (x, y, 0.05), 1),
+        ("s0_lift", (x, y, 0.17), 1),
+        ("s1_carry", (dx, dy, 0.17), 1),
+        ("s1_lower", (dx, dy, 0.05), 1),
+        ("s1_release", (dx, dy, 0.05), 0),
+        ("s1_retreat", (dx - 0.1, dy, 0.05), 0),
+    ]
 
 
 def _pick_place_meta(executed: list[str], returning: bool = False) -> TaskMeta:
     dest = HOME if returning else TARGET
     plan = _pick_place_plan(dest)
-    steps = [Step(0, "grasp", object="obj", keyframes=[n for n, *_ in plan[:4]], close_kf="s0_close",
-                  grip_offset=list(GRIP), width=0.054),
-             Step(1, "place", object="obj", dest="obj" if returning else "target", dest_xy=list(dest[:2]),
-                  returning=returning, keyframes=[n for n, *_ in plan[4:]], release_kf="s1_release")]
-    goals = [Goal("at", {"object": "obj", "xy": "obj" if returning else "target", "tol": 0.04}),
-             Goal("upright", {"object": "obj"}), Goal("released", {"object": "obj"})]
-    return TaskMeta(steps=steps, goals=goals,
-                    objects={"obj": ObjectInfo("vessel", {"radius": 0.025, "height": 0.09, "neck": 0.0}, list(HOME))},
-                    places={"obj": list(HOME), "target": list(TARGET)},
-                    nominal=[NominalKeyframe(n, list(p), list(Q0), g, int(n[1])) for n, p, g in plan],
-                    executed=executed, bench_top=0.0, liquid_total={}, labels={"obj": "beaker"}, description="test")
+    steps = [
+        Step(
+            0,
+            "grasp",
+            object="obj",
+            keyframes=[n for n, *_ in plan[:4]],
+            close_kf="s0_close",
+            grip_offset=list(GRIP),
+            width=0.054,
+        ),
+        Step(
+            1,
+            "place",
+            object="obj",
+            dest="obj" if returning else "target",
+            dest_xy=list(dest[:2]),
+            returning=returning,
+            keyframes=[n for n, *_ in plan[4:]],
+            release_kf="s1_release",
+        ),
+    ]
+    goals = [
+        Goal("at", {"object": "obj", "xy": "obj" if returning else "target", "tol": 0.04}),
+        Goal("upright", {"object": "obj"}),
+        Goal("released", {"object": "obj"}),
+    ]
+    return TaskMeta(
+        steps=steps,
+        goals=goals,
+        objects={"obj": ObjectInfo("vessel", {"radius": 0.025, "height": 0.09, "neck": 0.0}, list(HOME))},
+        places={"obj": list(HOME), "target": list(TARGET)},
+        nominal=[NominalKeyframe(n, list(p), list(Q0), g, int(n[1])) for n, p, g in plan],
+        executed=executed,
+        bench_top=0.0,
+        liquid_total={},
+        labels={"obj": "beaker"},
+        description="test",
+    )
 
 
-def _simulate(meta: TaskMeta, shift: dict[str, tuple] | None = None, twist: dict[str, float] | None = None,
-              stuck_open: bool = False, drop_during: str | None = None, freeze_after: str | None = None,
-              spill_into: str | None = None) -> dict[str, Any]:
+def _simulate(
+    meta: TaskMeta,
+    shift: dict[str, tuple] | None = None,
+    twist: dict[str, float] | None = None,
+    stuck_open: bool = False,
+    drop_during: str | None = None,
+    freeze_after: str | None = None,
+    spill_into: str | None = None,
+) -> dict[str, Any]:
     """A pick-and-place trace of meta.executed at 40 Hz; the keyword arguments bend one signal each."""
     plan = {k.name: (np.asarray(k.pos), k.gripper) for k in meta.nominal}
     shift, twist = shift or {}, twist or {}
-    tr: dict[str, Any] = {c: [] for c in ("t", "kf", "ee_pos", "ee_quat", "width", "grip_cmd", "obj.pos", "obj.quat",
-                                          "obj.contacts")}
+    tr: dict[str, Any] = {
+        c: [] for c in ("t", "kf", "ee_pos", "ee_quat", "width", "grip_cmd", "obj.pos", "obj.quat", "obj.contacts")
+    }
     if spill_into:
         tr.update({"liquid.obj": [], "liquid.dest": [], f"liquid.{spill_into}": [], "liquid.outside": []})
     ee, quat, obj, held = np.array([0.4, 0.0, 0.3]), Q0, np.asarray(HOME, float), False
     frozen: tuple | None = None
 
     def sample(i: int, g: int, spill: int) -> None:
-        tr["t"].append(round(len(tr["t"]) / RATE, 4)); tr["kf"].append(i)
-        tr["ee_pos"].append([round(float(v), 4) for v in ee]); tr["ee_quat"].append(list(quat))
-        tr["width"].append(0.08 if (stuck_open or not g) else 0.054 if held else 0.0); tr["grip_cmd"].append(g)
+        tr["t"].append(round(len(tr["t"]) / RATE, 4))
+        tr["kf"].append(i)
+        tr["ee_pos"].append([round(float(v), 4) for v in ee])
+        tr["ee_quat"].append(list(quat))
+        tr["width"].append(0.08 if (stuck_open or not g) else 0.054 if held else 0.0)
+        tr["grip_cmd"].append(g)
         tr["obj.pos"].append([round(float(v), 4) for v in obj])
         tr["obj.quat"].append(list(quat) if held else list(obj_quat))
         tr["obj.contacts"].append(2 if held else 0)
         if spill_into:
-            tr["liquid.obj"].append(10 - spill); tr["liquid.dest"].append(0)
-            tr[f"liquid.{spill_into}"].append(spill); tr["liquid.outside"].append(0)
+            tr["liquid.obj"].append(10 - spill)
+            tr["liquid.dest"].append(0)
+            tr[f"liquid.{spill_into}"].append(spill)
+            tr["liquid.outside"].append(0)
 
     obj_quat, spill = Q0, 0
     sample(0, 0, 0)
@@ -111,15 +157,33 @@ def _simulate(meta: TaskMeta, shift: dict[str, tuple] | None = None, twist: dict
 
 def _button_case(miss: float) -> tuple[dict[str, Any], TaskMeta]:
     x, y, top = 0.5, 0.1, 0.05
-    plan = [("s0_above", (x, y, top + 0.08)), ("s0_touch", (x, y, top + 0.015)), ("s0_press", (x, y, top - 0.004)),
-            ("s0_release", (x, y, top + 0.08))]
+    plan = [
+        ("s0_above", (x, y, top + 0.08)),
+        ("s0_touch", (x, y, top + 0.015)),
+        ("s0_press", (x, y, top - 0.004)),
+        ("s0_release", (x, y, top + 0.08)),
+    ]
     meta = TaskMeta(
-        steps=[Step(0, "close", object="button", keyframes=[n for n, _ in plan], contact_kf="s0_press",
-                    contact_point=[x, y, top - 0.004])],
+        steps=[
+            Step(
+                0,
+                "close",
+                object="button",
+                keyframes=[n for n, _ in plan],
+                contact_kf="s0_press",
+                contact_point=[x, y, top - 0.004],
+            )
+        ],
         goals=[Goal("button", {"object": "button", "min_travel": 0.007})],
         objects={"button": ObjectInfo("button", {"travel": 0.012, "top": top}, [x, y, 0.0])},
-        places={"button": [x, y, 0.0]}, nominal=[NominalKeyframe(n, list(p), list(Q0), 1, 0) for n, p in plan],
-        executed=[n for n, _ in plan], bench_top=0.0, liquid_total={}, labels={}, description="press")
+        places={"button": [x, y, 0.0]},
+        nominal=[NominalKeyframe(n, list(p), list(Q0), 1, 0) for n, p in plan],
+        executed=[n for n, _ in plan],
+        bench_top=0.0,
+        liquid_total={},
+        labels={},
+        description="press",
+    )
     tr: dict[str, Any] = {c: [] for c in ("t", "kf", "ee_pos", "ee_quat", "width", "grip_cmd", "button.q")}
     tr["kf_end"], ee = [], np.array([0.4, 0.0, 0.3])
     for i, (name, pos) in enumerate(plan):
@@ -127,8 +191,15 @@ def _button_case(miss: float) -> tuple[dict[str, Any], TaskMeta]:
         for s in range(1, PER_KF + 1):
             ee = start + (goal - start) * s / PER_KF
             pressed = np.linalg.norm(ee[:2] - [x, y]) < 0.01 and ee[2] < top
-            for c, v in (("t", len(tr["t"]) / RATE), ("kf", i), ("ee_pos", [float(v) for v in ee]), ("ee_quat", list(Q0)),
-                         ("width", 0.0), ("grip_cmd", 1), ("button.q", 0.01 if pressed else 0.0)):
+            for c, v in (
+                ("t", len(tr["t"]) / RATE),
+                ("kf", i),
+                ("ee_pos", [float(v) for v in ee]),
+                ("ee_quat", list(Q0)),
+                ("width", 0.0),
+                ("grip_cmd", 1),
+                ("button.q", 0.01 if pressed else 0.0),
+            ):
                 tr[c].append(v)
         tr["kf_end"].append(len(tr["t"]) - 1)
     tr["rate_hz"] = RATE

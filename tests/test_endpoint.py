@@ -8,7 +8,6 @@ import subprocess
 import sys
 
 import pytest
-
 from conftest import ROOT
 from fake_openai import FakeOpenAI
 from serve_fixtures import TASKS, grids, mixed_model  # noqa: F401  (fixtures)
@@ -20,12 +19,14 @@ KEY = "sk-test-" + "y" * 24
 @pytest.fixture(scope="module")
 def local(mixed_model):  # noqa: F811
     from labrobfail_vlm.analyzer import FailureAnalyzer
+
     return FailureAnalyzer.from_pretrained(mixed_model)
 
 
 @pytest.fixture(scope="module")
 def fake(mixed_model):  # noqa: F811
     from labrobfail_vlm.analyzer import FailureAnalyzer
+
     f = FakeOpenAI(FailureAnalyzer.from_pretrained(mixed_model), api_key=KEY)
     os.environ["_FAKE_KEY"] = KEY
     yield f
@@ -35,6 +36,7 @@ def fake(mixed_model):  # noqa: F811
 def test_endpoint_answers_equal_the_local_model(fake, local, grids):  # noqa: F811
     from labrobfail_vlm import questions as Q
     from labrobfail_vlm.endpoint import ACTIONS_REGEX, EndpointAnalyzer
+
     ep = EndpointAnalyzer(fake.url, api_key_env="_FAKE_KEY")
     assert ep.client.model == fake.name  # the only model the server lists
     fake.requests.clear()
@@ -66,6 +68,7 @@ def test_endpoint_answers_equal_the_local_model(fake, local, grids):  # noqa: F8
 
 def test_endpoint_template_mode_uses_choices(fake, local, grids):  # noqa: F811
     from labrobfail_vlm.endpoint import EndpointAnalyzer
+
     ep = EndpointAnalyzer(fake.url, fake.name, api_key_env="_FAKE_KEY", q6_mode="template")
     local.q6_mode = "template"
     objs = ["small beaker", "target area"]
@@ -79,25 +82,51 @@ def test_endpoint_template_mode_uses_choices(fake, local, grids):  # noqa: F811
 
 
 def _run(*args, env=None):
-    return subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=600,
-                          env={**os.environ, **(env or {})})
+    return subprocess.run(
+        [sys.executable, *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, **(env or {})},
+    )
 
 
 def test_infer_through_the_endpoint(fake, local, grids, tmp_path):  # noqa: F811
     grids[0].save(tmp_path / "g.png")
-    r = _run("infer.py", "--grid", str(tmp_path / "g.png"), "--task", "pick up the small beaker", "--endpoint",
-             fake.url, "--num-frames", "8", env={"OPENAI_API_KEY": KEY})
+    r = _run(
+        "infer.py",
+        "--grid",
+        str(tmp_path / "g.png"),
+        "--task",
+        "pick up the small beaker",
+        "--endpoint",
+        fake.url,
+        "--num-frames",
+        "8",
+        env={"OPENAI_API_KEY": KEY},
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     got = json.loads(r.stdout)
     want = json.loads(local.analyze(grids[0], "pick up the small beaker", frames=8).to_json())
     assert got["failure"] is want["failure"] is True
-    assert {k: got[k] for k in ("actions", "failure_frame", "severity", "category")} == \
-        {k: want[k] for k in ("actions", "failure_frame", "severity", "category")}
-    for args, needle in (([], "HTTPError"),  # no key: the server says 401
-                         (["--endpoint-model", "other"], "HTTPError: HTTP Error 404"),
-                         (["--model", "x"], "not both")):
-        r = _run("infer.py", "--grid", str(tmp_path / "g.png"), "--endpoint", fake.url, *args,
-                 env={"OPENAI_API_KEY": KEY if args else ""})
+    assert {k: got[k] for k in ("actions", "failure_frame", "severity", "category")} == {
+        k: want[k] for k in ("actions", "failure_frame", "severity", "category")
+    }
+    for args, needle in (
+        ([], "HTTPError"),  # no key: the server says 401
+        (["--endpoint-model", "other"], "HTTPError: HTTP Error 404"),
+        (["--model", "x"], "not both"),
+    ):
+        r = _run(
+            "infer.py",
+            "--grid",
+            str(tmp_path / "g.png"),
+            "--endpoint",
+            fake.url,
+            *args,
+            env={"OPENAI_API_KEY": KEY if args else ""},
+        )
         assert r.returncode == 2 and needle in r.stderr and "Traceback" not in r.stderr, r.stderr[-1000:]
         assert KEY not in r.stderr
     r = _run("infer.py", "--grid", str(tmp_path / "g.png"), "--endpoint", "http://127.0.0.1:9/v1")
@@ -106,16 +135,28 @@ def test_infer_through_the_endpoint(fake, local, grids, tmp_path):  # noqa: F811
 
 def test_evaluate_through_the_endpoint_matches_the_local_model(fake, mixed_model, small_ds, tmp_path):  # noqa: F811
     common = [f"dataset_dir={small_ds}", "split=test", "progress=false", "baselines=[]", "q6_template=false"]
-    r = _run("scripts/evaluate.py", f"endpoint={fake.url}", "endpoint_key_env=_FAKE_KEY", f"out_dir={tmp_path / 'e'}",
-             "batch_size=3", *common)
+    r = _run(
+        "scripts/evaluate.py",
+        f"endpoint={fake.url}",
+        "endpoint_key_env=_FAKE_KEY",
+        f"out_dir={tmp_path / 'e'}",
+        "batch_size=3",
+        *common,
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     r = _run("scripts/evaluate.py", f"model={mixed_model}", f"out_dir={tmp_path / 'm'}", "batch_size=4", *common)
     assert r.returncode == 0, r.stderr[-2000:]
-    preds = [dict((json.loads(line)["id"], json.loads(line)["prediction"]) for line in
-                  (tmp_path / d / "predictions.jsonl").read_text().splitlines()) for d in ("e", "m")]
+    preds = [
+        dict(
+            (json.loads(line)["id"], json.loads(line)["prediction"])
+            for line in (tmp_path / d / "predictions.jsonl").read_text().splitlines()
+        )
+        for d in ("e", "m")
+    ]
     assert preds[0].keys() == preds[1].keys()
-    assert {k: v for k, v in preds[0].items() if not k.endswith("_Q6")} == \
-        {k: v for k, v in preds[1].items() if not k.endswith("_Q6")}
+    assert {k: v for k, v in preds[0].items() if not k.endswith("_Q6")} == {
+        k: v for k, v in preds[1].items() if not k.endswith("_Q6")
+    }
     res = json.loads((tmp_path / "e" / "results.json").read_text())
     assert res["method"] == f"LabRobFail-VLM endpoint ({fake.name})"
     r = _run("scripts/evaluate.py", f"endpoint={fake.url}", f"model={mixed_model}", f"dataset_dir={small_ds}")

@@ -4,8 +4,8 @@ import json
 import subprocess
 import sys
 
-from test_train import small_ds  # noqa: F401  (session fixture: a dataset built from conftest's run6 shards)
 from conftest import ROOT
+from test_train import small_ds  # noqa: F401  (session fixture: a dataset built from conftest's run6 shards)
 
 
 def test_gold_and_predicted_corrections_are_run_in_the_simulator(run6, small_ds, tmp_path):  # noqa: F811
@@ -26,9 +26,24 @@ def test_gold_and_predicted_corrections_are_run_in_the_simulator(run6, small_ds,
             x["prediction"] = "Wipe the bench with a cloth."
     preds.write_text("".join(json.dumps(x) + "\n" for x in lines))
     out = tmp_path / "ev"
-    r = subprocess.run([sys.executable, "scripts/evaluate.py", f"predictions={preds}", f"dataset_dir={small_ds}",
-                        f"split={split}", "executable.enabled=true", f"executable.shards={run6}", "progress=false",
-                        "baselines=[]", f"out_dir={out}"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "scripts/evaluate.py",
+            f"predictions={preds}",
+            f"dataset_dir={small_ds}",
+            f"split={split}",
+            "executable.enabled=true",
+            f"executable.shards={run6}",
+            "progress=false",
+            "baselines=[]",
+            f"out_dir={out}",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr
     res = json.loads((out / "results.json").read_text())
     gold, model = res["q6_executable_gold"], res["q6_executable"]
@@ -41,7 +56,19 @@ def test_gold_and_predicted_corrections_are_run_in_the_simulator(run6, small_ds,
 def test_executable_needs_the_shards(small_ds, tmp_path):  # noqa: F811
     preds = tmp_path / "p.jsonl"
     preds.write_text("")
-    r = subprocess.run([sys.executable, "scripts/evaluate.py", f"predictions={preds}", f"dataset_dir={small_ds}",
-                        "executable.enabled=true", "progress=false", f"out_dir={tmp_path / 'o'}"], cwd=ROOT,
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "scripts/evaluate.py",
+            f"predictions={preds}",
+            f"dataset_dir={small_ds}",
+            "executable.enabled=true",
+            "progress=false",
+            f"out_dir={tmp_path / 'o'}",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 2 and "executable.shards: name the shard folder" in r.stderr

@@ -68,8 +68,17 @@ def test_hold_position_hold_gripper_hold_orientation(src):
     assert rotation_angle(state(src)["ee_quat"], q0) < 0.02 and state(src)["grip_cmd"] == g0
 
 
-@pytest.mark.parametrize("direction, axis", [("up", [0, 0, 1]), ("down", [0, 0, -1]), ("left", [0, 1, 0]),
-                                             ("right", [0, -1, 0]), ("forward", [1, 0, 0]), ("backward", [-1, 0, 0])])
+@pytest.mark.parametrize(
+    "direction, axis",
+    [
+        ("up", [0, 0, 1]),
+        ("down", [0, 0, -1]),
+        ("left", [0, 1, 0]),
+        ("right", [0, -1, 0]),
+        ("forward", [1, 0, 0]),
+        ("backward", [-1, 0, 0]),
+    ],
+)
 def test_delta_pos_moves_along_the_named_direction(src, direction, axis):
     high(src)  # side grasp: the approach axis is world +x
     p0 = ee(src)
@@ -97,6 +106,7 @@ def test_oscillate_strokes_side_to_side(src):
     def go(*a, **k):
         orig(*a, **k)
         ys.append(ee(src)[1])
+
     ex._go = go
     assert ex.run([prim("oscillate", axis="y", amp=0.02, n=2)]).executed
     assert len(ys) == 5 and max(ys) - min(ys) == pytest.approx(0.04, abs=0.01)
@@ -197,15 +207,22 @@ def test_align_to_a_door_handle_then_open(src):
     src.begin()
     kfs = src.scripted_keyframes()
     src.step(kfs[0])
-    run(src, prim("align_to", target_id="door handle"), prim("gripper_close"),
-        prim("delta_pos", direction="backward", dist=0.4, until="door_open"))
+    run(
+        src,
+        prim("align_to", target_id="door handle"),
+        prim("gripper_close"),
+        prim("delta_pos", direction="backward", dist=0.4, until="door_open"),
+    )
     assert state(src)["oven.q"] >= 1.1
 
 
 def test_press_until_pressed(src):
     start(src, "press_button_red", "s0_above")
-    run(src, prim("align_to", target_id="red button"),
-        prim("delta_pos", direction="forward", dist=0.03, until="pressed"))
+    run(
+        src,
+        prim("align_to", target_id="red button"),
+        prim("delta_pos", direction="forward", dist=0.03, until="pressed"),
+    )
     assert state(src)["button.q"] >= 0.007
 
 

@@ -13,7 +13,6 @@ import threading
 import time
 
 import pytest
-
 from conftest import ROOT, free_port
 from serve_fixtures import grids, mixed_model  # noqa: F401  (fixtures)
 from test_serve import Server
@@ -30,10 +29,24 @@ def _wait_for(path, proc, timeout_s=300):
 
 def test_training_killed_mid_run_resumes_to_the_final_step_and_evaluates(tiny, small_ds, tmp_path):  # noqa: F811
     out = tmp_path / "run"
-    common = [sys.executable, "train.py", "preset=tiny", "tower=scratch", f"model.path={tiny}", f"dataset_dir={small_ds}",
-              f"output_dir={out}", "global_batch=2", "per_device_batch=2", "grounding.pretrain_epochs=0",
-              "save_steps=2", "save_total_limit=null", "logging_steps=1", "max_steps=8", "wandb.enabled=false",
-              "progress=false"]
+    common = [
+        sys.executable,
+        "train.py",
+        "preset=tiny",
+        "tower=scratch",
+        f"model.path={tiny}",
+        f"dataset_dir={small_ds}",
+        f"output_dir={out}",
+        "global_batch=2",
+        "per_device_batch=2",
+        "grounding.pretrain_epochs=0",
+        "save_steps=2",
+        "save_total_limit=null",
+        "logging_steps=1",
+        "max_steps=8",
+        "wandb.enabled=false",
+        "progress=false",
+    ]
     proc = subprocess.Popen(common, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         _wait_for(out / "checkpoint-2" / "trainer_state.json", proc)
@@ -53,14 +66,33 @@ def test_training_killed_mid_run_resumes_to_the_final_step_and_evaluates(tiny, s
     assert json.loads((out / "train_summary.json").read_text())["global_step"] == 8
     steps = [row["step"] for row in json.loads((out / "progress.json").read_text())]
     assert steps == sorted(set(steps)) and steps[-1] == 8  # the learning curve has no duplicated or lost rows
-    r = subprocess.run([sys.executable, "scripts/evaluate.py", f"model={out / 'final'}", f"dataset_dir={small_ds}",
-                        "split=test", "baselines=[]", "q6_template=false", f"out_dir={tmp_path / 'eval'}",
-                        "progress=false"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "scripts/evaluate.py",
+            f"model={out / 'final'}",
+            f"dataset_dir={small_ds}",
+            "split=test",
+            "baselines=[]",
+            "q6_template=false",
+            f"out_dir={tmp_path / 'eval'}",
+            "progress=false",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     assert json.loads((tmp_path / "eval" / "results.json").read_text())["detection"]["trajectories"] > 0
     # nothing to resume from is one line
-    r = subprocess.run([*common[:-3], f"output_dir={tmp_path / 'empty'}", "resume=true", "progress=false"], cwd=ROOT,
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [*common[:-3], f"output_dir={tmp_path / 'empty'}", "resume=true", "progress=false"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 2 and "no complete checkpoint" in r.stderr.strip().splitlines()[-1], r.stderr
 
 
@@ -106,6 +138,7 @@ def test_server_killed_under_load_restarts_and_every_request_is_answered(mixed_m
     finally:
         assert second.stop() == 0
     from labrobfail_vlm.analyzer import FailureAnalyzer
+
     fa = FailureAnalyzer.from_pretrained(mixed_model)
     for i, g in enumerate(got):
         want = json.loads(fa.analyze(grids[i % len(grids)], f"task {i}").to_json())

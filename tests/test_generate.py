@@ -1,20 +1,16 @@
 """Generation into shards: manifest, HF datasets loading, resume after a kill, labels re-derived, bad config."""
 
 import json
-import os
 import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
-import pyarrow.parquet as pq
 import pytest
+from conftest import ROOT, SMALL, gen, rows  # noqa: E402
 
 from sim_backends.labeler import derive_labels
 from sim_backends.types import Labels
-
-from conftest import ROOT, SMALL, gen, rows  # noqa: E402
 
 
 def test_manifest_and_pairs(run6):
@@ -40,7 +36,9 @@ def test_manifest_counts_physics_signs_and_gripper_faults_both_ways():
     """Real PyBullet episodes under the paper's draws: the manifest's injection summary shows delta of both signs per
     parameter and gripper faults in both directions, each labelled from state as a gripper control failure."""
     from conftest import SIGNS_AND_FAULTS, check_injection_summary, injected_rows
+
     from sim_backends import make_backend
+
     src = make_backend("pybullet", render=False)
     try:
         check_injection_summary(injected_rows(src, "pick_place_beaker_large", SIGNS_AND_FAULTS))
@@ -51,8 +49,9 @@ def test_manifest_counts_physics_signs_and_gripper_faults_both_ways():
 def test_labels_rederived_from_recorded_state(run6):
     for r in rows(run6):
         lab = derive_labels(json.loads(r["state_trace"]), json.loads(r["task_meta"]))
-        stored = Labels(r["success"], r["failure_type"], r["category"], r["severity"], r["failure_keyframe"],
-                        r["evidence"])
+        stored = Labels(
+            r["success"], r["failure_type"], r["category"], r["severity"], r["failure_keyframe"], r["evidence"]
+        )
         assert lab == stored
 
 
@@ -65,8 +64,12 @@ def test_loads_with_hf_datasets(run6):
 
 def test_resume_after_sigkill_gives_identical_data(run6, tmp_path):
     out = tmp_path / "b"
-    proc = subprocess.Popen([sys.executable, "scripts/generate.py", f"out_dir={out}", "num_episodes=6", "seed=5",
-                             *SMALL], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [sys.executable, "scripts/generate.py", f"out_dir={out}", "num_episodes=6", "seed=5", *SMALL],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     deadline = time.time() + 300
     while time.time() < deadline and not list(out.glob("shard-*.parquet")):
         time.sleep(0.2)
@@ -77,18 +80,27 @@ def test_resume_after_sigkill_gives_identical_data(run6, tmp_path):
     assert not list(out.glob("*.tmp"))
     a, b = rows(run6), rows(out)
     assert [r["episode_id"] for r in b] == [f"ep{i:07d}" for i in range(6)]
-    assert [(r["state_trace"], r["images"], r["failure_type"]) for r in a] == \
-        [(r["state_trace"], r["images"], r["failure_type"]) for r in b]
+    assert [(r["state_trace"], r["images"], r["failure_type"]) for r in a] == [
+        (r["state_trace"], r["images"], r["failure_type"]) for r in b
+    ]
 
 
-@pytest.mark.parametrize("arg, field", [
-    ("backend=gazebo", "backend"), ("num_episodes=-3", "num_episodes"), ("variant=unseen_moon", "variant"),
-    ("scenarios=[fly_to_moon]", "scenarios"), ("workers=0", "workers"), ("bogus_key=1", "bogus_key"),
-    ("render_frames=0", "render_frames"), ("preset=moon", "preset"),
-    ("backend_kwargs.custom_objects=tests/data/bad_objects.yaml", "backend_kwargs.custom_objects"),
-    ("backend_kwargs.custom_scene=nowhere.yaml", "backend_kwargs.custom_scene"),
-    ("backend_kwargs.custom_scene=tests/data/bad_vary_scene.yaml", "vary"),
-])
+@pytest.mark.parametrize(
+    "arg, field",
+    [
+        ("backend=gazebo", "backend"),
+        ("num_episodes=-3", "num_episodes"),
+        ("variant=unseen_moon", "variant"),
+        ("scenarios=[fly_to_moon]", "scenarios"),
+        ("workers=0", "workers"),
+        ("bogus_key=1", "bogus_key"),
+        ("render_frames=0", "render_frames"),
+        ("preset=moon", "preset"),
+        ("backend_kwargs.custom_objects=tests/data/bad_objects.yaml", "backend_kwargs.custom_objects"),
+        ("backend_kwargs.custom_scene=nowhere.yaml", "backend_kwargs.custom_scene"),
+        ("backend_kwargs.custom_scene=tests/data/bad_vary_scene.yaml", "vary"),
+    ],
+)
 def test_bad_config_is_one_line(tmp_path, arg, field):
     r = gen(tmp_path / "c", "num_episodes=2", arg, check=False)
     assert r.returncode == 2 and "Traceback" not in r.stderr
@@ -118,13 +130,14 @@ def test_a_nominal_plan_that_fails_is_redrawn_and_counted(tmp_path):
     pair is given up, so nothing unlabeled or mislabeled reaches a shard."""
     import yaml
 
-    from data.generate import MAX_DRAWS, labelable_pair
     from sim_backends import make_backend
+    from sim_backends.generate import MAX_DRAWS, labelable_pair
     from sim_backends.pybullet.backend import TASKS_FILE
 
     cfg = yaml.safe_load(TASKS_FILE.read_text())
-    cfg["scenarios"] = {"press_out_of_reach": {"template": "press_button",
-                                               "layout": {"button": {"kind": "button", "xy": [1.3, 0.0]}}}}
+    cfg["scenarios"] = {
+        "press_out_of_reach": {"template": "press_button", "layout": {"button": {"kind": "button", "xy": [1.3, 0.0]}}}
+    }
     tasks = tmp_path / "tasks.yaml"
     tasks.write_text(yaml.safe_dump(cfg))
     src = make_backend("pybullet", image_size=32, tasks_file=str(tasks), max_distractors=0)
@@ -164,14 +177,28 @@ def test_render_frames_takes_only_the_images_its_grid_shows(tmp_path):
         assert len(b["images"][0]) > len(picks)
         for va, vb in zip(a["images"], b["images"]):
             assert [i for i, x in enumerate(vb) if x] == picks and all(vb[i] == va[i] for i in picks)
-    build = [sys.executable, "scripts/build_dataset.py", f"shards={part}", "grid.width=256", "grid.height=128",
-             "grid.columns=4", "progress=false"]
-    r = subprocess.run([*build, f"out_dir={tmp_path}/o8", "grid.max_frames=8"], cwd=ROOT, capture_output=True,
-                       text=True, timeout=300)
+    build = [
+        sys.executable,
+        "-m",
+        "scripts.build_dataset",
+        f"shards={part}",
+        "grid.width=256",
+        "grid.height=128",
+        "grid.columns=4",
+        "progress=false",
+    ]
+    r = subprocess.run(
+        [*build, f"out_dir={tmp_path}/o8", "grid.max_frames=8"], cwd=ROOT, capture_output=True, text=True, timeout=300
+    )
     assert r.returncode == 2 and "render_frames=4" in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "o8").exists()
-    r = subprocess.run([*build, f"out_dir={tmp_path}/o4", "grid.max_frames=4", "grid.columns=2"], cwd=ROOT,
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [*build, f"out_dir={tmp_path}/o4", "grid.max_frames=4", "grid.columns=2"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr
 
 
@@ -184,19 +211,45 @@ def test_demo_preset_is_one_fixed_scene(tmp_path):
     from PIL import Image
 
     def first_frames(out, *extra):
-        r = subprocess.run([sys.executable, "scripts/generate.py", f"out_dir={out}", "num_episodes=4", "image_size=48",
-                            "episodes_per_shard=2", "render_frames=null", "progress=false", *extra], cwd=ROOT,
-                           capture_output=True, text=True, timeout=600)
+        r = subprocess.run(
+            [
+                sys.executable,
+                "scripts/generate.py",
+                f"out_dir={out}",
+                "num_episodes=4",
+                "image_size=48",
+                "episodes_per_shard=2",
+                "render_frames=null",
+                "progress=false",
+                *extra,
+            ],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
         assert r.returncode == 0, r.stderr
         rs = [x for x in rows(out) if x["role"] == "nominal"]
         assert len(rs) == 2, [x["role"] for x in rows(out)]
         return json.loads((out / "manifest.json").read_text()), [
-            np.asarray(Image.open(io.BytesIO(x["images"][0][0])).convert("RGB"), dtype=int) for x in rs]
+            np.asarray(Image.open(io.BytesIO(x["images"][0][0])).convert("RGB"), dtype=int) for x in rs
+        ]
 
     man, (a, b) = first_frames(tmp_path / "demo", "preset=demo")  # run in the repository: the bench file's path
-    elsewhere = subprocess.run([sys.executable, str(ROOT / "scripts/generate.py"), f"out_dir={tmp_path}/o",
-                                "preset=demo", "num_episodes=0", "progress=false"], cwd=tmp_path,
-                               capture_output=True, text=True, timeout=300)
+    elsewhere = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "scripts/generate.py"),
+            f"out_dir={tmp_path}/o",
+            "preset=demo",
+            "num_episodes=0",
+            "progress=false",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert elsewhere.returncode == 0, elsewhere.stderr  # ... resolves from another directory too
     assert man["scenarios"] == ["pick_place_beaker_large", "pick_place_right_beaker_large"]
     _, (c, d) = first_frames(tmp_path / "wide", "scenarios=[pick_place_beaker_large,pick_place_right_beaker_large]")

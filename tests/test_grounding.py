@@ -6,13 +6,13 @@ import sys
 
 import pytest
 import torch
-
 from conftest import ROOT
 from test_train import small_ds, tiny  # noqa: F401  (session fixtures)
 
 
 def test_frame_targets_follow_the_failure_frame_and_the_shown_cells():
     from labrobfail_vlm.train.grounding import frame_targets
+
     assert frame_targets({"success": True, "frame": None, "frames": 6}, 8) == [0, 0, 0, 0, 0, 0, -1, -1]
     assert frame_targets({"success": False, "frame": 3, "frames": 6}, 8) == [0, 0, 1, 1, 1, 1, -1, -1]
     # a prefix grid shows its first `visible` frames only
@@ -22,6 +22,7 @@ def test_frame_targets_follow_the_failure_frame_and_the_shown_cells():
 def test_cell_index_maps_tokens_to_time_steps_and_views():
     from labrobfail_vlm.grid import GridConfig
     from labrobfail_vlm.train.grounding import cell_index
+
     g = GridConfig(width=512, height=512, max_frames=8, columns=4)  # 4 rows (2 bands x 2 views) of 128 px cells
     idx = cell_index(g, 2, 16, 16).view(16, 16)
     assert idx[0, 0] == 0 and idx[3, 3] == 0  # t=0, view 0: the top-left 4x4 tokens
@@ -39,6 +40,7 @@ def test_cell_index_maps_tokens_to_time_steps_and_views():
 def test_head_reads_each_time_step_from_its_own_cells(kind):
     from labrobfail_vlm.grid import GridConfig
     from labrobfail_vlm.train.grounding import grounding_loss, make_head
+
     torch.manual_seed(0)
     g = GridConfig(width=512, height=512, max_frames=8, columns=4)
     head = make_head(kind, 8, g, 2)
@@ -70,11 +72,25 @@ def test_head_reads_each_time_step_from_its_own_cells(kind):
 
 def test_training_with_grounding_logs_saves_and_resumes(tiny, small_ds, tmp_path):  # noqa: F811
     out = tmp_path / "g"
-    common = [sys.executable, "train.py", "preset=tiny", "tower=scratch", f"model.path={tiny}", f"dataset_dir={small_ds}",
-              f"output_dir={out}", "global_batch=2", "per_device_batch=2", "grounding.weight=1.0", "save_steps=2", "logging_steps=1",
-              "wandb.enabled=false", "progress=false"]
-    r = subprocess.run([*common, "max_steps=2", "grounding.pretrain_epochs=1"], cwd=ROOT, capture_output=True,
-                       text=True, timeout=600)
+    common = [
+        sys.executable,
+        "train.py",
+        "preset=tiny",
+        "tower=scratch",
+        f"model.path={tiny}",
+        f"dataset_dir={small_ds}",
+        f"output_dir={out}",
+        "global_batch=2",
+        "per_device_batch=2",
+        "grounding.weight=1.0",
+        "save_steps=2",
+        "logging_steps=1",
+        "wandb.enabled=false",
+        "progress=false",
+    ]
+    r = subprocess.run(
+        [*common, "max_steps=2", "grounding.pretrain_epochs=1"], cwd=ROOT, capture_output=True, text=True, timeout=600
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     assert "grounding_loss" in r.stdout + r.stderr
     # stage A ran before the VQA steps, and the learning curve's clocks count it
@@ -82,6 +98,7 @@ def test_training_with_grounding_logs_saves_and_resumes(tiny, small_ds, tmp_path
     assert pre["epochs"] == 1 and pre["first_epoch_loss"] > 0
     assert json.loads((out / "progress.json").read_text())[0]["cpu_s"] >= pre["cpu_s"]
     from safetensors.torch import load_file
+
     saved = load_file(str(out / "checkpoint-2" / "grounding_head.safetensors"))
     assert saved and all(torch.isfinite(t).all() for t in saved.values())
     r = subprocess.run([*common, "max_steps=3", "resume=true"], cwd=ROOT, capture_output=True, text=True, timeout=600)
@@ -97,8 +114,20 @@ def test_training_with_grounding_logs_saves_and_resumes(tiny, small_ds, tmp_path
             (old / f.name).symlink_to(f)
     (old / "images").symlink_to(small_ds / "images")
     (old / "trajectories.json").write_text(json.dumps([{k: v for k, v in t.items() if k != "views"} for t in traj]))
-    r = subprocess.run([*common[:4], f"dataset_dir={old}", f"output_dir={tmp_path}/o", "max_steps=1", "grounding.weight=1",
-                        "wandb.enabled=false"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [
+            *common[:4],
+            f"dataset_dir={old}",
+            f"output_dir={tmp_path}/o",
+            "max_steps=1",
+            "grounding.weight=1",
+            "wandb.enabled=false",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert "grounding" in r.stderr.strip().splitlines()[-1]
 
@@ -108,35 +137,88 @@ def test_a_run_from_a_checkpoint_repeats_exactly(tiny, small_ds, tmp_path):  # n
     initialised after train.py seeds, not from torch's start-up seed."""
     got = []
     for name in ("a", "b"):
-        r = subprocess.run([sys.executable, "train.py", "preset=tiny", "tower=scratch", f"model.path={tiny}", f"dataset_dir={small_ds}",
-                            f"output_dir={tmp_path / name}", "global_batch=2", "per_device_batch=2", "max_steps=2",
-                            "grounding.weight=1.0", "grounding.pretrain_epochs=0", "wandb.enabled=false",
-                            "progress=false"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+        r = subprocess.run(
+            [
+                sys.executable,
+                "train.py",
+                "preset=tiny",
+                "tower=scratch",
+                f"model.path={tiny}",
+                f"dataset_dir={small_ds}",
+                f"output_dir={tmp_path / name}",
+                "global_batch=2",
+                "per_device_batch=2",
+                "max_steps=2",
+                "grounding.weight=1.0",
+                "grounding.pretrain_epochs=0",
+                "wandb.enabled=false",
+                "progress=false",
+            ],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
         assert r.returncode == 0, r.stderr[-3000:]
         s = json.loads((tmp_path / name / "train_summary.json").read_text())
         got.append((s["first_loss"], s["last_loss"]))
     assert got[0] == got[1]
 
 
-@pytest.mark.parametrize("bad, field", [
-    ("grounding.weight=-1", "grounding.weight"), ("grounding.rank=-0.5", "grounding.rank"),
-    ("grounding.head=mlp", "grounding.head"), ("grounding.pretrain_epochs=-2", "grounding.pretrain_epochs"),
-    ("grounding.weight=0", "grounding.pretrain_epochs"),  # the tiny preset's stage A needs the head
-    ("deepspeed=configs/ds_zero3.json", "grounding.weight")])
+@pytest.mark.parametrize(
+    "bad, field",
+    [
+        ("grounding.weight=-1", "grounding.weight"),
+        ("grounding.rank=-0.5", "grounding.rank"),
+        ("grounding.head=mlp", "grounding.head"),
+        ("grounding.pretrain_epochs=-2", "grounding.pretrain_epochs"),
+        ("grounding.weight=0", "grounding.pretrain_epochs"),  # the tiny preset's stage A needs the head
+        ("deepspeed=configs/ds_zero3.json", "grounding.weight"),
+    ],
+)
 def test_bad_grounding_config_is_one_line(tiny, small_ds, tmp_path, bad, field):  # noqa: F811
-    r = subprocess.run([sys.executable, "train.py", "preset=tiny", "tower=scratch", f"model.path={tiny}", f"dataset_dir={small_ds}",
-                        f"output_dir={tmp_path}/o", bad, "wandb.enabled=false"], cwd=ROOT, capture_output=True,
-                       text=True, timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "train.py",
+            "preset=tiny",
+            "tower=scratch",
+            f"model.path={tiny}",
+            f"dataset_dir={small_ds}",
+            f"output_dir={tmp_path}/o",
+            bad,
+            "wandb.enabled=false",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith(f"error: {field}:")
 
 
 def test_resuming_a_run_made_without_grounding_is_one_line(tiny, small_ds, tmp_path):  # noqa: F811
     """The tiny preset grounds by default; a checkpoint from a run without the head cannot continue with one."""
-    common = [sys.executable, "train.py", "preset=tiny", "tower=scratch", f"model.path={tiny}", f"dataset_dir={small_ds}",
-              f"output_dir={tmp_path}/o", "save_steps=1", "wandb.enabled=false", "progress=false"]
-    r = subprocess.run([*common, "max_steps=1", "grounding.weight=0", "grounding.pretrain_epochs=0"], cwd=ROOT,
-                       capture_output=True, text=True, timeout=600)
+    common = [
+        sys.executable,
+        "train.py",
+        "preset=tiny",
+        "tower=scratch",
+        f"model.path={tiny}",
+        f"dataset_dir={small_ds}",
+        f"output_dir={tmp_path}/o",
+        "save_steps=1",
+        "wandb.enabled=false",
+        "progress=false",
+    ]
+    r = subprocess.run(
+        [*common, "max_steps=1", "grounding.weight=0", "grounding.pretrain_epochs=0"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     r = subprocess.run([*common, "max_steps=2", "resume=true"], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert r.returncode == 2 and "Traceback" not in r.stderr

@@ -7,13 +7,26 @@ import sys
 import numpy as np
 import pytest
 import torch
-from PIL import Image
-
 from conftest import ROOT
+from PIL import Image
 from test_train import small_ds, tiny  # noqa: F401  (session fixtures)
 
-KEYS = {"task", "actions", "failure", "failure_frame", "severity", "severity_name", "category", "category_name",
-        "correction", "correction_strategy", "primitives", "raw", "p_failure", "severity_main_text"}
+KEYS = {
+    "task",
+    "actions",
+    "failure",
+    "failure_frame",
+    "severity",
+    "severity_name",
+    "category",
+    "category_name",
+    "correction",
+    "correction_strategy",
+    "primitives",
+    "raw",
+    "p_failure",
+    "severity_main_text",
+}
 
 
 def infer(*args):
@@ -26,8 +39,9 @@ def grid(small_ds):  # noqa: F811
 
 
 def test_infer_prints_a_valid_diagnosis(tiny, grid, tmp_path):  # noqa: F811
-    r = infer("--grid", str(grid), "--model", str(tiny), "--task", "press the red button", "--json",
-              str(tmp_path / "d.json"))
+    r = infer(
+        "--grid", str(grid), "--model", str(tiny), "--task", "press the red button", "--json", str(tmp_path / "d.json")
+    )
     assert r.returncode == 0, r.stderr
     d = json.loads(r.stdout)
     assert set(d) == KEYS and d == json.loads((tmp_path / "d.json").read_text())
@@ -43,17 +57,21 @@ def test_infer_prints_a_valid_diagnosis(tiny, grid, tmp_path):  # noqa: F811
 
 def test_one_pass_matches_six_prompts(tiny, small_ds):  # noqa: F811
     from labrobfail_vlm.analyzer import FailureAnalyzer
+
     fa = FailureAnalyzer.from_pretrained(tiny)
     for p in sorted((small_ds / "images").glob("*.png"))[:2]:
         img = Image.open(p).convert("RGB")
-        one, six = fa.answers(img, "pick up the beaker", one_pass=True), fa.answers(img, "pick up the beaker",
-                                                                                      one_pass=False)
+        one, six = (
+            fa.answers(img, "pick up the beaker", one_pass=True),
+            fa.answers(img, "pick up the beaker", one_pass=False),
+        )
         assert one == six and one.p_failure == pytest.approx(six.p_failure, abs=1e-4)
 
 
 def test_threshold_moves_the_verdict_and_q3_q6_follow_it(tiny, grid):  # noqa: F811
     """P(failure) is the softmax of the Yes/No scores; the operating point decides Q2, and Q3-Q6 follow it."""
     from labrobfail_vlm.analyzer import FailureAnalyzer, p_yes
+
     fa = FailureAnalyzer.from_pretrained(tiny)
     img = Image.open(grid).convert("RGB")
     d = fa.analyze(img, "pick up the beaker")
@@ -83,6 +101,7 @@ def _unreadable(tmp):
     """A file this process cannot read: mode 000 for a normal user; as root (which ignores modes) the
     process's own /proc/self/mem, whose first page is unmapped, so reading it fails with EIO."""
     import os
+
     if os.geteuid() != 0:
         p = tmp / "locked.png"
         Image.new("RGB", (64, 64)).save(p)
@@ -138,12 +157,17 @@ def test_bleu_and_rouge_equal_the_reference_libraries():
     from rouge_score import rouge_scorer
 
     from labrobfail_vlm.bench.metrics import bleu, rouge_l, tokens
+
     refs = ["Keep the gripper closed and move the arm to the target area.", "Open the gripper to release it."]
     hyps = ["Keep gripper closed, move the arm to the target.", "Close the gripper firmly."]
     ours = bleu(refs, hyps)
     for n in range(1, 5):
-        want = corpus_bleu([[tokens(r)] for r in refs], [tokens(h) for h in hyps], weights=tuple([1 / n] * n),
-                           smoothing_function=SmoothingFunction().method1)
+        want = corpus_bleu(
+            [[tokens(r)] for r in refs],
+            [tokens(h) for h in hyps],
+            weights=tuple([1 / n] * n),
+            smoothing_function=SmoothingFunction().method1,
+        )
         assert ours[f"bleu{n}"] == pytest.approx(want, abs=1e-12)
     sc = rouge_scorer.RougeScorer(["rougeL"], use_stemmer=True)
     want = sum(sc.score(r, h)["rougeL"].fmeasure for r, h in zip(refs, hyps)) / 2
@@ -151,22 +175,48 @@ def test_bleu_and_rouge_equal_the_reference_libraries():
     assert bleu(refs, refs)["bleu4"] == pytest.approx(1.0) and rouge_l(refs, refs) == pytest.approx(1.0)
 
 
-@pytest.mark.parametrize("dim,reply,want", [
-    ("Q2", "Yes, the beaker slipped.", "Yes"), ("Q2", "No.", "No"), ("Q2", "Not at all, it went fine", "No"),
-    ("Q3", "The failure occurs at frame 7.", "7"), ("Q3", "None", "None"), ("Q3", "¯\\_(ツ)_/¯", None),
-    ("Q4", "(2) Dangerous Level", "2"), ("Q4", "Dangerous", "2"), ("Q4", "Management Incident", "4"),
-    ("Q5", "Grasping Failure", "2"), ("Q5", "4", "4"), ("Q5", "It is a motion failure.", "3"), ("Q5", "", None),
-    ("Q1", "Grasping, then placing.", "grasp, place"), ("Q1", "open, grasp, place, close", "open, grasp, place, close"),
-])
+@pytest.mark.parametrize(
+    "dim,reply,want",
+    [
+        ("Q2", "Yes, the beaker slipped.", "Yes"),
+        ("Q2", "No.", "No"),
+        ("Q2", "Not at all, it went fine", "No"),
+        ("Q3", "The failure occurs at frame 7.", "7"),
+        ("Q3", "None", "None"),
+        ("Q3", "¯\\_(ツ)_/¯", None),
+        ("Q4", "(2) Dangerous Level", "2"),
+        ("Q4", "Dangerous", "2"),
+        ("Q4", "Management Incident", "4"),
+        ("Q5", "Grasping Failure", "2"),
+        ("Q5", "4", "4"),
+        ("Q5", "It is a motion failure.", "3"),
+        ("Q5", "", None),
+        ("Q1", "Grasping, then placing.", "grasp, place"),
+        ("Q1", "open, grasp, place, close", "open, grasp, place, close"),
+    ],
+)
 def test_parse_free_form_replies(dim, reply, want):
     from labrobfail_vlm.bench.parse import parse
+
     assert parse(dim, reply) == want
 
 
 def test_evaluate_model_and_predictions_file(tiny, small_ds, tmp_path):  # noqa: F811
-    r = subprocess.run([sys.executable, "scripts/evaluate.py", f"model={tiny}", f"dataset_dir={small_ds}", "split=test",
-                        f"out_dir={tmp_path / 'e'}", "progress=false"], cwd=ROOT, capture_output=True, text=True,
-                       timeout=600)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "scripts/evaluate.py",
+            f"model={tiny}",
+            f"dataset_dir={small_ds}",
+            "split=test",
+            f"out_dir={tmp_path / 'e'}",
+            "progress=false",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     res = json.loads((tmp_path / "e" / "results.json").read_text())
     for k in ("q1", "q2", "q3", "q4", "q5", "q3_within1"):
@@ -181,21 +231,42 @@ def test_evaluate_model_and_predictions_file(tiny, small_ds, tmp_path):  # noqa:
     assert det["score"] == "probability" and det["auroc"] is not None and 0 <= det["ece"] <= 1
     assert res["baselines"]["majority class"]["detection"]["auroc"] == 0.5  # a constant score ranks nothing
     # the same predictions, scored from the file they were saved to, give the same numbers
-    r = subprocess.run([sys.executable, "scripts/evaluate.py", f"predictions={tmp_path / 'e' / 'predictions.jsonl'}",
-                        f"dataset_dir={small_ds}", f"out_dir={tmp_path / 'p'}", "baselines=[majority]"], cwd=ROOT,
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "scripts/evaluate.py",
+            f"predictions={tmp_path / 'e' / 'predictions.jsonl'}",
+            f"dataset_dir={small_ds}",
+            f"out_dir={tmp_path / 'p'}",
+            "baselines=[majority]",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     res2 = json.loads((tmp_path / "p" / "results.json").read_text())
     keys = ("q1", "q2", "q3", "q4", "q5", "q6", "failure_only")
     assert {k: res2[k] for k in keys} == {k: res[k] for k in keys}
     assert res2["detection"]["auroc"] == res["detection"]["auroc"]  # P(failure) travels in the predictions file
     (tmp_path / "bad.jsonl").write_text("{not json}\n")
-    r = subprocess.run([sys.executable, "scripts/evaluate.py", f"predictions={tmp_path / 'bad.jsonl'}",
-                        f"dataset_dir={small_ds}"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "scripts/evaluate.py", f"predictions={tmp_path / 'bad.jsonl'}", f"dataset_dir={small_ds}"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 2 and "line 1" in r.stderr and "Traceback" not in r.stderr
     # a missing model is refused before anything is written (no empty eval_<split> folder beside it)
-    r = subprocess.run([sys.executable, "scripts/evaluate.py", f"model={tmp_path / 'gone' / 'final'}",
-                        f"dataset_dir={small_ds}"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "scripts/evaluate.py", f"model={tmp_path / 'gone' / 'final'}", f"dataset_dir={small_ds}"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 2 and "no such directory" in r.stderr and not (tmp_path / "gone").exists()
 
 
@@ -206,6 +277,7 @@ def _q6_prefix(fa, img, task):
 
 def test_q6_free_text_never_repeats_a_trigram(tiny, grid):  # noqa: F811
     from labrobfail_vlm.analyzer import FailureAnalyzer
+
     fa = FailureAnalyzer.from_pretrained(tiny)
     img = Image.open(grid).convert("RGB")
     d = fa.decoder
@@ -216,7 +288,7 @@ def test_q6_free_text_never_repeats_a_trigram(tiny, grid):  # noqa: F811
         return d.free_tokens(_q6_prefix(fa, img, "pick up the beaker"))
 
     def repeats(ids):
-        grams = [tuple(ids[i:i + 3]) for i in range(len(ids) - 2)]
+        grams = [tuple(ids[i : i + 3]) for i in range(len(ids) - 2)]
         return len(grams) - len(set(grams))
 
     assert repeats(tokens(0)) > 0  # an untrained model's greedy text loops ...
@@ -225,11 +297,19 @@ def test_q6_free_text_never_repeats_a_trigram(tiny, grid):  # noqa: F811
 
 def test_score_many_equals_scoring_each_sequence_alone(tiny, grid):  # noqa: F811
     from labrobfail_vlm.analyzer import FailureAnalyzer
+
     fa = FailureAnalyzer.from_pretrained(tiny)
     pre = _q6_prefix(fa, Image.open(grid).convert("RGB"), "pick up the beaker")
     d = fa.decoder
-    seqs = [d.encode_ids(t) for t in ("Move the robotic arm to the beaker", "Move the robotic arm to the flask",
-                                      "Keep the gripper closed", "Move")]
+    seqs = [
+        d.encode_ids(t)
+        for t in (
+            "Move the robotic arm to the beaker",
+            "Move the robotic arm to the flask",
+            "Keep the gripper closed",
+            "Move",
+        )
+    ]
     together = d.score_many(pre, seqs)
     for s, got in zip(seqs, together):
         _, logits = d.extend(pre, s)
@@ -241,6 +321,7 @@ def test_score_many_equals_scoring_each_sequence_alone(tiny, grid):  # noqa: F81
 def test_q6_template_mode_picks_a_filled_strategy(tiny, grid):  # noqa: F811
     from labrobfail_vlm.analyzer import FailureAnalyzer, nearest_strategy
     from labrobfail_vlm.corrections import candidates
+
     fa = FailureAnalyzer.from_pretrained(tiny, q6_mode="template")
     names = ["small beaker", "target area"]
     pre = _q6_prefix(fa, Image.open(grid).convert("RGB"), "pick up the small beaker")
@@ -260,12 +341,26 @@ def test_q6_template_mode_picks_a_filled_strategy(tiny, grid):  # noqa: F811
 
 def test_evaluate_reports_types_template_row_and_skips_majority_without_train(tiny, small_ds, tmp_path):  # noqa: F811
     import shutil
+
     ds = tmp_path / "unseen_only"
     shutil.copytree(small_ds, ds)
     (ds / "train.json").unlink()
-    r = subprocess.run([sys.executable, "scripts/evaluate.py", f"model={tiny}", f"dataset_dir={ds}", "split=test",
-                        f"out_dir={tmp_path / 'e'}", "progress=false", "baselines=[majority]"], cwd=ROOT,
-                       capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "scripts/evaluate.py",
+            f"model={tiny}",
+            f"dataset_dir={ds}",
+            "split=test",
+            f"out_dir={tmp_path / 'e'}",
+            "progress=false",
+            "baselines=[majority]",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr[-2000:]
     assert "majority baseline skipped" in r.stderr
     res = json.loads((tmp_path / "e" / "results.json").read_text())
@@ -280,6 +375,7 @@ def test_failure_only_scores_a_none_for_every_failure_as_wrong(small_ds, tmp_pat
     """Gold Q1/Q2 and "None" / no correction for every Q3-Q6: the all-trajectory scores reward the successes'
     None answers, the failure-only scores (the paper's) give 0 on Q3-Q5 and a low ROUGE-L."""
     from labrobfail_vlm import questions as Q
+
     recs = json.loads((small_ds / "test.json").read_text())
     traj = {t["trajectory"]: t for t in json.loads((small_ds / "trajectories.json").read_text())}
     assert any(not traj[Q.traj_of(r["id"])]["success"] for r in recs)
@@ -288,9 +384,20 @@ def test_failure_only_scores_a_none_for_every_failure_as_wrong(small_ds, tmp_pat
             d = Q.dim_of(r["id"])
             ans = r["conversations"][1]["value"] if d in ("Q1", "Q2") else Q.NO_CORRECTION if d == "Q6" else "None"
             f.write(json.dumps({"id": r["id"], "prediction": ans}) + "\n")
-    r = subprocess.run([sys.executable, "scripts/evaluate.py", f"predictions={tmp_path / 'p.jsonl'}",
-                        f"dataset_dir={small_ds}", f"out_dir={tmp_path / 'e'}", "baselines=[majority]"], cwd=ROOT,
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "scripts/evaluate.py",
+            f"predictions={tmp_path / 'p.jsonl'}",
+            f"dataset_dir={small_ds}",
+            f"out_dir={tmp_path / 'e'}",
+            "baselines=[majority]",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     res = json.loads((tmp_path / "e" / "results.json").read_text())
     assert res["q1"] == 100 and res["q2"] == 100 and res["q3"] > 0 and res["q6"]["rougeL"] > 0.2
@@ -304,6 +411,7 @@ def test_failure_only_scores_a_none_for_every_failure_as_wrong(small_ds, tmp_pat
 # ---- argument hygiene (issue 33): refused before inference, nothing left behind ------------------------------
 def test_json_output_and_frame_count_are_checked_before_inference(tiny, tmp_path):  # noqa: F811
     import os
+
     Image.new("RGB", (256, 128), (9, 9, 9)).save(tmp_path / "g.png")
     (tmp_path / "out").mkdir()
     if os.geteuid() != 0:
@@ -312,10 +420,12 @@ def test_json_output_and_frame_count_are_checked_before_inference(tiny, tmp_path
     else:  # root writes through permission bits: /proc takes no new files, even from root
         unwritable = "/proc/labrobfail-d.json"
     before = sorted(p.name for p in tmp_path.iterdir())
-    for args, needle in ((["--json", str(tmp_path / "out")], "is a directory"),
-                         (["--json", str(unwritable)], "cannot write"),
-                         (["--json", str(tmp_path / "nope" / "d.json")], "does not exist"),
-                         (["--num-frames", "0"], "--num-frames")):
+    for args, needle in (
+        (["--json", str(tmp_path / "out")], "is a directory"),
+        (["--json", str(unwritable)], "cannot write"),
+        (["--json", str(tmp_path / "nope" / "d.json")], "does not exist"),
+        (["--num-frames", "0"], "--num-frames"),
+    ):
         r = infer("--grid", str(tmp_path / "g.png"), "--model", str(tiny), *args)
         lines = r.stderr.strip().splitlines()
         assert r.returncode == 2 and len(lines) == 1 and needle in lines[0] and r.stdout == "", (args, r.stderr)
@@ -326,10 +436,18 @@ def test_json_output_and_frame_count_are_checked_before_inference(tiny, tmp_path
 
 def test_evaluate_refuses_a_predictions_folder_or_unreadable_file_before_writing(tmp_path):
     (tmp_path / "preds").mkdir()
-    for pred, needle in ((tmp_path / "preds", "Is a directory"), (_unreadable(tmp_path), "cannot read"),
-                         (tmp_path / "missing.jsonl", "cannot read")):
-        r = subprocess.run([sys.executable, "scripts/evaluate.py", f"predictions={pred}",
-                            f"dataset_dir={tmp_path / 'ds'}"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    for pred, needle in (
+        (tmp_path / "preds", "Is a directory"),
+        (_unreadable(tmp_path), "cannot read"),
+        (tmp_path / "missing.jsonl", "cannot read"),
+    ):
+        r = subprocess.run(
+            [sys.executable, "scripts/evaluate.py", f"predictions={pred}", f"dataset_dir={tmp_path / 'ds'}"],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         lines = r.stderr.strip().splitlines()
         assert r.returncode == 2 and len(lines) == 1 and "Traceback" not in r.stderr, (pred, r.stderr[-500:])
         assert lines[0].startswith("error: predictions: ") and str(pred) in lines[0] and needle in lines[0], lines

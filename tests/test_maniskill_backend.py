@@ -38,18 +38,28 @@ def test_stock_task_nominal_and_gripper_fault(src):
     ok = _run(src, "pick_cube", 1)
     assert ok.labels.success and ok.task_meta.objects["obj"].kind == "vessel"
     assert ok.state_trace["rate_hz"] == 20.0 and ok.camera_names == ["front", "side"]
-    bad = _run(src, "pick_cube", 1, lambda k: control.corrupt_gripper(k, ["s0_close", "s0_lift"], 1.0,
-                                                                       np.random.default_rng(0))[0])
+    bad = _run(
+        src,
+        "pick_cube",
+        1,
+        lambda k: control.corrupt_gripper(k, ["s0_close", "s0_lift"], 1.0, np.random.default_rng(0))[0],
+    )
     assert bad.labels.failure_type == "gripper_control_failure"
     close_i = [k.name for k in bad.executed_keyframes].index("s0_close")
-    assert bad.labels.failure_keyframe == close_i and bad.state_trace["width"][bad.state_trace["kf_end"][close_i]] > 0.07
+    assert (
+        bad.labels.failure_keyframe == close_i and bad.state_trace["width"][bad.state_trace["kf_end"][close_i]] > 0.07
+    )
 
 
 def test_lab_button_pressed_or_missed(src):
     ok = _run(src, "press_button_red", 2)
     assert ok.labels.success and max(ok.state_trace["button.q"]) > 0.007
-    miss = _run(src, "press_button_red", 2, lambda k: control.translate(k, ["s0_touch", "s0_press"], [0.0, 0.06, 0.0],
-                                                                         np.random.default_rng(1), 0.05)[0])
+    miss = _run(
+        src,
+        "press_button_red",
+        2,
+        lambda k: control.translate(k, ["s0_touch", "s0_press"], [0.0, 0.06, 0.0], np.random.default_rng(1), 0.05)[0],
+    )
     assert miss.labels.failure_type == "operation_position_error" and max(miss.state_trace["button.q"]) < 0.003
 
 
@@ -64,8 +74,7 @@ def test_physics_perturbation_is_undone_and_seeds_repeat(src):
     src.reset("pick_place_beaker_small", 4)
     kfs = src.scripted_keyframes()
     at = [k.name for k in kfs].index("s1_carry")
-    slip = src.execute(kfs, [PhysicsEvent("grip_force", "robot", 0.005, at),
-                             PhysicsEvent("friction", "obj", 0.05, at)])
+    slip = src.execute(kfs, [PhysicsEvent("grip_force", "robot", 0.005, at), PhysicsEvent("friction", "obj", 0.05, at)])
     assert slip.labels.failure_type == "object_slippage"
     assert (default.static_friction, default.dynamic_friction) == before
     again = _run(src, "pick_place_beaker_small", 4)
@@ -112,4 +121,5 @@ def test_manifest_counts_physics_signs_and_gripper_faults_both_ways(src):
     """The same forced draws as the PyBullet test, on ManiSkill's pick-and-place: friction and mass of the held
     object and the grip force on both signs, gripper faults both ways, labelled from state."""
     from conftest import SIGNS_AND_FAULTS, check_injection_summary, injected_rows
+
     check_injection_summary(injected_rows(src, "pick_cube", SIGNS_AND_FAULTS))

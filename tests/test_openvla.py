@@ -14,23 +14,34 @@ import json_numpy
 import numpy as np
 import pytest
 import requests
-
 from conftest import ROOT, free_port
+
 from labrobfail_vlm.config import ConfigError
-from policies import wire
-from policies.base import PolicyError
-from policies.openvla_client import (OpenVLAClient, action_to_target, check_reachable, proprio_vector, rpy_matrix,
-                                     target_to_action)
+from sim_backends.policies import wire
+from sim_backends.policies.base import PolicyError
+from sim_backends.policies.openvla_client import (
+    OpenVLAClient,
+    action_to_target,
+    check_reachable,
+    proprio_vector,
+    rpy_matrix,
+    target_to_action,
+)
 from sim_backends.registry import make_backend
+from sim_backends.supervision.loop import TaskFamily, episode_context
 from sim_backends.types import matrix_to_quat, quat_to_matrix, rotation_angle
-from supervision.loop import TaskFamily, episode_context
 
 
 @pytest.fixture(scope="module")
 def served():
     """scripts/serve_policy.py serving the scripted policy on a free loopback port."""
-    p = subprocess.Popen([sys.executable, "scripts/serve_policy.py", "policy=scripted", "port=0"], cwd=ROOT,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen(
+        [sys.executable, "scripts/serve_policy.py", "policy=scripted", "port=0"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     line = p.stdout.readline()
     assert line.startswith("serving scripted on http://127.0.0.1:"), line + p.stderr.read()
     yield line.split()[-1], p
@@ -42,9 +53,19 @@ def served():
 def served_default():
     """scripts/serve_policy.py serving the scripted plan of a default episode: what OpenVLA's own client needs
     (it sends no `episode` and no `proprio`)."""
-    p = subprocess.Popen([sys.executable, "scripts/serve_policy.py", "policy=scripted", "port=0",
-                          f"default_episode.scenario={SCENARIO}"], cwd=ROOT, stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen(
+        [
+            sys.executable,
+            "scripts/serve_policy.py",
+            "policy=scripted",
+            "port=0",
+            f"default_episode.scenario={SCENARIO}",
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     line = p.stdout.readline()
     assert line.startswith("serving scripted on http://127.0.0.1:"), line + p.stderr.read()
     yield line.split()[-1]
@@ -91,8 +112,17 @@ uvicorn.run(app, host="127.0.0.1", port=int(sys.argv[1]), log_level="warning")
 
 
 def stand_in_action(image: np.ndarray, instruction: str, unnorm_key: str | None = None) -> np.ndarray:
-    return np.array([image.astype(np.float64).mean() / 25500, len(instruction) / 10000, image.shape[0] / 1e5,
-                     image.shape[1] / 1e5, 0.01 if unnorm_key == "bridge_orig" else 0.0, -0.02, 1.0])
+    return np.array(
+        [
+            image.astype(np.float64).mean() / 25500,
+            len(instruction) / 10000,
+            image.shape[0] / 1e5,
+            image.shape[1] / 1e5,
+            0.01 if unnorm_key == "bridge_orig" else 0.0,
+            -0.02,
+            1.0,
+        ]
+    )
 
 
 @pytest.fixture(scope="module")
@@ -100,8 +130,9 @@ def openvla_stand_in(tmp_path_factory):
     script = tmp_path_factory.mktemp("openvla") / "deploy_stand_in.py"
     script.write_text(STAND_IN)
     port = free_port()
-    p = subprocess.Popen([sys.executable, str(script), str(port)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         text=True)
+    p = subprocess.Popen(
+        [sys.executable, str(script), str(port)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     url = f"http://127.0.0.1:{port}/act"
     deadline = time.monotonic() + 60
     while True:
@@ -166,18 +197,24 @@ def fake_server(reply: bytes, delay: float = 0.0):
 def test_json_numpy_round_trip_and_refusals():
     """The real json-numpy package behind the project's guard: arrays round-trip, object arrays, deep JSON and
     oversized payloads are one-line WireErrors."""
-    for a in (np.arange(6, dtype=np.uint8).reshape(1, 2, 3), np.linspace(0, 1, 7).astype(np.float32),
-              np.array(3.5), np.arange(12, dtype=">i4").reshape(3, 4)[:, ::2]):
+    for a in (
+        np.arange(6, dtype=np.uint8).reshape(1, 2, 3),
+        np.linspace(0, 1, 7).astype(np.float32),
+        np.array(3.5),
+        np.arange(12, dtype=">i4").reshape(3, 4)[:, ::2],
+    ):
         text = wire.dumps({"x": a})
         assert text == json_numpy.dumps({"x": a})  # the package's own encoding, byte for byte
         b = wire.loads(text, 1 << 20)["x"]
         assert np.array_equal(a, b) and np.asarray(b).dtype == a.dtype
-    for bad, msg in [('{"__numpy__": "AAAA", "dtype": "|O", "shape": [3]}', "object arrays are refused"),
-                     ('{"__numpy__": "AAAA", "dtype": [["a", "|O"]], "shape": [1]}', "object arrays are refused"),
-                     ("[" * 100_000 + "]" * 100_000, "nested too deeply"),
-                     ('{"__numpy__": "AAAA", "dtype": "<f8", "shape": [3]}', "buffer size"),
-                     ('{"__numpy__": "AAAA", "dtype": "nonsense", "shape": [3]}', "bad array dtype"),
-                     ("x" * 101, "over the limit of 100")]:
+    for bad, msg in [
+        ('{"__numpy__": "AAAA", "dtype": "|O", "shape": [3]}', "object arrays are refused"),
+        ('{"__numpy__": "AAAA", "dtype": [["a", "|O"]], "shape": [1]}', "object arrays are refused"),
+        ("[" * 100_000 + "]" * 100_000, "nested too deeply"),
+        ('{"__numpy__": "AAAA", "dtype": "<f8", "shape": [3]}', "buffer size"),
+        ('{"__numpy__": "AAAA", "dtype": "nonsense", "shape": [3]}', "bad array dtype"),
+        ("x" * 101, "over the limit of 100"),
+    ]:
         with pytest.raises(wire.WireError, match=msg) as e:
             wire.loads(bad, 100 if bad.startswith("x") else 1 << 20)
         assert "\n" not in str(e.value)
@@ -203,8 +240,12 @@ def test_good_answer_from_the_served_policy(served, episode):
     assert act.gripper == first.gripper
     # the "encoded" request form gets an encoded answer
     obs = src.observe()
-    payload = {"image": obs.images["front"], "instruction": ctx.instruction, "proprio": proprio_vector(obs.state),
-               "episode": {"scenario": ctx.scenario, "seed": 1, "variant": "seen"}}
+    payload = {
+        "image": obs.images["front"],
+        "instruction": ctx.instruction,
+        "proprio": proprio_vector(obs.state),
+        "episode": {"scenario": ctx.scenario, "seed": 1, "variant": "seen"},
+    }
     a = OpenVLAClient(url, encoded=True).request(payload)
     assert a.shape == (7,) and np.all(np.isfinite(a))
 
@@ -250,9 +291,24 @@ def test_refused_connection():
 def test_supervised_run_through_the_served_policy(served, tmp_path):
     url, _ = served
     out = tmp_path / "ov"
-    r = subprocess.run([sys.executable, "scripts/supervise.py", "policy=openvla", f"openvla.url={url}",
-                        "task=open_oven_center", "trials=1", "image_size=48", "cameras=[front]", "progress=false",
-                        f"out_dir={out}"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "scripts/supervise.py",
+            "policy=openvla",
+            f"openvla.url={url}",
+            "task=open_oven_center",
+            "trials=1",
+            "image_size=48",
+            "cameras=[front]",
+            "progress=false",
+            f"out_dir={out}",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr
     res = json.loads((out / "results.json").read_text())["tasks"]["open_oven_center"]
     assert res["none"]["success"] == 1 and res["oracle"]["success"] == 1  # the served nominal plan opens it
@@ -261,14 +317,31 @@ def test_supervised_run_through_the_served_policy(served, tmp_path):
 def test_a_failing_server_ends_trials_not_the_run(tmp_path):
     srv, url = fake_server(b"<html>oops</html>")
     out = tmp_path / "bad"
-    r = subprocess.run([sys.executable, "scripts/supervise.py", "policy=openvla", f"openvla.url={url}",
-                        "supervisor=none", "task=pick_place_bottle", "trials=2", "image_size=32", "cameras=[front]",
-                        "progress=false", f"out_dir={out}"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "scripts/supervise.py",
+            "policy=openvla",
+            f"openvla.url={url}",
+            "supervisor=none",
+            "task=pick_place_bottle",
+            "trials=2",
+            "image_size=32",
+            "cameras=[front]",
+            "progress=false",
+            f"out_dir={out}",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     srv.shutdown()
     assert r.returncode == 0, r.stderr
     eps = [json.loads(x) for x in (out / "log.jsonl").read_text().splitlines() if '"episode"' in x]
-    assert len(eps) == 2 and all(e["stopped"].startswith("policy error:") and "malformed JSON" in e["stopped"]
-                                 for e in eps)
+    assert len(eps) == 2 and all(
+        e["stopped"].startswith("policy error:") and "malformed JSON" in e["stopped"] for e in eps
+    )
     assert all(e["outcome"] == "policy_error" and "malformed JSON" in e["error"] for e in eps)
 
 
@@ -286,8 +359,10 @@ def test_openvla_readme_client_against_the_served_policy(served_default):
         src.close()
     image = np.zeros((256, 256, 3), dtype=np.uint8)
     with json_numpy_patched():
-        actions = [requests.post(url, json={"image": image, "instruction": "pick up the beaker"}).json()
-                   for _ in range(len(plan) + 1)]
+        actions = [
+            requests.post(url, json={"image": image, "instruction": "pick up the beaker"}).json()
+            for _ in range(len(plan) + 1)
+        ]
         # the encoded form; a new instruction starts a new episode
         reply = requests.post(url, json={"encoded": json.dumps({"image": image, "instruction": "again"})}).json()
         encoded = json.loads(reply)
@@ -307,8 +382,12 @@ def test_project_client_against_a_stand_in_of_openvlas_deploy_server(openvla_sta
     src, ctx = episode
     obs = src.observe()
     image = obs.images["front"]
-    for kwargs in ({}, {"encoded": True}, {"unnorm_key": "bridge_orig"},
-                   {"encoded": True, "unnorm_key": "bridge_orig"}):
+    for kwargs in (
+        {},
+        {"encoded": True},
+        {"unnorm_key": "bridge_orig"},
+        {"encoded": True, "unnorm_key": "bridge_orig"},
+    ):
         client = OpenVLAClient(url, **kwargs)
         client.reset(ctx)
         a = stand_in_action(image, ctx.instruction, kwargs.get("unnorm_key"))

@@ -1,7 +1,7 @@
 """Bad policy replies end their trial, never the run; hostile uploads get clean HTTP errors from our server.
 
 A real loopback HTTP server stands in for the policy and answers whatever bytes a test gives it; the client is
-policies/openvla_client.py on the real json-numpy package, inside the real supervised loop on PyBullet.
+sim_backends/policies/openvla_client.py on the real json-numpy package, inside the real supervised loop on PyBullet.
 """
 
 import base64
@@ -17,15 +17,15 @@ import time
 import json_numpy
 import numpy as np
 import pytest
+from conftest import ROOT
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import ROOT
-from policies.base import PolicyError
-from policies.openvla_client import OpenVLAClient
+from sim_backends.policies.base import PolicyError
+from sim_backends.policies.openvla_client import OpenVLAClient
 from sim_backends.registry import make_backend
-from supervision.base import make_supervisor
-from supervision.loop import LoopConfig, RunLog, TaskFamily, episode_context, run_trial
+from sim_backends.supervision.base import make_supervisor
+from sim_backends.supervision.loop import LoopConfig, RunLog, TaskFamily, episode_context, run_trial
 
 SCENARIO = "pick_place_beaker_small"
 PAYLOAD = {"image": np.zeros((8, 8, 3), np.uint8), "instruction": "pick up the beaker"}
@@ -80,13 +80,33 @@ def numpy_doc(data: bytes | str, dtype: object, shape: object) -> bytes:
 
 
 # ---- strategies: arbitrary and malformed replies -------------------------------------------------------------
-DTYPES = ["<f8", "<f4", ">f8", "<f2", "<f16", "<i8", "|u1", "|b1", "<c16", "<U2", "|S3", "|O", "|V8", "<M8[s]",
-          "<m8[s]", [["a", "<f4"]], [["a", "|O"]], "nonsense"]
+DTYPES = [
+    "<f8",
+    "<f4",
+    ">f8",
+    "<f2",
+    "<f16",
+    "<i8",
+    "|u1",
+    "|b1",
+    "<c16",
+    "<U2",
+    "|S3",
+    "|O",
+    "|V8",
+    "<M8[s]",
+    "<m8[s]",
+    [["a", "<f4"]],
+    [["a", "|O"]],
+    "nonsense",
+]
 SHAPES = [[7], [], [1, 7], [7, 1], [6], [8], [0], [-1], [2, -4]]
 
 json_values = st.recursive(
     st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8),
-    lambda kids: st.lists(kids, max_size=8) | st.dictionaries(st.text(max_size=6), kids, max_size=4), max_leaves=16)
+    lambda kids: st.lists(kids, max_size=8) | st.dictionaries(st.text(max_size=6), kids, max_size=4),
+    max_leaves=16,
+)
 
 
 @st.composite
@@ -125,8 +145,9 @@ def deep(n: int, kind: str) -> bytes:
 plain_bodies = st.one_of(
     st.binary(max_size=120),
     json_values.map(lambda v: json.dumps(v).encode()),  # NaN and Infinity included (Python's json writes them)
-    st.lists(st.integers() | st.floats() | st.booleans() | st.text(max_size=4) | st.none(), min_size=6,
-             max_size=8).map(lambda v: json.dumps(v).encode()),
+    st.lists(st.integers() | st.floats() | st.booleans() | st.text(max_size=4) | st.none(), min_size=6, max_size=8).map(
+        lambda v: json.dumps(v).encode()
+    ),
     numpy_bodies(),
     actions(),
     st.builds(deep, st.integers(900, 200_000), st.sampled_from(["list", "dict"])),
@@ -141,8 +162,14 @@ def responses(draw: st.DrawFn) -> bytes:
     body = draw(bodies)
     kind = draw(st.sampled_from(["ok"] * 6 + ["status", "short", "no-length", "bad-chunk", "redirect", "raw"]))
     if kind == "status":
-        return http_reply(body, draw(st.sampled_from(["201 Created", "400 Bad Request", "422 Unprocessable",
-                                                      "500 Internal Server Error", "503 Busy"])))
+        return http_reply(
+            body,
+            draw(
+                st.sampled_from(
+                    ["201 Created", "400 Bad Request", "422 Unprocessable", "500 Internal Server Error", "503 Busy"]
+                )
+            ),
+        )
     if kind == "short":  # announces more than it sends, then closes
         return http_reply(body, headers=f"Content-Length: {len(body) + 10}\r\n")
     if kind == "no-length":
@@ -176,8 +203,13 @@ def one_line(text: object) -> bool:
     return isinstance(text, str) and 0 < len(text) < 400 and text.isprintable()
 
 
-@settings(max_examples=60, deadline=None, database=None, derandomize=True,
-          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.large_base_example])
+@settings(
+    max_examples=60,
+    deadline=None,
+    database=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.large_base_example],
+)
 @given(reply=responses())
 def test_any_reply_is_an_action_or_a_clean_per_trial_error(world, reply):
     src, ctx, log, log_path, server = world
@@ -194,8 +226,18 @@ def test_any_reply_is_an_action_or_a_clean_per_trial_error(world, reply):
         assert np.all(np.abs(a[3:6]) <= 2 * np.pi)
         failed = False
     # the same reply inside the supervised loop: the trial ends with it, nothing escapes
-    row = run_trial(src, client, make_supervisor("none"), TaskFamily("t", [SCENARIO]), SCENARIO, 0, "seen",
-                    LoopConfig(max_steps=2, final_query=False), log, "fuzz")
+    row = run_trial(
+        src,
+        client,
+        make_supervisor("none"),
+        TaskFamily("t", [SCENARIO]),
+        SCENARIO,
+        0,
+        "seen",
+        LoopConfig(max_steps=2, final_query=False),
+        log,
+        "fuzz",
+    )
     if failed:
         assert row["outcome"] == "policy_error" and one_line(row["error"]) and row["steps"] == 0, row
     else:
@@ -226,10 +268,26 @@ def test_a_run_of_bad_replies_writes_its_results(tmp_path):
     server = RawPolicyServer([r for r, _ in BAD])
     out = tmp_path / "bad"
     try:
-        r = subprocess.run([sys.executable, "scripts/supervise.py", "policy=openvla", f"openvla.url={server.url}",
-                            "openvla.timeout_s=5", "supervisor=none", f"task={SCENARIO}", f"trials={len(BAD)}",
-                            "image_size=32", "cameras=[front]", "progress=false", f"out_dir={out}"], cwd=ROOT,
-                           capture_output=True, text=True, timeout=600)
+        r = subprocess.run(
+            [
+                sys.executable,
+                "scripts/supervise.py",
+                "policy=openvla",
+                f"openvla.url={server.url}",
+                "openvla.timeout_s=5",
+                "supervisor=none",
+                f"task={SCENARIO}",
+                f"trials={len(BAD)}",
+                "image_size=32",
+                "cameras=[front]",
+                "progress=false",
+                f"out_dir={out}",
+            ],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
     finally:
         server.shutdown()
         server.server_close()
@@ -245,17 +303,32 @@ def test_a_run_of_bad_replies_writes_its_results(tmp_path):
     assert sum("policy error:" in line for line in r.stderr.splitlines()) == len(BAD)
 
 
-@pytest.mark.parametrize("args, msg", [
-    (["openvla.timeout_s=soon"], "openvla.timeout_s: must be a positive number of seconds"),
-    (["openvla.timeout_s=0"], "openvla.timeout_s: must be a positive number of seconds"),
-    (["openvla.encoded=maybe"], "openvla.encoded: must be true or false"),
-    (["openvla.max_step_m=-1"], "openvla.max_step_m: must be a positive number"),
-    (["openvla.idle_stop=1.5"], "openvla.idle_stop: must be an integer >= 0"),
-])
+@pytest.mark.parametrize(
+    "args, msg",
+    [
+        (["openvla.timeout_s=soon"], "openvla.timeout_s: must be a positive number of seconds"),
+        (["openvla.timeout_s=0"], "openvla.timeout_s: must be a positive number of seconds"),
+        (["openvla.encoded=maybe"], "openvla.encoded: must be true or false"),
+        (["openvla.max_step_m=-1"], "openvla.max_step_m: must be a positive number"),
+        (["openvla.idle_stop=1.5"], "openvla.idle_stop: must be an integer >= 0"),
+    ],
+)
 def test_bad_client_settings_are_one_line_errors(tmp_path, args, msg):
-    r = subprocess.run([sys.executable, "scripts/supervise.py", "policy=openvla", "openvla.url=http://127.0.0.1:9/act",
-                        *args, "progress=false", f"out_dir={tmp_path / 'x'}"], cwd=ROOT, capture_output=True,
-                       text=True, timeout=120)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "scripts/supervise.py",
+            "policy=openvla",
+            "openvla.url=http://127.0.0.1:9/act",
+            *args,
+            "progress=false",
+            f"out_dir={tmp_path / 'x'}",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 2 and msg in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
 
 
@@ -280,11 +353,27 @@ def test_client_settings_from_the_command_line_reach_the_client(tmp_path):
     threading.Thread(target=srv.serve_forever, daemon=True).start()
     out = tmp_path / "slow"
     try:
-        r = subprocess.run([sys.executable, "scripts/supervise.py", "policy=openvla",
-                            f"openvla.url=http://127.0.0.1:{srv.server_address[1]}/act", "openvla.encoded=true",
-                            "openvla.timeout_s=0.5", "supervisor=none", f"task={SCENARIO}", "trials=1",
-                            "image_size=32", "cameras=[front]", "progress=false", f"out_dir={out}"], cwd=ROOT,
-                           capture_output=True, text=True, timeout=300)
+        r = subprocess.run(
+            [
+                sys.executable,
+                "scripts/supervise.py",
+                "policy=openvla",
+                f"openvla.url=http://127.0.0.1:{srv.server_address[1]}/act",
+                "openvla.encoded=true",
+                "openvla.timeout_s=0.5",
+                "supervisor=none",
+                f"task={SCENARIO}",
+                "trials=1",
+                "image_size=32",
+                "cameras=[front]",
+                "progress=false",
+                f"out_dir={out}",
+            ],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
     finally:
         srv.shutdown()
         srv.server_close()
@@ -297,6 +386,7 @@ def test_client_settings_from_the_command_line_reach_the_client(tmp_path):
 
 def test_a_reply_dripped_a_byte_at_a_time_is_cut_off_at_the_timeout():
     """Each byte comes well within the socket timeout; the whole reply would take 4 s, the client allows 0.5."""
+
     class Drip(socketserver.StreamRequestHandler):
         def handle(self) -> None:
             while self.rfile.readline() not in (b"\r\n", b""):
@@ -326,8 +416,20 @@ def test_a_reply_dripped_a_byte_at_a_time_is_cut_off_at_the_timeout():
 # ---- hostile uploads to scripts/serve_policy.py ------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def server():
-    p = subprocess.Popen([sys.executable, "scripts/serve_policy.py", "policy=scripted", "port=0", "max_body_mb=1",
-                          "request_timeout_s=1"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen(
+        [
+            sys.executable,
+            "scripts/serve_policy.py",
+            "policy=scripted",
+            "port=0",
+            "max_body_mb=1",
+            "request_timeout_s=1",
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     line = p.stdout.readline()
     assert line.startswith("serving scripted on http://127.0.0.1:"), line + p.stderr.read()
     yield int(line.split(":")[-1].split("/")[0]), p
@@ -352,30 +454,43 @@ def raw_exchange(port: int, data: bytes) -> bytes:
 
 
 def good_request(**extra: object) -> bytes:
-    return json_numpy.dumps({"image": np.zeros((8, 8, 3), np.uint8), "instruction": "x",
-                             "episode": {"scenario": SCENARIO, "seed": 0, "variant": "seen"}, **extra}).encode()
+    return json_numpy.dumps(
+        {
+            "image": np.zeros((8, 8, 3), np.uint8),
+            "instruction": "x",
+            "episode": {"scenario": SCENARIO, "seed": 0, "variant": "seen"},
+            **extra,
+        }
+    ).encode()
 
 
 def image_doc(dtype: str) -> bytes:
     return b'{"image": ' + numpy_doc(b"\0" * 8 * 8 * 3 * 8, dtype, [8, 8, 3]) + b', "instruction": "x"}'
 
 
-@pytest.mark.parametrize("body, headers, status, detail", [
-    (b"not json", None, 400, b"not json-numpy"),
-    (b"[" * 100_000 + b"]" * 100_000, None, 400, b"nested too deeply"),
-    (image_doc("|O"), None, 400, b"object arrays are refused"),
-    (b"[1, 2, 3]", None, 422, b"JSON object"),
-    (b"{}", {"Content-Length": "-5"}, 400, b"bad Content-Length"),
-    (b"", {"Content-Length": str(2 << 20)}, 413, b"request over"),
-    (good_request(), None, 200, b'{"__numpy__"'),
-    (good_request(proprio=[0.0] * 8), None, 200, b'"error"'),  # proprio must be 9 numbers
-    (good_request(proprio=["0"] * 9), None, 200, b'"error"'),
-    (image_doc("<f8"), None, 200, b'"error"'),  # not a uint8 image
-    (json_numpy.dumps({"image": np.zeros((8, 8, 3), np.uint8), "instruction": "x"}).encode(), None, 200,
-     b'"error"'),  # the scripted policy needs a scenario: none sent, no default_episode.scenario
-    (json.dumps({"encoded": good_request().decode(), "extra": 1}).encode(), None, 200, b'"error"'),
-    (json.dumps({"encoded": good_request().decode()}).encode(), None, 200, b'"{\\"__numpy__\\"'),
-])
+@pytest.mark.parametrize(
+    "body, headers, status, detail",
+    [
+        (b"not json", None, 400, b"not json-numpy"),
+        (b"[" * 100_000 + b"]" * 100_000, None, 400, b"nested too deeply"),
+        (image_doc("|O"), None, 400, b"object arrays are refused"),
+        (b"[1, 2, 3]", None, 422, b"JSON object"),
+        (b"{}", {"Content-Length": "-5"}, 400, b"bad Content-Length"),
+        (b"", {"Content-Length": str(2 << 20)}, 413, b"request over"),
+        (good_request(), None, 200, b'{"__numpy__"'),
+        (good_request(proprio=[0.0] * 8), None, 200, b'"error"'),  # proprio must be 9 numbers
+        (good_request(proprio=["0"] * 9), None, 200, b'"error"'),
+        (image_doc("<f8"), None, 200, b'"error"'),  # not a uint8 image
+        (
+            json_numpy.dumps({"image": np.zeros((8, 8, 3), np.uint8), "instruction": "x"}).encode(),
+            None,
+            200,
+            b'"error"',
+        ),  # the scripted policy needs a scenario: none sent, no default_episode.scenario
+        (json.dumps({"encoded": good_request().decode(), "extra": 1}).encode(), None, 200, b'"error"'),
+        (json.dumps({"encoded": good_request().decode()}).encode(), None, 200, b'"{\\"__numpy__\\"'),
+    ],
+)
 def test_hostile_uploads_get_clean_answers_and_the_server_keeps_serving(server, body, headers, status, detail):
     port, proc = server
     code, reply = post(port, body, headers)
@@ -388,7 +503,7 @@ def test_server_refuses_a_request_without_length_and_survives_a_stalled_upload(s
     reply = raw_exchange(port, b"POST /act HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\n")
     assert reply.startswith(b"HTTP/1.0 411")
     with socket.create_connection(("127.0.0.1", port), timeout=10) as stalled:
-        stalled.sendall(b"POST /act HTTP/1.1\r\nHost: x\r\nContent-Length: 1000\r\n\r\n{\"image\"")
+        stalled.sendall(b'POST /act HTTP/1.1\r\nHost: x\r\nContent-Length: 1000\r\n\r\n{"image"')
         t = time.monotonic()
         assert post(port, good_request())[0] == 200  # served at once beside the stalled upload
         assert time.monotonic() - t < 1.0

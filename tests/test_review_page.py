@@ -12,16 +12,33 @@ from data.review import write_review_page
 CHROMIUM, DRIVER = shutil.which("chromium"), shutil.which("chromedriver")
 needs_browser = pytest.mark.skipif(
     not (CHROMIUM and DRIVER) and not os.environ.get("LABROBFAIL_REQUIRE_BROWSER"),
-    reason="Debian chromium/chromium-driver not installed (make test installs them)")
+    reason="Debian chromium/chromium-driver not installed (make test installs them)",
+)
 
 
 def _item(i, task):
     from PIL import Image
-    recs = [{"id": f"seen-ep{i:07d}_Q{k}", "image": f"images/seen-ep{i:07d}.png",
-             "conversations": [{"from": "human", "value": f"<image>\nquestion {k} about {task}"},
-                               {"from": "gpt", "value": "1"}]} for k in range(1, 7)]
-    return Annotated(f"seen-ep{i:07d}", f"seen-pair{i // 2:07d}", "seen", f"images/seen-ep{i:07d}.png",
-                     Image.new("RGB", (8, 4)), recs, {"task": task, "success": False})
+
+    recs = [
+        {
+            "id": f"seen-ep{i:07d}_Q{k}",
+            "image": f"images/seen-ep{i:07d}.png",
+            "conversations": [
+                {"from": "human", "value": f"<image>\nquestion {k} about {task}"},
+                {"from": "gpt", "value": "1"},
+            ],
+        }
+        for k in range(1, 7)
+    ]
+    return Annotated(
+        f"seen-ep{i:07d}",
+        f"seen-pair{i // 2:07d}",
+        "seen",
+        f"images/seen-ep{i:07d}.png",
+        Image.new("RGB", (8, 4)),
+        recs,
+        {"task": task, "success": False},
+    )
 
 
 @needs_browser
@@ -37,8 +54,16 @@ def test_marks_export_and_escaping(tmp_path):
     assert "<script>window.pwned" not in page.read_text()
     opts = webdriver.ChromeOptions()
     opts.binary_location = CHROMIUM
-    for f in ("--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
-              "--disable-component-update", "--disable-sync", f"--user-data-dir={tmp_path / 'profile'}"):
+    for f in (
+        "--headless=new",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        f"--user-data-dir={tmp_path / 'profile'}",
+    ):
         opts.add_argument(f)
     drv = webdriver.Chrome(service=Service(DRIVER), options=opts)
     try:

@@ -31,7 +31,8 @@ def test_catalogue_covers_the_paper_scale(plans):
     for kfs, info, _ in plans.values():
         weight[horizon_of(len(kfs))] += info["repeat"]
     assert weight["medium"] + weight["long"] >= 1.5 * weight["short"] and weight["long"] >= 2 * sum(
-        horizon_of(len(k)) == "long" for k, _, _ in plans.values())
+        horizon_of(len(k)) == "long" for k, _, _ in plans.values()
+    )
     actions = {k.action for kfs, _, _ in plans.values() for k in kfs}
     assert actions == set(ATOMIC_ACTIONS)
 
@@ -53,19 +54,27 @@ def test_the_nominal_arm_never_touches_a_distractor():
     put one in the forearm's or hand's way before the sweep existed (each was a nominal failure)."""
     import pybullet as p
 
-    from data.generate import pair_seed
+    from sim_backends.generate import pair_seed
 
     src = make_backend("pybullet", render=False, max_distractors=3)
     names = src.scenarios()
-    cases = [("pick_place_beaker_large", 8), ("pick_place_far_flask", 7 * names.index("pick_place_far_flask")),
-             ("open_oven_left", 7 * names.index("open_oven_left") + 2),
-             ("pick_place_right_beaker_small", 7 * names.index("pick_place_right_beaker_small") + 1000)]
+    cases = [
+        ("pick_place_beaker_large", 8),
+        ("pick_place_far_flask", 7 * names.index("pick_place_far_flask")),
+        ("open_oven_left", 7 * names.index("open_oven_left") + 2),
+        ("pick_place_right_beaker_small", 7 * names.index("pick_place_right_beaker_small") + 1000),
+    ]
     try:
         placed = 0
         for sc, pair in cases:
             src.reset(sc, pair_seed(0, pair, 0), "seen")
-            where = lambda: {d: p.getBasePositionAndOrientation(b, physicsClientId=src.cid)[0]  # noqa: E731
-                             for d, b in src.scene.distractors.items()}
+
+            def where():
+                return {
+                    d: p.getBasePositionAndOrientation(b, physicsClientId=src.cid)[0]
+                    for d, b in src.scene.distractors.items()
+                }
+
             before = where()
             ep = src.execute(src.scripted_keyframes())
             placed += len(before)

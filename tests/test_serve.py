@@ -11,9 +11,8 @@ import threading
 import time
 
 import pytest
-from PIL import Image
-
 from conftest import ROOT
+from PIL import Image
 from serve_fixtures import TASKS, frame_lists, grids, mixed_model  # noqa: F401  (fixtures)
 
 TOKEN = "t0k-" + "x" * 28
@@ -21,11 +20,19 @@ TOKEN = "t0k-" + "x" * 28
 
 class Server:
     def __init__(self, model, log, *args, token=TOKEN):
-        env = {**os.environ, "LABROBFAIL_API_TOKEN": token} if token else \
-            {k: v for k, v in os.environ.items() if k != "LABROBFAIL_API_TOKEN"}
+        env = (
+            {**os.environ, "LABROBFAIL_API_TOKEN": token}
+            if token
+            else {k: v for k, v in os.environ.items() if k != "LABROBFAIL_API_TOKEN"}
+        )
         self.log = log
-        self.proc = subprocess.Popen([sys.executable, "scripts/serve.py", "--model", str(model), "--port", "0", *args],
-                                     cwd=ROOT, env=env, stdout=open(log, "w"), stderr=subprocess.STDOUT)
+        self.proc = subprocess.Popen(
+            [sys.executable, "scripts/serve.py", "--model", str(model), "--port", "0", *args],
+            cwd=ROOT,
+            env=env,
+            stdout=open(log, "w"),
+            stderr=subprocess.STDOUT,
+        )
         self.url = None
         for _ in range(600):
             text = log.read_text()
@@ -38,6 +45,7 @@ class Server:
 
     def client(self, token=TOKEN):
         from labrobfail_vlm.serve.client import DiagnosisClient
+
         os.environ["_TEST_TOKEN"] = token or ""
         return DiagnosisClient(self.url, token_env="_TEST_TOKEN")
 
@@ -54,8 +62,16 @@ class Server:
 
 @pytest.fixture(scope="module")
 def server(mixed_model, tmp_path_factory):  # noqa: F811
-    s = Server(mixed_model, tmp_path_factory.mktemp("srv") / "server.log", "--max-batch", "4", "--max-wait-ms", "300",
-               "--max-upload-mb", "2")
+    s = Server(
+        mixed_model,
+        tmp_path_factory.mktemp("srv") / "server.log",
+        "--max-batch",
+        "4",
+        "--max-wait-ms",
+        "300",
+        "--max-upload-mb",
+        "2",
+    )
     yield s
     assert s.stop() == 0
     assert TOKEN not in s.log.read_text()  # the token is never logged
@@ -64,6 +80,7 @@ def server(mixed_model, tmp_path_factory):  # noqa: F811
 @pytest.fixture(scope="module")
 def fa(mixed_model):  # noqa: F811
     from labrobfail_vlm.analyzer import FailureAnalyzer
+
     return FailureAnalyzer.from_pretrained(mixed_model)
 
 
@@ -75,6 +92,7 @@ def png(img):
 
 def test_diagnosis_equals_the_analyzers(server, fa, grids):  # noqa: F811
     from labrobfail_vlm.analyzer import frames_to_grid
+
     c = server.client()
     for i, g in enumerate(grids[:4]):
         got = c.diagnose(grid=g, task=TASKS[i % 3])
@@ -125,11 +143,17 @@ def test_bad_requests_get_one_line_4xx(server, tmp_path):
     assert c.request("POST", "/diagnose", b'{"grid": 1}', {"Content-Type": "application/json"})[0] == 415
     assert c.request("GET", "/nothing")[0] == 404 and c.request("GET", "/diagnose")[0] == 405
     import http.client
+
     host, port = server.url.removeprefix("http://").split(":")
     conn = http.client.HTTPConnection(host, int(port), timeout=60)
     head = b'--b\r\nContent-Disposition: form-data; name="grid"; filename="g.png"\r\n\r\n'
-    conn.request("POST", "/diagnose", body=iter([head] + [b"x" * (1 << 20)] * 3), encode_chunked=True,
-                 headers={"Authorization": f"Bearer {TOKEN}", "Content-Type": "multipart/form-data; boundary=b"})
+    conn.request(
+        "POST",
+        "/diagnose",
+        body=iter([head] + [b"x" * (1 << 20)] * 3),
+        encode_chunked=True,
+        headers={"Authorization": f"Bearer {TOKEN}", "Content-Type": "multipart/form-data; boundary=b"},
+    )
     r = conn.getresponse()
     assert r.status == 413 and "byte limit" in json.loads(r.read())["error"]
     conn.close()
@@ -138,6 +162,7 @@ def test_bad_requests_get_one_line_4xx(server, tmp_path):
 
 def test_token_is_required_and_checked(server):
     from labrobfail_vlm.serve.client import ServiceError
+
     for token in ("", "wrong", TOKEN[:-1]):
         c = server.client(token)
         code, body = c.request("GET", "/info")
@@ -187,14 +212,18 @@ def test_shutdown_finishes_requests_in_flight(mixed_model, grids, tmp_path):  # 
     assert codes == [200] * 6
     assert "stopped: requests in flight finished" in s.log.read_text()
     from labrobfail_vlm.serve.client import DiagnosisClient
+
     with pytest.raises(OSError):
         DiagnosisClient(s.url, timeout_s=5).health()
 
 
 def test_bad_arguments_are_one_line_errors(tmp_path):
-    for args, needle in ((["--model", str(tmp_path / "none")], "no such model directory"),
-                         (["--model", str(tmp_path), "--port", "70000"], "--port"),
-                         (["--model", str(tmp_path), "--max-batch", "0"], "--max-batch")):
-        r = subprocess.run([sys.executable, "scripts/serve.py", *args], cwd=ROOT, capture_output=True, text=True,
-                           timeout=120)
+    for args, needle in (
+        (["--model", str(tmp_path / "none")], "no such model directory"),
+        (["--model", str(tmp_path), "--port", "70000"], "--port"),
+        (["--model", str(tmp_path), "--max-batch", "0"], "--max-batch"),
+    ):
+        r = subprocess.run(
+            [sys.executable, "scripts/serve.py", *args], cwd=ROOT, capture_output=True, text=True, timeout=120
+        )
         assert r.returncode == 2 and needle in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr

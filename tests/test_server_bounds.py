@@ -16,9 +16,8 @@ import zlib
 
 import numpy as np
 import pytest
-from PIL import Image
-
 from conftest import ROOT
+from PIL import Image
 from test_serve import Server, png
 from test_train import tiny  # noqa: F401  (session fixture)
 
@@ -28,9 +27,21 @@ BUDGET_MB, REQUEST_MB, BODY_TIMEOUT_S = 4, 2, 2
 
 @pytest.fixture(scope="module")
 def server(tiny, tmp_path_factory):  # noqa: F811
-    s = Server(tiny, tmp_path_factory.mktemp("bounds") / "server.log", "--max-decode-mb", str(BUDGET_MB),
-               "--max-request-decode-mb", str(REQUEST_MB), "--body-timeout-s", str(BODY_TIMEOUT_S), "--max-batch",
-               "4", "--max-wait-ms", "50", token=None)
+    s = Server(
+        tiny,
+        tmp_path_factory.mktemp("bounds") / "server.log",
+        "--max-decode-mb",
+        str(BUDGET_MB),
+        "--max-request-decode-mb",
+        str(REQUEST_MB),
+        "--body-timeout-s",
+        str(BODY_TIMEOUT_S),
+        "--max-batch",
+        "4",
+        "--max-wait-ms",
+        "50",
+        token=None,
+    )
     yield s
     assert s.stop() == 0
     log = s.log.read_text()
@@ -46,8 +57,12 @@ def png16_rgba(w, h):
     def chunk(kind, data):
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
 
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 16, 6, 0, 0, 0)) +
-            chunk(b"IDAT", idat) + chunk(b"IEND", b""))
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 16, 6, 0, 0, 0))
+        + chunk(b"IDAT", idat)
+        + chunk(b"IEND", b"")
+    )
 
 
 def noise_png(side, seed):
@@ -91,8 +106,10 @@ def raw_request(server, head_and_body, drip=None, timeout=15):
 
 
 def _head(length, extra=""):
-    return (f"POST /diagnose HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=B\r\n"
-            f"Content-Length: {length}\r\n{extra}\r\n").encode()
+    return (
+        f"POST /diagnose HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=B\r\n"
+        f"Content-Length: {length}\r\n{extra}\r\n"
+    ).encode()
 
 
 PART = b'--B\r\nContent-Disposition: form-data; name="grid"; filename="g.png"\r\n\r\n'
@@ -166,8 +183,11 @@ def test_malformed_fields_get_one_line_4xx(server):
     c = server.client(None)
     for parts, needle in [
         ([g, ("prefix", "²")], "prefix"),  # str.isdigit() says yes, int() says no: was a 500
-        ([g, ("prefix", "٣")], "prefix"), ([g, ("prefix", "３")], "prefix"), ([g, ("prefix", "1e3")], "prefix"),
-        ([g, ("prefix", "-1")], "prefix"), ([g, ("prefix", "9" * 40)], "prefix"),
+        ([g, ("prefix", "٣")], "prefix"),
+        ([g, ("prefix", "３")], "prefix"),
+        ([g, ("prefix", "1e3")], "prefix"),
+        ([g, ("prefix", "-1")], "prefix"),
+        ([g, ("prefix", "9" * 40)], "prefix"),
         ([g, ("task", "pick\x00up")], "task: contains control characters"),
         ([g, ("objects", "beaker\x1b[31m")], "objects: contains control characters"),
         ([("grid", ("g.png", b"\x89PNG\r\n\x1a\n" + b"\x00" * 40, "image/png"))], "grid"),
@@ -175,8 +195,11 @@ def test_malformed_fields_get_one_line_4xx(server):
         code, body = c.post_form(parts)
         assert 400 <= code < 500 and set(body) == {"error"} and "\n" not in body["error"], (parts[-1], code, body)
         assert needle in body["error"], (parts[-1], body)
-    for ctype, raw in [("multipart/form-data", PART + ok), ("multipart/form-data; boundary=B", b"garbage"),
-                       ("multipart/form-data; boundary=B", b"--B\r\nContent-Disposition: form-data\r\n\r\nx\r\n--B--")]:
+    for ctype, raw in [
+        ("multipart/form-data", PART + ok),
+        ("multipart/form-data; boundary=B", b"garbage"),
+        ("multipart/form-data; boundary=B", b"--B\r\nContent-Disposition: form-data\r\n\r\nx\r\n--B--"),
+    ]:
         code, body = c.request("POST", "/diagnose", raw, {"Content-Type": ctype})
         assert 400 <= code < 500 and "\n" not in body["error"], (ctype, code, body)
     assert c.health()["status"] == "ok"
@@ -218,11 +241,19 @@ def test_decode_budget_waits_shrinks_and_refuses():
 
 
 def test_bound_flags_are_checked(tiny):  # noqa: F811
-    for args, needle in ((["--max-decode-mb", "4", "--max-request-decode-mb", "8"], "must not exceed"),
-                         (["--body-timeout-s", "0"], "--body-timeout-s"), (["--max-decode-mb", "nan"], "--max-decode"),
-                         (["--max-connections", "0"], "--max-connections")):
-        r = subprocess.run([sys.executable, "scripts/serve.py", "--model", str(tiny), *args], cwd=ROOT,
-                           capture_output=True, text=True, timeout=120)
+    for args, needle in (
+        (["--max-decode-mb", "4", "--max-request-decode-mb", "8"], "must not exceed"),
+        (["--body-timeout-s", "0"], "--body-timeout-s"),
+        (["--max-decode-mb", "nan"], "--max-decode"),
+        (["--max-connections", "0"], "--max-connections"),
+    ):
+        r = subprocess.run(
+            [sys.executable, "scripts/serve.py", "--model", str(tiny), *args],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert r.returncode == 2 and needle in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
 
 

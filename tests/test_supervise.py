@@ -6,18 +6,18 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import ROOT
+from test_train import tiny  # noqa: F401  (session fixture: a tiny Qwen3-VL checkpoint)
 
 from labrobfail_vlm.actions import PRIMITIVES
-
-from test_train import tiny  # noqa: F401  (session fixture: a tiny Qwen3-VL checkpoint)
-from conftest import ROOT
 
 FAST = ["image_size=48", "progress=false", "cameras=[front]"]
 
 
 def supervise(*args, check=True):
-    r = subprocess.run([sys.executable, "scripts/supervise.py", *FAST, *args], cwd=ROOT, capture_output=True,
-                       text=True, timeout=600)
+    r = subprocess.run(
+        [sys.executable, "scripts/supervise.py", *FAST, *args], cwd=ROOT, capture_output=True, text=True, timeout=600
+    )
     if check:
         assert r.returncode == 0, r.stderr
     return r
@@ -29,8 +29,14 @@ def records(out):
 
 def test_three_oracle_trials_write_the_log_and_the_table(tmp_path):
     out = tmp_path / "sup"
-    r = supervise("policy=scripted", "supervisor=oracle", "baseline=false", "task=pick_place_beaker_small",
-                  "trials=3", f"out_dir={out}")
+    r = supervise(
+        "policy=scripted",
+        "supervisor=oracle",
+        "baseline=false",
+        "task=pick_place_beaker_small",
+        "trials=3",
+        f"out_dir={out}",
+    )
     recs = records(out)
     eps = [x for x in recs if x["event"] == "episode"]
     assert len(eps) == 3 and all(e["supervisor"] == "oracle" for e in eps)
@@ -51,8 +57,10 @@ def test_supervision_helps_and_runs_repeat_exactly(tmp_path):
     for out in (a, b):
         supervise("supervisor=oracle", "task=pick", "trials=2", f"out_dir={out}")
     ra, rb = (json.loads((o / "results.json").read_text())["tasks"]["pick"] for o in (a, b))
-    ea, eb = ([{k: v for k, v in x.items() if k != "latency_s"} for x in records(o) if x["event"] == "episode"]
-              for o in (a, b))
+    ea, eb = (
+        [{k: v for k, v in x.items() if k != "latency_s"} for x in records(o) if x["event"] == "episode"]
+        for o in (a, b)
+    )
     assert ea == eb  # same seed, same episodes (latencies aside)
     assert ra["oracle"]["success"] >= ra["none"]["success"]
     assert ra["improvement"] == ra["oracle"]["rate"] - ra["none"]["rate"]
@@ -60,8 +68,17 @@ def test_supervision_helps_and_runs_repeat_exactly(tmp_path):
 
 def test_vlm_supervisor_queries_the_analyzer_on_prefix_grids(tmp_path, tiny):  # noqa: F811
     out = tmp_path / "vlm"
-    supervise("supervisor=vlm", f"vlm.model={tiny}", "baseline=false", "task=open_oven_center", "trials=1",
-              "loop.grids=all", "loop.budget=1", "loop.query_every=5", f"out_dir={out}")
+    supervise(
+        "supervisor=vlm",
+        f"vlm.model={tiny}",
+        "baseline=false",
+        "task=open_oven_center",
+        "trials=1",
+        "loop.grids=all",
+        "loop.budget=1",
+        "loop.query_every=5",
+        f"out_dir={out}",
+    )
     qs = [x for x in records(out) if x["event"] == "query"]
     assert qs and all((out / q["grid"]).is_file() for q in qs)
     assert all(set(q["diagnosis"]) >= {"failure", "correction", "primitives"} for q in qs)
@@ -77,10 +94,15 @@ def test_a_family_runs_in_make_demos_world_from_the_command_line(tmp_path):
     from sim_backends.registry import backend_options
 
     out = tmp_path / "demo_world"
-    world = ["backend_kwargs.custom_scene=configs/scenes/demo_bench.yaml", "backend_kwargs.camera_jitter=false",
-             "backend_kwargs.max_distractors=0", "families.pick.scenarios=[pick_place_right_beaker_large]"]
-    supervise("supervisor=oracle", "baseline=false", "task=pick", "trials=2", "loop.query_every=-1", *world,
-              f"out_dir={out}")
+    world = [
+        "backend_kwargs.custom_scene=configs/scenes/demo_bench.yaml",
+        "backend_kwargs.camera_jitter=false",
+        "backend_kwargs.max_distractors=0",
+        "families.pick.scenarios=[pick_place_right_beaker_large]",
+    ]
+    supervise(
+        "supervisor=oracle", "baseline=false", "task=pick", "trials=2", "loop.query_every=-1", *world, f"out_dir={out}"
+    )
     eps = [x for x in records(out) if x["event"] == "episode"]
     assert [e["scenario"] for e in eps] == ["pick_place_right_beaker_large"] * 2
     queries = [x for x in records(out) if x["event"] == "query"]  # query_every=-1: only reviews once it stops
@@ -95,19 +117,22 @@ def test_a_family_runs_in_make_demos_world_from_the_command_line(tmp_path):
     assert scene["custom_scene"]["bench"] == [0.80, 0.78, 0.74, 1.0]
 
 
-@pytest.mark.parametrize("args, msg", [
-    (["policy=teleop"], "policy: unknown policy 'teleop'"),
-    (["task=juggle"], "task: unknown task 'juggle'"),
-    (["policy=act"], "act.checkpoint: no checkpoint directory"),
-    (["policy=openvla", "openvla.url=http://127.0.0.1:9/act"], "openvla.url: cannot reach"),
-    (["supervisor=vlm", "vlm.model=/nonexistent"], "vlm.model: no such model directory"),
-    (["loop.on_manual=panic"], "loop.on_manual"),
-    (["trials=0"], "trials: must be a positive integer"),
-    (["backend_kwargs.warp_drive=true"], "backend_kwargs.warp_drive: not an option of the pybullet backend"),
-    (["backend_kwargs.custom_scene=tests/data/bad_vary_scene.yaml"], "backend_kwargs.custom_scene: vary"),
-    (["families.place.scenarios=[juggle]"], "families.place: unknown scenario 'juggle'"),
-    (["loop.query_every=-1", "loop.final_query=false"], "loop.query_every=-1 asks only the final query"),
-])
+@pytest.mark.parametrize(
+    "args, msg",
+    [
+        (["policy=teleop"], "policy: unknown policy 'teleop'"),
+        (["task=juggle"], "task: unknown task 'juggle'"),
+        (["policy=act"], "act.checkpoint: no checkpoint directory"),
+        (["policy=openvla", "openvla.url=http://127.0.0.1:9/act"], "openvla.url: cannot reach"),
+        (["supervisor=vlm", "vlm.model=/nonexistent"], "vlm.model: no such model directory"),
+        (["loop.on_manual=panic"], "loop.on_manual"),
+        (["trials=0"], "trials: must be a positive integer"),
+        (["backend_kwargs.warp_drive=true"], "backend_kwargs.warp_drive: not an option of the pybullet backend"),
+        (["backend_kwargs.custom_scene=tests/data/bad_vary_scene.yaml"], "backend_kwargs.custom_scene: vary"),
+        (["families.place.scenarios=[juggle]"], "families.place: unknown scenario 'juggle'"),
+        (["loop.query_every=-1", "loop.final_query=false"], "loop.query_every=-1 asks only the final query"),
+    ],
+)
 def test_bad_settings_are_one_line_errors(tmp_path, args, msg):
     r = supervise(*args, f"out_dir={tmp_path / 'x'}", check=False)
     assert r.returncode == 2 and msg in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
@@ -117,8 +142,8 @@ def test_oracle_names_a_stopped_policy_with_an_unmet_goal_an_incomplete_trajecto
     """A policy (ACT, OpenVLA) that stops short of its goal leaves no detector signature; the oracle must still
     act at the final query: incomplete trajectory, corrected by resuming the unfinished grasp."""
     from sim_backends.registry import make_backend
-    from supervision.loop import TaskFamily, episode_context
-    from supervision.oracle import OracleSupervisor
+    from sim_backends.supervision.loop import TaskFamily, episode_context
+    from sim_backends.supervision.oracle import OracleSupervisor
 
     src = make_backend("pybullet", render=False)
     try:
@@ -142,9 +167,17 @@ def test_oracle_leaves_a_finished_success_alone(tmp_path):
     upright on the target: the labeler calls it a success (every goal holds). Once the policy has stopped the
     oracle follows the labeler; a correction there would pick the beaker up again and undo the placement."""
     out = tmp_path / "success"
-    supervise("supervisor=oracle", "task=pick_place_beaker_large", "trials=1", "seed=10", "loop.query_every=-1",
-              "backend_kwargs.custom_scene=configs/scenes/demo_bench.yaml", "backend_kwargs.camera_jitter=false",
-              "backend_kwargs.max_distractors=0", f"out_dir={out}")
+    supervise(
+        "supervisor=oracle",
+        "task=pick_place_beaker_large",
+        "trials=1",
+        "seed=10",
+        "loop.query_every=-1",
+        "backend_kwargs.custom_scene=configs/scenes/demo_bench.yaml",
+        "backend_kwargs.camera_jitter=false",
+        "backend_kwargs.max_distractors=0",
+        f"out_dir={out}",
+    )
     eps = {e["supervisor"]: e for e in records(out) if e["event"] == "episode"}
     assert eps["none"]["success"] and eps["none"]["labels"]["failure_type"] is None
     assert eps["oracle"]["success"] and eps["oracle"]["interventions"] == 0

@@ -13,8 +13,13 @@ from sim_backends.types import Keyframe, matrix_to_quat, quat_to_matrix, rotatio
 def test_taxonomy_matches_paper():
     assert len(FAILURE_TYPES) == 11
     per_cat = Counter(ft.category for ft in FAILURE_TYPES.values())
-    assert per_cat == {Category.SAFETY: 2, Category.LOGIC: 2, Category.MOTION: 2, Category.GRASPING: 2,
-                       Category.PERCEPTION: 3}
+    assert per_cat == {
+        Category.SAFETY: 2,
+        Category.LOGIC: 2,
+        Category.MOTION: 2,
+        Category.GRASPING: 2,
+        Category.PERCEPTION: 3,
+    }
     assert [c.value for c in Category] == [1, 2, 3, 4, 5] and Category.PERCEPTION.title == "Perception Failure"
     assert [s.title for s in Severity] == ["Risk Level", "Dangerous Level", "Fatal Level", "Management Incident"]
     assert [s.main_text for s in Severity] == ["Minor", "Recoverable", "Critical", "Catastrophic"]
@@ -25,8 +30,11 @@ def test_taxonomy_matches_paper():
 
 def _kfs():
     q = (1.0, 0.0, 0.0, 0.0)
-    return [Keyframe(f"s{s}_k{i}", (0.1 * i, 0.0, 0.2), q, int(i == 1), "obj", s, "grasp")
-            for s in range(3) for i in range(3)]
+    return [
+        Keyframe(f"s{s}_k{i}", (0.1 * i, 0.0, 0.2), q, int(i == 1), "obj", s, "grasp")
+        for s in range(3)
+        for i in range(3)
+    ]
 
 
 def test_so3_exp_and_quaternions():
@@ -37,9 +45,11 @@ def test_so3_exp_and_quaternions():
         assert np.allclose(R @ R.T, np.eye(3), atol=1e-9) and np.isclose(np.linalg.det(R), 1.0)
         q = matrix_to_quat(R)
         assert np.allclose(quat_to_matrix(q), R, atol=1e-9)
-        assert np.isclose(rotation_angle(q, (0, 0, 0, 1)), min(np.linalg.norm(xi) % (2 * np.pi),
-                                                                 2 * np.pi - np.linalg.norm(xi) % (2 * np.pi)),
-                          atol=1e-6)
+        assert np.isclose(
+            rotation_angle(q, (0, 0, 0, 1)),
+            min(np.linalg.norm(xi) % (2 * np.pi), 2 * np.pi - np.linalg.norm(xi) % (2 * np.pi)),
+            atol=1e-6,
+        )
 
 
 def test_control_operators_touch_only_named_keyframes():
@@ -77,8 +87,15 @@ def test_a_physics_perturbation_record_replays_to_its_events():
     import json
 
     from sim_backends.failure_generator import apply_spec
-    spec = {"level": "physics", "at": ["s1_k0"], "params": [{"param": "grip_force", "target": "robot", "alpha": 0.9},
-                                                            {"param": "friction", "target": "obj", "alpha": 0.5}]}
+
+    spec = {
+        "level": "physics",
+        "at": ["s1_k0"],
+        "params": [
+            {"param": "grip_force", "target": "robot", "alpha": 0.9},
+            {"param": "friction", "target": "obj", "alpha": 0.5},
+        ],
+    }
     _, events, record = apply_spec(spec, _kfs(), {}, np.random.default_rng(4))
     assert len(events) == 2 and physics.events_from_record(json.loads(json.dumps(record))) == events
     old = {"level": "physics", "param": "mass", "target": "obj", "scale": 1.2, "at_keyframe": 3}

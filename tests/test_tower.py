@@ -7,7 +7,6 @@ import sys
 
 import numpy as np
 import pytest
-
 from conftest import ROOT, gen
 
 # 4 keyframes x 2 views of 64 px in square 64 px cells (2 x 2 merged tokens each)
@@ -25,17 +24,45 @@ def tower_shards(tmp_path_factory):
 @pytest.fixture(scope="module")
 def tower_data(tower_shards, tmp_path_factory):
     out = tmp_path_factory.mktemp("tower") / "data"
-    r = subprocess.run([sys.executable, "scripts/build_tower_data.py", f"data.shards={tower_shards}",
-                        f"data.out_dir={out}", "data.max_frames=4", "data.image_size=64", "data.ratios=[0.6,0.4]",
-                        "data.progress=false"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "scripts.build_tower_data",
+            f"data.shards={tower_shards}",
+            f"data.out_dir={out}",
+            "data.max_frames=4",
+            "data.image_size=64",
+            "data.ratios=[0.6,0.4]",
+            "data.progress=false",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr
     return out
 
 
 def _pretrain(data, out, *extra):
-    return subprocess.run([sys.executable, "scripts/pretrain_tower.py", f"data.out_dir={data}", f"out_dir={out}",
-                           *TOWER_GRID, *TINY_TOWER, "batch_size=2", "progress=false", *extra], cwd=ROOT,
-                          capture_output=True, text=True, timeout=600)
+    return subprocess.run(
+        [
+            sys.executable,
+            "scripts/pretrain_tower.py",
+            f"data.out_dir={data}",
+            f"out_dir={out}",
+            *TOWER_GRID,
+            *TINY_TOWER,
+            "batch_size=2",
+            "progress=false",
+            *extra,
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
 
 
 def test_targets_come_from_simulator_state(tower_shards):
@@ -55,7 +82,7 @@ def test_targets_come_from_simulator_state(tower_shards):
         if r["success"]:
             assert goals == 1 and not fb.any()  # every goal holds at the end of a success, and it never failed
         else:
-            assert goals == 0 and fb[frame - 1:].all() and not fb[:frame - 1].any()
+            assert goals == 0 and fb[frame - 1 :].all() and not fb[: frame - 1].any()
         assert (cells[:, 0] == cells[:, 1]).all()  # the state is one per frame, whatever the view
         assert cells[0, 0, CELL_TARGETS.index("arm_moved")] == -1  # nothing to compare the first frame with
         # the gripper is somewhere in front of every camera: a finite projection in every view
@@ -102,30 +129,66 @@ def test_train_takes_a_tower_or_scratch(tower_shards, tower_data, tmp_path):
     r = _pretrain(tower_data, run, "epochs=1", "layouts=[[front,side]]")
     assert r.returncode == 0, r.stderr[-3000:]
     ds = tmp_path / "ds"
-    r = subprocess.run([sys.executable, "scripts/build_dataset.py", f"shards={tower_shards}",
-                        f"out_dir={ds}", "views=[front,side]", "grid.width=128", "grid.height=256",
-                        "grid.max_frames=4", "grid.columns=2", "progress=false"], cwd=ROOT, capture_output=True,
-                       text=True, timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "scripts.build_dataset",
+            f"shards={tower_shards}",
+            f"out_dir={ds}",
+            "views=[front,side]",
+            "grid.width=128",
+            "grid.height=256",
+            "grid.max_frames=4",
+            "grid.columns=2",
+            "progress=false",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     assert json.loads((ds / "stats.json").read_text())["views"] == ["front", "side"]
-    common = [sys.executable, "train.py", "preset=tiny", f"dataset_dir={ds}", "max_steps=1", "global_batch=2",
-              "per_device_batch=2", "grounding.pretrain_epochs=0", "wandb.enabled=false", "progress=false",
-              "augment.enabled=true"]
+    common = [
+        sys.executable,
+        "train.py",
+        "preset=tiny",
+        f"dataset_dir={ds}",
+        "max_steps=1",
+        "global_batch=2",
+        "per_device_batch=2",
+        "grounding.pretrain_epochs=0",
+        "wandb.enabled=false",
+        "progress=false",
+        "augment.enabled=true",
+    ]
     for tower in (str(run), "scratch"):
         out = tmp_path / f"t-{tower == 'scratch'}"
-        r = subprocess.run([*common, f"output_dir={out}", f"tower={tower}"], cwd=ROOT, capture_output=True,
-                           text=True, timeout=600)
+        r = subprocess.run(
+            [*common, f"output_dir={out}", f"tower={tower}"], cwd=ROOT, capture_output=True, text=True, timeout=600
+        )
         assert r.returncode == 0, r.stderr[-3000:]
         cfg = json.loads((out / "tiny_base" / "config.json").read_text())["vision_config"]
         assert (cfg["depth"], cfg["hidden_size"]) == ((1, 32) if tower != "scratch" else (2, 64))
-    r = subprocess.run([*common, f"output_dir={tmp_path / 'bad'}", f"tower={tmp_path / 'none'}"], cwd=ROOT,
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [*common, f"output_dir={tmp_path / 'bad'}", f"tower={tmp_path / 'none'}"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].startswith("error: tower:"), r.stderr
 
 
 def test_bad_tower_settings_are_one_line(tower_data, tmp_path):
-    for args, key in ((["epochs=0"], "epochs"), (["lr=-1"], "lr"), (["layouts=[[front,side],[front]]"], "layouts"),
-                      ([f"data.out_dir={tmp_path}"], "data"), (["grid.width=100"], "grid")):
+    for args, key in (
+        (["epochs=0"], "epochs"),
+        (["lr=-1"], "lr"),
+        (["layouts=[[front,side],[front]]"], "layouts"),
+        ([f"data.out_dir={tmp_path}"], "data"),
+        (["grid.width=100"], "grid"),
+    ):
         r = _pretrain(tower_data, tmp_path / "r", *args)
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-2000:]
         assert r.stderr.strip().splitlines()[-1].startswith(f"error: {key}"), r.stderr

@@ -8,7 +8,6 @@ import sys
 
 import pytest
 import torch
-
 from conftest import ROOT, free_port
 
 SMALL_GRID = ["grid.width=256", "grid.height=128", "grid.max_frames=8", "grid.columns=4"]
@@ -17,14 +16,28 @@ SMALL_GRID = ["grid.width=256", "grid.height=128", "grid.max_frames=8", "grid.co
 @pytest.fixture(scope="session")
 def tiny(tmp_path_factory):
     from labrobfail_vlm.model.tiny import build_tiny
+
     return build_tiny(tmp_path_factory.mktemp("m") / "tiny")
 
 
 @pytest.fixture(scope="session")
 def small_ds(run6, tmp_path_factory):
     out = tmp_path_factory.mktemp("ds") / "small"
-    r = subprocess.run([sys.executable, "scripts/build_dataset.py", f"shards={run6}", f"out_dir={out}",
-                        "progress=false", *SMALL_GRID], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "scripts.build_dataset",
+            f"shards={run6}",
+            f"out_dir={out}",
+            "progress=false",
+            *SMALL_GRID,
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr
     return out
 
@@ -32,6 +45,7 @@ def small_ds(run6, tmp_path_factory):
 def batch(tiny, small_ds, n=2):
     from labrobfail_vlm.model.loading import load_processor
     from labrobfail_vlm.train.data import Collator, VQADataset
+
     proc = load_processor(tiny)
     proc.tokenizer.padding_side = "right"
     ds = VQADataset(small_ds, "train")
@@ -41,6 +55,7 @@ def batch(tiny, small_ds, n=2):
 def test_labels_cover_exactly_the_answer(tiny, small_ds):
     proc, b = batch(tiny, small_ds, n=3)
     from labrobfail_vlm.train.data import VQADataset
+
     ds = VQADataset(small_ds, "train")
     for i in range(3):
         kept = b["labels"][i][b["labels"][i] != -100]
@@ -52,6 +67,7 @@ def test_record_loss_weights_each_record_equally(tiny, small_ds):
     from labrobfail_vlm.model.loading import load_model
     from labrobfail_vlm.train.data import Collator, VQADataset
     from labrobfail_vlm.train.trainer import record_loss
+
     proc, _ = batch(tiny, small_ds)
     ds = VQADataset(small_ds, "train")
     q2 = next(ds[i] for i in range(len(ds)) if ds[i]["id"].endswith("_Q2"))
@@ -61,8 +77,9 @@ def test_record_loss_weights_each_record_equally(tiny, small_ds):
     model = load_model(tiny).eval()
     with torch.no_grad():
         alone = [model(**Collator(proc, 512)([r]), use_cache=False).loss for r in (q2, q6)]  # HF token mean
-        ours, _ = record_loss(model, {k: v for k, v in b.items() if k != "labels"}, b["labels"],
-                              torch.tensor([3.0, 1.0]))
+        ours, _ = record_loss(
+            model, {k: v for k, v in b.items() if k != "labels"}, b["labels"], torch.tensor([3.0, 1.0])
+        )
         token_mean = model(**b).loss
     assert ours == pytest.approx(float(3 * alone[0] + alone[1]) / 2, rel=1e-4)
     # HF's token mean lets the ~30-token correction outweigh the 3-token Yes/No answer; the record loss does not
@@ -71,11 +88,14 @@ def test_record_loss_weights_each_record_equally(tiny, small_ds):
     assert float(token_mean) == pytest.approx(float(n2 * alone[0] + n6 * alone[1]) / (n2 + n6), rel=1e-4)
 
 
-@pytest.mark.parametrize("mode,expect", [("hybrid", {"vision", "merger", "lora"}), ("frozen_vision", {"lora"}),
-                                         ("full", {"vision", "merger", "text"})])
+@pytest.mark.parametrize(
+    "mode,expect",
+    [("hybrid", {"vision", "merger", "lora"}), ("frozen_vision", {"lora"}), ("full", {"vision", "merger", "text"})],
+)
 def test_gradients_reach_exactly_the_intended_groups(tiny, small_ds, mode, expect):
     from labrobfail_vlm.model.hybrid import apply_tuning, group_of
     from labrobfail_vlm.model.loading import load_model
+
     _, b = batch(tiny, small_ds)
     model = apply_tuning(load_model(tiny), mode, {"r": 8, "alpha": 16, "dropout": 0.0})
     if mode != "full":  # LoRA B starts at zero; nudge it so gradients reach A as well
@@ -104,15 +124,31 @@ def test_save_reload_identical_logits_and_merge(tiny, small_ds, tmp_path):
     from labrobfail_vlm.train.checkpoint import load_finetuned
     from labrobfail_vlm.train.data import Collator, VQADataset
     from labrobfail_vlm.train.trainer import HybridTrainer
+
     proc, b = batch(tiny, small_ds)
     model = apply_tuning(load_model(tiny), "hybrid", {"r": 8, "alpha": 16, "dropout": 0.0})
-    args = TrainingArguments(output_dir=str(tmp_path / "run"), per_device_train_batch_size=2, max_steps=2,
-                             report_to="none", use_cpu=True, remove_unused_columns=False, disable_tqdm=True,
-                             save_strategy="no", learning_rate=1e-3)
-    tr = HybridTrainer(model=model, args=args, train_dataset=VQADataset(small_ds), data_collator=Collator(proc, 512),
-                       processing_class=proc, group_lrs={"vision": 1e-3, "merger": 1e-3, "lora": 1e-3, "text": 0},
-                       base_model=str(tiny), tuning="hybrid",
-                       grid=json.loads((small_ds / "stats.json").read_text())["grid"])
+    args = TrainingArguments(
+        output_dir=str(tmp_path / "run"),
+        per_device_train_batch_size=2,
+        max_steps=2,
+        report_to="none",
+        use_cpu=True,
+        remove_unused_columns=False,
+        disable_tqdm=True,
+        save_strategy="no",
+        learning_rate=1e-3,
+    )
+    tr = HybridTrainer(
+        model=model,
+        args=args,
+        train_dataset=VQADataset(small_ds),
+        data_collator=Collator(proc, 512),
+        processing_class=proc,
+        group_lrs={"vision": 1e-3, "merger": 1e-3, "lora": 1e-3, "text": 0},
+        base_model=str(tiny),
+        tuning="hybrid",
+        grid=json.loads((small_ds / "stats.json").read_text())["grid"],
+    )
     assert [g["lr"] for g in tr.create_optimizer().param_groups] == [1e-3, 1e-3, 1e-3]
     tr.train()
     tr.save_model(str(tmp_path / "ck"))
@@ -124,8 +160,13 @@ def test_save_reload_identical_logits_and_merge(tiny, small_ds, tmp_path):
     base = load_model(tiny).eval()
     with torch.no_grad():
         assert not torch.allclose(base(**b).logits, ref)  # training changed the model
-    r = subprocess.run([sys.executable, "scripts/merge.py", str(tmp_path / "ck"), str(tmp_path / "merged")], cwd=ROOT,
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [sys.executable, "scripts/merge.py", f"src={tmp_path / 'ck'}", f"out={tmp_path / 'merged'}"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr
     merged = Qwen3VLForConditionalGeneration.from_pretrained(tmp_path / "merged").eval()
     with torch.no_grad():
@@ -134,47 +175,72 @@ def test_save_reload_identical_logits_and_merge(tiny, small_ds, tmp_path):
     # inference rebuilds the grid the checkpoint was trained on (SMALL_GRID: 8 keyframes, 4 per band)
     from labrobfail_vlm.analyzer import FailureAnalyzer
     from labrobfail_vlm.grid import GridConfig
+
     g = FailureAnalyzer.from_pretrained(tmp_path / "ck").grid
     assert g == GridConfig(width=256, height=128, max_frames=8, columns=4)
     assert FailureAnalyzer.from_pretrained(tiny).grid == GridConfig()  # a base model: the paper's default
 
 
 def test_bad_train_config_is_one_line(small_ds, tmp_path):
-    for args, field in [(["preset=huge"], "preset"), ([f"dataset_dir={tmp_path}"], "dataset_dir"),
-                        (["preset=no_index", f"dataset_dir={small_ds}"], "grid_index"),
-                        (["model.path=/nonexistent", f"dataset_dir={small_ds}"], "model.path"),
-                        (["loss.mode=sum", f"dataset_dir={small_ds}"], "loss.mode"),
-                        (["curriculum.detect_first=1.5", f"dataset_dir={small_ds}"], "curriculum.detect_first"),
-                        (["curriculum.detect_first=0.5", "loss.mode=token", f"dataset_dir={small_ds}"],
-                         "curriculum.detect_first")]:
-        r = subprocess.run([sys.executable, "train.py", f"output_dir={tmp_path}/o", *args], cwd=ROOT,
-                           capture_output=True, text=True, timeout=120)
+    for args, field in [
+        (["preset=huge"], "preset"),
+        ([f"dataset_dir={tmp_path}"], "dataset_dir"),
+        (["preset=no_index", f"dataset_dir={small_ds}"], "grid_index"),
+        (["model.path=/nonexistent", f"dataset_dir={small_ds}"], "model.path"),
+        (["loss.mode=sum", f"dataset_dir={small_ds}"], "loss.mode"),
+        (["curriculum.detect_first=1.5", f"dataset_dir={small_ds}"], "curriculum.detect_first"),
+        (["curriculum.detect_first=0.5", "loss.mode=token", f"dataset_dir={small_ds}"], "curriculum.detect_first"),
+    ]:
+        r = subprocess.run(
+            [sys.executable, "train.py", f"output_dir={tmp_path}/o", *args],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
         assert field in r.stderr.strip().splitlines()[-1]
 
 
-@pytest.mark.skipif(shutil.which("deepspeed", path=os.path.dirname(sys.executable)) is None,
-                    reason="deepspeed not installed (make install adds it)")
+@pytest.mark.skipif(
+    shutil.which("deepspeed", path=os.path.dirname(sys.executable)) is None,
+    reason="deepspeed not installed (make install adds it)",
+)
 def test_deepspeed_two_cpu_ranks_train_save_resume(tiny, small_ds, tmp_path):
     ds_bin = os.path.join(os.path.dirname(sys.executable), "deepspeed")
     out = tmp_path / "ds"
     # the launcher ignores MASTER_PORT and would use 29500 every time: a free port per launch
-    common = ["train.py", "preset=tiny", "tuning=hybrid", f"model.path={tiny}", f"dataset_dir={small_ds}",
-              f"output_dir={out}", "deepspeed=configs/ds_zero3.json", "global_batch=4", "per_device_batch=1",
-              "grounding.weight=0", "grounding.pretrain_epochs=0",  # the grounding head runs on one process only
-              "save_steps=2", "logging_steps=1", "wandb.enabled=false", "progress=false"]
+    common = [
+        "train.py",
+        "preset=tiny",
+        "tuning=hybrid",
+        f"model.path={tiny}",
+        f"dataset_dir={small_ds}",
+        f"output_dir={out}",
+        "deepspeed=configs/ds_zero3.json",
+        "global_batch=4",
+        "per_device_batch=1",
+        "grounding.weight=0",
+        "grounding.pretrain_epochs=0",  # the grounding head runs on one process only
+        "save_steps=2",
+        "logging_steps=1",
+        "wandb.enabled=false",
+        "progress=false",
+    ]
     launch = [ds_bin, "--num_gpus", "2", "--master_port", str(free_port())]
     r = subprocess.run([*launch, *common, "max_steps=2"], cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     from safetensors.torch import load_file
+
     adapter = load_file(str(out / "checkpoint-2" / "adapter_model.safetensors"))
     vision = load_file(str(out / "checkpoint-2" / "vision_merger.safetensors"))
     assert adapter and all(t.numel() > 0 for t in adapter.values())  # gathered, not empty partitions
     assert any("merger" in k for k in vision) and all(t.numel() > 0 for t in vision.values())
     assert any(float(t.abs().sum()) > 0 for k, t in adapter.items() if "lora_B" in k)  # it trained
     launch[-1] = str(free_port())  # the first run's port may linger in TIME_WAIT
-    r = subprocess.run([*launch, *common, "max_steps=3", "resume=true"], cwd=ROOT, capture_output=True, text=True,
-                       timeout=900)
+    r = subprocess.run(
+        [*launch, *common, "max_steps=3", "resume=true"], cwd=ROOT, capture_output=True, text=True, timeout=900
+    )
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     summary = json.loads((out / "train_summary.json").read_text())
     assert summary["global_step"] == 3
@@ -187,6 +253,7 @@ def test_packed_row_loss_equals_the_six_records_alone(tiny, small_ds):
     from labrobfail_vlm.train.data import Collator
     from labrobfail_vlm.train.packing import TrajectoryDataset, prepare_packed
     from labrobfail_vlm.train.trainer import record_loss
+
     proc = load_processor(tiny)
     proc.tokenizer.padding_side = "right"
     td = TrajectoryDataset(small_ds, "train")
@@ -220,13 +287,17 @@ def test_rewording_and_pair_sampler(small_ds):
     from labrobfail_vlm import questions as Q
     from labrobfail_vlm.train.curriculum import PairSampler, Rewording
     from labrobfail_vlm.train.data import VQADataset
+
     ds = VQADataset(small_ds, "train")
     assert ds.group_of and len(set(ds.group_of.values())) < len(ds.group_of)  # pairs share a group
     # the polarity flips the Q2 answer; other dimensions keep theirs
     q2 = next(ds[i] for i in range(len(ds)) if ds[i]["id"].endswith("_Q2"))
     pos = next(i for i, v in enumerate(Q.VARIANTS["Q2"]) if v.positive)
     neg = next(i for i, v in enumerate(Q.VARIANTS["Q2"]) if not v.positive)
-    (qa, aa), (qb, ab) = Q.reask("Q2", q2["question"], q2["answer"], pos), Q.reask("Q2", q2["question"], q2["answer"], neg)
+    (qa, aa), (qb, ab) = (
+        Q.reask("Q2", q2["question"], q2["answer"], pos),
+        Q.reask("Q2", q2["question"], q2["answer"], neg),
+    )
     assert Q.VARIANTS["Q2"][pos].text in qa and Q.VARIANTS["Q2"][neg].text in qb and {aa, ab} == {"Yes", "No"}
     rw = Rewording(ds.group_of, pairs=True)
     rw.negative_only = True
@@ -255,6 +326,7 @@ def test_detect_first_puts_the_loss_on_q2_alone(tiny, small_ds):
     from labrobfail_vlm.train.curriculum import Rewording
     from labrobfail_vlm.train.data import Collator
     from labrobfail_vlm.train.packing import TrajectoryDataset
+
     proc = load_processor(tiny)
     proc.tokenizer.padding_side = "right"
     td = TrajectoryDataset(small_ds, "train")

@@ -34,12 +34,24 @@ def detection_metrics(y: Sequence[bool], p: Sequence[float], score: str = "proba
             continue
         conf, rate = float(pt[m].mean()), float(yt[m].mean())
         ece += m.sum() / len(yt) * abs(rate - conf)
-        bins.append({"lo": round(float(edges[b]), 2), "hi": round(float(edges[b + 1]), 2), "n": int(m.sum()),
-                     "mean_score": round(conf, 4), "failure_rate": round(rate, 4)})
-    return {"auroc": round(float(roc_auc_score(yt, pt)), 4) if both else None,
-            "auprc": round(float(average_precision_score(yt, pt)), 4) if both else None,
-            "ece": round(float(ece), 4) if len(yt) else None, "trajectories": int(len(yt)),
-            "failures": int(yt.sum()), "score": score, "bins": bins}
+        bins.append(
+            {
+                "lo": round(float(edges[b]), 2),
+                "hi": round(float(edges[b + 1]), 2),
+                "n": int(m.sum()),
+                "mean_score": round(conf, 4),
+                "failure_rate": round(rate, 4),
+            }
+        )
+    return {
+        "auroc": round(float(roc_auc_score(yt, pt)), 4) if both else None,
+        "auprc": round(float(average_precision_score(yt, pt)), 4) if both else None,
+        "ece": round(float(ece), 4) if len(yt) else None,
+        "trajectories": int(len(yt)),
+        "failures": int(yt.sum()),
+        "score": score,
+        "bins": bins,
+    }
 
 
 def reliability_png(curves: dict[str, dict[str, Any]], title: str, path: Path) -> None:
@@ -60,8 +72,9 @@ def reliability_png(curves: dict[str, dict[str, Any]], title: str, path: Path) -
         label = f"{name} (AUROC {m['auroc'] if m['auroc'] is not None else '—'}, ECE {m['ece']})"
         ax.plot(xs, [b["failure_rate"] for b in m["bins"]], marker="o", label=label)
         n = max(1, m["trajectories"])
-        hx.bar([b["lo"] + (k + 0.5) * width for b in m["bins"]], [b["n"] / n for b in m["bins"]], width=width,
-               label=name)
+        hx.bar(
+            [b["lo"] + (k + 0.5) * width for b in m["bins"]], [b["n"] / n for b in m["bins"]], width=width, label=name
+        )
     ax.set_xlim(0, 1)
     ax.set_ylim(0, 1)
     ax.set_ylabel("observed failure rate")

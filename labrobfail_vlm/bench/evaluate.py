@@ -28,9 +28,11 @@ from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.taxonomy import SEEN_SPLITS, UNSEEN_SPLITS
 
 # CLI split name -> file stem: the seen splits by name, each unseen variant by its suffix ("object" -> test_object).
-SPLITS = {**{s: s for s in reversed(SEEN_SPLITS)},
-          **{v.removeprefix("unseen_"): s for v, s in UNSEEN_SPLITS.items()},
-          "prefix": "test_prefix"}  # prefix grids of the seen test split (dataset built with prefix.cuts > 0)
+SPLITS = {
+    **{s: s for s in reversed(SEEN_SPLITS)},
+    **{v.removeprefix("unseen_"): s for v, s in UNSEEN_SPLITS.items()},
+    "prefix": "test_prefix",
+}  # prefix grids of the seen test split (dataset built with prefix.cuts > 0)
 
 
 def q2_as_asked(question: str, failed: bool) -> str:
@@ -70,8 +72,9 @@ def read_predictions(path: str | Path) -> Predictions:
     try:
         lines = Path(path).read_text().splitlines()
     except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"predictions: cannot read {path} ({getattr(e, 'strerror', None) or type(e).__name__})"
-                          ) from None
+        raise ConfigError(
+            f"predictions: cannot read {path} ({getattr(e, 'strerror', None) or type(e).__name__})"
+        ) from None
     for i, line in enumerate(lines, 1):
         if not line.strip():
             continue
@@ -84,14 +87,23 @@ def read_predictions(path: str | Path) -> Predictions:
                     raise ValueError
                 out.p_failure[Q.traj_of(str(obj["id"]))] = p
         except (ValueError, KeyError, TypeError, AttributeError):
-            raise ConfigError(f"predictions: {path} line {i} is not a JSON object with id, prediction and an "
-                              "optional p_failure in [0, 1]") from None
+            raise ConfigError(
+                f"predictions: {path} line {i} is not a JSON object with id, prediction and an "
+                "optional p_failure in [0, 1]"
+            ) from None
     return out
 
 
 # ---- prediction sources -----------------------------------------------------------------------------------
-def model_predictions(analyzer: Any, dataset_dir: str | Path, recs: list[dict], traj: dict[str, dict],
-                      blind: bool = False, progress: bool = True, batch_size: int = 1) -> Predictions:
+def model_predictions(
+    analyzer: Any,
+    dataset_dir: str | Path,
+    recs: list[dict],
+    traj: dict[str, dict],
+    blind: bool = False,
+    progress: bool = True,
+    batch_size: int = 1,
+) -> Predictions:
     """Run the analyzer once per trajectory (one pass over the dimensions its records ask), `batch_size`
     trajectories per `answers_batch` call; `blind` blanks the grid. P(failure) is kept where the analyzer gives it."""
     from tqdm import tqdm
@@ -103,15 +115,20 @@ def model_predictions(analyzer: Any, dataset_dir: str | Path, recs: list[dict], 
     out = Predictions()
     bar = tqdm(total=len(items), desc="blind" if blind else "model", disable=not progress)
     for c in range(0, len(items), max(1, batch_size)):
-        chunk = items[c:c + max(1, batch_size)]
+        chunk = items[c : c + max(1, batch_size)]
         images = []
         for _, rs in chunk:
             img = Image.open(Path(dataset_dir) / rs[0]["image"]).convert("RGB")
             images.append(Image.new("RGB", img.size, (128, 128, 128)) if blind else img)
         infos = [traj.get(t, {}) for t, _ in chunk]
-        answers = analyzer.answers_batch(images, [i.get("task", "") for i in infos], [i.get("frames") for i in infos],
-                                         [i.get("objects", ()) for i in infos],
-                                         [{Q.dim_of(r["id"]) for r in rs} for _, rs in chunk], max_batch=batch_size)
+        answers = analyzer.answers_batch(
+            images,
+            [i.get("task", "") for i in infos],
+            [i.get("frames") for i in infos],
+            [i.get("objects", ()) for i in infos],
+            [{Q.dim_of(r["id"]) for r in rs} for _, rs in chunk],
+            max_batch=batch_size,
+        )
         for (t, rs), ans in zip(chunk, answers):
             failed = ans["Q2"] == "Yes"
             if getattr(ans, "p_failure", None) is not None:
@@ -155,8 +172,11 @@ def majority_predictions(train: list[dict], recs: list[dict], failures_only: boo
 # ---- scoring ------------------------------------------------------------------------------------------------
 def failed_records(recs: list[dict], traj: dict[str, dict]) -> list[dict]:
     """The Q3-Q6 records of failed trajectories: what the failure-only scores are taken over."""
-    return [r for r in recs if Q.dim_of(r["id"]) in FAILURE_ONLY_DIMS
-            and not traj.get(Q.traj_of(r["id"]), {}).get("success", True)]
+    return [
+        r
+        for r in recs
+        if Q.dim_of(r["id"]) in FAILURE_ONLY_DIMS and not traj.get(Q.traj_of(r["id"]), {}).get("success", True)
+    ]
 
 
 def detection(recs: list[dict], preds: dict[str, str], traj: dict[str, dict]) -> dict[str, Any] | None:
@@ -181,23 +201,35 @@ def detection(recs: list[dict], preds: dict[str, str], traj: dict[str, dict]) ->
     return detection_metrics(ys, ps, "hard" if hard else "probability") if ys else None
 
 
-def score(recs: list[dict], preds: dict[str, str], traj: dict[str, dict],
-          log: Callable[[str], None] | None = None, failure_preds: dict[str, str] | None = None) -> dict[str, Any]:
+def score(
+    recs: list[dict],
+    preds: dict[str, str],
+    traj: dict[str, dict],
+    log: Callable[[str], None] | None = None,
+    failure_preds: dict[str, str] | None = None,
+) -> dict[str, Any]:
     """All-trajectory scores (top level), `failure_only` (Q3-Q6 over failed trajectories, from `failure_preds`
     where a baseline answers failures differently) and `detection` (P(failure) as a score)."""
     res = _score(recs, preds, traj, log)
     fails = failed_records(recs, traj)
     fo = _score(fails, failure_preds if failure_preds is not None else preds, traj) if fails else None
-    res["failure_only"] = {"trajectories": len({Q.traj_of(r["id"]) for r in fails}), "records": len(fails),
-                           **({k: fo[k] for k in ("q3", "q3_within1", "q4", "q5", "q6", "unparseable", "ci95")}
-                              if fo else dict.fromkeys(("q3", "q3_within1", "q4", "q5", "q6")))}
+    res["failure_only"] = {
+        "trajectories": len({Q.traj_of(r["id"]) for r in fails}),
+        "records": len(fails),
+        **(
+            {k: fo[k] for k in ("q3", "q3_within1", "q4", "q5", "q6", "unparseable", "ci95")}
+            if fo
+            else dict.fromkeys(("q3", "q3_within1", "q4", "q5", "q6"))
+        ),
+    }
     res["detection"] = detection(recs, preds, traj)
     res["scope"] = {"q1-q6": "all trajectories", "failure_only": "Q3-Q6 over failed trajectories (as the paper)"}
     return res
 
 
-def _score(recs: list[dict], preds: dict[str, str], traj: dict[str, dict],
-           log: Callable[[str], None] | None = None) -> dict[str, Any]:
+def _score(
+    recs: list[dict], preds: dict[str, str], traj: dict[str, dict], log: Callable[[str], None] | None = None
+) -> dict[str, Any]:
     pairs: dict[str, list[tuple[str | None, str]]] = defaultdict(list)
     q6_ref, q6_hyp = [], []
     unparseable: Counter[str] = Counter()
@@ -225,28 +257,40 @@ def _score(recs: list[dict], preds: dict[str, str], traj: dict[str, dict],
         # per failure type (Q2 here is the recall of that type), so a type the model cannot see shows up
         groups[f"type:{info.get('failure_type') or 'success'}"][d].append(p == ref)
     # A dimension with no records in the split (e.g. a Q2-only probe) is null, not a misleading 0.
-    res: dict[str, Any] = {d.lower(): round(100 * accuracy(pairs[d]), 2) if pairs[d] else None
-                           for d in ("Q1", "Q2", "Q3", "Q4", "Q5")}
+    res: dict[str, Any] = {
+        d.lower(): round(100 * accuracy(pairs[d]), 2) if pairs[d] else None for d in ("Q1", "Q2", "Q3", "Q4", "Q5")
+    }
     res["q3_within1"] = round(100 * within_one(pairs["Q3"]), 2) if pairs["Q3"] else None
     rl = rouge_l_values(q6_ref, q6_hyp)
-    res["q6"] = ({**{k: round(v, 4) for k, v in bleu(q6_ref, q6_hyp).items()},
-                  "rougeL": round(sum(rl) / len(rl), 4)} if q6_ref else
-                 dict.fromkeys(("bleu1", "bleu2", "bleu3", "bleu4", "rougeL")))
+    res["q6"] = (
+        {**{k: round(v, 4) for k, v in bleu(q6_ref, q6_hyp).items()}, "rougeL": round(sum(rl) / len(rl), 4)}
+        if q6_ref
+        else dict.fromkeys(("bleu1", "bleu2", "bleu3", "bleu4", "rougeL"))
+    )
     # 95 % intervals: Wilson for the accuracies (in %), a seeded bootstrap for ROUGE-L's mean
-    res["ci95"] = {d.lower(): [round(100 * x, 2) for x in ci] for d in ("Q1", "Q2", "Q3", "Q4", "Q5")
-                   if (ci := wilson(sum(p == r for p, r in pairs[d]), len(pairs[d])))}
+    res["ci95"] = {
+        d.lower(): [round(100 * x, 2) for x in ci]
+        for d in ("Q1", "Q2", "Q3", "Q4", "Q5")
+        if (ci := wilson(sum(p == r for p, r in pairs[d]), len(pairs[d])))
+    }
     if (ci := bootstrap_mean(rl)) is not None:
         res["ci95"]["rougeL"] = [round(x, 4) for x in ci]
     res["records"] = len(recs)
     res["unparseable"] = dict(unparseable)
-    res["breakdown"] = {g: {d: round(100 * sum(v) / len(v), 2) for d, v in dims.items()}
-                        for g, dims in sorted(groups.items())}
+    res["breakdown"] = {
+        g: {d: round(100 * sum(v) / len(v), 2) for d, v in dims.items()} for g, dims in sorted(groups.items())
+    }
     res["confusion"] = {d: [[ref, pred, n] for (ref, pred), n in sorted(c.items())] for d, c in confusion.items()}
     return res
 
 
-def external_predictions(client: Any, dataset_dir: str | Path, recs: list[dict], progress: bool = True,
-                         log: Callable[[str], None] | None = None) -> dict[str, str]:
+def external_predictions(
+    client: Any,
+    dataset_dir: str | Path,
+    recs: list[dict],
+    progress: bool = True,
+    log: Callable[[str], None] | None = None,
+) -> dict[str, str]:
     """Ask an OpenAI-compatible chat model each record's question with its grid (a data: URL)."""
     from tqdm import tqdm
 
@@ -258,12 +302,23 @@ def external_predictions(client: Any, dataset_dir: str | Path, recs: list[dict],
         if r["image"] not in cache:
             cache = {r["image"]: image_data_url(Image.open(Path(dataset_dir) / r["image"]))}
         q = r["conversations"][0]["value"].removeprefix("<image>\n")
-        hint = {"Q1": "Answer with the actions only, comma-separated.", "Q2": "Answer Yes or No.",
-                "Q3": "Answer with the frame number only, or None if nothing failed.",
-                "Q4": "Answer with the option number only, or None.", "Q5": "Answer with the option number only, "
-                "or None.", "Q6": "Answer with one instruction sentence."}[Q.dim_of(r["id"])]
-        msgs = [{"role": "user", "content": [{"type": "image_url", "image_url": {"url": cache[r["image"]]}},
-                                             {"type": "text", "text": f"{q}\n{hint}"}]}]
+        hint = {
+            "Q1": "Answer with the actions only, comma-separated.",
+            "Q2": "Answer Yes or No.",
+            "Q3": "Answer with the frame number only, or None if nothing failed.",
+            "Q4": "Answer with the option number only, or None.",
+            "Q5": "Answer with the option number only, or None.",
+            "Q6": "Answer with one instruction sentence.",
+        }[Q.dim_of(r["id"])]
+        msgs = [
+            {
+                "role": "user",
+                "content": [
+                    {"type": "image_url", "image_url": {"url": cache[r["image"]]}},
+                    {"type": "text", "text": f"{q}\n{hint}"},
+                ],
+            }
+        ]
         try:
             out[r["id"]] = client.chat(msgs)
         except (OSError, ValueError, KeyError, IndexError, TypeError) as e:

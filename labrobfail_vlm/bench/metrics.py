@@ -12,7 +12,6 @@ import re
 from typing import Sequence
 
 import numpy as np
-
 from nltk.translate.bleu_score import SmoothingFunction, corpus_bleu
 from rouge_score import rouge_scorer
 
@@ -29,8 +28,10 @@ def bleu(refs: Sequence[str], hyps: Sequence[str]) -> dict[str, float]:
     r = [[tokens(x)] for x in refs]
     h = [tokens(x) for x in hyps]
     smooth = SmoothingFunction().method1
-    return {f"bleu{n}": float(corpus_bleu(r, h, weights=tuple([1.0 / n] * n), smoothing_function=smooth))
-            for n in range(1, 5)}
+    return {
+        f"bleu{n}": float(corpus_bleu(r, h, weights=tuple([1.0 / n] * n), smoothing_function=smooth))
+        for n in range(1, 5)
+    }
 
 
 def rouge_l_values(refs: Sequence[str], hyps: Sequence[str]) -> list[float]:

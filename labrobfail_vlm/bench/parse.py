@@ -15,10 +15,24 @@ from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, Category, Severity
 _NONE = re.compile(r"\b(none|no failure|not applicable|n/?a|no error)\b", re.I)
 _YES = re.compile(r"\b(yes|yeah|true|correct)\b", re.I)
 _NO = re.compile(r"\b(no|not|false|incorrect)\b", re.I)
-_ALIASES = {"stirring": "stir", "pouring": "pour", "shaking": "shake", "inserting": "insert", "grasping": "grasp",
-            "placing": "place", "opening": "open", "closing": "close", "stirred": "stir", "placed": "place",
-            "poured": "pour", "shook": "shake", "inserted": "insert", "grasped": "grasp", "opened": "open",
-            "closed": "close"}
+_ALIASES = {
+    "stirring": "stir",
+    "pouring": "pour",
+    "shaking": "shake",
+    "inserting": "insert",
+    "grasping": "grasp",
+    "placing": "place",
+    "opening": "open",
+    "closing": "close",
+    "stirred": "stir",
+    "placed": "place",
+    "poured": "pour",
+    "shook": "shake",
+    "inserted": "insert",
+    "grasped": "grasp",
+    "opened": "open",
+    "closed": "close",
+}
 
 
 def _action(word: str) -> str | None:

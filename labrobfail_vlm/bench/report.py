@@ -40,28 +40,50 @@ HEADER = ["Method", "Q1", "Q2", "Q3", "Q4", "Q5", "BLEU-1", "BLEU-2", "BLEU-3", 
 def row(res: dict[str, Any]) -> list[float | None]:
     """All-trajectory row: Q1-Q6 over every trajectory of the split."""
     q6 = res["q6"]
-    return [res["q1"], res["q2"], res["q3"], res["q4"], res["q5"], q6["bleu1"], q6["bleu2"], q6["bleu3"], q6["bleu4"],
-            q6["rougeL"]]
+    return [
+        res["q1"],
+        res["q2"],
+        res["q3"],
+        res["q4"],
+        res["q5"],
+        q6["bleu1"],
+        q6["bleu2"],
+        q6["bleu3"],
+        q6["bleu4"],
+        q6["rougeL"],
+    ]
 
 
 def paper_row(res: dict[str, Any]) -> list[float | None]:
     """Paper-comparable row: Q1 and Q2 over all trajectories, Q3-Q6 over the failed ones."""
     fo = res.get("failure_only") or {}
     q6 = fo.get("q6") or {}
-    return [res["q1"], res["q2"], fo.get("q3"), fo.get("q4"), fo.get("q5"),
-            *(q6.get(k) for k in ("bleu1", "bleu2", "bleu3", "bleu4", "rougeL"))]
+    return [
+        res["q1"],
+        res["q2"],
+        fo.get("q3"),
+        fo.get("q4"),
+        fo.get("q5"),
+        *(q6.get(k) for k in ("bleu1", "bleu2", "bleu3", "bleu4", "rougeL")),
+    ]
 
 
 def detection_markdown(results: dict[str, dict[str, Any]], title: str) -> str:
     """Q2 as a score: AUROC, AUPRC and ECE of P(failure) per method."""
-    lines = [f"### {title}", "", "| Method | AUROC | AUPRC | ECE | trajectories (failures) | score |",
-             "|---|---|---|---|---|---|"]
+    lines = [
+        f"### {title}",
+        "",
+        "| Method | AUROC | AUPRC | ECE | trajectories (failures) | score |",
+        "|---|---|---|---|---|---|",
+    ]
     for name, res in results.items():
         d = res.get("detection")
         if d:
             f = lambda v: "—" if v is None else f"{v:.4f}"  # noqa: E731
-            lines.append(f"| {name} | {f(d['auroc'])} | {f(d['auprc'])} | {f(d['ece'])} | "
-                         f"{d['trajectories']} ({d['failures']}) | {d['score']} |")
+            lines.append(
+                f"| {name} | {f(d['auroc'])} | {f(d['auprc'])} | {f(d['ece'])} | "
+                f"{d['trajectories']} ({d['failures']}) | {d['score']} |"
+            )
     return "\n".join(lines) + "\n"
 
 

@@ -44,8 +44,13 @@ def apply_tuning(model: torch.nn.Module, mode: str, lora: dict[str, Any]) -> tor
         return model
     from peft import LoraConfig, get_peft_model
 
-    cfg = LoraConfig(r=int(lora["r"]), lora_alpha=int(lora["alpha"]), lora_dropout=float(lora["dropout"]),
-                     target_modules=LORA_TARGETS, bias="none")
+    cfg = LoraConfig(
+        r=int(lora["r"]),
+        lora_alpha=int(lora["alpha"]),
+        lora_dropout=float(lora["dropout"]),
+        target_modules=LORA_TARGETS,
+        bias="none",
+    )
     peft_model = get_peft_model(model, cfg)
     for name, p in peft_model.named_parameters():
         g = group_of(name)
@@ -66,8 +71,9 @@ def param_groups(model: torch.nn.Module, lrs: dict[str, float], weight_decay: fl
     for name, p in model.named_parameters():
         if p.requires_grad:
             groups[group_of(name)].append(p)
-    return [{"params": ps, "lr": float(lrs[g]), "weight_decay": weight_decay, "name": g}
-            for g, ps in groups.items() if ps]
+    return [
+        {"params": ps, "lr": float(lrs[g]), "weight_decay": weight_decay, "name": g} for g, ps in groups.items() if ps
+    ]
 
 
 def count_trainable(model: torch.nn.Module) -> dict[str, int]:

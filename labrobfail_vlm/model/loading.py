@@ -11,7 +11,7 @@ files must be complete (file length = header + the header's tensor offsets) and 
 and shapes the config implies. Fine-tuned checkpoints (labrobfail.json + adapter) are checked by
 `labrobfail_vlm.train.checkpoint.validate_checkpoint`, which uses these functions on their base.
 
-The memory budget: the `max_gb` argument (`--max-model-gb` of infer.py / scripts/serve.py), else
+The memory budget: the `max_gb` argument (`max_model_gb` of infer.py / scripts/serve.py), else
 $LABROBFAIL_MAX_MODEL_GB, else half of this machine's memory (its cgroup limit when that is lower).
 """
 
@@ -33,8 +33,25 @@ INDEX_FILE = "model.safetensors.index.json"
 MAX_CONFIG_BYTES = 16 << 20  # a real config.json is a few KB; a huge one is not a config
 MAX_HEADER_BYTES = 100 << 20  # the safetensors library's own header limit
 # bytes per element of every safetensors dtype (the format's spec)
-DTYPE_BYTES = {"BOOL": 1, "U8": 1, "I8": 1, "F8_E4M3": 1, "F8_E5M2": 1, "F8_E8M0": 1, "I16": 2, "U16": 2, "F16": 2,
-               "BF16": 2, "I32": 4, "U32": 4, "F32": 4, "I64": 8, "U64": 8, "F64": 8, "C64": 8}
+DTYPE_BYTES = {
+    "BOOL": 1,
+    "U8": 1,
+    "I8": 1,
+    "F8_E4M3": 1,
+    "F8_E5M2": 1,
+    "F8_E8M0": 1,
+    "I16": 2,
+    "U16": 2,
+    "F16": 2,
+    "BF16": 2,
+    "I32": 4,
+    "U32": 4,
+    "F32": 4,
+    "I64": 8,
+    "U64": 8,
+    "F64": 8,
+    "C64": 8,
+}
 Shapes = dict[str, tuple[int, ...]]
 
 
@@ -61,8 +78,9 @@ def check_model_dir(path: str | Path, field: str = "model.path", weights: bool =
         raise ConfigError(f"{field}: {path} has no config.json (not a Hugging Face model directory)")
     if not list(p.glob("*.safetensors")) and not (p / INDEX_FILE).is_file():
         bins = list(p.glob("*.bin")) + list(p.glob("*.pt"))
-        raise ConfigError(f"{field}: {path} has no .safetensors weights" +
-                          (" (pickle weights are refused)" if bins else ""))
+        raise ConfigError(
+            f"{field}: {path} has no .safetensors weights" + (" (pickle weights are refused)" if bins else "")
+        )
     return p
 
 
@@ -83,7 +101,7 @@ def machine_memory() -> int:
 def model_budget(max_gb: float | None = None) -> int:
     """Bytes the weights may take: `max_gb` (GB = 1e9 bytes), else $LABROBFAIL_MAX_MODEL_GB, else half the memory
     (the other half is for activations, images, the processor and everything else the process holds)."""
-    where = "--max-model-gb"
+    where = "max_model_gb"
     if max_gb is None and os.environ.get(BUDGET_ENV, "").strip():
         where, text = f"${BUDGET_ENV}", os.environ[BUDGET_ENV].strip()
         try:
@@ -168,14 +186,40 @@ def expected_tensors(cfg: Any, f: Path = Path("config.json"), field: str = "mode
     (vision tower, mergers, text embeddings, decoder layers, lm_head unless tied). The parameter count is the sum
     of their sizes. tests/test_checkpoint_guard.py checks it against the real class built on the meta device."""
     t, v = cfg.text_config, cfg.vision_config
-    hid, inter, hd, vocab, layers, heads, kvh = _dims(t, "text_config", (
-        "hidden_size", "intermediate_size", "head_dim", "vocab_size", "num_hidden_layers", "num_attention_heads",
-        "num_key_value_heads"), f, field)
-    vh, vi, depth, ch, tp, ps, merge, out_h, npos = _dims(v, "vision_config", (
-        "hidden_size", "intermediate_size", "depth", "in_channels", "temporal_patch_size", "patch_size",
-        "spatial_merge_size", "out_hidden_size", "num_position_embeddings"), f, field)
+    hid, inter, hd, vocab, layers, heads, kvh = _dims(
+        t,
+        "text_config",
+        (
+            "hidden_size",
+            "intermediate_size",
+            "head_dim",
+            "vocab_size",
+            "num_hidden_layers",
+            "num_attention_heads",
+            "num_key_value_heads",
+        ),
+        f,
+        field,
+    )
+    vh, vi, depth, ch, tp, ps, merge, out_h, npos = _dims(
+        v,
+        "vision_config",
+        (
+            "hidden_size",
+            "intermediate_size",
+            "depth",
+            "in_channels",
+            "temporal_patch_size",
+            "patch_size",
+            "spatial_merge_size",
+            "out_hidden_size",
+            "num_position_embeddings",
+        ),
+        f,
+        field,
+    )
     deepstack = getattr(v, "deepstack_visual_indexes", None) or ()
-    q, kv, merged = heads * hd, kvh * hd, vh * merge ** 2
+    q, kv, merged = heads * hd, kvh * hd, vh * merge**2
     out: Shapes = {"model.language_model.embed_tokens.weight": (vocab, hid), "model.language_model.norm.weight": (hid,)}
     for i in range(layers):
         p = f"model.language_model.layers.{i}."
@@ -183,10 +227,17 @@ def expected_tensors(cfg: Any, f: Path = Path("config.json"), field: str = "mode
             out[f"{p}self_attn.{name}.weight"] = shape
             if getattr(t, "attention_bias", False):
                 out[f"{p}self_attn.{name}.bias"] = (shape[0],)
-        out.update({f"{p}mlp.gate_proj.weight": (inter, hid), f"{p}mlp.up_proj.weight": (inter, hid),
-                    f"{p}mlp.down_proj.weight": (hid, inter), f"{p}self_attn.q_norm.weight": (hd,),
-                    f"{p}self_attn.k_norm.weight": (hd,), f"{p}input_layernorm.weight": (hid,),
-                    f"{p}post_attention_layernorm.weight": (hid,)})
+        out.update(
+            {
+                f"{p}mlp.gate_proj.weight": (inter, hid),
+                f"{p}mlp.up_proj.weight": (inter, hid),
+                f"{p}mlp.down_proj.weight": (hid, inter),
+                f"{p}self_attn.q_norm.weight": (hd,),
+                f"{p}self_attn.k_norm.weight": (hd,),
+                f"{p}input_layernorm.weight": (hid,),
+                f"{p}post_attention_layernorm.weight": (hid,),
+            }
+        )
     if not getattr(cfg, "tie_word_embeddings", False):
         out["lm_head.weight"] = (vocab, hid)
 
@@ -208,8 +259,9 @@ def expected_tensors(cfg: Any, f: Path = Path("config.json"), field: str = "mode
         linear(p + "mlp.linear_fc1", vi, vh)
         linear(p + "mlp.linear_fc2", vh, vi)
     # the main merger normalises before the 2x2 shuffle, the deepstack mergers after it
-    for p, norm in [("model.visual.merger.", vh)] + [(f"model.visual.deepstack_merger_list.{k}.", merged)
-                                                     for k in range(len(deepstack))]:
+    for p, norm in [("model.visual.merger.", vh)] + [
+        (f"model.visual.deepstack_merger_list.{k}.", merged) for k in range(len(deepstack))
+    ]:
         layer_norm(p + "norm", norm)
         linear(p + "linear_fc1", merged, merged)
         linear(p + "linear_fc2", out_h, merged)
@@ -230,8 +282,9 @@ def safetensors_header(f: Path, field: str) -> Shapes:
             head = fh.read(8)
             n = int.from_bytes(head, "little") if len(head) == 8 else -1
             if n < 2 or n > MAX_HEADER_BYTES or 8 + n > size:
-                raise ConfigError(f"{field}: {f} is truncated or not a safetensors file ({size:,} bytes, "
-                                  f"header length {n:,})")
+                raise ConfigError(
+                    f"{field}: {f} is truncated or not a safetensors file ({size:,} bytes, header length {n:,})"
+                )
             meta = json.loads(fh.read(n))
     except ConfigError:
         raise
@@ -258,8 +311,9 @@ def safetensors_header(f: Path, field: str) -> Shapes:
         end = stop
     data = size - 8 - n
     if end > data:
-        raise ConfigError(f"{field}: {f} is truncated: its header needs {end:,} bytes of tensor data, the file "
-                          f"holds {data:,}")
+        raise ConfigError(
+            f"{field}: {f} is truncated: its header needs {end:,} bytes of tensor data, the file holds {data:,}"
+        )
     if end < data:
         raise ConfigError(f"{field}: {f} has {data - end:,} bytes after its last tensor (corrupt)")
     return shapes
@@ -295,8 +349,11 @@ def weight_tensors(p: Path, field: str) -> tuple[Shapes, str]:
         wmap = json.loads(index.read_text(encoding="utf-8")).get("weight_map")
     except (OSError, ValueError, AttributeError, RecursionError):
         raise ConfigError(f"{field}: {index} is not a readable JSON object") from None
-    if not isinstance(wmap, dict) or not wmap or not all(isinstance(v, str) and Path(v).name == v
-                                                         for v in wmap.values()):
+    if (
+        not isinstance(wmap, dict)
+        or not wmap
+        or not all(isinstance(v, str) and Path(v).name == v for v in wmap.values())
+    ):
         raise ConfigError(f"{field}: {index} has no valid weight_map (tensor name -> shard file in {p})")
     shapes: Shapes = {}
     for shard in sorted(set(wmap.values())):
@@ -307,8 +364,10 @@ def weight_tensors(p: Path, field: str) -> tuple[Shapes, str]:
                 shapes[name] = shape
     missing = [k for k in wmap if k not in shapes]
     if missing:
-        raise ConfigError(f"{field}: {index} lists {len(missing)} tensor(s) that their shards lack, e.g. "
-                          f"{_short(missing[0])} in {wmap[missing[0]]!r}")
+        raise ConfigError(
+            f"{field}: {index} lists {len(missing)} tensor(s) that their shards lack, e.g. "
+            f"{_short(missing[0])} in {wmap[missing[0]]!r}"
+        )
     return shapes, f"the shards of {index}"
 
 
@@ -317,20 +376,24 @@ def match_shapes(got: Shapes, want: Shapes, what: str, field: str, optional: Ite
     opt = set(optional)
     for name, shape in got.items():
         if name not in want:
-            raise ConfigError(f"{field}: {what} holds tensor {_short(name)}, which config.json does not have "
-                              f"(weights of another model or config?)")
+            raise ConfigError(
+                f"{field}: {what} holds tensor {_short(name)}, which config.json does not have "
+                f"(weights of another model or config?)"
+            )
         if tuple(shape) != want[name]:
-            raise ConfigError(f"{field}: {what} does not match config.json: {name} has shape {list(shape)}, the "
-                              f"config needs {list(want[name])}")
+            raise ConfigError(
+                f"{field}: {what} does not match config.json: {name} has shape {list(shape)}, the "
+                f"config needs {list(want[name])}"
+            )
     missing = [k for k in want if k not in got and k not in opt]
     if missing:
-        raise ConfigError(f"{field}: {what} lacks {len(missing)} tensor(s) that config.json needs, e.g. "
-                          f"{missing[0]}")
+        raise ConfigError(f"{field}: {what} lacks {len(missing)} tensor(s) that config.json needs, e.g. {missing[0]}")
 
 
 # ---- the whole check -----------------------------------------------------------------------------------------
-def validate_model_dir(path: str | Path, field: str = "model.path", max_gb: float | None = None, dtype: Any = None,
-                       extra_params: int = 0) -> ModelCheck:
+def validate_model_dir(
+    path: str | Path, field: str = "model.path", max_gb: float | None = None, dtype: Any = None, extra_params: int = 0
+) -> ModelCheck:
     """Everything about a Qwen3-VL directory that can be known without building a tensor (see the module doc).
     `extra_params`: parameters loaded on top of it (a LoRA adapter), counted in the budget."""
     p = check_model_dir(path, field)
@@ -340,13 +403,20 @@ def validate_model_dir(path: str | Path, field: str = "model.path", max_gb: floa
     params = count_params(shapes) + extra_params
     size, budget = params * element_bytes(dtype), model_budget(max_gb)
     if size > budget:  # before reading any weights: the config alone decides how much the model would take
-        raise ConfigError(f"{field}: {cfg_file} describes {params:,} parameters, ~{human_bytes(size)} loaded, over "
-                          f"the {human_bytes(budget)} model memory budget (--max-model-gb or ${BUDGET_ENV}; default: "
-                          f"half this machine's memory)")
+        raise ConfigError(
+            f"{field}: {cfg_file} describes {params:,} parameters, ~{human_bytes(size)} loaded, over "
+            f"the {human_bytes(budget)} model memory budget (max_model_gb or ${BUDGET_ENV}; default: "
+            f"half this machine's memory)"
+        )
     got, what = weight_tensors(p, field)
     tied = ["lm_head.weight"] if getattr(cfg, "tie_word_embeddings", False) else []
-    match_shapes(got, {**shapes, **({k: shapes["model.language_model.embed_tokens.weight"] for k in tied})}, what,
-                 field, optional=tied)  # a tied lm_head may be stored or not
+    match_shapes(
+        got,
+        {**shapes, **({k: shapes["model.language_model.embed_tokens.weight"] for k in tied})},
+        what,
+        field,
+        optional=tied,
+    )  # a tied lm_head may be stored or not
     return ModelCheck(p, params, size, budget, shapes)
 
 
@@ -369,8 +439,14 @@ def load_model(path: str | Path, dtype: Any = None, max_gb: float | None = None,
     p = validate_model_dir(path, "model.path", max_gb, dtype).path
     try:
         return Qwen3VLForConditionalGeneration.from_pretrained(
-            str(p), dtype=dtype or torch.float32, use_safetensors=True, trust_remote_code=False,
-            local_files_only=True, **kwargs)
+            str(p),
+            dtype=dtype or torch.float32,
+            use_safetensors=True,
+            trust_remote_code=False,
+            local_files_only=True,
+            **kwargs,
+        )
     except (OSError, ValueError, KeyError, RuntimeError) as e:
-        raise ConfigError(f"model.path: cannot load {path} ({type(e).__name__}: {str(e).splitlines()[0][:200]})"
-                          ) from None
+        raise ConfigError(
+            f"model.path: cannot load {path} ({type(e).__name__}: {str(e).splitlines()[0][:200]})"
+        ) from None

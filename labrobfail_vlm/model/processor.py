@@ -34,11 +34,16 @@ class LabRobFailProcessor(Qwen3VLProcessor):
         return cls(image_processor=ip, tokenizer=tok, chat_template=tok.chat_template)
 
 
-def image_processor(max_pixels: int = GRID_PIXELS, min_pixels: int = MIN_PIXELS,
-                    temporal_patch_size: int = 2) -> Qwen2VLImageProcessorPil:
+def image_processor(
+    max_pixels: int = GRID_PIXELS, min_pixels: int = MIN_PIXELS, temporal_patch_size: int = 2
+) -> Qwen2VLImageProcessorPil:
     """`temporal_patch_size` must match the vision tower's (Qwen3-VL: 2, an image is fed as two equal frames)."""
-    return Qwen2VLImageProcessorPil(patch_size=16, temporal_patch_size=temporal_patch_size, merge_size=2,
-                                    size={"shortest_edge": min_pixels, "longest_edge": max_pixels})
+    return Qwen2VLImageProcessorPil(
+        patch_size=16,
+        temporal_patch_size=temporal_patch_size,
+        merge_size=2,
+        size={"shortest_edge": min_pixels, "longest_edge": max_pixels},
+    )
 
 
 def common_prefix_len(seqs: list[list[int]]) -> int:

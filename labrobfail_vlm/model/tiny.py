@@ -19,8 +19,15 @@ from tokenizers import Tokenizer, decoders, models, pre_tokenizers, trainers
 
 from labrobfail_vlm.config import ConfigError
 
-SPECIAL = ["<|endoftext|>", "<|im_start|>", "<|im_end|>", "<|vision_start|>", "<|vision_end|>", "<|image_pad|>",
-           "<|video_pad|>"]
+SPECIAL = [
+    "<|endoftext|>",
+    "<|im_start|>",
+    "<|im_end|>",
+    "<|vision_start|>",
+    "<|vision_end|>",
+    "<|image_pad|>",
+    "<|video_pad|>",
+]
 
 # Qwen-style chat template. Whitespace control would eat the newline after the role, so it is emitted explicitly.
 CHAT_TEMPLATE = (
@@ -36,13 +43,32 @@ CHAT_TEMPLATE = (
     "{%- if add_generation_prompt -%}{{ '<|im_start|>assistant\\n' }}{%- endif -%}"
 )
 
-TINY_VISION = {"depth": 2, "hidden_size": 64, "intermediate_size": 128, "num_heads": 4, "patch_size": 16,
-               "spatial_merge_size": 2, "temporal_patch_size": 2, "num_position_embeddings": 2304,
-               "deepstack_visual_indexes": [1]}
-TINY_TEXT = {"hidden_size": 128, "intermediate_size": 256, "num_hidden_layers": 2, "num_attention_heads": 4,
-             "num_key_value_heads": 2, "head_dim": 32, "max_position_embeddings": 4096,
-             "rope_parameters": {"rope_type": "default", "rope_theta": 5000000.0, "mrope_section": [6, 5, 5],
-                                 "mrope_interleaved": True}}
+TINY_VISION = {
+    "depth": 2,
+    "hidden_size": 64,
+    "intermediate_size": 128,
+    "num_heads": 4,
+    "patch_size": 16,
+    "spatial_merge_size": 2,
+    "temporal_patch_size": 2,
+    "num_position_embeddings": 2304,
+    "deepstack_visual_indexes": [1],
+}
+TINY_TEXT = {
+    "hidden_size": 128,
+    "intermediate_size": 256,
+    "num_hidden_layers": 2,
+    "num_attention_heads": 4,
+    "num_key_value_heads": 2,
+    "head_dim": 32,
+    "max_position_embeddings": 4096,
+    "rope_parameters": {
+        "rope_type": "default",
+        "rope_theta": 5000000.0,
+        "mrope_section": [6, 5, 5],
+        "mrope_interleaved": True,
+    },
+}
 
 
 def corpus(texts: Iterable[str] = ()) -> list[str]:
@@ -52,10 +78,19 @@ def corpus(texts: Iterable[str] = ()) -> list[str]:
     from labrobfail_vlm import corrections, questions
     from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, FAILURE_TYPES
 
-    base = [questions.PREAMBLE, questions.PREAMBLE_TIME_ROWS, questions.NO_CORRECTION, questions.NO_FAILURE,
-            *questions.OPTIONS.values(), *(v.text for vs in questions.VARIANTS.values() for v in vs),
-            *(t for _, t in corrections.STRATEGIES.values()), *(f.description for f in FAILURE_TYPES.values()),
-            ", ".join(ATOMIC_ACTIONS), "Yes No", " ".join(str(i) for i in range(0, 64))]
+    base = [
+        questions.PREAMBLE,
+        questions.PREAMBLE_TIME_ROWS,
+        questions.NO_CORRECTION,
+        questions.NO_FAILURE,
+        *questions.OPTIONS.values(),
+        *(v.text for vs in questions.VARIANTS.values() for v in vs),
+        *(t for _, t in corrections.STRATEGIES.values()),
+        *(f.description for f in FAILURE_TYPES.values()),
+        ", ".join(ATOMIC_ACTIONS),
+        "Yes No",
+        " ".join(str(i) for i in range(0, 64)),
+    ]
     return base * 4 + list(texts)
 
 
@@ -73,17 +108,28 @@ def train_tokenizer(texts: Iterable[str] = (), vocab_size: int = 1024):
     tok = Tokenizer(models.BPE(unk_token=None))
     tok.pre_tokenizer = pre_tokenizers.ByteLevel(add_prefix_space=False)
     tok.decoder = decoders.ByteLevel()
-    trainer = trainers.BpeTrainer(vocab_size=vocab_size, special_tokens=SPECIAL, show_progress=False,
-                                  initial_alphabet=pre_tokenizers.ByteLevel.alphabet())
+    trainer = trainers.BpeTrainer(
+        vocab_size=vocab_size,
+        special_tokens=SPECIAL,
+        show_progress=False,
+        initial_alphabet=pre_tokenizers.ByteLevel.alphabet(),
+    )
     tok.train_from_iterator(corpus(texts), trainer)
-    fast = PreTrainedTokenizerFast(tokenizer_object=tok, eos_token="<|im_end|>", pad_token="<|endoftext|>",
-                                   additional_special_tokens=SPECIAL[1:])
+    fast = PreTrainedTokenizerFast(
+        tokenizer_object=tok, eos_token="<|im_end|>", pad_token="<|endoftext|>", additional_special_tokens=SPECIAL[1:]
+    )
     fast.chat_template = CHAT_TEMPLATE
     return fast
 
 
-def build_tiny(out_dir: str | Path, seed: int = 0, texts: Iterable[str] = (), vision: dict[str, Any] | None = None,
-               text: dict[str, Any] | None = None, tower: Path | None = None) -> Path:
+def build_tiny(
+    out_dir: str | Path,
+    seed: int = 0,
+    texts: Iterable[str] = (),
+    vision: dict[str, Any] | None = None,
+    text: dict[str, Any] | None = None,
+    tower: Path | None = None,
+) -> Path:
     """Write a tiny random Qwen3-VL checkpoint (weights as safetensors, tokenizer, processor, template).
 
     `texts`: extra tokenizer corpus (a dataset's records); `vision`/`text`: overrides of TINY_VISION/TINY_TEXT;
@@ -93,9 +139,8 @@ def build_tiny(out_dir: str | Path, seed: int = 0, texts: Iterable[str] = (), vi
     import torch
     from transformers import GenerationConfig, Qwen3VLConfig, Qwen3VLForConditionalGeneration
 
-    from labrobfail_vlm.model.processor import LabRobFailProcessor, image_processor
-
     from labrobfail_vlm.model import tower as T
+    from labrobfail_vlm.model.processor import LabRobFailProcessor, image_processor
 
     out = Path(out_dir)
     card = T.read_card(tower) if tower is not None else None
@@ -103,21 +148,27 @@ def build_tiny(out_dir: str | Path, seed: int = 0, texts: Iterable[str] = (), vi
     vis = {**TINY_VISION, **(T.vision_overrides(card) if card else (vision or {}))}
     txt = {**TINY_TEXT, **(text or {})}
     if card and int(card["out_hidden_size"]) != int(txt["hidden_size"]):
-        raise ConfigError(f"tower: {tower} feeds {card['out_hidden_size']}-wide tokens, the decoder is "
-                          f"{txt['hidden_size']} wide (tiny_arch.text.hidden_size)")
+        raise ConfigError(
+            f"tower: {tower} feeds {card['out_hidden_size']}-wide tokens, the decoder is "
+            f"{txt['hidden_size']} wide (tiny_arch.text.hidden_size)"
+        )
     ids = {t: tok.convert_tokens_to_ids(t) for t in SPECIAL}
     cfg = Qwen3VLConfig(
         text_config={**txt, "vocab_size": len(tok), "pad_token_id": ids["<|endoftext|>"]},
         vision_config={**vis, "out_hidden_size": txt["hidden_size"]},
-        image_token_id=ids["<|image_pad|>"], video_token_id=ids["<|video_pad|>"],
-        vision_start_token_id=ids["<|vision_start|>"], vision_end_token_id=ids["<|vision_end|>"])
+        image_token_id=ids["<|image_pad|>"],
+        video_token_id=ids["<|video_pad|>"],
+        vision_start_token_id=ids["<|vision_start|>"],
+        vision_end_token_id=ids["<|vision_end|>"],
+    )
     torch.manual_seed(seed)
     model = Qwen3VLForConditionalGeneration(cfg)
     if tower is not None:
         T.load_into(model, tower)
     # A config-built model has no eos in its generation config: without it generate never stops.
-    model.generation_config = GenerationConfig(eos_token_id=ids["<|im_end|>"], pad_token_id=ids["<|endoftext|>"],
-                                               do_sample=False)
+    model.generation_config = GenerationConfig(
+        eos_token_id=ids["<|im_end|>"], pad_token_id=ids["<|endoftext|>"], do_sample=False
+    )
     model.save_pretrained(out, safe_serialization=True)
     ip = image_processor(temporal_patch_size=vis["temporal_patch_size"])
     LabRobFailProcessor(image_processor=ip, tokenizer=tok, chat_template=CHAT_TEMPLATE).save_pretrained(out)
@@ -125,5 +176,9 @@ def build_tiny(out_dir: str | Path, seed: int = 0, texts: Iterable[str] = (), vi
 
 
 if __name__ == "__main__":
-    print(build_tiny(sys.argv[1] if len(sys.argv) > 1 else "outputs/tiny_qwen3vl",
-                     texts=dataset_texts(sys.argv[2]) if len(sys.argv) > 2 else ()))
+    print(
+        build_tiny(
+            sys.argv[1] if len(sys.argv) > 1 else "outputs/tiny_qwen3vl",
+            texts=dataset_texts(sys.argv[2]) if len(sys.argv) > 2 else (),
+        )
+    )

@@ -36,8 +36,10 @@ def read_card(folder: Path) -> dict[str, Any]:
     """tower.json after checking that tower.safetensors is there and is the file the card describes."""
     card_f, weights = folder / CARD_FILE, folder / TOWER_FILE
     if not card_f.is_file() or not weights.is_file():
-        raise ConfigError(f"tower: {folder} lacks {CARD_FILE} or {TOWER_FILE} (make tower writes them; "
-                          "tower=scratch trains the tower from random weights)")
+        raise ConfigError(
+            f"tower: {folder} lacks {CARD_FILE} or {TOWER_FILE} (make tower writes them; "
+            "tower=scratch trains the tower from random weights)"
+        )
     try:
         card = json.loads(card_f.read_text())
         want = str(card["sha256"])
@@ -55,8 +57,18 @@ def read_card(folder: Path) -> dict[str, Any]:
 
 def vision_overrides(card: dict[str, Any]) -> dict[str, Any]:
     """The Qwen3-VL vision config keys the tower was built with (the tiny model's `vision` argument)."""
-    skip = {"out_hidden_size", "model_type", "transformers_version", "architectures", "dtype", "torch_dtype",
-            "output_attentions", "output_hidden_states", "return_dict", "initializer_range"}
+    skip = {
+        "out_hidden_size",
+        "model_type",
+        "transformers_version",
+        "architectures",
+        "dtype",
+        "torch_dtype",
+        "output_attentions",
+        "output_hidden_states",
+        "return_dict",
+        "initializer_range",
+    }
     return {k: v for k, v in card["vision_config"].items() if k not in skip and not k.startswith("_")}
 
 
@@ -71,5 +83,7 @@ def load_into(model: Any, folder: Path) -> None:
     except RuntimeError:  # a shape mismatch: another tower size than the card says
         missing, unexpected = ["(shapes differ)"], []
     if missing or unexpected:
-        raise ConfigError(f"tower: {folder / TOWER_FILE} does not fit the model's vision tower (missing "
-                          f"{missing[:2]}, unexpected {unexpected[:2]})")
+        raise ConfigError(
+            f"tower: {folder / TOWER_FILE} does not fit the model's vision tower (missing "
+            f"{missing[:2]}, unexpected {unexpected[:2]})"
+        )

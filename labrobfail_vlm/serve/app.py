@@ -99,8 +99,12 @@ class Guard:
         if self._expected is not None and scope.get("path") != "/health":
             given = headers.get(b"authorization", b"")
             if not hmac.compare_digest(given, self._expected):
-                return await _reply(send, 401, "missing or wrong bearer token (Authorization: Bearer <token>)",
-                                    [(b"www-authenticate", b"Bearer")])
+                return await _reply(
+                    send,
+                    401,
+                    "missing or wrong bearer token (Authorization: Bearer <token>)",
+                    [(b"www-authenticate", b"Bearer")],
+                )
         length = headers.get(b"content-length", b"")
         if length.isdigit() and int(length) > self.max_bytes:
             return await _reply(send, 413, f"upload of {int(length):,} bytes is over the {self.max_bytes:,} byte limit")
@@ -124,8 +128,12 @@ class Guard:
             elif msg["type"] == "http.disconnect":
                 done = True
                 host = ":".join(map(str, scope.get("client") or ("?",)))
-                log.warning("client %s disconnected mid-upload (%s of %s bytes received); request dropped", host,
-                            f"{seen:,}", f"{int(length):,}" if length.isdigit() else "?")
+                log.warning(
+                    "client %s disconnected mid-upload (%s of %s bytes received); request dropped",
+                    host,
+                    f"{seen:,}",
+                    f"{int(length):,}" if length.isdigit() else "?",
+                )
             return msg
 
         await self.app(scope, counted, send)
@@ -133,15 +141,24 @@ class Guard:
 
 async def _reply(send: Send, status: int, message: str, extra: list[tuple[bytes, bytes]] | None = None) -> None:
     body = json.dumps({"error": message}).encode()
-    await send({"type": "http.response.start", "status": status,
-                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
-                            *(extra or [])]})
+    await send(
+        {
+            "type": "http.response.start",
+            "status": status,
+            "headers": [
+                (b"content-type", b"application/json"),
+                (b"content-length", str(len(body)).encode()),
+                *(extra or []),
+            ],
+        }
+    )
     await send({"type": "http.response.body", "body": body})
 
 
 def version() -> str:
     """The installed labrobfail package's version (`unknown` when run from a source tree that is not installed)."""
-    from importlib.metadata import PackageNotFoundError, version as pkg_version
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as pkg_version
 
     try:
         return pkg_version("labrobfail")
@@ -165,8 +182,14 @@ def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
         yield
         await batcher.stop()  # after uvicorn has let in-flight requests finish: drain what is queued
 
-    app = FastAPI(title="LabRobFail-VLM diagnosis", version=__version__, lifespan=lifespan, docs_url=None,
-                  redoc_url=None, openapi_url=None)
+    app = FastAPI(
+        title="LabRobFail-VLM diagnosis",
+        version=__version__,
+        lifespan=lifespan,
+        docs_url=None,
+        redoc_url=None,
+        openapi_url=None,
+    )
 
     def error(status: int, message: str) -> JSONResponse:
         return JSONResponse({"error": message}, status_code=status)
@@ -186,9 +209,14 @@ def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
     @app.exception_handler(BodyTimeout)
     async def too_slow(_: Request, __: BodyTimeout) -> JSONResponse:
         # the rest of the body may still come: close the connection rather than read it
-        return JSONResponse({"error": f"request body not received within {cfg.body_timeout_s:g} s (shorter than "
-                                      f"its Content-Length, or too slow)"}, status_code=408,
-                            headers={"connection": "close"})
+        return JSONResponse(
+            {
+                "error": f"request body not received within {cfg.body_timeout_s:g} s (shorter than "
+                f"its Content-Length, or too slow)"
+            },
+            status_code=408,
+            headers={"connection": "close"},
+        )
 
     @app.exception_handler(ClientDisconnect)
     async def gone(_: Request, __: ClientDisconnect) -> Response:
@@ -202,23 +230,39 @@ def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
     @app.get("/health")
     async def health() -> dict[str, Any]:
         s = batcher.stats
-        return {"status": "ok", "queued": batcher.queued, "batches": s.batches, "diagnoses": s.items,
-                "largest_batch": s.largest, "failed": s.failed, "decode_bytes_held": budget.used,
-                "decode_bytes_peak": budget.peak, "decode_budget_bytes": budget.total}
+        return {
+            "status": "ok",
+            "queued": batcher.queued,
+            "batches": s.batches,
+            "diagnoses": s.items,
+            "largest_batch": s.largest,
+            "failed": s.failed,
+            "decode_bytes_held": budget.used,
+            "decode_bytes_peak": budget.peak,
+            "decode_budget_bytes": budget.total,
+        }
 
     @app.get("/info")
     async def info() -> dict[str, Any]:
         p = next(analyzer.model.parameters())
-        return {"model": cfg.model_name, "version": __version__, "grid": asdict(analyzer.grid),
-                "q6_mode": analyzer.q6_mode, "device": str(p.device), "dtype": str(p.dtype).removeprefix("torch."),
-                "serve": cfg.public(), "fields": "grid or frames.<view> files, task, prefix, objects"}
+        return {
+            "model": cfg.model_name,
+            "version": __version__,
+            "grid": asdict(analyzer.grid),
+            "q6_mode": analyzer.q6_mode,
+            "device": str(p.device),
+            "dtype": str(p.dtype).removeprefix("torch."),
+            "serve": cfg.public(),
+            "fields": "grid or frames.<view> files, task, prefix, objects",
+        }
 
     @app.post("/diagnose")
     async def diagnose(request: Request) -> Response:
         ctype = request.headers.get("content-type", "")
         if not ctype.startswith("multipart/form-data"):
-            return error(415, "expected a multipart/form-data upload (grid or frames.<view> files, task, prefix, "
-                              "objects)")
+            return error(
+                415, "expected a multipart/form-data upload (grid or frames.<view> files, task, prefix, objects)"
+            )
         try:
             req, held = await prepare(await read_form(request))
         except ImageTooLarge as e:
@@ -238,8 +282,10 @@ def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
     async def read_form(request: Request) -> list[tuple[str, str | Upload]]:
         form = await request.form(max_files=cfg.max_files, max_fields=16, max_part_size=64 * 1024)
         try:
-            return [(k, Upload(v.filename or "", await v.read()) if isinstance(v, UploadFile) else v)
-                    for k, v in form.multi_items()]
+            return [
+                (k, Upload(v.filename or "", await v.read()) if isinstance(v, UploadFile) else v)
+                for k, v in form.multi_items()
+            ]
         finally:
             await form.close()
 

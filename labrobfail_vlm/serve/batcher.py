@@ -32,8 +32,9 @@ class BatchStats:
 
 
 class Batcher(Generic[T, R]):
-    def __init__(self, run: Callable[[list[T]], Sequence[R]], max_batch: int = 8, max_wait_s: float = 0.01,
-                 max_queue: int = 1024):
+    def __init__(
+        self, run: Callable[[list[T]], Sequence[R]], max_batch: int = 8, max_wait_s: float = 0.01, max_queue: int = 1024
+    ):
         if max_batch < 1 or max_wait_s < 0 or max_queue < 1:
             raise ValueError("batcher: max_batch and max_queue must be >= 1 and max_wait_s >= 0")
         self.run, self.max_batch, self.max_wait_s, self.max_queue = run, max_batch, max_wait_s, max_queue

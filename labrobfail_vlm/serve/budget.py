@@ -34,8 +34,10 @@ class DecodeBudget:
             try:
                 await asyncio.wait_for(self._cond.wait_for(lambda: self.used + n <= self.total), wait_s)
             except asyncio.TimeoutError:
-                raise Busy(f"busy: other uploads hold {mb(self.used)} of the {mb(self.total)} image-decoding "
-                           f"budget and {mb(n)} more was needed for {wait_s:g} s; retry later") from None
+                raise Busy(
+                    f"busy: other uploads hold {mb(self.used)} of the {mb(self.total)} image-decoding "
+                    f"budget and {mb(n)} more was needed for {wait_s:g} s; retry later"
+                ) from None
             self.used += n
             self.peak = max(self.peak, self.used)
         return Reservation(self, n)

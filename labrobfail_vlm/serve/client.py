@@ -40,8 +40,10 @@ def multipart(parts: Sequence[Part]) -> tuple[bytes, str]:
         out.write(f"--{boundary}\r\n".encode())
         if isinstance(value, tuple):
             filename, data, ctype = value
-            out.write(f'Content-Disposition: form-data; name="{name}"; filename="{filename}"\r\n'
-                      f"Content-Type: {ctype}\r\n\r\n".encode())
+            out.write(
+                f'Content-Disposition: form-data; name="{name}"; filename="{filename}"\r\n'
+                f"Content-Type: {ctype}\r\n\r\n".encode()
+            )
             out.write(data)
         else:
             out.write(f'Content-Disposition: form-data; name="{name}"\r\n\r\n'.encode())
@@ -67,8 +69,14 @@ def image_part(name: str, image: Any, filename: str = "image.png") -> Part:
 
 
 class DiagnosisClient:
-    def __init__(self, url: str = "http://127.0.0.1:8100", token_env: str = "LABROBFAIL_API_TOKEN",
-                 timeout_s: float = 120.0, retries: int = 0, retry_wait_s: float = 1.0):
+    def __init__(
+        self,
+        url: str = "http://127.0.0.1:8100",
+        token_env: str = "LABROBFAIL_API_TOKEN",
+        timeout_s: float = 120.0,
+        retries: int = 0,
+        retry_wait_s: float = 1.0,
+    ):
         u = urlsplit(url)
         if u.scheme not in ("http", "https") or not u.hostname:
             raise ValueError(f"url: expected http(s)://host:port, got {url!r}")
@@ -81,8 +89,9 @@ class DiagnosisClient:
     def __repr__(self) -> str:  # never show the token
         return f"DiagnosisClient({self.scheme}://{self.host}:{self.port})"
 
-    def request(self, method: str, path: str, body: bytes | None = None,
-                headers: Mapping[str, str] | None = None) -> tuple[int, Any]:
+    def request(
+        self, method: str, path: str, body: bytes | None = None, headers: Mapping[str, str] | None = None
+    ) -> tuple[int, Any]:
         """(status, decoded JSON body); reconnects once if a kept-alive connection was closed by the server, and
         retries `retries` times when the server is unreachable or drops the connection."""
         hdrs = {**({"Authorization": f"Bearer {self._token}"} if self._token else {}), **(headers or {})}
@@ -110,8 +119,14 @@ class DiagnosisClient:
         body, ctype = multipart(parts)
         return self.request("POST", "/diagnose", body, {"Content-Type": ctype})
 
-    def diagnose(self, grid: Any = None, frames: Mapping[str, Sequence[Any]] | None = None, task: str = "",
-                 prefix: int | None = None, objects: Sequence[str] = ()) -> dict[str, Any]:
+    def diagnose(
+        self,
+        grid: Any = None,
+        frames: Mapping[str, Sequence[Any]] | None = None,
+        task: str = "",
+        prefix: int | None = None,
+        objects: Sequence[str] = (),
+    ) -> dict[str, Any]:
         parts: list[Part] = []
         if grid is not None:
             parts.append(image_part("grid", grid))

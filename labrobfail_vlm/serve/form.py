@@ -104,8 +104,9 @@ def read_header(u: Upload, fld: str) -> Header:
     return Header(w, h, bands, 2 if ";16" in raw else 1)
 
 
-def plan(items: Sequence[tuple[str, str | Upload]], grid: GridConfig,
-         max_bytes: int = MAX_REQUEST_DECODE_BYTES) -> Plan:
+def plan(
+    items: Sequence[tuple[str, str | Upload]], grid: GridConfig, max_bytes: int = MAX_REQUEST_DECODE_BYTES
+) -> Plan:
     """Check every field and price the images from their headers; ImageTooLarge if they exceed `max_bytes`."""
     text: dict[str, str] = {}
     image: Upload | None = None
@@ -136,8 +137,10 @@ def plan(items: Sequence[tuple[str, str | Upload]], grid: GridConfig,
         kept = hd.width * hd.height * KEPT_BYTES
         cost = max(hd.decode, kept)
         if cost > max_bytes:
-            raise ImageTooLarge(f"grid: {_name(image)} is too large to decode: {hd.describe()} takes ~{mb(cost)} "
-                                f"to decode and diagnose, over the {mb(max_bytes)} per-request limit")
+            raise ImageTooLarge(
+                f"grid: {_name(image)} is too large to decode: {hd.describe()} takes ~{mb(cost)} "
+                f"to decode and diagnose, over the {mb(max_bytes)} per-request limit"
+            )
         return Plan(text, image, {}, _prefix(text.get("prefix"), grid.max_frames), cost, kept)
     counts = {v: len(f) for v, f in views.items()}
     if len(set(counts.values())) != 1:
@@ -151,8 +154,10 @@ def plan(items: Sequence[tuple[str, str | Upload]], grid: GridConfig,
         for u in fs:
             frames += read_header(u, f"frames.{v}").decode
             if max(frames, kept) > max_bytes:
-                raise ImageTooLarge(f"frames: the keyframes and the grid composed from them are too large to decode: "
-                                    f"over the {mb(max_bytes)} per-request limit (send fewer or smaller frames)")
+                raise ImageTooLarge(
+                    f"frames: the keyframes and the grid composed from them are too large to decode: "
+                    f"over the {mb(max_bytes)} per-request limit (send fewer or smaller frames)"
+                )
     cost = max(frames, kept)
     return Plan(text, None, views, k, cost, kept)
 
@@ -168,8 +173,9 @@ def build(p: Plan, grid: GridConfig) -> DiagnosisRequest:
     return DiagnosisRequest(frames_to_grid(frames, grid, visible=p.prefix), task, p.prefix or shown, objects)
 
 
-def parse(items: Sequence[tuple[str, str | Upload]], grid: GridConfig,
-          max_bytes: int = MAX_REQUEST_DECODE_BYTES) -> DiagnosisRequest:
+def parse(
+    items: Sequence[tuple[str, str | Upload]], grid: GridConfig, max_bytes: int = MAX_REQUEST_DECODE_BYTES
+) -> DiagnosisRequest:
     return build(plan(items, grid, max_bytes), grid)
 
 

@@ -26,8 +26,14 @@ from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import GridConfig
 from labrobfail_vlm.io import atomic_write_json
 from labrobfail_vlm.model.hybrid import MODES, group_of
-from labrobfail_vlm.model.loading import (ModelCheck, Shapes, check_model_dir, match_shapes, safetensors_header,
-                                          validate_model_dir)
+from labrobfail_vlm.model.loading import (
+    ModelCheck,
+    Shapes,
+    check_model_dir,
+    match_shapes,
+    safetensors_header,
+    validate_model_dir,
+)
 
 MANIFEST = "labrobfail.json"
 VISION_FILE = "vision_merger.safetensors"
@@ -37,8 +43,14 @@ _PEFT_PREFIX = "base_model.model."
 _LORA = re.compile(r"base_model\.model\.(?P<module>.+)\.lora_(?P<ab>[AB])(?:\.[^.]+)?\.weight")
 
 
-def save_trainable(model: Any, out: Path, state_dict: dict[str, torch.Tensor], base_model: str, tuning: str,
-                   grid: dict[str, Any] | None = None) -> None:
+def save_trainable(
+    model: Any,
+    out: Path,
+    state_dict: dict[str, torch.Tensor],
+    base_model: str,
+    tuning: str,
+    grid: dict[str, Any] | None = None,
+) -> None:
     """Write adapter + vision/merger (or full) weights from a state dict gathered on every rank.
 
     `grid` is the dataset's grid config; inference builds its grids (and bounds Q3) the same way.
@@ -47,8 +59,11 @@ def save_trainable(model: Any, out: Path, state_dict: dict[str, torch.Tensor], b
     # Full model: every weight. PeftModel: it keeps only the lora_ keys of the state dict.
     model.save_pretrained(out, state_dict=state_dict, safe_serialization=True)
     if tuning == "hybrid":  # the fully trained vision encoder and merger, under the base model's names
-        vis = {k.removeprefix(_PEFT_PREFIX): v.detach().cpu().contiguous() for k, v in state_dict.items()
-               if group_of(k) in ("vision", "merger")}
+        vis = {
+            k.removeprefix(_PEFT_PREFIX): v.detach().cpu().contiguous()
+            for k, v in state_dict.items()
+            if group_of(k) in ("vision", "merger")
+        }
         save_file(vis, str(out / VISION_FILE), metadata={"format": "pt"})
     atomic_write_json(out / MANIFEST, {"base_model": str(base_model), "tuning": tuning, "grid": grid})
 
@@ -127,20 +142,25 @@ def check_adapter(adapter: Shapes, base: Shapes, f: Path, field: str) -> None:
         m = _LORA.fullmatch(name)
         target = f"{m['module']}.weight" if m else ""
         if m is None or target not in base or len(shape) != 2:
-            raise ConfigError(f"{field}: {f}: tensor {name[:120]!r} is not a LoRA weight of a base model layer "
-                              f"(an adapter for another model?)")
+            raise ConfigError(
+                f"{field}: {f}: tensor {name[:120]!r} is not a LoRA weight of a base model layer "
+                f"(an adapter for another model?)"
+            )
         out_f, in_f = base[target][0], base[target][-1]
         if (m["ab"] == "A" and shape[1] != in_f) or (m["ab"] == "B" and shape[0] != out_f):
-            raise ConfigError(f"{field}: {f}: {name} has shape {list(shape)}, which does not fit the base weight "
-                              f"{target} {list(base[target])} (an adapter for another base model?)")
+            raise ConfigError(
+                f"{field}: {f}: {name} has shape {list(shape)}, which does not fit the base weight "
+                f"{target} {list(base[target])} (an adapter for another base model?)"
+            )
         ranks.setdefault(m["module"], {})[m["ab"]] = shape[0] if m["ab"] == "A" else shape[1]
     for module, r in ranks.items():
         if len(set(r.values())) != 1 or len(r) != 2:
             raise ConfigError(f"{field}: {f}: the LoRA pair of {module} is incomplete or its ranks differ ({r})")
 
 
-def validate_checkpoint(path: str | Path, field: str = "model.path", max_gb: float | None = None,
-                        dtype: Any = None) -> ModelCheck:
+def validate_checkpoint(
+    path: str | Path, field: str = "model.path", max_gb: float | None = None, dtype: Any = None
+) -> ModelCheck:
     """Refuse, with one line, any model directory that cannot load as a supported Qwen3-VL within the memory
     budget, before a tensor is built: a base or merged model (labrobfail_vlm.model.loading.validate_model_dir),
     or a fine-tuned checkpoint (its manifest, adapter and vision weights, and the base they point at)."""
@@ -164,8 +184,7 @@ def validate_checkpoint(path: str | Path, field: str = "model.path", max_gb: flo
         if not (p / VISION_FILE).is_file():
             raise ConfigError(f"{field}: {path} lacks {VISION_FILE}")
         vision = {k: s for k, s in base.shapes.items() if group_of(k) in ("vision", "merger")}
-        match_shapes(safetensors_header(p / VISION_FILE, field), vision, str(p / VISION_FILE), field,
-                     optional=vision)
+        match_shapes(safetensors_header(p / VISION_FILE, field), vision, str(p / VISION_FILE), field, optional=vision)
     return base
 
 

@@ -72,8 +72,8 @@ class PairSampler(Sampler[int]):
                 continue
             cur += unit
             while len(cur) >= self.batch:
-                order += cur[:self.batch]
-                cur = cur[self.batch:]
+                order += cur[: self.batch]
+                cur = cur[self.batch :]
                 while held and len(cur) + len(held[0]) <= self.batch:
                     cur += held.pop(0)
         order += cur + [i for u in held for i in u]

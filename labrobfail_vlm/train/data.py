@@ -70,8 +70,11 @@ class VQADataset(Dataset):
                 raise ConfigError(f"dataset_dir: {path} records lack id/image/conversations")
         # trajectory -> its success/failure pair (the curriculum's pair batches); absent in older datasets
         meta = self.root / "trajectories.json"
-        self.group_of: dict[str, str] = {t["trajectory"]: t["group"] for t in json.loads(meta.read_text())
-                                         if "group" in t} if meta.is_file() else {}
+        self.group_of: dict[str, str] = (
+            {t["trajectory"]: t["group"] for t in json.loads(meta.read_text()) if "group" in t}
+            if meta.is_file()
+            else {}
+        )
 
     def __len__(self) -> int:
         return len(self.records)
@@ -81,18 +84,46 @@ class VQADataset(Dataset):
         human, gpt = r["conversations"]
         if human["value"].count("<image>") != 1:
             raise ValueError(f"record {r['id']}: exactly one <image> per sample is supported")
-        return {"id": r["id"], "image": str(self.root / r["image"]), "question": human["value"],
-                "answer": gpt["value"]}
+        return {"id": r["id"], "image": str(self.root / r["image"]), "question": human["value"], "answer": gpt["value"]}
+
+
+def pack_rows(rows: list[dict[str, Any]], pad_id: int) -> dict[str, torch.Tensor]:
+    """Right-pad packed rows ({ids, labels, types, seg, shift, slots}) into batch tensors.
+
+    `seg`: 0 for the prefix, k >= 1 for branch k, -1 for padding; `shift`: what to subtract from a token's
+    plain sequential position so that its branch restarts where the prefix ends; `slot`: the record index of
+    each label token (for the per-record loss), -1 elsewhere.
+    """
+    n = max(len(r["ids"]) for r in rows)
+
+    def pad(key: str, value: int) -> torch.Tensor:
+        return torch.tensor([r[key] + [value] * (n - len(r[key])) for r in rows])
+
+    return {
+        "input_ids": pad("ids", pad_id),
+        "labels": pad("labels", IGNORE),
+        "mm_token_type_ids": pad("types", 0),
+        "attention_mask": pad("mask", 0),
+        "segment_ids": pad("seg", -1),
+        "position_shift": pad("shift", 0),
+        "label_slot": pad("slots", -1),
+    }
 
 
 class Collator:
     """Batches for `model(**batch)`. With `question_weights` (dimension -> weight, default 1) each batch also
     carries `record_weight`, which the trainer's record loss pops before the forward pass."""
 
-    def __init__(self, processor: Any, max_length: int = 2048, question_weights: dict[str, float] | None = None,
-                 rewording: Callable[[list[dict[str, Any]]], list[dict[str, Any]]] | None = None,
-                 frame_targets: dict[str, list[float]] | None = None, group_of: dict[str, str] | None = None,
-                 augment: "GridAugment | None" = None):
+    def __init__(
+        self,
+        processor: Any,
+        max_length: int = 2048,
+        question_weights: dict[str, float] | None = None,
+        rewording: Callable[[list[dict[str, Any]]], list[dict[str, Any]]] | None = None,
+        frame_targets: dict[str, list[float]] | None = None,
+        group_of: dict[str, str] | None = None,
+        augment: "GridAugment | None" = None,
+    ):
         self.processor = processor
         self.augment = augment  # twin-consistent image augmentation (training only)
         # grounding (labrobfail_vlm/train/grounding.py): per-frame targets and twin ids, one row per image
@@ -102,11 +133,14 @@ class Collator:
         self.image_token = processor.image_token
         self.weights: dict[str, float] | None = None
         if question_weights is not None:  # "aux": each auxiliary fact record (data/facts.py)
-            self.weights = {d: 1.0 for d in (*Q.DIMENSIONS, "aux")} | {str(k): float(v)
-                                                                        for k, v in question_weights.items()}
+            self.weights = {d: 1.0 for d in (*Q.DIMENSIONS, "aux")} | {
+                str(k): float(v) for k, v in question_weights.items()
+            }
             if set(self.weights) - {*Q.DIMENSIONS, "aux"} or any(w < 0 for w in self.weights.values()):
-                raise ConfigError(f"loss.question_weights: expected non-negative weights for "
-                                  f"{', '.join(Q.DIMENSIONS)}, aux; got {dict(question_weights)}")
+                raise ConfigError(
+                    f"loss.question_weights: expected non-negative weights for "
+                    f"{', '.join(Q.DIMENSIONS)}, aux; got {dict(question_weights)}"
+                )
 
     def weight(self, rec: dict[str, Any]) -> float:
         """The record's loss weight: its question's, times the curriculum's `weight_scale` (detect_first)."""
@@ -144,17 +178,15 @@ class Collator:
         (tokenizing the expanded string is ~5x slower and gives the same ids)."""
         tok = self.processor.tokenizer
         pad = tok.convert_tokens_to_ids(self.image_token)
-        n = int(grid_thw.prod()) // self.processor.image_processor.merge_size ** 2
+        n = int(grid_thw.prod()) // self.processor.image_processor.merge_size**2
         out = []
         for ids in tok(texts, add_special_tokens=False)["input_ids"]:
             i = ids.index(pad)
-            out.append(ids[:i] + [pad] * n + ids[i + 1:])
+            out.append(ids[:i] + [pad] * n + ids[i + 1 :])
         return out
 
     def packed(self, items: list[list[dict[str, Any]]]) -> dict[str, torch.Tensor]:
         """Items of labrobfail_vlm.train.packing.TrajectoryDataset -> one packed row per trajectory."""
-        from labrobfail_vlm.train.packing import pack_rows  # packing imports this module
-
         proc = self.processor
         flat = [r for recs in items for r in recs]
         if self.rewording is not None:  # over the whole batch, so twins in different rows share a wording
@@ -164,20 +196,27 @@ class Collator:
         at = 0
         grids = self.images([recs[0] for recs in items])
         for recs, grid in zip(items, grids):
-            recs, at = flat[at:at + len(recs)], at + len(recs)
+            recs, at = flat[at : at + len(recs)], at + len(recs)
             fulls = [proc.apply_chat_template(messages(b["question"], b["answer"]), tokenize=False) for b in recs]
-            prompts = [proc.apply_chat_template(messages(b["question"]), tokenize=False, add_generation_prompt=True)
-                       for b in recs]
+            prompts = [
+                proc.apply_chat_template(messages(b["question"]), tokenize=False, add_generation_prompt=True)
+                for b in recs
+            ]
             enc = proc(text=fulls[:1], images=[grid], return_tensors="pt")
             thw = enc["image_grid_thw"][0]
             ids = self._ids(fulls + prompts, thw)
-            f_ids, p_ids = ids[:len(fulls)], ids[len(fulls):]
+            f_ids, p_ids = ids[: len(fulls)], ids[len(fulls) :]
             if f_ids[0] != enc["input_ids"][0].tolist():
                 raise ValueError(f"sample {recs[0]['id']}: tokenization differs from the processor's")
             # the shared prefix stops before every prompt's end, so each branch keeps a question token
             k = min(common_prefix_len(f_ids), min(len(p) for p in p_ids) - 1)
-            row: dict[str, list[int]] = {"ids": f_ids[0][:k], "labels": [IGNORE] * k, "seg": [0] * k,
-                                         "shift": [0] * k, "slots": [-1] * k}
+            row: dict[str, list[int]] = {
+                "ids": f_ids[0][:k],
+                "labels": [IGNORE] * k,
+                "seg": [0] * k,
+                "shift": [0] * k,
+                "slots": [-1] * k,
+            }
             for j, (b, f, p) in enumerate(zip(recs, f_ids, p_ids), 1):
                 pl = len(p)
                 if pl <= k or f[:pl] != p:
@@ -186,20 +225,23 @@ class Collator:
                 row["ids"] += branch
                 row["seg"] += [j] * len(branch)
                 row["shift"] += [start - k] * len(branch)
-                row["labels"] += [IGNORE] * (pl - k) + branch[pl - k:]
+                row["labels"] += [IGNORE] * (pl - k) + branch[pl - k :]
                 row["slots"] += [-1] * (pl - k) + [slot] * (len(f) - pl)
                 weights.append(self.weight(b))
             if len(row["ids"]) > self.max_length:
-                raise ValueError(f"sample {recs[0]['id']}: {len(row['ids'])} packed tokens exceed max_length="
-                                 f"{self.max_length}; raise max_length or shrink the grid")
+                raise ValueError(
+                    f"sample {recs[0]['id']}: {len(row['ids'])} packed tokens exceed max_length="
+                    f"{self.max_length}; raise max_length or shrink the grid"
+                )
             row["types"] = [int(t == image_id) for t in row["ids"]]
             row["mask"] = [1] * len(row["ids"])
             rows.append(row)
             pixels.append(enc["pixel_values"])
             thws.append(thw)
         batch = pack_rows(rows, int(proc.tokenizer.pad_token_id))
-        batch.update(pixel_values=torch.cat(pixels), image_grid_thw=torch.stack(thws),
-                     record_weight=torch.tensor(weights))
+        batch.update(
+            pixel_values=torch.cat(pixels), image_grid_thw=torch.stack(thws), record_weight=torch.tensor(weights)
+        )
         self.add_grounding(batch, [recs[0]["id"] for recs in items])
         return batch
 
@@ -211,8 +253,9 @@ class Collator:
             batch = self.rewording(batch)
         images = self.images(batch)
         fulls = [proc.apply_chat_template(messages(b["question"], b["answer"]), tokenize=False) for b in batch]
-        prompts = [proc.apply_chat_template(messages(b["question"]), tokenize=False, add_generation_prompt=True)
-                   for b in batch]
+        prompts = [
+            proc.apply_chat_template(messages(b["question"]), tokenize=False, add_generation_prompt=True) for b in batch
+        ]
         enc = proc(text=fulls, images=images, padding=True, return_tensors="pt")
         labels = enc["input_ids"].clone()
         labels[enc["attention_mask"] == 0] = IGNORE
@@ -221,12 +264,16 @@ class Collator:
             n_img = int((enc["input_ids"][i] == tok.convert_tokens_to_ids(self.image_token)).sum())
             length = int(enc["attention_mask"][i].sum())
             if length > self.max_length:
-                raise ValueError(f"sample {b['id']}: {length} tokens exceed max_length={self.max_length} "
-                                 f"({n_img} of them visual); raise max_length or shrink the grid")
-            if enc["input_ids"][i, :len(p_ids)].tolist() != p_ids:
-                raise ValueError(f"sample {b['id']}: the chat template's prompt is not a prefix of the full "
-                                 "conversation; cannot mask labels")
-            labels[i, :len(p_ids)] = IGNORE
+                raise ValueError(
+                    f"sample {b['id']}: {length} tokens exceed max_length={self.max_length} "
+                    f"({n_img} of them visual); raise max_length or shrink the grid"
+                )
+            if enc["input_ids"][i, : len(p_ids)].tolist() != p_ids:
+                raise ValueError(
+                    f"sample {b['id']}: the chat template's prompt is not a prefix of the full "
+                    "conversation; cannot mask labels"
+                )
+            labels[i, : len(p_ids)] = IGNORE
         enc["labels"] = labels
         if self.weights is not None:
             enc["record_weight"] = torch.tensor([self.weight(b) for b in batch])

@@ -57,8 +57,10 @@ def dataset_targets(trajectories: list[dict[str, Any]], grid: GridConfig) -> tup
     """trajectory -> frame targets, and the dataset's number of camera views (every grid must have the same)."""
     views = {t.get("views") for t in trajectories}
     if len(views) != 1 or None in views:
-        raise ConfigError("grounding: the dataset's trajectories.json lacks one common 'views' count (built before "
-                          "grounding existed); rebuild it with scripts/build_dataset.py")
+        raise ConfigError(
+            "grounding: the dataset's trajectories.json lacks one common 'views' count (built before "
+            "grounding existed); rebuild it with scripts/build_dataset.py"
+        )
     return {t["trajectory"]: frame_targets(t, grid.max_frames) for t in trajectories}, int(views.pop())
 
 
@@ -85,10 +87,12 @@ def cell_gather(grid: GridConfig, views: int, h_tok: int, w_tok: int) -> torch.T
     cells = grid.max_frames * views
     counts = torch.bincount(idx[idx >= 0], minlength=cells)
     if counts.min() != counts.max() or counts.min() == 0:
-        raise ConfigError(f"grounding: grid cells cover unequal numbers of visual tokens ({counts.tolist()}); "
-                          "use a grid whose cells are multiples of 32 px")
+        raise ConfigError(
+            f"grounding: grid cells cover unequal numbers of visual tokens ({counts.tolist()}); "
+            "use a grid whose cells are multiples of 32 px"
+        )
     order = torch.argsort(idx * (h_tok * w_tok) + torch.arange(h_tok * w_tok))  # by cell, then raster
-    return order[int((idx < 0).sum()):].view(cells, int(counts[0]))
+    return order[int((idx < 0).sum()) :].view(cells, int(counts[0]))
 
 
 HEADS = ("token", "cell")
@@ -152,14 +156,20 @@ def make_head(kind: str, dim: int, grid: GridConfig, views: int) -> _CellHead:
     return (TokenHead if check_head(kind) == "token" else CellHead)(dim, grid, views)
 
 
-def grounding_loss(head: _CellHead, tokens: torch.Tensor, thw: torch.Tensor, targets: torch.Tensor,
-                   groups: torch.Tensor | None = None, rank: float = 1.0) -> torch.Tensor:
+def grounding_loss(
+    head: _CellHead,
+    tokens: torch.Tensor,
+    thw: torch.Tensor,
+    targets: torch.Tensor,
+    groups: torch.Tensor | None = None,
+    rank: float = 1.0,
+) -> torch.Tensor:
     """`tokens`: the merger's output for the batch's images, concatenated; `thw`: image_grid_thw (B, 3);
     `targets`: (B, max_frames) from `frame_targets`; `groups`: (B,) pair ids (twins share one)."""
     logits, at = [], 0
     for t, h, w in thw.tolist():
         n = t * (h // 2) * (w // 2)
-        logits.append(head(tokens[at:at + n], h // 2, w // 2))
+        logits.append(head(tokens[at : at + n], h // 2, w // 2))
         at += n
     z = torch.stack(logits)
     y = targets.to(z.device)
@@ -224,8 +234,9 @@ def load_head(head: _CellHead, ckpt: Path) -> bool:
     return True
 
 
-def pretrain(model: nn.Module, head: _CellHead, batches: Any, epochs: int, lr: float, rank: float = 1.0,
-             progress: bool = True) -> dict[str, float]:
+def pretrain(
+    model: nn.Module, head: _CellHead, batches: Any, epochs: int, lr: float, rank: float = 1.0, progress: bool = True
+) -> dict[str, float]:
     """Stage A: the vision tower (and its merger) with the head on the frame targets alone, `epochs` passes over
     `batches` (the training dataloader: collated batches with pixel_values, image_grid_thw, frame_target,
     pair_group), one AdamW at the head's rate `lr` with a linear warm-up and cosine decay (the VQA stage that

@@ -23,7 +23,7 @@ import torch
 from torch.utils.data import Dataset
 
 from labrobfail_vlm import questions as Q
-from labrobfail_vlm.train.data import IGNORE, VQADataset
+from labrobfail_vlm.train.data import VQADataset
 
 
 class TrajectoryDataset(Dataset):
@@ -48,23 +48,6 @@ class TrajectoryDataset(Dataset):
         return [self.records.records[idx[0]]["id"] for idx in self.items]
 
 
-def pack_rows(rows: list[dict[str, Any]], pad_id: int) -> dict[str, torch.Tensor]:
-    """Right-pad packed rows ({ids, labels, types, seg, shift, slots}) into batch tensors.
-
-    `seg`: 0 for the prefix, k >= 1 for branch k, -1 for padding; `shift`: what to subtract from a token's
-    plain sequential position so that its branch restarts where the prefix ends; `slot`: the record index of
-    each label token (for the per-record loss), -1 elsewhere.
-    """
-    n = max(len(r["ids"]) for r in rows)
-
-    def pad(key: str, value: int) -> torch.Tensor:
-        return torch.tensor([r[key] + [value] * (n - len(r[key])) for r in rows])
-
-    return {"input_ids": pad("ids", pad_id), "labels": pad("labels", IGNORE), "mm_token_type_ids": pad("types", 0),
-            "attention_mask": pad("mask", 0), "segment_ids": pad("seg", -1), "position_shift": pad("shift", 0),
-            "label_slot": pad("slots", -1)}
-
-
 def branch_mask(seg: torch.Tensor) -> torch.Tensor:
     """Boolean attention mask (batch, 1, L, L): causal, the prefix seen by all, a branch only by itself.
     Padding attends to itself only (a row with nothing to attend to would give NaN)."""
@@ -80,8 +63,12 @@ def packed_positions(model: Any, batch: dict[str, torch.Tensor]) -> torch.Tensor
     """M-RoPE positions (3, batch, L): the model's own index of the row read as one sequence, then every
     branch shifted back so that it starts right after the prefix."""
     core = next(m for m in model.modules() if hasattr(m, "get_rope_index"))
-    pos, _ = core.get_rope_index(batch["input_ids"], batch["mm_token_type_ids"], image_grid_thw=batch["image_grid_thw"],
-                                 attention_mask=batch["attention_mask"])
+    pos, _ = core.get_rope_index(
+        batch["input_ids"],
+        batch["mm_token_type_ids"],
+        image_grid_thw=batch["image_grid_thw"],
+        attention_mask=batch["attention_mask"],
+    )
     return pos - batch["position_shift"][None].to(pos.device)
 
 

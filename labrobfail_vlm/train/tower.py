@@ -34,7 +34,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from PIL import Image
 
-from labrobfail_vlm.augment import Augment, AugmentConfig, augment_views
+from labrobfail_vlm.augment import Augment, augment_views
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import GridConfig, build_grid
 from labrobfail_vlm.train.grounding import TOKEN_PX, cell_gather, merged_tokens
@@ -54,16 +54,22 @@ class TowerData:
     """The trajectories of a tower dataset (data/tower_data.py) in the chosen splits and variants, in memory as
     PNG bytes plus targets; `sample` composes one grid in a layout (view names), augmented or not."""
 
-    def __init__(self, data_dir: str | Path, splits: Collection[str] = (), variants: Collection[str] = (),
-                 limit: int | None = None):
+    def __init__(
+        self,
+        data_dir: str | Path,
+        splits: Collection[str] = (),
+        variants: Collection[str] = (),
+        limit: int | None = None,
+    ):
         import pyarrow.parquet as pq
 
         d = Path(data_dir)
         try:
             index = json.loads((d / "index.json").read_text())
         except (OSError, ValueError):
-            raise ConfigError(f"data: {d} has no readable index.json (build it with scripts/build_tower_data.py)"
-                              ) from None
+            raise ConfigError(
+                f"data: {d} has no readable index.json (build it with scripts/build_tower_data.py)"
+            ) from None
         self.cell_names, self.token_names = list(index["cell_targets"]), list(index["token_targets"])
         self.image_size, p = int(index["image_size"]), int(index["max_points"])
         k, c = len(self.cell_names), len(self.token_names)
@@ -89,8 +95,10 @@ class TowerData:
         try:
             vi = [r["views"].index(v) for v in layout]
         except ValueError:
-            raise ConfigError(f"layouts: trajectory {r['trajectory']} has views {r['views']}, not {list(layout)} "
-                              "(generate with backend_kwargs.wrist=true for a wrist layout)") from None
+            raise ConfigError(
+                f"layouts: trajectory {r['trajectory']} has views {r['views']}, not {list(layout)} "
+                "(generate with backend_kwargs.wrist=true for a wrist layout)"
+            ) from None
         frames = [[np.asarray(Image.open(io.BytesIO(b)).convert("RGB")) for b in r["images"][v]] for v in vi]
         img = build_grid(augment_views(frames, aug), grid)
         nv, nf = len(vi), int(r["frames"])
@@ -124,9 +132,12 @@ def token_map(points: np.ndarray, image_size: int, side: int) -> np.ndarray:
 
 def collate(samples: Sequence[Sample], image_processor: Any) -> dict[str, torch.Tensor]:
     px = image_processor(images=[s.grid for s in samples], return_tensors="pt")
-    return {"pixel_values": px["pixel_values"], "image_grid_thw": px["image_grid_thw"],
-            "cells": torch.from_numpy(np.stack([s.cells for s in samples])),
-            "tokens": torch.from_numpy(np.stack([s.tokens for s in samples]))}
+    return {
+        "pixel_values": px["pixel_values"],
+        "image_grid_thw": px["image_grid_thw"],
+        "cells": torch.from_numpy(np.stack([s.cells for s in samples])),
+        "tokens": torch.from_numpy(np.stack([s.tokens for s in samples])),
+    }
 
 
 # ---- model ----------------------------------------------------------------------------------------------------
@@ -158,18 +169,19 @@ class TowerHeads(nn.Module):
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """x: (cells, tokens per cell, dim) -> cell logits (cells, K), token logits (cells, tokens, C)."""
         z = self.mlp(x.float())
-        return z[..., :self.k].mean(1) + self.bias, z[..., self.k:]
+        return z[..., : self.k].mean(1) + self.bias, z[..., self.k :]
 
 
-def readout(tower: nn.Module, heads: TowerHeads, batch: dict[str, torch.Tensor], grid: GridConfig, views: int
-            ) -> tuple[torch.Tensor, torch.Tensor]:
+def readout(
+    tower: nn.Module, heads: TowerHeads, batch: dict[str, torch.Tensor], grid: GridConfig, views: int
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Cell logits (B, cells, K) and token logits (B, cells, T, C) of a batch of grids."""
     tok = merged_tokens(tower(batch["pixel_values"], grid_thw=batch["image_grid_thw"]))
     cells, toks, at = [], [], 0
     for t, h, w in batch["image_grid_thw"].tolist():
         n = t * (h // 2) * (w // 2)
         idx = cell_gather(grid, views, h // 2, w // 2).to(tok.device)
-        c, k = heads(tok[at:at + n][idx])
+        c, k = heads(tok[at : at + n][idx])
         cells.append(c)
         toks.append(k)
         at += n
@@ -184,8 +196,14 @@ def positive_weights(data: "TowerData", cap: float = 10.0) -> torch.Tensor:
     return torch.tensor(np.clip(neg / np.maximum(pos, 1), 1.0, cap), dtype=torch.float32)
 
 
-def tower_loss(zc: torch.Tensor, zt: torch.Tensor, batch: dict[str, torch.Tensor], token_weight: float,
-               pos_weight: float, cell_pos_weight: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+def tower_loss(
+    zc: torch.Tensor,
+    zt: torch.Tensor,
+    batch: dict[str, torch.Tensor],
+    token_weight: float,
+    pos_weight: float,
+    cell_pos_weight: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, dict[str, float]]:
     """Masked BCE over the cell targets (positives of target k weighted `cell_pos_weight[k]`) plus `token_weight`
     x masked BCE over the token targets (positives weighted `pos_weight`: a point fills one token of a cell's 16)."""
     yc, yt = batch["cells"], batch["tokens"]
@@ -199,8 +217,15 @@ def tower_loss(zc: torch.Tensor, zt: torch.Tensor, batch: dict[str, torch.Tensor
 
 # ---- evaluation -----------------------------------------------------------------------------------------------
 @torch.no_grad()
-def evaluate(tower: nn.Module, heads: TowerHeads, data: TowerData, layout: Sequence[str], grid: GridConfig,
-             image_processor: Any, batch_size: int = 8) -> dict[str, Any]:
+def evaluate(
+    tower: nn.Module,
+    heads: TowerHeads,
+    data: TowerData,
+    layout: Sequence[str],
+    grid: GridConfig,
+    image_processor: Any,
+    batch_size: int = 8,
+) -> dict[str, Any]:
     """Held-out accuracy of every target (no augmentation): per cell target, accuracy, balanced accuracy (mean of
     the recall of each class) and the positive rate over the cells where it applies; per token target, how often
     the top-scoring token of a cell holds the point (cells that show one) against chance (points per token);
@@ -210,8 +235,7 @@ def evaluate(tower: nn.Module, heads: TowerHeads, data: TowerData, layout: Seque
     heads.eval()
     zc_all, yc_all, zt_all, yt_all = [], [], [], []
     for s in range(0, len(data), batch_size):
-        b = collate([data.sample(i, layout, grid) for i in range(s, min(s + batch_size, len(data)))],
-                    image_processor)
+        b = collate([data.sample(i, layout, grid) for i in range(s, min(s + batch_size, len(data)))], image_processor)
         zc, zt = readout(tower, heads, b, grid, len(layout))
         zc_all.append(zc)
         yc_all.append(b["cells"])
@@ -227,9 +251,12 @@ def evaluate(tower: nn.Module, heads: TowerHeads, data: TowerData, layout: Seque
         if not m.any():
             continue
         rec = [float((p[y == c] == c).float().mean()) for c in (True, False) if (y == c).any()]
-        out["cells"][name] = {"accuracy": round(float((p == y).float().mean()), 4),
-                              "balanced": round(sum(rec) / len(rec), 4), "positive": round(float(y.float().mean()), 4),
-                              "n": int(m.sum())}
+        out["cells"][name] = {
+            "accuracy": round(float((p == y).float().mean()), 4),
+            "balanced": round(sum(rec) / len(rec), 4),
+            "positive": round(float(y.float().mean()), 4),
+            "n": int(m.sum()),
+        }
     for c, name in enumerate(data.token_names):
         y = yt[..., c]
         has = (y > 0.5).any(-1) & (y >= 0).all(-1)
@@ -237,16 +264,21 @@ def evaluate(tower: nn.Module, heads: TowerHeads, data: TowerData, layout: Seque
             continue
         top = zt[..., c].argmax(-1, keepdim=True)
         hit = y.gather(-1, top).squeeze(-1)[has] > 0.5
-        out["tokens"][name] = {"top1": round(float(hit.float().mean()), 4),
-                               "chance": round(float((y[has] > 0.5).float().mean()), 4), "n": int(has.sum())}
+        out["tokens"][name] = {
+            "top1": round(float(hit.float().mean()), 4),
+            "chance": round(float((y[has] > 0.5).float().mean()), 4),
+            "n": int(has.sum()),
+        }
     if "failed_by_now" in data.cell_names:
         k, nv = data.cell_names.index("failed_by_now"), len(layout)
         last = [int(r["frames"]) - 1 for r in data.rows]
-        z = torch.stack([zc[i, t * nv:(t + 1) * nv, k].mean() for i, t in enumerate(last)])
+        z = torch.stack([zc[i, t * nv : (t + 1) * nv, k].mean() for i, t in enumerate(last)])
         y = torch.tensor([not r["success"] for r in data.rows])
-        out["detection"] = {"accuracy": round(float(((z > 0) == y).float().mean()), 4),
-                            "majority": round(max(float(y.float().mean()), 1 - float(y.float().mean())), 4),
-                            "n": len(data.rows)}
+        out["detection"] = {
+            "accuracy": round(float(((z > 0) == y).float().mean()), 4),
+            "majority": round(max(float(y.float().mean()), 1 - float(y.float().mean())), 4),
+            "n": len(data.rows),
+        }
     return out
 
 
@@ -269,8 +301,13 @@ def export(tower: nn.Module, out: Path, card: dict[str, Any]) -> dict[str, Any]:
     tmp = out / (TOWER_FILE + ".tmp")
     save_file({k: v.detach().float().contiguous() for k, v in tower.state_dict().items()}, str(tmp))
     tmp.replace(out / TOWER_FILE)
-    card = {**card, "file": TOWER_FILE, "bytes": (out / TOWER_FILE).stat().st_size,
-            "parameters": sum(p.numel() for p in tower.parameters()), "sha256": sha256(out / TOWER_FILE)}
+    card = {
+        **card,
+        "file": TOWER_FILE,
+        "bytes": (out / TOWER_FILE).stat().st_size,
+        "parameters": sum(p.numel() for p in tower.parameters()),
+        "sha256": sha256(out / TOWER_FILE),
+    }
     atomic_write_json(out / CARD_FILE, card)
     return card
 

@@ -34,9 +34,18 @@ def check_loss_mode(mode: str) -> str:
 
 
 class HybridTrainer(Trainer):
-    def __init__(self, *args: Any, group_lrs: dict[str, float], base_model: str, tuning: str,
-                 loss_mode: str = "token", grid: dict[str, Any] | None = None, pair_batches: bool = False,
-                 grounding: dict[str, Any] | None = None, **kwargs: Any):
+    def __init__(
+        self,
+        *args: Any,
+        group_lrs: dict[str, float],
+        base_model: str,
+        tuning: str,
+        loss_mode: str = "token",
+        grid: dict[str, Any] | None = None,
+        pair_batches: bool = False,
+        grounding: dict[str, Any] | None = None,
+        **kwargs: Any,
+    ):
         super().__init__(*args, **kwargs)
         # grounding: {"head": make_head(...), "weight": float, "rank": float, "lr": float} (train/grounding.py)
         self.grounding = grounding
@@ -44,6 +53,7 @@ class HybridTrainer(Trainer):
         self._grounding_log: float | None = None  # the last grounding loss, added to the logged losses
         if grounding is not None:
             from labrobfail_vlm.train.grounding import TokenTap
+
             self.tap = TokenTap(self.model)
             grounding["head"].to(self.args.device)
         self.group_lrs, self.base_model, self.tuning = group_lrs, base_model, tuning
@@ -66,8 +76,10 @@ class HybridTrainer(Trainer):
             loss, outputs = record_loss(model, inputs, inputs.pop("labels"), weights, slots)
         if self.grounding is not None and targets is not None and model.training:
             from labrobfail_vlm.train.grounding import grounding_loss
-            g = grounding_loss(self.grounding["head"], self.tap.take(), thw, targets, groups,
-                               float(self.grounding["rank"]))
+
+            g = grounding_loss(
+                self.grounding["head"], self.tap.take(), thw, targets, groups, float(self.grounding["rank"])
+            )
             self._grounding_log = float(g.detach())
             loss = loss + float(self.grounding["weight"]) * g
         return (loss, outputs) if return_outputs else loss
@@ -88,10 +100,17 @@ class HybridTrainer(Trainer):
         if self.optimizer is None:
             groups = param_groups(model or self.model, self.group_lrs, self.args.weight_decay)
             if self.grounding is not None:
-                groups.append({"params": list(self.grounding["head"].parameters()), "lr": float(self.grounding["lr"]),
-                               "weight_decay": self.args.weight_decay, "name": "grounding"})
-            self.optimizer = torch.optim.AdamW(groups, betas=(self.args.adam_beta1, self.args.adam_beta2),
-                                               eps=self.args.adam_epsilon)
+                groups.append(
+                    {
+                        "params": list(self.grounding["head"].parameters()),
+                        "lr": float(self.grounding["lr"]),
+                        "weight_decay": self.args.weight_decay,
+                        "name": "grounding",
+                    }
+                )
+            self.optimizer = torch.optim.AdamW(
+                groups, betas=(self.args.adam_beta1, self.args.adam_beta2), eps=self.args.adam_epsilon
+            )
         return self.optimizer
 
     def _save(self, output_dir: str | None = None, state_dict: dict | None = None) -> None:
@@ -100,17 +119,29 @@ class HybridTrainer(Trainer):
             return
         out = Path(output_dir or self.args.output_dir)
         model = self.accelerator.unwrap_model(self.model)
-        save_trainable(model, out, model.state_dict() if state_dict is None else state_dict, self.base_model,
-                       self.tuning, self.grid)
+        save_trainable(
+            model,
+            out,
+            model.state_dict() if state_dict is None else state_dict,
+            self.base_model,
+            self.tuning,
+            self.grid,
+        )
         if self.processing_class is not None:
             self.processing_class.save_pretrained(out)
         if self.grounding is not None:  # for resuming only; inference never reads it
             from labrobfail_vlm.train.grounding import save_head
+
             save_head(self.grounding["head"], out)
 
 
-def record_loss(model: Any, inputs: dict[str, Any], labels: torch.Tensor, weights: torch.Tensor | None = None,
-                slots: torch.Tensor | None = None) -> tuple[torch.Tensor, Any]:
+def record_loss(
+    model: Any,
+    inputs: dict[str, Any],
+    labels: torch.Tensor,
+    weights: torch.Tensor | None = None,
+    slots: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, Any]:
     """Weighted mean over records of each record's mean answer-token cross-entropy.
 
     A record is a row, or with packed rows the `slots` id of its label tokens. Logits are computed only where
@@ -121,8 +152,9 @@ def record_loss(model: Any, inputs: dict[str, Any], labels: torch.Tensor, weight
     keep = torch.zeros_like(labels, dtype=torch.bool)
     keep[:, :-1] = target != IGNORE
     outputs = model(**inputs, logits_to_keep=keep)
-    tok = F.cross_entropy(outputs.logits.float().reshape(-1, outputs.logits.shape[-1]), target[target != IGNORE],
-                          reduction="none")
+    tok = F.cross_entropy(
+        outputs.logits.float().reshape(-1, outputs.logits.shape[-1]), target[target != IGNORE], reduction="none"
+    )
     if slots is None:
         rows, n = keep.nonzero()[:, 0], labels.shape[0]
     else:
@@ -156,8 +188,9 @@ class ProgressLog(TrainerCallback):
             return
         self.out.mkdir(parents=True, exist_ok=True)
         path = self.out / "progress.json"
-        self.rows = [r for r in (json.loads(path.read_text()) if path.is_file() else [])
-                     if r["step"] <= state.global_step]  # a resumed run keeps the rows up to its checkpoint
+        self.rows = [
+            r for r in (json.loads(path.read_text()) if path.is_file() else []) if r["step"] <= state.global_step
+        ]  # a resumed run keeps the rows up to its checkpoint
         if self.rows:  # continue the clocks where the checkpoint left them
             self.t0 -= self.rows[-1]["wall_s"]
             self.c0 -= self.rows[-1]["cpu_s"]
@@ -168,9 +201,15 @@ class ProgressLog(TrainerCallback):
 
         if not state.is_world_process_zero:
             return
-        items = state.global_step * args.per_device_train_batch_size * args.gradient_accumulation_steps * \
-            args.world_size
-        self.rows.append({"step": state.global_step, "examples": round(items * self.per_item),
-                          "wall_s": round(time.perf_counter() - self.t0, 1),
-                          "cpu_s": round(time.process_time() - self.c0, 1)})
+        items = (
+            state.global_step * args.per_device_train_batch_size * args.gradient_accumulation_steps * args.world_size
+        )
+        self.rows.append(
+            {
+                "step": state.global_step,
+                "examples": round(items * self.per_item),
+                "wall_s": round(time.perf_counter() - self.t0, 1),
+                "cpu_s": round(time.process_time() - self.c0, 1),
+            }
+        )
         atomic_write_json(self.out / "progress.json", self.rows)

@@ -14,8 +14,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
-os.environ.setdefault("MS_ASSET_DIR", str(ROOT / ".maniskill"))
+# ManiSkill keeps (and would download) assets here; a user cache, never inside the installed package
+os.environ.setdefault(
+    "MS_ASSET_DIR", str(Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "labrobfail" / "maniskill")
+)
 os.environ.setdefault("MS_SKIP_ASSET_DOWNLOAD_PROMPT", "1")
 
 _PROBE = """
@@ -40,5 +42,7 @@ def vulkan_problem() -> str | None:
         return None
     lines = [ln for ln in (r.stderr or r.stdout).strip().splitlines() if ln.strip()]
     why = lines[-1] if lines else f"exit status {r.returncode}"
-    return (f"SAPIEN found no usable Vulkan device ({why}); on Debian bookworm install mesa-vulkan-drivers "
-            "and libvulkan1 from bookworm-backports (make install does)")
+    return (
+        f"SAPIEN found no usable Vulkan device ({why}); on Debian bookworm install mesa-vulkan-drivers "
+        "and libvulkan1 from bookworm-backports (make install does)"
+    )

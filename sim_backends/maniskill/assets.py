@@ -50,11 +50,13 @@ def vessel(scene, name: str, spec: VesselSpec, pos) -> object:
     if spec.neck_radius > 0:
         nh = h - body_h
         b.add_cylinder_collision(sapien.Pose([0, 0, body_h + nh / 2], UP), radius=spec.neck_radius, half_length=nh / 2)
-        b.add_cylinder_visual(sapien.Pose([0, 0, body_h + nh / 2], UP), radius=spec.neck_radius, half_length=nh / 2,
-                              material=glass)
+        b.add_cylinder_visual(
+            sapien.Pose([0, 0, body_h + nh / 2], UP), radius=spec.neck_radius, half_length=nh / 2, material=glass
+        )
         mouth_r = spec.neck_radius * 0.8
-    b.add_cylinder_visual(sapien.Pose([0, 0, h + 0.0005], UP), radius=mouth_r, half_length=0.0008,
-                          material=_mat((0.12, 0.16, 0.2, 1)))
+    b.add_cylinder_visual(
+        sapien.Pose([0, 0, h + 0.0005], UP), radius=mouth_r, half_length=0.0008, material=_mat((0.12, 0.16, 0.2, 1))
+    )
     b.set_mass_and_inertia(spec.mass, sapien.Pose([0, 0, body_h / 2]), _cylinder_inertia(spec.mass, r, h))
     b.initial_pose = sapien.Pose(list(pos))
     return b.build(name=name)
@@ -75,8 +77,9 @@ def rod(scene, name: str, pos, length: float, radius: float, rgba, mass: float =
     return b.build(name=name)
 
 
-def rack(scene, name: str, pos, holes: int = 3, pitch: float = 0.05, hole: float = 0.028,
-         rgba=(0.55, 0.38, 0.22, 1.0)) -> object:
+def rack(
+    scene, name: str, pos, holes: int = 3, pitch: float = 0.05, hole: float = 0.028, rgba=(0.55, 0.38, 0.22, 1.0)
+) -> object:
     """Test-tube rack (fixed): a base plate, two end walls and a top plate with square holes along y (2.8 cm
     for a 1.8 cm tube: open-loop keyframes carry the few millimetres a grasp shifts the tube)."""
     t, height, depth = 0.006, RACK_HEIGHT, 0.05
@@ -125,9 +128,14 @@ def button(scene, name: str, pos, rgba=(0.85, 0.1, 0.1, 1.0)) -> object:
     cap.set_mass_and_inertia(0.05, sapien.Pose(), [1e-5, 1e-5, 1e-5])
     down = [math.sqrt(0.5), 0.0, math.sqrt(0.5), 0.0]  # Ry(+90 deg): the joint's x axis onto world -z
     cap.set_joint_name("press")
-    cap.set_joint_properties("prismatic", limits=[[0.0, BUTTON_DIMS["travel"]]],
-                             pose_in_parent=sapien.Pose([0, 0, BUTTON_DIMS["top"] - 0.01], down),
-                             pose_in_child=sapien.Pose([0, 0, 0], down), friction=0.0, damping=0.0)
+    cap.set_joint_properties(
+        "prismatic",
+        limits=[[0.0, BUTTON_DIMS["travel"]]],
+        pose_in_parent=sapien.Pose([0, 0, BUTTON_DIMS["top"] - 0.01], down),
+        pose_in_child=sapien.Pose([0, 0, 0], down),
+        friction=0.0,
+        damping=0.0,
+    )
     ab.initial_pose = sapien.Pose(list(pos))
     art = ab.build(name=name, fix_root_link=True)
     j = art.active_joints[0]
@@ -136,8 +144,7 @@ def button(scene, name: str, pos, rgba=(0.85, 0.1, 0.1, 1.0)) -> object:
     return art
 
 
-def oven(scene, name: str, pos, rgba=(0.88, 0.88, 0.86, 1.0),
-         door_rgba=(0.55, 0.62, 0.68, 1.0)) -> object:
+def oven(scene, name: str, pos, rgba=(0.88, 0.88, 0.86, 1.0), door_rgba=(0.55, 0.62, 0.68, 1.0)) -> object:
     """Drying oven: a fixed cabinet open towards the robot (-x), closed by a door hinged on a vertical
     axis at its front edge on the -y side, with a vertical handle near the free edge. q = door angle
     (0 closed, positive swings the free edge towards the robot)."""
@@ -146,9 +153,13 @@ def oven(scene, name: str, pos, rgba=(0.88, 0.88, 0.86, 1.0),
     ab = scene.create_articulation_builder()
     body = ab.create_link_builder(None)
     body.set_name("cabinet")
-    for he, lp in [((d2, w2, t / 2), (0, 0, t / 2)), ((d2, w2, t / 2), (0, 0, h - t / 2)),
-                   ((t / 2, w2, h / 2), (d2 - t / 2, 0, h / 2)), ((d2, t / 2, h / 2), (0, -w2 + t / 2, h / 2)),
-                   ((d2, t / 2, h / 2), (0, w2 - t / 2, h / 2))]:
+    for he, lp in [
+        ((d2, w2, t / 2), (0, 0, t / 2)),
+        ((d2, w2, t / 2), (0, 0, h - t / 2)),
+        ((t / 2, w2, h / 2), (d2 - t / 2, 0, h / 2)),
+        ((d2, t / 2, h / 2), (0, -w2 + t / 2, h / 2)),
+        ((d2, t / 2, h / 2), (0, w2 - t / 2, h / 2)),
+    ]:
         body.add_box_collision(sapien.Pose(list(lp)), half_size=list(he))
         body.add_box_visual(sapien.Pose(list(lp)), half_size=list(he), material=_mat(rgba))
     door = ab.create_link_builder(body)
@@ -168,9 +179,14 @@ def oven(scene, name: str, pos, rgba=(0.88, 0.88, 0.86, 1.0),
     door.set_mass_and_inertia(0.5, sapien.Pose([-t / 2, w2, h / 2]), [0.005, 0.005, 0.005])
     vertical = [math.sqrt(0.5), 0.0, -math.sqrt(0.5), 0.0]  # the revolute joint's x axis onto world z
     door.set_joint_name("hinge")
-    door.set_joint_properties("revolute", limits=[[0.0, math.radians(100)]],
-                              pose_in_parent=sapien.Pose([-d2, -w2, 0.0], vertical),
-                              pose_in_child=sapien.Pose([0, 0, 0], vertical), friction=0.0, damping=0.0)
+    door.set_joint_properties(
+        "revolute",
+        limits=[[0.0, math.radians(100)]],
+        pose_in_parent=sapien.Pose([-d2, -w2, 0.0], vertical),
+        pose_in_child=sapien.Pose([0, 0, 0], vertical),
+        friction=0.0,
+        damping=0.0,
+    )
     ab.initial_pose = sapien.Pose(list(pos))
     art = ab.build(name=name, fix_root_link=True)
     j = art.active_joints[0]
@@ -196,7 +212,7 @@ def set_color(obj, rgba) -> None:
         if comp is None:
             continue
         for shape in comp.render_shapes:
-            for part in (shape.parts if hasattr(shape, "parts") else [shape]):
+            for part in shape.parts if hasattr(shape, "parts") else [shape]:
                 mat = part.material
                 mat.base_color = [float(c) for c in rgba]
                 if hasattr(mat, "base_color_texture"):

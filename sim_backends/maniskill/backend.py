@@ -13,11 +13,15 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
-
-from sim_backends.maniskill import vulkan_problem  # first: offline defaults before mani_skill is imported
 from mani_skill import logger as ms_logger
-from sim_backends.maniskill import assets, envs
-from sim_backends.maniskill import templates  # noqa: F401 - registers the task templates
+
+from labrobfail_vlm.config import CONFIG_DIR
+from sim_backends.maniskill import (
+    assets,
+    envs,
+    templates,  # noqa: F401 - registers the task templates
+    vulkan_problem,  # first: offline defaults before mani_skill is imported
+)
 from sim_backends.maniskill.plan import Plan, SceneView, Thing
 from sim_backends.maniskill.robot import Arm, Contacts, canonical_quat, wxyz_to_xyzw
 from sim_backends.perturbations.physics import PhysicsEvent
@@ -28,7 +32,7 @@ from sim_backends.source import FailureSource
 from sim_backends.types import Keyframe
 
 ms_logger.setLevel(logging.ERROR)  # ManiSkill warns about missing CUDA on every CPU machine
-TASKS_FILE = Path(__file__).resolve().parents[2] / "configs" / "tasks" / "maniskill.yaml"
+TASKS_FILE = CONFIG_DIR / "tasks" / "maniskill.yaml"
 SETTLE_STEPS = 20  # control steps after the last keyframe (1 s at ManiSkill's 20 Hz)
 PRE_STEPS = 3  # control steps holding the start pose after a reset, before the plan reads the scene
 MOVABLE = ("vessel", "rod")
@@ -40,8 +44,15 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
     name = "maniskill"
     TASKS_FILE = TASKS_FILE
 
-    def __init__(self, image_size: int = 224, cameras: Sequence[str] = ("front", "side"), wrist: bool = False,
-                 sim_backend: str = "cpu", render: bool = True, tasks_file: str | Path | None = None):
+    def __init__(
+        self,
+        image_size: int = 224,
+        cameras: Sequence[str] = ("front", "side"),
+        wrist: bool = False,
+        sim_backend: str = "cpu",
+        render: bool = True,
+        tasks_file: str | Path | None = None,
+    ):
         super().__init__()
         self.cfg = self.load_task_config(tasks_file)
         unknown = [v for v in cameras if v not in envs.CAMERAS]
@@ -91,8 +102,9 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
                 envs.check_offline(str(sc.get("env")))
             except ValueError as e:
                 raise ValueError(f"scenario {name}: {e}") from None
-            raise ValueError(f"scenario {name}: env {sc.get('env')!r} is not wrapped for LabRobFail; "
-                             f"wrapped: {', '.join(envs.ENVS)}")
+            raise ValueError(
+                f"scenario {name}: env {sc.get('env')!r} is not wrapped for LabRobFail; wrapped: {', '.join(envs.ENVS)}"
+            )
 
     @property
     def camera_names(self) -> list[str]:
@@ -104,9 +116,14 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
             sim, rend = SIM_BACKENDS[self.sim_backend]
             try:
                 self._envs[env_id] = envs.ENVS[env_id](
-                    obs_mode="none", reward_mode="none", control_mode="pd_joint_pos", sim_backend=sim,
-                    render_backend=rend if self.render_on else "none", lrf_views=tuple(self.views),
-                    lrf_image_size=self.image_size)
+                    obs_mode="none",
+                    reward_mode="none",
+                    control_mode="pd_joint_pos",
+                    sim_backend=sim,
+                    render_backend=rend if self.render_on else "none",
+                    lrf_views=tuple(self.views),
+                    lrf_image_size=self.image_size,
+                )
             except RuntimeError as e:
                 raise ValueError(f"env: ManiSkill could not build {env_id} ({str(e).splitlines()[0]})") from None
         return self._envs[env_id]
@@ -117,13 +134,16 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
         rng = np.random.default_rng(seed)
         spec = self._scene_spec(sc, variant, rng)
         env = self.env = self._env(sc["env"])
-        env.reset(seed=int(seed) % (2 ** 31), options={"reconfigure": True, "lrf": spec})
+        env.reset(seed=int(seed) % (2**31), options={"reconfigure": True, "lrf": spec})
         self.arm = Arm(env)
         for _ in range(PRE_STEPS):  # let anything placed exactly on the table come to rest
             self.arm.hold()
         self.info = env.lrf_objects()
-        self.info.labels = {**{r: o.label for r, o in self.info.objects.items()}, **self.info.labels,
-                            **spec.get("labels", {})}
+        self.info.labels = {
+            **{r: o.label for r, o in self.info.objects.items()},
+            **self.info.labels,
+            **spec.get("labels", {}),
+        }
         self.plan = Plan(self._view())
         task_templates(self.name)[sc["template"]].cls(self.plan, dict(sc.get("params", {})))
 
@@ -150,7 +170,9 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
             kind = item.get("kind")
             if kind is None:  # a catalogue object
                 if item["object"] not in catalogue:
-                    raise ValueError(f"scenario: unknown object {item['object']!r}; known: {', '.join(sorted(catalogue))}")
+                    raise ValueError(
+                        f"scenario: unknown object {item['object']!r}; known: {', '.join(sorted(catalogue))}"
+                    )
                 od = dict(catalogue[item["object"]])
                 kind = od["kind"]
                 label = str(item.get("label") or od.get("label") or item["object"].replace("_", " "))
@@ -165,8 +187,11 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
                 layout[role] = {**od, "kind": kind, "pos": xyz, "dims": dims, "label": label}
             else:
                 label = str(item.get("label") or self.cfg["kind_labels"].get(kind, role.replace("_", " ")))
-                dims = {"oven": assets.OVEN_DIMS, "button": assets.BUTTON_DIMS,
-                        "rack": {"height": assets.RACK_HEIGHT}}.get(kind, {})
+                dims = {
+                    "oven": assets.OVEN_DIMS,
+                    "button": assets.BUTTON_DIMS,
+                    "rack": {"height": assets.RACK_HEIGHT},
+                }.get(kind, {})
                 layout[role] = {**item, "kind": kind, "pos": xyz, "dims": dict(dims), "label": label}
                 if kind == "rack":
                     layout[role]["holes"] = assets.hole_positions(xyz)
@@ -192,7 +217,11 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
     def _pose(o: envs.TaskObject) -> tuple[np.ndarray, tuple, tuple]:
         pose = o.handle.pose if hasattr(o.handle, "pose") else o.handle.root.pose
         body = wxyz_to_xyzw(pose.q[0].cpu().numpy())
-        return pose.p[0].cpu().numpy().astype(float), canonical_quat(body, o.frame if o.kind in MOVABLE else "body"), body
+        return (
+            pose.p[0].cpu().numpy().astype(float),
+            canonical_quat(body, o.frame if o.kind in MOVABLE else "body"),
+            body,
+        )
 
     def scripted_keyframes(self) -> list[Keyframe]:
         assert self.plan is not None, "reset() first"
@@ -238,8 +267,15 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
         self._sample(kf)
 
     def _move(self, kf: Keyframe, index: int) -> None:
-        self.arm.move_to(kf.pos, kf.quat, kf.gripper, kf.speed, lambda: self._tick(index), settle=kf.settle_steps,
-                         joint_space=kf.name in self.plan.joint_space)
+        self.arm.move_to(
+            kf.pos,
+            kf.quat,
+            kf.gripper,
+            kf.speed,
+            lambda: self._tick(index),
+            settle=kf.settle_steps,
+            joint_space=kf.name in self.plan.joint_space,
+        )
         self._kf_end.append(len(self._cols["t"]) - 1)
 
     def _settle(self) -> None:
@@ -257,8 +293,11 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
         return [np.ascontiguousarray(imgs[v][0].cpu().numpy()[..., :3]) for v in self.views]
 
     def trace_so_far(self) -> dict[str, Any]:
-        return {**{k: list(v) for k, v in self._cols.items()}, "kf_end": list(self._kf_end),
-                "rate_hz": float(self.env.control_freq)}
+        return {
+            **{k: list(v) for k, v in self._cols.items()},
+            "kf_end": list(self._kf_end),
+            "rate_hz": float(self.env.control_freq),
+        }
 
     # -- physics perturbations (Phi_phy) and their explicit undo --------------------------------------
     def _apply_physics(self, ev: PhysicsEvent) -> None:
@@ -266,8 +305,9 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
             for j in self.env.agent.robot.active_joints[-2:]:
                 for pj in j._objs:
                     self._undo.append(("drive", pj, pj.stiffness, pj.damping, pj.force_limit))
-                    pj.set_drive_properties(pj.stiffness * ev.scale, pj.damping * ev.scale,
-                                            pj.force_limit * ev.scale, pj.drive_mode)
+                    pj.set_drive_properties(
+                        pj.stiffness * ev.scale, pj.damping * ev.scale, pj.force_limit * ev.scale, pj.drive_mode
+                    )
             return
         if ev.target not in self.info.objects or self.info.objects[ev.target].kind not in MOVABLE:
             raise ValueError(f"physics perturbation: {ev.param} of {ev.target!r}: no such movable object")
@@ -280,8 +320,11 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
                     m = shape.physical_material
                     self._undo.append(("material", shape, m))
                     # A fresh material: the shape's own is often PhysX's default, shared by every shape.
-                    shape.set_physical_material(assets.friction_material(m.static_friction * ev.scale,
-                                                                         m.dynamic_friction * ev.scale, m.restitution))
+                    shape.set_physical_material(
+                        assets.friction_material(
+                            m.static_friction * ev.scale, m.dynamic_friction * ev.scale, m.restitution
+                        )
+                    )
             else:
                 raise ValueError(f"physics perturbation: {ev.param!r} is not supported by the maniskill backend")
 
@@ -299,15 +342,24 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
     # -- task metadata --------------------------------------------------------------------------------
     def task_meta(self, executed: Sequence[Keyframe]) -> TaskMeta:
         plan = self.plan
-        objects = {r: ObjectInfo(o.kind, {k: float(v) for k, v in o.dims.items()},
-                                 [float(v) for v in plan.scene.objects[r].pos])
-                   for r, o in self.info.objects.items()}
+        objects = {
+            r: ObjectInfo(
+                o.kind, {k: float(v) for k, v in o.dims.items()}, [float(v) for v in plan.scene.objects[r].pos]
+            )
+            for r, o in self.info.objects.items()
+        }
         return TaskMeta(
-            steps=plan.steps, goals=plan.goals, objects=objects,
+            steps=plan.steps,
+            goals=plan.goals,
+            objects=objects,
             places={k: list(v) for k, v in self.object_positions().items()},
             nominal=[NominalKeyframe(k.name, list(k.pos), list(k.quat), k.gripper, k.segment) for k in plan.keyframes],
-            executed=[k.name for k in executed], bench_top=0.0, liquid_total={}, labels=dict(self.info.labels),
-            description=self.describe(self._key[0], self.info.labels))
+            executed=[k.name for k in executed],
+            bench_top=0.0,
+            liquid_total={},
+            labels=dict(self.info.labels),
+            description=self.describe(self._key[0], self.info.labels),
+        )
 
     def close(self) -> None:
         self._undo.clear()

@@ -19,7 +19,6 @@ from typing import Any
 import numpy as np
 import sapien
 import torch
-
 from mani_skill.envs.sapien_env import BaseEnv
 from mani_skill.envs.tasks.tabletop.lift_peg_upright import LiftPegUprightEnv
 from mani_skill.envs.tasks.tabletop.peg_insertion_side import PegInsertionSideEnv
@@ -68,8 +67,7 @@ class LrfScene:
 class LabRobFailEnv:
     """Mixin (first base) for a ManiSkill task: LabRobFail cameras, appearance and `lrf_objects`."""
 
-    def __init__(self, *args, lrf_views: tuple[str, ...] = ("front", "side"), lrf_image_size: int = 224,
-                 **kwargs):
+    def __init__(self, *args, lrf_views: tuple[str, ...] = ("front", "side"), lrf_image_size: int = 224, **kwargs):
         self._lrf_views = tuple(lrf_views)
         self._lrf_size = int(lrf_image_size)
         self._lrf: dict[str, Any] = {}
@@ -86,13 +84,25 @@ class LabRobFailEnv:
         for v in self._lrf_views:
             if v == WRIST:
                 # behind the fingers, looking along the approach axis, the hand's x axis up
-                out.append(CameraConfig(v, sapien.Pose([0.04, 0, -0.10], [0.7071068, 0, -0.7071068, 0]),
-                                        self._lrf_size, self._lrf_size, np.deg2rad(70), 0.01, 10,
-                                        mount=self.agent.tcp))
+                out.append(
+                    CameraConfig(
+                        v,
+                        sapien.Pose([0.04, 0, -0.10], [0.7071068, 0, -0.7071068, 0]),
+                        self._lrf_size,
+                        self._lrf_size,
+                        np.deg2rad(70),
+                        0.01,
+                        10,
+                        mount=self.agent.tcp,
+                    )
+                )
                 continue
             eye, target, fov = CAMERAS[v]
-            out.append(CameraConfig(v, sapien_utils.look_at(eye, target), self._lrf_size, self._lrf_size,
-                                    np.deg2rad(fov), 0.01, 10))
+            out.append(
+                CameraConfig(
+                    v, sapien_utils.look_at(eye, target), self._lrf_size, self._lrf_size, np.deg2rad(fov), 0.01, 10
+                )
+            )
         return out
 
     def _load_agent(self, options: dict):
@@ -201,8 +211,17 @@ class LrfLiftPegUpright(LabRobFailEnv, LiftPegUprightEnv):
     """LiftPegUpright: pick up the peg lying on the table and stand it upright."""
 
     def _lrf_scene(self) -> LrfScene:
-        return LrfScene({"peg": TaskObject(self.peg, "rod", {"length": 2 * self.peg_half_length,
-                                                             "radius": self.peg_half_width}, "peg", "x_axis")})
+        return LrfScene(
+            {
+                "peg": TaskObject(
+                    self.peg,
+                    "rod",
+                    {"length": 2 * self.peg_half_length, "radius": self.peg_half_width},
+                    "peg",
+                    "x_axis",
+                )
+            }
+        )
 
 
 class LrfPegInsertionSide(LabRobFailEnv, PegInsertionSideEnv):
@@ -210,9 +229,14 @@ class LrfPegInsertionSide(LabRobFailEnv, PegInsertionSideEnv):
 
     def _lrf_scene(self) -> LrfScene:
         half = self.peg_half_sizes[0].cpu().numpy()
-        return LrfScene({"peg": TaskObject(self.peg, "rod", {"length": 2 * float(half[0]), "radius": float(half[1])},
-                                           "peg", "x_axis"),
-                         "box": TaskObject(self.box, "rack", {"height": 2 * float(half[0])}, "box with a hole")})
+        return LrfScene(
+            {
+                "peg": TaskObject(
+                    self.peg, "rod", {"length": 2 * float(half[0]), "radius": float(half[1])}, "peg", "x_axis"
+                ),
+                "box": TaskObject(self.box, "rack", {"height": 2 * float(half[0])}, "box with a hole"),
+            }
+        )
 
     def _lrf_after_init(self) -> None:
         goal = self.goal_pose  # the peg pose with its head at the hole's centre
@@ -240,7 +264,9 @@ class LabBenchEnv(LabRobFailEnv, BaseEnv):
         for role, sp in self._lrf.get("layout", {}).items():
             kind, pos = sp["kind"], sp["pos"]
             if kind == "zone":
-                assets.zone(self.scene, role, pos, radius=sp.get("radius", 0.05), rgba=sp.get("rgba", (0.2, 0.8, 0.3, 1)))
+                assets.zone(
+                    self.scene, role, pos, radius=sp.get("radius", 0.05), rgba=sp.get("rgba", (0.2, 0.8, 0.3, 1))
+                )
                 self._zones[role] = tuple(pos)
             elif kind == "vessel":
                 vs = assets.VesselSpec(sp["radius"], sp["height"], tuple(sp["rgba"]), sp.get("neck_radius", 0.0))
@@ -308,8 +334,12 @@ def check_offline(env_id: str) -> None:
         return
     missing = []
     for aid in spec.asset_download_ids or []:
-        ids = ms_assets.expand_data_group_into_individual_data_source_ids(aid) if aid in ms_assets.DATA_GROUPS else [aid]
+        ids = (
+            ms_assets.expand_data_group_into_individual_data_source_ids(aid) if aid in ms_assets.DATA_GROUPS else [aid]
+        )
         missing += [i for i in ids if i in ms_assets.DATA_SOURCES and not ms_assets.is_data_source_downloaded(i)]
     if missing:
-        raise ValueError(f"env: ManiSkill environment {env_id} needs assets that are not in MS_ASSET_DIR "
-                         f"({', '.join(missing[:3])}{', ...' if len(missing) > 3 else ''}); downloads are off")
+        raise ValueError(
+            f"env: ManiSkill environment {env_id} needs assets that are not in MS_ASSET_DIR "
+            f"({', '.join(missing[:3])}{', ...' if len(missing) > 3 else ''}); downloads are off"
+        )

@@ -101,8 +101,9 @@ class Plan(PlanBuilder):
         close = self.kf("close", (x, y, z), q, 1, obj, settle=8)
         self.kf("lift", (x, y, z + lift), q, 1, obj, speed=0.3)
         width = 2 * o.dims.get("radius", 0.02)
-        self.update(close_kf=close, grip_offset=[float(x - o.pos[0]), float(y - o.pos[1]), float(z - o.pos[2])],
-                    width=width)
+        self.update(
+            close_kf=close, grip_offset=[float(x - o.pos[0]), float(y - o.pos[1]), float(z - o.pos[2])], width=width
+        )
 
     def grasp_cube(self, obj: str) -> None:
         o = self.scene.objects[obj]
@@ -122,8 +123,9 @@ class Plan(PlanBuilder):
         self.update(close_kf=close, grip_offset=[-0.005, 0.0, float(zg - z)], width=2 * o.dims["radius"])
 
     # -- placing --------------------------------------------------------------------------------------
-    def place(self, obj: str, dest: str, quat, surface: float = 0.0, returning: bool = False,
-              retreat=(0.0, 0.0, 0.10)) -> None:
+    def place(
+        self, obj: str, dest: str, quat, surface: float = 0.0, returning: bool = False, retreat=(0.0, 0.0, 0.10)
+    ) -> None:
         """Carry the held object over `dest`, lower it onto a surface at height `surface`, release, retreat."""
         g = self.grip_offset(obj)
         dx, dy = self._where(dest)[:2]
@@ -301,4 +303,3 @@ class Plan(PlanBuilder):
         self.kf("press", (x, y, top - 0.006), q, 1, button, speed=0.04, settle=5)
         self.kf("release", (x, y, top + 0.08), q, 1, button, speed=0.2)
         self.update(contact_kf=f"s{self.steps[-1].index}_press", contact_point=[float(x), float(y), top - 0.006])
-

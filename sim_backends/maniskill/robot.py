@@ -33,8 +33,11 @@ JOINT_SPEED = 1.0  # rad/s of the fastest joint in a joint-space move
 REST = np.array([0.0, math.pi / 8, 0.0, -5 * math.pi / 8, 0.0, 3 * math.pi / 4, math.pi / 4])  # hand down
 # Hand pointing forward: the arm stretched with the wrist pitched (far and high poses), or joint 5
 # near +-2.6 (near and low poses, e.g. side grasps of glassware).
-SIDE_RESTS = (np.array([0.0, 1.0, 0.0, -1.5, 0.0, 3.6, 0.785]), np.array([0.0, 0.3, 0.0, -2.6, 2.6, 1.8, 0.8]),
-              np.array([0.0, 0.3, 0.0, -2.6, -2.6, 1.8, 0.8]))
+SIDE_RESTS = (
+    np.array([0.0, 1.0, 0.0, -1.5, 0.0, 3.6, 0.785]),
+    np.array([0.0, 0.3, 0.0, -2.6, 2.6, 1.8, 0.8]),
+    np.array([0.0, 0.3, 0.0, -2.6, -2.6, 1.8, 0.8]),
+)
 IK_ITERS, IK_DAMP, IK_POSTURE, LIMIT_MARGIN = 30, 1e-3, 0.05, 0.02
 
 
@@ -100,8 +103,9 @@ class ArmIK:
         lim = robot.get_qlimits()[0].cpu().numpy()[:7]
         self.lo, self.hi = lim[:, 0] + LIMIT_MARGIN, lim[:, 1] - LIMIT_MARGIN
 
-    def solve(self, q_full: np.ndarray, p_des: np.ndarray, r_des: np.ndarray, posture: np.ndarray,
-              iters: int = IK_ITERS) -> tuple[np.ndarray, float]:
+    def solve(
+        self, q_full: np.ndarray, p_des: np.ndarray, r_des: np.ndarray, posture: np.ndarray, iters: int = IK_ITERS
+    ) -> tuple[np.ndarray, float]:
         """Arm joint positions (7) that put the TCP at (p_des, r_des) in the robot's base frame, and the
         remaining error (metres + radians)."""
         q = np.array(q_full, float)
@@ -184,8 +188,16 @@ class Arm:
     def hold(self) -> None:
         self._send()
 
-    def move_to(self, pos, quat, grip: int, speed: float, on_step: Callable[[], None], settle: int = 0,
-                joint_space: bool = False) -> None:
+    def move_to(
+        self,
+        pos,
+        quat,
+        grip: int,
+        speed: float,
+        on_step: Callable[[], None],
+        settle: int = 0,
+        joint_space: bool = False,
+    ) -> None:
         p0, q0 = self.target  # from the last commanded pose: the arm's own tracking lag does not compound
         pos = np.asarray(pos, float)
         dist = float(np.linalg.norm(pos - p0))
@@ -229,8 +241,16 @@ class Arm:
         j0 = self.q[:7].copy()
         j1 = self.ik.solve_far(self.q, *self._in_base(pos, quat))
         cur = self.tcp()[0]
-        n = max(2, math.ceil(max(float(np.linalg.norm(np.asarray(pos) - cur)) / max(speed, 1e-3),
-                                 float(np.abs(j1 - j0).max()) / JOINT_SPEED) / self.dt))
+        n = max(
+            2,
+            math.ceil(
+                max(
+                    float(np.linalg.norm(np.asarray(pos) - cur)) / max(speed, 1e-3),
+                    float(np.abs(j1 - j0).max()) / JOINT_SPEED,
+                )
+                / self.dt
+            ),
+        )
         self.target, self.grip = (np.asarray(pos, float), tuple(quat)), int(grip)
         for i in range(1, n + 1):
             self.q[:7] = j0 + (j1 - j0) * (i / n)
@@ -254,13 +274,17 @@ class Contacts:
         self.scene = env.scene
         a = env.agent
         # not every Panda model has finger pads
-        self.fingers = [[lk for lk in links if lk is not None]
-                        for links in ((a.finger1_link, a.finger1pad_link), (a.finger2_link, a.finger2pad_link))]
+        self.fingers = [
+            [lk for lk in links if lk is not None]
+            for links in ((a.finger1_link, a.finger1pad_link), (a.finger2_link, a.finger2pad_link))
+        ]
         self.bodies = dict(bodies)
 
     def count(self) -> dict[str, int]:
-        return {role: sum(any(self._touch(link, body) for link in links) for links in self.fingers)
-                for role, body in self.bodies.items()}
+        return {
+            role: sum(any(self._touch(link, body) for link in links) for links in self.fingers)
+            for role, body in self.bodies.items()
+        }
 
     def _touch(self, link, body) -> bool:
         return float(np.linalg.norm(self.scene.get_pairwise_contact_impulses(link, body)[0].cpu().numpy())) > 1e-7

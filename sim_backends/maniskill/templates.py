@@ -123,4 +123,3 @@ def place_and_press(plan: Plan, p: dict[str, Any]) -> None:
     plan.press("button")
     plan.goal_placed("obj", "target")
     plan.goal_pressed("button")
-

@@ -51,32 +51,53 @@ def gaussian_noise(rng: np.random.Generator, sigma: Sequence[float], min_norm: f
     return xi, MAX_REJECTIONS
 
 
-def translate(kfs: Sequence[Keyframe], names: Sequence[str], sigma: Sequence[float], rng: np.random.Generator,
-              min_norm: float = 0.0) -> tuple[list[Keyframe], dict]:
+def translate(
+    kfs: Sequence[Keyframe],
+    names: Sequence[str],
+    sigma: Sequence[float],
+    rng: np.random.Generator,
+    min_norm: float = 0.0,
+) -> tuple[list[Keyframe], dict]:
     """Add one Gaussian offset to the positions of the named keyframes (one faulty estimate)."""
     xi, rejected = gaussian_noise(rng, sigma, min_norm)
     out = list(kfs)
     for i in _indices(kfs, names):
         p = np.asarray(out[i].pos) + xi
         out[i] = dataclasses.replace(out[i], pos=tuple(float(v) for v in p))
-    return out, {"op": "translate", "keyframes": list(names), "xi_trans": xi.round(5).tolist(),
-                 "min_norm": min_norm, "rejected": rejected}
+    return out, {
+        "op": "translate",
+        "keyframes": list(names),
+        "xi_trans": xi.round(5).tolist(),
+        "min_norm": min_norm,
+        "rejected": rejected,
+    }
 
 
-def rotate(kfs: Sequence[Keyframe], names: Sequence[str], sigma: Sequence[float], rng: np.random.Generator,
-           min_norm: float = 0.0) -> tuple[list[Keyframe], dict]:
+def rotate(
+    kfs: Sequence[Keyframe],
+    names: Sequence[str],
+    sigma: Sequence[float],
+    rng: np.random.Generator,
+    min_norm: float = 0.0,
+) -> tuple[list[Keyframe], dict]:
     """R~ = R Exp(xi_rot) on the named keyframes (xi in the body frame)."""
     xi, rejected = gaussian_noise(rng, sigma, min_norm)
     dR = so3_exp(xi)
     out = list(kfs)
     for i in _indices(kfs, names):
         out[i] = dataclasses.replace(out[i], quat=matrix_to_quat(out[i].rotation @ dR))
-    return out, {"op": "rotate", "keyframes": list(names), "xi_rot": xi.round(5).tolist(), "min_norm": min_norm,
-                 "rejected": rejected}
+    return out, {
+        "op": "rotate",
+        "keyframes": list(names),
+        "xi_rot": xi.round(5).tolist(),
+        "min_norm": min_norm,
+        "rejected": rejected,
+    }
 
 
-def corrupt_gripper(kfs: Sequence[Keyframe], names: Sequence[str], lam: float, rng: np.random.Generator
-                    ) -> tuple[list[Keyframe], dict]:
+def corrupt_gripper(
+    kfs: Sequence[Keyframe], names: Sequence[str], lam: float, rng: np.random.Generator
+) -> tuple[list[Keyframe], dict]:
     """Each gripper command among the named keyframes, closed or open, is inverted with probability lambda_grip.
 
     A command that was corrupted stays corrupted on the following keyframes of the same segment (an actuator
@@ -111,6 +132,7 @@ def truncate(kfs: Sequence[Keyframe], names: Sequence[str], rng: np.random.Gener
     """
     cut = int(rng.choice(_indices(kfs, names)))
     hold = kfs[cut - 1] if cut > 0 else kfs[0]
-    out = list(kfs[:cut]) + [dataclasses.replace(k, pos=hold.pos, quat=hold.quat, gripper=hold.gripper)
-                             for k in kfs[cut:]]
+    out = list(kfs[:cut]) + [
+        dataclasses.replace(k, pos=hold.pos, quat=hold.quat, gripper=hold.gripper) for k in kfs[cut:]
+    ]
     return out, {"op": "truncate", "cut_before": kfs[cut].name}

@@ -53,8 +53,9 @@ def alpha_of(p: dict[str, Any]) -> float:
     return a
 
 
-def sample_events(kfs: Sequence[Keyframe], spec: dict[str, Any], rng: np.random.Generator
-                  ) -> tuple[list[PhysicsEvent], dict]:
+def sample_events(
+    kfs: Sequence[Keyframe], spec: dict[str, Any], rng: np.random.Generator
+) -> tuple[list[PhysicsEvent], dict]:
     """One or several parameters (`params: [{param, target, alpha}, ...]`) changed at one keyframe."""
     params = spec.get("params") or [spec]
     events, deltas = [], []
@@ -67,10 +68,19 @@ def sample_events(kfs: Sequence[Keyframe], spec: dict[str, Any], rng: np.random.
     return events, {"op": "physics", "events": deltas}
 
 
-def sample_event(kfs: Sequence[Keyframe], param: str, target: str, at: Sequence[str], alpha: float,
-                 rng: np.random.Generator, at_index: int | None = None) -> tuple[PhysicsEvent, dict]:
+def sample_event(
+    kfs: Sequence[Keyframe],
+    param: str,
+    target: str,
+    at: Sequence[str],
+    alpha: float,
+    rng: np.random.Generator,
+    at_index: int | None = None,
+) -> tuple[PhysicsEvent, dict]:
     if param not in PHYSICS_PARAMS:
-        raise ValueError(f"physics perturbation: unknown parameter {param!r}; expected one of {', '.join(PHYSICS_PARAMS)}")
+        raise ValueError(
+            f"physics perturbation: unknown parameter {param!r}; expected one of {', '.join(PHYSICS_PARAMS)}"
+        )
     names = [k.name for k in kfs]
     where = [names.index(a) for a in at if a in names]
     if not where:

@@ -45,9 +45,13 @@ def omit(kfs: Sequence[Keyframe], step: int) -> tuple[list[Keyframe], dict]:
     return [k for k in kfs if k.segment != step], {"op": "omit", "step": step}
 
 
-def substitute_target(kfs: Sequence[Keyframe], step: int, new_target: str,
-                      positions: Mapping[str, Sequence[float]], rng: np.random.Generator | None = None
-                      ) -> tuple[list[Keyframe], dict]:
+def substitute_target(
+    kfs: Sequence[Keyframe],
+    step: int,
+    new_target: str,
+    positions: Mapping[str, Sequence[float]],
+    rng: np.random.Generator | None = None,
+) -> tuple[list[Keyframe], dict]:
     """M(o_i): the keyframes of `step` aimed at o_i are shifted to aim at `new_target` instead."""
     segs = _segments(kfs)
     _check(segs, [step])

@@ -19,31 +19,48 @@ FLOOR_Z = -0.75
 LIQUID_DAMPING = 1.5  # viscous drag on liquid particles; low values let a tilt fling them off the bench
 
 
-def _compound(cid: int, parts: Sequence[tuple], mass: float, pos, orn=(0, 0, 0, 1), rgba=GLASS,
-              friction: float = 0.8) -> int:
+def _compound(
+    cid: int, parts: Sequence[tuple], mass: float, pos, orn=(0, 0, 0, 1), rgba=GLASS, friction: float = 0.8
+) -> int:
     """parts: (half_extents, local_pos, local_orn) boxes, or ('cyl', radius, length, local_pos) cylinders."""
     assert len(parts) <= 16, "compound shapes above 16 parts crash PyBullet's visual arrays"
-    shapes, vis, poss, orns, kw_v = [], [], [], [], []
+    shapes, poss, orns, kw_v = [], [], [], []
     for part in parts:
         if part[0] == "cyl":
             _, r, ln, lp = part
-            shapes.append(p.GEOM_CYLINDER); poss.append(lp); orns.append((0, 0, 0, 1))
+            shapes.append(p.GEOM_CYLINDER)
+            poss.append(lp)
+            orns.append((0, 0, 0, 1))
             kw_v.append({"radius": r, "length": ln})
         else:
             he, lp, lo = part
-            shapes.append(p.GEOM_BOX); poss.append(lp); orns.append(lo); kw_v.append({"halfExtents": he})
+            shapes.append(p.GEOM_BOX)
+            poss.append(lp)
+            orns.append(lo)
+            kw_v.append({"halfExtents": he})
     col = p.createCollisionShapeArray(
-        shapeTypes=shapes, halfExtents=[k.get("halfExtents", [0, 0, 0]) for k in kw_v],
-        radii=[k.get("radius", 0) for k in kw_v], lengths=[k.get("length", 0) for k in kw_v],
-        collisionFramePositions=poss, collisionFrameOrientations=orns, physicsClientId=cid)
+        shapeTypes=shapes,
+        halfExtents=[k.get("halfExtents", [0, 0, 0]) for k in kw_v],
+        radii=[k.get("radius", 0) for k in kw_v],
+        lengths=[k.get("length", 0) for k in kw_v],
+        collisionFramePositions=poss,
+        collisionFrameOrientations=orns,
+        physicsClientId=cid,
+    )
     vis_id = p.createVisualShapeArray(
-        shapeTypes=shapes, halfExtents=[k.get("halfExtents", [0, 0, 0]) for k in kw_v],
-        radii=[k.get("radius", 0) for k in kw_v], lengths=[k.get("length", 0) for k in kw_v],
-        visualFramePositions=poss, visualFrameOrientations=orns, rgbaColors=[rgba] * len(parts),
-        physicsClientId=cid)
+        shapeTypes=shapes,
+        halfExtents=[k.get("halfExtents", [0, 0, 0]) for k in kw_v],
+        radii=[k.get("radius", 0) for k in kw_v],
+        lengths=[k.get("length", 0) for k in kw_v],
+        visualFramePositions=poss,
+        visualFrameOrientations=orns,
+        rgbaColors=[rgba] * len(parts),
+        physicsClientId=cid,
+    )
     body = p.createMultiBody(mass, col, vis_id, pos, orn, physicsClientId=cid)
-    p.changeDynamics(body, -1, lateralFriction=friction, spinningFriction=0.002, rollingFriction=0.0005,
-                     physicsClientId=cid)
+    p.changeDynamics(
+        body, -1, lateralFriction=friction, spinningFriction=0.002, rollingFriction=0.0005, physicsClientId=cid
+    )
     return body
 
 
@@ -75,7 +92,9 @@ def vessel(cid: int, spec: VesselSpec, pos) -> int:
     for i in range(n):
         a = 2 * math.pi * (i + 0.5) / n
         c, s = math.cos(a), math.sin(a)
-        parts.append(((t / 2, side / 2, wall_h / 2), (c * r, s * r, t + wall_h / 2), p.getQuaternionFromEuler([0, 0, a])))
+        parts.append(
+            ((t / 2, side / 2, wall_h / 2), (c * r, s * r, t + wall_h / 2), p.getQuaternionFromEuler([0, 0, a]))
+        )
     if flask:
         up_h = h - low_h
         inset = r - spec.neck_radius
@@ -87,8 +106,9 @@ def vessel(cid: int, spec: VesselSpec, pos) -> int:
             a = 2 * math.pi * (i + 0.5) / n
             c, s = math.cos(a), math.sin(a)
             # Yaw to face outwards, then lean the plate about its tangent axis towards the axis of the flask.
-            q = p.multiplyTransforms([0, 0, 0], p.getQuaternionFromEuler([0, 0, a]),
-                                     [0, 0, 0], p.getQuaternionFromEuler([0, -lean, 0]))[1]
+            q = p.multiplyTransforms(
+                [0, 0, 0], p.getQuaternionFromEuler([0, 0, a]), [0, 0, 0], p.getQuaternionFromEuler([0, -lean, 0])
+            )[1]
             parts.append(((t / 2, side_up / 2, slant / 2), (c * rm, s * rm, low_h + up_h / 2), q))
     return _compound(cid, parts, spec.mass, pos, rgba=spec.rgba, friction=0.9)
 
@@ -105,8 +125,15 @@ def rod(cid: int, pos, length: float = 0.22, radius: float = 0.006, rgba=(0.85, 
 RACK_HEIGHT = 0.06
 
 
-def rack(cid: int, pos, holes: int = 3, pitch: float = 0.05, hole: float = 0.024, height: float = RACK_HEIGHT,
-         rgba=(0.55, 0.38, 0.22, 1.0)) -> int:
+def rack(
+    cid: int,
+    pos,
+    holes: int = 3,
+    pitch: float = 0.05,
+    hole: float = 0.024,
+    height: float = RACK_HEIGHT,
+    rgba=(0.55, 0.38, 0.22, 1.0),
+) -> int:
     """Test-tube rack: a base plate, two end walls and a top plate with square holes along y."""
     t = 0.006
     length = holes * pitch
@@ -148,8 +175,15 @@ def bench(cid: int, rgba=(0.82, 0.80, 0.76, 1.0), floor_rgba=(0.35, 0.35, 0.38, 
     return top, floor
 
 
-def particles(cid: int, centre, count: int, radius: float = 0.0065, mass: float = 0.002,
-              rgba=(0.2, 0.45, 0.95, 1.0), spread: float = 0.012) -> list[int]:
+def particles(
+    cid: int,
+    centre,
+    count: int,
+    radius: float = 0.0065,
+    mass: float = 0.002,
+    rgba=(0.2, 0.45, 0.95, 1.0),
+    spread: float = 0.012,
+) -> list[int]:
     """Liquid as small spheres stacked in a column above `centre` (they settle into the vessel)."""
     col = p.createCollisionShape(p.GEOM_SPHERE, radius=radius, physicsClientId=cid)
     vis = p.createVisualShape(p.GEOM_SPHERE, radius=radius, rgbaColor=rgba, physicsClientId=cid)
@@ -162,15 +196,31 @@ def particles(cid: int, centre, count: int, radius: float = 0.0065, mass: float 
         y = centre[1] + spread * math.sin(a)
         z = centre[2] + radius + 2.05 * radius * layer
         b = p.createMultiBody(mass, col, vis, [x, y, z], physicsClientId=cid)
-        p.changeDynamics(b, -1, lateralFriction=0.05, rollingFriction=0.0, spinningFriction=0.0,
-                         restitution=0.0, linearDamping=LIQUID_DAMPING, ccdSweptSphereRadius=0.8 * radius,
-                         physicsClientId=cid)
+        p.changeDynamics(
+            b,
+            -1,
+            lateralFriction=0.05,
+            rollingFriction=0.0,
+            spinningFriction=0.0,
+            restitution=0.0,
+            linearDamping=LIQUID_DAMPING,
+            ccdSweptSphereRadius=0.8 * radius,
+            physicsClientId=cid,
+        )
         ids.append(b)
     return ids
 
 
-def oven(cid: int, pos, width: float = 0.24, depth: float = 0.22, height: float = 0.18, open_angle: float = 0.0,
-         rgba=(0.88, 0.88, 0.86, 1.0), door_rgba=(0.55, 0.62, 0.68, 1.0)) -> tuple[int, int]:
+def oven(
+    cid: int,
+    pos,
+    width: float = 0.24,
+    depth: float = 0.22,
+    height: float = 0.18,
+    open_angle: float = 0.0,
+    rgba=(0.88, 0.88, 0.86, 1.0),
+    door_rgba=(0.55, 0.62, 0.68, 1.0),
+) -> tuple[int, int]:
     """Drying oven: a fixed cabinet open at the front (towards the robot, -x) closed by a door hinged on a
     vertical axis at its front right edge (seen from the robot, y < 0). A vertical round handle sits near
     the door's free edge.
@@ -188,33 +238,72 @@ def oven(cid: int, pos, width: float = 0.24, depth: float = 0.22, height: float 
         ((d2, t / 2, h / 2), (0, w2 - t / 2, h / 2)),
     ]
     body_col = p.createCollisionShapeArray(
-        shapeTypes=[p.GEOM_BOX] * 5, halfExtents=[q[0] for q in parts],
-        collisionFramePositions=[q[1] for q in parts], physicsClientId=cid)
+        shapeTypes=[p.GEOM_BOX] * 5,
+        halfExtents=[q[0] for q in parts],
+        collisionFramePositions=[q[1] for q in parts],
+        physicsClientId=cid,
+    )
     body_vis = p.createVisualShapeArray(
-        shapeTypes=[p.GEOM_BOX] * 5, halfExtents=[q[0] for q in parts],
-        visualFramePositions=[q[1] for q in parts], rgbaColors=[rgba] * 5, physicsClientId=cid)
+        shapeTypes=[p.GEOM_BOX] * 5,
+        halfExtents=[q[0] for q in parts],
+        visualFramePositions=[q[1] for q in parts],
+        rgbaColors=[rgba] * 5,
+        physicsClientId=cid,
+    )
     # Door link frame = the hinge line; the closed door plate spans +y from it, its outer face towards -x.
     hy = width - 0.035  # handle distance from the hinge along the door
     dark = (0.2, 0.2, 0.2, 1)
     d_types = [p.GEOM_BOX, p.GEOM_CYLINDER, p.GEOM_BOX, p.GEOM_BOX]
     d_he = [(t / 2, w2, h / 2 - 0.004), (0, 0, 0), (0.016, 0.006, 0.006), (0.016, 0.006, 0.006)]  # clears the bench
-    d_pos = [(-t / 2, w2, h / 2 + 0.003), HANDLE_OFFSET[:2] + (h / 2,), (-0.018, hy, h / 2 - 0.045),
-             (-0.018, hy, h / 2 + 0.045)]
-    door_col = p.createCollisionShapeArray(shapeTypes=d_types, halfExtents=d_he, radii=[0, 0.007, 0, 0],
-                                           lengths=[0, 0.11, 0, 0], collisionFramePositions=d_pos,
-                                           physicsClientId=cid)
-    door_vis = p.createVisualShapeArray(shapeTypes=d_types, halfExtents=d_he, radii=[0, 0.007, 0, 0],
-                                        lengths=[0, 0.11, 0, 0], visualFramePositions=d_pos,
-                                        rgbaColors=[door_rgba, dark, dark, dark], physicsClientId=cid)
+    d_pos = [
+        (-t / 2, w2, h / 2 + 0.003),
+        HANDLE_OFFSET[:2] + (h / 2,),
+        (-0.018, hy, h / 2 - 0.045),
+        (-0.018, hy, h / 2 + 0.045),
+    ]
+    door_col = p.createCollisionShapeArray(
+        shapeTypes=d_types,
+        halfExtents=d_he,
+        radii=[0, 0.007, 0, 0],
+        lengths=[0, 0.11, 0, 0],
+        collisionFramePositions=d_pos,
+        physicsClientId=cid,
+    )
+    door_vis = p.createVisualShapeArray(
+        shapeTypes=d_types,
+        halfExtents=d_he,
+        radii=[0, 0.007, 0, 0],
+        lengths=[0, 0.11, 0, 0],
+        visualFramePositions=d_pos,
+        rgbaColors=[door_rgba, dark, dark, dark],
+        physicsClientId=cid,
+    )
     body = p.createMultiBody(
-        0, body_col, body_vis, pos,
-        linkMasses=[0.5], linkCollisionShapeIndices=[door_col], linkVisualShapeIndices=[door_vis],
-        linkPositions=[[-d2, -w2, 0.0]], linkOrientations=[[0, 0, 0, 1]],
-        linkInertialFramePositions=[[-t / 2, w2, h / 2]], linkInertialFrameOrientations=[[0, 0, 0, 1]],
-        linkParentIndices=[0], linkJointTypes=[p.JOINT_REVOLUTE], linkJointAxis=[[0, 0, 1]],
-        physicsClientId=cid)
-    p.changeDynamics(body, 0, jointLowerLimit=0.0, jointUpperLimit=math.radians(100), lateralFriction=1.0,
-                     jointDamping=0.05, physicsClientId=cid)
+        0,
+        body_col,
+        body_vis,
+        pos,
+        linkMasses=[0.5],
+        linkCollisionShapeIndices=[door_col],
+        linkVisualShapeIndices=[door_vis],
+        linkPositions=[[-d2, -w2, 0.0]],
+        linkOrientations=[[0, 0, 0, 1]],
+        linkInertialFramePositions=[[-t / 2, w2, h / 2]],
+        linkInertialFrameOrientations=[[0, 0, 0, 1]],
+        linkParentIndices=[0],
+        linkJointTypes=[p.JOINT_REVOLUTE],
+        linkJointAxis=[[0, 0, 1]],
+        physicsClientId=cid,
+    )
+    p.changeDynamics(
+        body,
+        0,
+        jointLowerLimit=0.0,
+        jointUpperLimit=math.radians(100),
+        lateralFriction=1.0,
+        jointDamping=0.05,
+        physicsClientId=cid,
+    )
     p.resetJointState(body, 0, open_angle, physicsClientId=cid)
     # Hinge friction holds the door where it is left (a real oven door does not swing on its own).
     p.setJointMotorControl2(body, 0, p.VELOCITY_CONTROL, targetVelocity=0, force=0.8, physicsClientId=cid)
@@ -227,8 +316,9 @@ HANDLE_OFFSET = (-0.035, 0.24 - 0.035)  # handle axis in the door frame (x, y), 
 DOOR_OPEN = math.radians(80)  # the planned open angle (the plan bypasses the door's free edge)
 
 
-def handle_position(oven_pos, angle: float, depth: float = 0.22, width: float = 0.24, height: float = 0.18
-                    ) -> np.ndarray:
+def handle_position(
+    oven_pos, angle: float, depth: float = 0.22, width: float = 0.24, height: float = 0.18
+) -> np.ndarray:
     """World position of the door handle's centre for a door angle (used to plan keyframes)."""
     hinge = np.array([oven_pos[0] - depth / 2, oven_pos[1] - width / 2, oven_pos[2]])
     lx, ly = HANDLE_OFFSET
@@ -239,16 +329,28 @@ def handle_position(oven_pos, angle: float, depth: float = 0.22, width: float = 
 def button(cid: int, pos, rgba=(0.85, 0.1, 0.1, 1.0), travel: float = 0.012) -> tuple[int, int]:
     """Push button: a fixed housing and a cap on a sprung prismatic joint (spring = position motor)."""
     hcol = p.createCollisionShape(p.GEOM_BOX, halfExtents=[0.04, 0.04, 0.02], physicsClientId=cid)
-    hvis = p.createVisualShape(p.GEOM_BOX, halfExtents=[0.04, 0.04, 0.02], rgbaColor=(0.25, 0.25, 0.28, 1),
-                               physicsClientId=cid)
+    hvis = p.createVisualShape(
+        p.GEOM_BOX, halfExtents=[0.04, 0.04, 0.02], rgbaColor=(0.25, 0.25, 0.28, 1), physicsClientId=cid
+    )
     ccol = p.createCollisionShape(p.GEOM_CYLINDER, radius=0.022, height=0.02, physicsClientId=cid)
     cvis = p.createVisualShape(p.GEOM_CYLINDER, radius=0.022, length=0.02, rgbaColor=rgba, physicsClientId=cid)
-    body = p.createMultiBody(0, hcol, hvis, [pos[0], pos[1], BENCH_TOP + 0.02],
-                             linkMasses=[0.05], linkCollisionShapeIndices=[ccol], linkVisualShapeIndices=[cvis],
-                             linkPositions=[[0, 0, 0.03]], linkOrientations=[[0, 0, 0, 1]],
-                             linkInertialFramePositions=[[0, 0, 0]], linkInertialFrameOrientations=[[0, 0, 0, 1]],
-                             linkParentIndices=[0], linkJointTypes=[p.JOINT_PRISMATIC], linkJointAxis=[[0, 0, -1]],
-                             physicsClientId=cid)
+    body = p.createMultiBody(
+        0,
+        hcol,
+        hvis,
+        [pos[0], pos[1], BENCH_TOP + 0.02],
+        linkMasses=[0.05],
+        linkCollisionShapeIndices=[ccol],
+        linkVisualShapeIndices=[cvis],
+        linkPositions=[[0, 0, 0.03]],
+        linkOrientations=[[0, 0, 0, 1]],
+        linkInertialFramePositions=[[0, 0, 0]],
+        linkInertialFrameOrientations=[[0, 0, 0, 1]],
+        linkParentIndices=[0],
+        linkJointTypes=[p.JOINT_PRISMATIC],
+        linkJointAxis=[[0, 0, -1]],
+        physicsClientId=cid,
+    )
     p.changeDynamics(body, 0, jointLowerLimit=0.0, jointUpperLimit=travel, physicsClientId=cid)
     p.setJointMotorControl2(body, 0, p.POSITION_CONTROL, 0.0, force=4.0, physicsClientId=cid)
     return body, 0

@@ -10,9 +10,13 @@ import numpy as np
 import pybullet as p
 from omegaconf import OmegaConf
 
+from labrobfail_vlm.config import CONFIG_DIR
 from sim_backends.perturbations.physics import PhysicsEvent
-from sim_backends.pybullet import assets, scene as scene_mod
-from sim_backends.pybullet import templates  # noqa: F401 - registers the task templates
+from sim_backends.pybullet import (
+    assets,
+    templates,  # noqa: F401 - registers the task templates
+)
+from sim_backends.pybullet import scene as scene_mod
 from sim_backends.pybullet.plan import Plan
 from sim_backends.pybullet.render import Renderer
 from sim_backends.pybullet.robot import DT
@@ -22,8 +26,7 @@ from sim_backends.schema import NominalKeyframe, ObjectInfo, TaskMeta
 from sim_backends.source import FailureSource
 from sim_backends.types import Keyframe
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
-TASKS_FILE = REPO_ROOT / "configs" / "tasks" / "pybullet.yaml"
+TASKS_FILE = CONFIG_DIR / "tasks" / "pybullet.yaml"
 SOLVER_ITERATIONS = 50  # contact solver iterations per physics step (grasps need them: 20 drops half the grasps)
 # The solver stops early once its residual is below this (PyBullet's default 1e-7 runs all 50 iterations on
 # resting contacts): a third less time per step with the same nominal success (measured over all scenarios).
@@ -39,8 +42,9 @@ def _yaml_mapping(key: str, path: str | None) -> dict[str, Any] | None:
     if isinstance(path, dict):  # already loaded (kwargs handed on to a worker)
         return path
     pth = Path(path)
-    if not pth.is_file() and (REPO_ROOT / pth).is_file():  # (REPO_ROOT / an absolute path) is that path
-        pth = REPO_ROOT / pth  # a file shipped in the repository (configs/scenes/...), run from another directory
+    shipped = CONFIG_DIR / Path(*pth.parts[1:]) if pth.parts[:1] == ("configs",) else None
+    if not pth.is_file() and shipped is not None and shipped.is_file():
+        pth = shipped  # a file shipped with the package (configs/scenes/...), asked for from another directory
     if not pth.is_file():
         raise ValueError(f"{key}: no such file {path!r}")
     try:
@@ -52,23 +56,45 @@ def _yaml_mapping(key: str, path: str | None) -> dict[str, Any] | None:
     return data
 
 
-@register_backend("pybullet", image_size=224, cameras=["front", "side"], wrist=False, egl=False, camera_jitter=True,
-                  max_distractors=scene_mod.MAX_DISTRACTORS, lowpoly_robot=True)
+@register_backend(
+    "pybullet",
+    image_size=224,
+    cameras=["front", "side"],
+    wrist=False,
+    egl=False,
+    camera_jitter=True,
+    max_distractors=scene_mod.MAX_DISTRACTORS,
+    lowpoly_robot=True,
+)
 class PyBulletSource(ScenarioConfig, FailureSource):
     name = "pybullet"
     TASKS_FILE = TASKS_FILE
 
-    def __init__(self, image_size: int = 224, cameras: Sequence[str] = ("front", "side"), wrist: bool = False,
-                 egl: bool = False, render: bool = True, tasks_file: str | Path | None = None,
-                 custom_objects: dict[str, dict[str, Any]] | None = None,
-                 custom_scene: dict[str, Any] | None = None, camera_jitter: bool = True,
-                 max_distractors: int = scene_mod.MAX_DISTRACTORS, lowpoly_robot: bool = True):
+    def __init__(
+        self,
+        image_size: int = 224,
+        cameras: Sequence[str] = ("front", "side"),
+        wrist: bool = False,
+        egl: bool = False,
+        render: bool = True,
+        tasks_file: str | Path | None = None,
+        custom_objects: dict[str, dict[str, Any]] | None = None,
+        custom_scene: dict[str, Any] | None = None,
+        camera_jitter: bool = True,
+        max_distractors: int = scene_mod.MAX_DISTRACTORS,
+        lowpoly_robot: bool = True,
+    ):
         super().__init__()
-        self.camera_jitter, self.max_distractors, self.lowpoly_robot = camera_jitter, int(max_distractors), lowpoly_robot
+        self.camera_jitter, self.max_distractors, self.lowpoly_robot = (
+            camera_jitter,
+            int(max_distractors),
+            lowpoly_robot,
+        )
         self.cfg = self.load_task_config(tasks_file)
         self.cid = p.connect(p.DIRECT)
         if egl:
             import pkgutil
+
             egl_mod = pkgutil.get_loader("eglRenderer")
             if egl_mod is None:
                 raise ValueError("egl: the eglRenderer plugin is not available in this PyBullet build")
@@ -96,7 +122,9 @@ class PyBulletSource(ScenarioConfig, FailureSource):
                     raise ValueError(f"custom_objects: object {name!r} is missing {k!r}")
             # The Panda's fingers open to 8 cm: a wider vessel cannot be grasped at all.
             if spec["kind"] == "vessel" and not 0.01 <= float(spec["radius"]) <= 0.038:
-                raise ValueError(f"custom_objects: object {name!r} radius must be 0.01-0.038 m (the gripper opens 8 cm)")
+                raise ValueError(
+                    f"custom_objects: object {name!r} radius must be 0.01-0.038 m (the gripper opens 8 cm)"
+                )
         if not isinstance(out.get("max_distractors", 0), int) or out.get("max_distractors", 0) < 0:
             raise ValueError(f"max_distractors: must be a non-negative integer, got {out.get('max_distractors')!r}")
         scene = out["custom_scene"] = _yaml_mapping("custom_scene", kwargs.get("custom_scene"))
@@ -112,16 +140,23 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         sc = self._scenario(scenario)
         cid = self.cid
         p.resetSimulation(physicsClientId=cid)
-        p.setPhysicsEngineParameter(deterministicOverlappingPairs=1, numSolverIterations=SOLVER_ITERATIONS, fixedTimeStep=DT,
-                                    solverResidualThreshold=SOLVER_RESIDUAL, physicsClientId=cid)
+        p.setPhysicsEngineParameter(
+            deterministicOverlappingPairs=1,
+            numSolverIterations=SOLVER_ITERATIONS,
+            fixedTimeStep=DT,
+            solverResidualThreshold=SOLVER_RESIDUAL,
+            physicsClientId=cid,
+        )
         p.setGravity(0, 0, -9.81, physicsClientId=cid)
         rng = np.random.default_rng(seed)
-        self.scene = scene_mod.build(cid, sc["layout"], variant, rng, self.custom_objects, self.custom_scene,
-                                     lowpoly=self.lowpoly_robot)
+        self.scene = scene_mod.build(
+            cid, sc["layout"], variant, rng, self.custom_objects, self.custom_scene, lowpoly=self.lowpoly_robot
+        )
         self.plan = Plan(self.scene)  # from the scene's layout (object homes), not from its physics state
         task_templates(self.name)[sc["template"]].cls(self.plan, dict(sc.get("params", {})))
-        scene_mod.add_distractors(self.scene, sc["layout"], variant, rng, self.max_distractors,
-                                  [(k.pos, k.quat) for k in self.plan.keyframes])
+        scene_mod.add_distractors(
+            self.scene, sc["layout"], variant, rng, self.max_distractors, [(k.pos, k.quat) for k in self.plan.keyframes]
+        )
         if self.renderer is not None:
             self.renderer.set_episode(self.scene.appearance, rng if self.camera_jitter else None)
         for _ in range(60):  # let liquid and glassware settle before the first keyframe
@@ -213,13 +248,17 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         scene, plan = self.scene, self.plan
         assert scene is not None and plan is not None
         return TaskMeta(
-            steps=plan.steps, goals=plan.goals,
+            steps=plan.steps,
+            goals=plan.goals,
             objects={k: ObjectInfo(o.kind, o.dims, list(o.home)) for k, o in scene.objects.items()},
             places={k: list(v) for k, v in self.object_positions().items()},
             nominal=[NominalKeyframe(k.name, list(k.pos), list(k.quat), k.gripper, k.segment) for k in plan.keyframes],
-            executed=[k.name for k in executed], bench_top=assets.BENCH_TOP,
-            liquid_total={k: len(v) for k, v in scene.particles.items()}, labels=scene.labels,
-            description=self.describe(self._key[0], self.scene.labels))
+            executed=[k.name for k in executed],
+            bench_top=assets.BENCH_TOP,
+            liquid_total={k: len(v) for k, v in scene.particles.items()},
+            labels=scene.labels,
+            description=self.describe(self._key[0], self.scene.labels),
+        )
 
 
 class _Trace:
@@ -237,9 +276,12 @@ class _Trace:
         sc, cid, c = self.scene, self.scene.cid, self.cols
         r = lambda v: [round(float(x), 4) for x in v]  # noqa: E731
         pos, quat = sc.robot.ee_pose()
-        c["t"].append(round(t, 4)); c["kf"].append(kf)
-        c["ee_pos"].append(r(pos)); c["ee_quat"].append(r(quat))
-        c["width"].append(round(sc.robot.finger_width(), 4)); c["grip_cmd"].append(sc.robot.gripper_cmd)
+        c["t"].append(round(t, 4))
+        c["kf"].append(kf)
+        c["ee_pos"].append(r(pos))
+        c["ee_quat"].append(r(quat))
+        c["width"].append(round(sc.robot.finger_width(), 4))
+        c["grip_cmd"].append(sc.robot.gripper_cmd)
         for name, o in self.movables.items():
             bp, bq = p.getBasePositionAndOrientation(o.body, physicsClientId=cid)
             c.setdefault(f"{name}.pos", []).append(r(bp))
@@ -251,8 +293,10 @@ class _Trace:
         if self.all_particles:
             inside = {k: 0 for k in self.vessels}
             pts = [p.getBasePositionAndOrientation(b, physicsClientId=cid)[0] for b in self.all_particles]
-            frames = {name: p.invertTransform(*p.getBasePositionAndOrientation(o.body, physicsClientId=cid))
-                      for name, o in self.vessels.items()}  # each vessel's world -> body transform, once
+            frames = {
+                name: p.invertTransform(*p.getBasePositionAndOrientation(o.body, physicsClientId=cid))
+                for name, o in self.vessels.items()
+            }  # each vessel's world -> body transform, once
             free = 0
             for q in pts:
                 hit = None

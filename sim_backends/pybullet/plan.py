@@ -86,7 +86,7 @@ class Plan(PlanBuilder):
         """
         o = self._obj(obj)
         g = self.grip_offset(obj)
-        dx, dy = (self.scene.zones[dest][:2] if dest in self.scene.zones else o.home[:2])
+        dx, dy = self.scene.zones[dest][:2] if dest in self.scene.zones else o.home[:2]
         quat = SIDE if o.kind == "vessel" else TOP_DOWN
         zr = assets.BENCH_TOP + g[2] + 0.004
         self.step("place", object=obj, dest=dest, dest_xy=[dx, dy], returning=returning)
@@ -117,8 +117,7 @@ class Plan(PlanBuilder):
         self.kf("align", (x + g[0], ay, zc + 0.05), SIDE, 1, dest)
         self.kf("lower", (x + g[0], ay, zc), SIDE, 1, dest, speed=0.2)
         for i, ang in enumerate((0.9, 1.5, 2.0)):
-            self.kf(f"tilt{i}", (x + g[0], ay, zc), _roll(SIDE, POUR_SIGN * side * ang), 1, dest, speed=0.2,
-                    settle=40)
+            self.kf(f"tilt{i}", (x + g[0], ay, zc), _roll(SIDE, POUR_SIGN * side * ang), 1, dest, speed=0.2, settle=40)
         self.kf("upright", (x + g[0], ay, zc + 0.04), SIDE, 1, dest, speed=0.3)
 
     def shake(self, obj: str, amp: float = 0.05, n: int = 3, speed: float = 0.6) -> None:
@@ -159,8 +158,7 @@ class Plan(PlanBuilder):
         for i in range(n):
             self.kf(f"a{i}", (x, y - amp, zc), TOP_DOWN, 1, vessel, speed=0.1)
             self.kf(f"b{i}", (x, y + amp, zc), TOP_DOWN, 1, vessel, speed=0.1)
-        self.kf("out", (x, y, self._ee_z_for_bottom(obj, z + v.dims["height"] + 0.03)), TOP_DOWN, 1, vessel,
-                speed=0.2)
+        self.kf("out", (x, y, self._ee_z_for_bottom(obj, z + v.dims["height"] + 0.03)), TOP_DOWN, 1, vessel, speed=0.2)
 
     def _door_bypass(self, oven: str, z: float) -> list[tuple[float, float, float]]:
         """Waypoints around the free edge of the open door: outside face first, then the opening.
@@ -213,5 +211,10 @@ class Plan(PlanBuilder):
     def home(self) -> None:
         """A neutral pose between sub-tasks (part of the previous step)."""
         st = self.steps[-1]
-        self.kf("home", (0.4, 0.0, SAFE_Z + 0.05), SIDE if st.action != "insert" else TOP_DOWN,
-                self.keyframes[-1].gripper, self.keyframes[-1].target)
+        self.kf(
+            "home",
+            (0.4, 0.0, SAFE_Z + 0.05),
+            SIDE if st.action != "insert" else TOP_DOWN,
+            self.keyframes[-1].gripper,
+            self.keyframes[-1].target,
+        )

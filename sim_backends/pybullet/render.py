@@ -38,8 +38,10 @@ class Renderer:
     def set_episode(self, appearance: dict, rng: np.random.Generator | None) -> None:
         """Light of the scene's appearance; camera poses jittered from the episode's RNG (None: nominal poses)."""
         self.light = tuple(appearance["light"])
-        self.light_kw = {"lightAmbientCoeff": float(appearance.get("ambient", 0.6)),
-                         "lightDiffuseCoeff": float(appearance.get("diffuse", 0.35))}
+        self.light_kw = {
+            "lightAmbientCoeff": float(appearance.get("ambient", 0.6)),
+            "lightDiffuseCoeff": float(appearance.get("diffuse", 0.35)),
+        }
         for v in self.view_mats:
             eye, target, fov = CAMERAS[v]
             if rng is not None:
@@ -59,17 +61,27 @@ class Renderer:
     def matrices(self, robot_id: int) -> list[list[float]]:
         """Per view, its view matrix then its projection matrix (OpenGL column-major, 16 + 16 floats): where a
         world point lands in that view's image now (the wrist camera moves with the hand)."""
-        return [[float(x) for x in (self._wrist_view(robot_id) if v == "wrist" else self.view_mats[v])]
-                + [float(x) for x in self.projs.get(v, self.proj)] for v in self.views]
+        return [
+            [float(x) for x in (self._wrist_view(robot_id) if v == "wrist" else self.view_mats[v])]
+            + [float(x) for x in self.projs.get(v, self.proj)]
+            for v in self.views
+        ]
 
     def render(self, robot_id: int) -> list[np.ndarray]:
         out = []
         for v in self.views:
             vm = self._wrist_view(robot_id) if v == "wrist" else self.view_mats[v]
-            _, _, rgb, _, _ = p.getCameraImage(self.size, self.size, vm, self.projs.get(v, self.proj),
-                                               renderer=self.renderer, lightDirection=self.light, shadow=0,
-                                               **self.light_kw,
-                                               flags=p.ER_NO_SEGMENTATION_MASK, physicsClientId=self.cid)
+            _, _, rgb, _, _ = p.getCameraImage(
+                self.size,
+                self.size,
+                vm,
+                self.projs.get(v, self.proj),
+                renderer=self.renderer,
+                lightDirection=self.light,
+                shadow=0,
+                **self.light_kw,
+                flags=p.ER_NO_SEGMENTATION_MASK,
+                physicsClientId=self.cid,
+            )
             out.append(np.asarray(rgb, np.uint8).reshape(self.size, self.size, 4)[:, :, :3])
         return out
-

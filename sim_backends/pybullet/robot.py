@@ -20,7 +20,7 @@ FINGER_OPEN = 0.04
 REST = [0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.785]
 LOWER = [-2.9, -1.76, -2.9, -3.07, -2.9, -0.02, -2.9]
 UPPER = [2.9, 1.76, 2.9, -0.07, 2.9, 3.75, 2.9]
-RANGES = [u - l for l, u in zip(LOWER, UPPER)]
+RANGES = [hi - lo for lo, hi in zip(LOWER, UPPER)]
 DT = 1.0 / 240.0
 TURN = 2.5  # rad/s: wrist rotation rate of a keyframe move
 LIQUID_TURN = 0.8  # rad/s, while the closed gripper may hold liquid
@@ -59,11 +59,21 @@ class Panda:
             p.resetJointState(self.id, j, q, physicsClientId=client)
         for f in FINGERS:
             p.resetJointState(self.id, f, FINGER_OPEN, physicsClientId=client)
-            p.changeDynamics(self.id, f, lateralFriction=1.0, spinningFriction=0.001, frictionAnchor=True,
-                             physicsClientId=client)
+            p.changeDynamics(
+                self.id, f, lateralFriction=1.0, spinningFriction=0.001, frictionAnchor=True, physicsClientId=client
+            )
         # Couple the fingers so that a grasp closes symmetrically (independent fingers push the object off-centre).
-        c = p.createConstraint(self.id, FINGERS[0], self.id, FINGERS[1], p.JOINT_GEAR, [1, 0, 0], [0, 0, 0],
-                               [0, 0, 0], physicsClientId=client)
+        c = p.createConstraint(
+            self.id,
+            FINGERS[0],
+            self.id,
+            FINGERS[1],
+            p.JOINT_GEAR,
+            [1, 0, 0],
+            [0, 0, 0],
+            [0, 0, 0],
+            physicsClientId=client,
+        )
         p.changeConstraint(c, gearRatio=-1, erp=0.1, maxForce=50, physicsClientId=client)
         self.grip_force = grip_force
         self.gripper_cmd = 0
@@ -80,15 +90,21 @@ class Panda:
 
     def finger_contacts(self, body: int) -> int:
         """Number of fingers touching `body`."""
-        return sum(1 for f in FINGERS
-                   if p.getContactPoints(self.id, body, f, -1, physicsClientId=self.cid)
-                   or p.getContactPoints(self.id, body, f, physicsClientId=self.cid))
+        return sum(
+            1
+            for f in FINGERS
+            if p.getContactPoints(self.id, body, f, -1, physicsClientId=self.cid)
+            or p.getContactPoints(self.id, body, f, physicsClientId=self.cid)
+        )
 
     def sweep(self, poses, per_move: int = 6) -> np.ndarray:
         """Points (N x 3) that the links from the elbow to the fingertips pass through along a plan of (pos, quat)
         poses, moving in straight lines from the current pose: inverse kinematics chained as `move_to` chains it,
         no physics step. The joints are put back afterwards. Distractors keep clear of these (scene.py)."""
-        q_keep, target_keep = [p.getJointState(self.id, j, physicsClientId=self.cid)[0] for j in ARM_JOINTS], self.q_target
+        q_keep, target_keep = (
+            [p.getJointState(self.id, j, physicsClientId=self.cid)[0] for j in ARM_JOINTS],
+            self.q_target,
+        )
         cur, cur_q = self.ee_pose()
         out: list[tuple[float, float, float]] = []
         for pos, quat in poses:
@@ -99,8 +115,12 @@ class Panda:
                 self.q_target = q
                 for j, v in zip(ARM_JOINTS, q):
                     p.resetJointState(self.id, j, v, physicsClientId=self.cid)
-                out.extend(s[4] for s in p.getLinkStates(self.id, SWEEP_LINKS, computeForwardKinematics=True,
-                                                         physicsClientId=self.cid))
+                out.extend(
+                    s[4]
+                    for s in p.getLinkStates(
+                        self.id, SWEEP_LINKS, computeForwardKinematics=True, physicsClientId=self.cid
+                    )
+                )
             cur, cur_q = pos, quat
         self.q_target = target_keep
         for j, v in zip(ARM_JOINTS, q_keep):
@@ -112,21 +132,41 @@ class Panda:
         self.gripper_cmd = int(closed)
         target = 0.0 if closed else FINGER_OPEN
         for f in FINGERS:
-            p.setJointMotorControl2(self.id, f, p.POSITION_CONTROL, target, force=self.grip_force,
-                                    maxVelocity=0.2, physicsClientId=self.cid)
+            p.setJointMotorControl2(
+                self.id, f, p.POSITION_CONTROL, target, force=self.grip_force, maxVelocity=0.2, physicsClientId=self.cid
+            )
 
     def _ik(self, pos, quat) -> list[float]:
-        q = p.calculateInverseKinematics(self.id, EE_LINK, pos, quat, LOWER, UPPER, RANGES, self.q_target,
-                                         maxNumIterations=30, residualThreshold=1e-4, physicsClientId=self.cid)
+        q = p.calculateInverseKinematics(
+            self.id,
+            EE_LINK,
+            pos,
+            quat,
+            LOWER,
+            UPPER,
+            RANGES,
+            self.q_target,
+            maxNumIterations=30,
+            residualThreshold=1e-4,
+            physicsClientId=self.cid,
+        )
         return list(q[:7])
 
     def _drive_arm(self, q: list[float]) -> None:
         self.q_target = q
-        p.setJointMotorControlArray(self.id, ARM_JOINTS, p.POSITION_CONTROL, targetPositions=q,
-                                    forces=[200.0] * 7, positionGains=[0.3] * 7, physicsClientId=self.cid)
+        p.setJointMotorControlArray(
+            self.id,
+            ARM_JOINTS,
+            p.POSITION_CONTROL,
+            targetPositions=q,
+            forces=[200.0] * 7,
+            positionGains=[0.3] * 7,
+            physicsClientId=self.cid,
+        )
 
-    def move_to(self, pos, quat, speed: float, step: Callable[[], None], settle_steps: int = 0,
-                max_extra: int = 60) -> None:
+    def move_to(
+        self, pos, quat, speed: float, step: Callable[[], None], settle_steps: int = 0, max_extra: int = 60
+    ) -> None:
         """Straight-line Cartesian move (position lerp, orientation slerp) at `speed` m/s, then settle."""
         p0, q0 = self.ee_pose()
         pos = np.asarray(pos, float)

@@ -22,8 +22,14 @@ from sim_backends.pybullet.robot import Panda
 SEEN_OBJECTS: dict[str, dict[str, Any]] = {
     "beaker_small": {"kind": "vessel", "radius": 0.025, "height": 0.085, "sides": 8, "rgba": [0.70, 0.88, 0.95, 1]},
     "beaker_large": {"kind": "vessel", "radius": 0.034, "height": 0.10, "sides": 8, "rgba": [0.62, 0.84, 0.92, 1]},
-    "flask": {"kind": "vessel", "radius": 0.034, "height": 0.11, "sides": 7, "neck_radius": 0.02,
-              "rgba": [0.75, 0.90, 0.85, 1]},
+    "flask": {
+        "kind": "vessel",
+        "radius": 0.034,
+        "height": 0.11,
+        "sides": 7,
+        "neck_radius": 0.02,
+        "rgba": [0.75, 0.90, 0.85, 1],
+    },
     "bottle": {"kind": "vessel", "radius": 0.026, "height": 0.10, "sides": 6, "rgba": [0.45, 0.30, 0.15, 1]},
     "glass_rod": {"kind": "rod", "length": 0.22, "radius": 0.006, "rgba": [0.85, 0.95, 1.0, 1]},
     "test_tube": {"kind": "rod", "length": 0.12, "radius": 0.009, "rgba": [0.80, 0.93, 0.98, 1]},
@@ -33,8 +39,14 @@ SEEN_OBJECTS: dict[str, dict[str, Any]] = {
 UNSEEN_OBJECTS: dict[str, dict[str, Any]] = {
     "beaker_small": {"kind": "vessel", "radius": 0.025, "height": 0.075, "sides": 6, "rgba": [0.95, 0.75, 0.35, 1]},
     "beaker_large": {"kind": "vessel", "radius": 0.037, "height": 0.09, "sides": 10, "rgba": [0.90, 0.55, 0.70, 1]},
-    "flask": {"kind": "vessel", "radius": 0.036, "height": 0.10, "sides": 6, "neck_radius": 0.024,
-              "rgba": [0.95, 0.85, 0.40, 1]},
+    "flask": {
+        "kind": "vessel",
+        "radius": 0.036,
+        "height": 0.10,
+        "sides": 6,
+        "neck_radius": 0.024,
+        "rgba": [0.95, 0.85, 0.40, 1],
+    },
     "bottle": {"kind": "vessel", "radius": 0.024, "height": 0.09, "sides": 10, "rgba": [0.30, 0.50, 0.20, 1]},
     "glass_rod": {"kind": "rod", "length": 0.20, "radius": 0.007, "rgba": [0.95, 0.60, 0.30, 1]},
     "test_tube": {"kind": "rod", "length": 0.11, "radius": 0.010, "rgba": [0.85, 0.55, 0.95, 1]},
@@ -43,10 +55,18 @@ UNSEEN_OBJECTS: dict[str, dict[str, Any]] = {
 # Scene appearance families. Seen and unseen never overlap: their bench brightness ranges are disjoint and they
 # use different texture kinds, so an unseen-scene episode never shows a bench the model was trained on.
 SCENE_FAMILIES: dict[str, dict[str, Any]] = {
-    "seen": {"bench_value": (0.68, 0.92), "bench_sat": (0.0, 0.18), "floor_value": (0.22, 0.42),
-             "textures": ("plain", "grain", "speckle")},
-    "unseen": {"bench_value": (0.22, 0.50), "bench_sat": (0.25, 0.60), "floor_value": (0.55, 0.80),
-               "textures": ("checker", "tiles")},
+    "seen": {
+        "bench_value": (0.68, 0.92),
+        "bench_sat": (0.0, 0.18),
+        "floor_value": (0.22, 0.42),
+        "textures": ("plain", "grain", "speckle"),
+    },
+    "unseen": {
+        "bench_value": (0.22, 0.50),
+        "bench_sat": (0.25, 0.60),
+        "floor_value": (0.55, 0.80),
+        "textures": ("checker", "tiles"),
+    },
 }
 PLACEMENT_JITTER = 0.035  # m: objects and zones move by up to this much in x and y (times their `jitter`)
 MAX_DISTRACTORS = 3  # glassware on the bench that is not part of the task
@@ -68,12 +88,18 @@ def draw_appearance(variant: str, rng: np.random.Generator) -> dict[str, Any]:
     """Bench and floor colours, bench texture and light of one episode (seeded)."""
     fam = SCENE_FAMILIES["unseen" if variant in ("unseen_scene", "unseen_both") else "seen"]
     az, el = rng.uniform(0, 2 * math.pi), rng.uniform(math.radians(35), math.radians(80))
-    return {"bench": _rgb(rng, fam["bench_value"], fam["bench_sat"]),
-            "floor": _rgb(rng, fam["floor_value"], (0.0, 0.3)),
-            "texture": str(fam["textures"][int(rng.integers(len(fam["textures"])))]),
-            "light": [round(2 * math.cos(el) * math.cos(az), 3), round(2 * math.cos(el) * math.sin(az), 3),
-                      round(2 * math.sin(el), 3)],
-            "ambient": round(float(rng.uniform(0.5, 0.7)), 3), "diffuse": round(float(rng.uniform(0.3, 0.5)), 3)}
+    return {
+        "bench": _rgb(rng, fam["bench_value"], fam["bench_sat"]),
+        "floor": _rgb(rng, fam["floor_value"], (0.0, 0.3)),
+        "texture": str(fam["textures"][int(rng.integers(len(fam["textures"])))]),
+        "light": [
+            round(2 * math.cos(el) * math.cos(az), 3),
+            round(2 * math.cos(el) * math.sin(az), 3),
+            round(2 * math.sin(el), 3),
+        ],
+        "ambient": round(float(rng.uniform(0.5, 0.7)), 3),
+        "diffuse": round(float(rng.uniform(0.3, 0.5)), 3),
+    }
 
 
 # `vary` names in a custom scene -> the appearance keys drawn for them (draw_appearance)
@@ -155,8 +181,15 @@ def _seg_dist(q: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
     return float(np.linalg.norm(q - (a + t * ab)))
 
 
-def place_distractors(cid: int, objects: dict[str, "SceneObject"], zones: dict[str, tuple], variant: str,
-                      rng: np.random.Generator, count: int, sweep: np.ndarray | None = None) -> dict[str, int]:
+def place_distractors(
+    cid: int,
+    objects: dict[str, "SceneObject"],
+    zones: dict[str, tuple],
+    variant: str,
+    rng: np.random.Generator,
+    count: int,
+    sweep: np.ndarray | None = None,
+) -> dict[str, int]:
     """Up to `count` vessels from the variant's catalogue, clear of the task's objects, zones and paths.
 
     They stand away from every object and zone, from the straight lines between them, from the approach
@@ -168,7 +201,7 @@ def place_distractors(cid: int, objects: dict[str, "SceneObject"], zones: dict[s
     table = UNSEEN_OBJECTS if variant in ("unseen_object", "unseen_both") else SEEN_OBJECTS
     kinds = sorted(k for k, v in table.items() if v["kind"] == "vessel")
     items = [np.asarray(o.home[:2]) for o in objects.values()] + [np.asarray(z[:2]) for z in zones.values()]
-    segs = [(a, b) for i, a in enumerate(items) for b in items[i + 1:]]
+    segs = [(a, b) for i, a in enumerate(items) for b in items[i + 1 :]]
     # The hand comes in along +x with the forearm trailing low behind it, at every object it grasps and every
     # zone it places on: keep those corridors clear (a distractor behind a target zone blocked the lowering).
     segs += [(it - [ARM_CORRIDOR, 0], it) for it in items]
@@ -179,15 +212,25 @@ def place_distractors(cid: int, objects: dict[str, "SceneObject"], zones: dict[s
         kind = kinds[int(rng.integers(len(kinds)))]
         for _ in range(40):
             q = np.array([rng.uniform(0.30, 0.78), rng.uniform(-0.40, 0.40)])
-            if (all(np.linalg.norm(q - it) >= DISTRACTOR_CLEARANCE for it in items)
-                    and all(_seg_dist(q, a, b) >= 0.08 for a, b in segs)
-                    and all(np.linalg.norm(q - ov) >= 0.32 for ov in ovens)
-                    and (not len(low) or float(np.min(np.linalg.norm(low - q, axis=1))) >= SWEEP_CLEARANCE)
-                    and all(np.linalg.norm(q - np.asarray(p.getBasePositionAndOrientation(b, physicsClientId=cid)[0][:2])) >= 0.09
-                            for b in out.values())):
+            if (
+                all(np.linalg.norm(q - it) >= DISTRACTOR_CLEARANCE for it in items)
+                and all(_seg_dist(q, a, b) >= 0.08 for a, b in segs)
+                and all(np.linalg.norm(q - ov) >= 0.32 for ov in ovens)
+                and (not len(low) or float(np.min(np.linalg.norm(low - q, axis=1))) >= SWEEP_CLEARANCE)
+                and all(
+                    np.linalg.norm(q - np.asarray(p.getBasePositionAndOrientation(b, physicsClientId=cid)[0][:2]))
+                    >= 0.09
+                    for b in out.values()
+                )
+            ):
                 od = table[kind]
-                vs = assets.VesselSpec(radius=od["radius"], height=od["height"], sides=int(od.get("sides", 8)),
-                                       neck_radius=float(od.get("neck_radius", 0.0)), rgba=tuple(od["rgba"]))
+                vs = assets.VesselSpec(
+                    radius=od["radius"],
+                    height=od["height"],
+                    sides=int(od.get("sides", 8)),
+                    neck_radius=float(od.get("neck_radius", 0.0)),
+                    rgba=tuple(od["rgba"]),
+                )
                 body = assets.vessel(cid, vs, (float(q[0]), float(q[1]), assets.BENCH_TOP))
                 # A resting distractor sleeps (no solver work) until something touches it.
                 p.changeDynamics(body, -1, activationState=p.ACTIVATION_STATE_ENABLE_SLEEPING, physicsClientId=cid)
@@ -197,8 +240,14 @@ def place_distractors(cid: int, objects: dict[str, "SceneObject"], zones: dict[s
 
 
 # Words for the objects in task descriptions and correction instructions (custom objects may set `label`).
-OBJECT_LABELS = {"beaker_small": "small beaker", "beaker_large": "large beaker", "flask": "Erlenmeyer flask",
-                 "bottle": "reagent bottle", "glass_rod": "glass rod", "test_tube": "test tube"}
+OBJECT_LABELS = {
+    "beaker_small": "small beaker",
+    "beaker_large": "large beaker",
+    "flask": "Erlenmeyer flask",
+    "bottle": "reagent bottle",
+    "glass_rod": "glass rod",
+    "test_tube": "test tube",
+}
 KIND_LABELS = {"oven": "drying oven", "button": "button", "rack": "test tube rack", "zone": "target area"}
 
 
@@ -211,14 +260,24 @@ def resolve_object(kind_name: str, variant: str, custom: dict[str, dict[str, Any
     return table[kind_name]
 
 
-def build(cid: int, layout: dict[str, Any], variant: str, rng: np.random.Generator,
-          custom_objects: dict[str, dict[str, Any]] | None = None,
-          custom_scene: dict[str, Any] | None = None, grip_force: float = 60.0,
-          lowpoly: bool = True) -> Scene:
+def build(
+    cid: int,
+    layout: dict[str, Any],
+    variant: str,
+    rng: np.random.Generator,
+    custom_objects: dict[str, dict[str, Any]] | None = None,
+    custom_scene: dict[str, Any] | None = None,
+    grip_force: float = 60.0,
+    lowpoly: bool = True,
+) -> Scene:
     """Create the scene described by a scenario's `layout` (role -> {object, xy, ...})."""
     if custom_scene is not None:  # a user's scene file: fixed colours and light; texture optional
-        appearance = {"texture": "checker" if custom_scene.get("checker") else "plain", "ambient": 0.6,
-                      "diffuse": 0.35, **custom_scene}
+        appearance = {
+            "texture": "checker" if custom_scene.get("checker") else "plain",
+            "ambient": 0.6,
+            "diffuse": 0.35,
+            **custom_scene,
+        }
         if custom_scene.get("vary"):  # these factors are drawn per episode as in the wide world, the rest stay fixed
             drawn = draw_appearance(variant, rng)
             appearance.update({k: drawn[k] for k in vary_keys(custom_scene["vary"])})
@@ -239,8 +298,12 @@ def build(cid: int, layout: dict[str, Any], variant: str, rng: np.random.Generat
             continue
         if "object" in spec:
             od0 = resolve_object(spec["object"], variant, custom_objects)
-            labels[role] = str(spec.get("label") or od0.get("label") or OBJECT_LABELS.get(spec["object"])
-                               or spec["object"].replace("_", " "))
+            labels[role] = str(
+                spec.get("label")
+                or od0.get("label")
+                or OBJECT_LABELS.get(spec["object"])
+                or spec["object"].replace("_", " ")
+            )
         else:
             labels[role] = str(spec.get("label") or KIND_LABELS.get(spec.get("kind", ""), role.replace("_", " ")))
         xy = np.asarray(spec["xy"], float) + rng.uniform(-jitter, jitter, 2) * float(spec.get("jitter", 1.0))
@@ -271,13 +334,19 @@ def build(cid: int, layout: dict[str, Any], variant: str, rng: np.random.Generat
         od = resolve_object(spec["object"], variant, custom_objects)
         z0 = float(spec.get("z", 0.0)) + assets.BENCH_TOP
         if od["kind"] == "vessel":
-            vs = assets.VesselSpec(radius=od["radius"], height=od["height"], sides=int(od.get("sides", 8)),
-                                   neck_radius=float(od.get("neck_radius", 0.0)), rgba=tuple(od["rgba"]),
-                                   mass=float(od.get("mass", 0.12)))
+            vs = assets.VesselSpec(
+                radius=od["radius"],
+                height=od["height"],
+                sides=int(od.get("sides", 8)),
+                neck_radius=float(od.get("neck_radius", 0.0)),
+                rgba=tuple(od["rgba"]),
+                mass=float(od.get("mass", 0.12)),
+            )
             pos = (float(xy[0]), float(xy[1]), z0)
             body = assets.vessel(cid, vs, pos)
-            objects[role] = SceneObject(role, "vessel", body, pos,
-                                        {"radius": vs.radius, "height": vs.height, "neck": vs.neck_radius})
+            objects[role] = SceneObject(
+                role, "vessel", body, pos, {"radius": vs.radius, "height": vs.height, "neck": vs.neck_radius}
+            )
             n = int(spec.get("liquid", 0))
             if n:
                 parts[role] = assets.particles(cid, (pos[0], pos[1], z0 + 0.006), n)
@@ -296,8 +365,9 @@ def build(cid: int, layout: dict[str, Any], variant: str, rng: np.random.Generat
     return Scene(cid, robot, objects, zones, parts, appearance, bench_id, labels)
 
 
-def add_distractors(scene: Scene, layout: dict[str, Any], variant: str, rng: np.random.Generator,
-                    max_distractors: int, plan_poses: list) -> None:
+def add_distractors(
+    scene: Scene, layout: dict[str, Any], variant: str, rng: np.random.Generator, max_distractors: int, plan_poses: list
+) -> None:
     """0..max_distractors glassware vessels that the nominal plan's arm never comes near (`Panda.sweep`)."""
     n = int(rng.integers(max_distractors + 1)) if layout.get("_distractors", True) else 0
     if n:

@@ -11,23 +11,32 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.config import CONFIG_DIR, ConfigError
 from labrobfail_vlm.config import load_config as _load_config
-from data.shards import episode_row, manifest, read_labels, write_shard
 from labrobfail_vlm.io import atomic_write_json
 from labrobfail_vlm.taxonomy import SCENE_VARIANTS
+from sim_backends.shards import episode_row, manifest, read_labels, write_shard
 
-DEFAULTS = Path(__file__).resolve().parents[1] / "configs" / "generate.yaml"
+DEFAULTS = CONFIG_DIR / "generate.yaml"
 # Keys that define the data; changing any of them in an existing out_dir is refused.
-IDENTITY_KEYS = ("backend", "num_episodes", "seed", "episodes_per_shard", "variant", "scenarios", "image_size",
-                 "cameras", "backend_kwargs", "render_frames")
+IDENTITY_KEYS = (
+    "backend",
+    "num_episodes",
+    "seed",
+    "episodes_per_shard",
+    "variant",
+    "scenarios",
+    "image_size",
+    "cameras",
+    "backend_kwargs",
+    "render_frames",
+)
 
 
 def load_config(dotlist: list[str]) -> DictConfig:
@@ -47,7 +56,9 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
     for key in ("num_episodes", "workers", "episodes_per_shard", "image_size"):
         v = cfg[key]
         if not isinstance(v, int) or isinstance(v, bool) or v < (0 if key == "num_episodes" else 1):
-            raise ConfigError(f"{key}: must be a {'non-negative' if key == 'num_episodes' else 'positive'} integer, got {v!r}")
+            raise ConfigError(
+                f"{key}: must be a {'non-negative' if key == 'num_episodes' else 'positive'} integer, got {v!r}"
+            )
     rf = cfg.render_frames
     if rf is not None and (not isinstance(rf, int) or isinstance(rf, bool) or rf < 1):
         raise ConfigError(f"render_frames: must be a positive integer or null (every keyframe), got {rf!r}")
@@ -91,7 +102,9 @@ def _own_section(cfg: DictConfig) -> dict[str, Any]:
     from_preset = set(preset.get("backend_kwargs") or {})
     for k, v in section.items():
         if k not in takes and v != defaults.get(k):
-            why = f" (preset={cfg.preset} sets it: that world is not made for {cfg.backend})" if k in from_preset else ""
+            why = (
+                f" (preset={cfg.preset} sets it: that world is not made for {cfg.backend})" if k in from_preset else ""
+            )
             raise ConfigError(f"backend_kwargs.{k}: not an option of the {cfg.backend} backend{why}")
     return {k: v for k, v in section.items() if k in takes}
 
@@ -110,8 +123,11 @@ def _upgrade_identity(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any
     if "backend_kwargs" not in old:
         legacy = {k: old.get(k) for k in ("wrist", "custom_objects", "custom_scene")}
         old = {**old, "backend_kwargs": {**(new["backend_kwargs"] or {}), **legacy}}
-    return {**old, "backend_kwargs": {**_default_backend_kwargs(), **(old["backend_kwargs"] or {})},
-            "backend_files": old.get("backend_files", new["backend_files"])}
+    return {
+        **old,
+        "backend_kwargs": {**_default_backend_kwargs(), **(old["backend_kwargs"] or {})},
+        "backend_files": old.get("backend_files", new["backend_files"]),
+    }
 
 
 def scenario_order(scenarios: list[str], seed: int, pairs: int, repeats: dict[str, int] | None = None) -> list[str]:
@@ -147,16 +163,32 @@ def labelable_pair(src, scenario: str, seed: int, j: int, variant: str) -> tuple
         s = pair_seed(seed, j, a)
         nominal = run_nominal(src, scenario, s, variant)
         if not nominal.labels.success:
-            records.append({"kind": "nominal_redraw", "pair": j, "scenario": scenario, "seed": s,
-                            "reason": nominal.labels.failure_type or "unexplained",
-                            "evidence": nominal.labels.evidence})
+            records.append(
+                {
+                    "kind": "nominal_redraw",
+                    "pair": j,
+                    "scenario": scenario,
+                    "seed": s,
+                    "reason": nominal.labels.failure_type or "unexplained",
+                    "evidence": nominal.labels.evidence,
+                }
+            )
             continue
         for d in range(MAX_DRAWS):
             injected = run_injected(src, scenario, s, variant, d)
             if injected.labels.explained:
                 return nominal, injected, records
-            records.append({"kind": "left_out", "pair": j, "scenario": scenario, "seed": s, "draw": d,
-                            "perturbation": injected.perturbation, "evidence": injected.labels.evidence})
+            records.append(
+                {
+                    "kind": "left_out",
+                    "pair": j,
+                    "scenario": scenario,
+                    "seed": s,
+                    "draw": d,
+                    "perturbation": injected.perturbation,
+                    "evidence": injected.labels.evidence,
+                }
+            )
         break
     records.append({"kind": "given_up", "pair": j, "scenario": scenario})
     return None, None, records
@@ -169,8 +201,16 @@ def shard_jobs(cfg: DictConfig, scenarios: list[str], repeats: dict[str, int] | 
     for k in range(math.ceil(n / per)):
         lo, hi = k * per, min(n, (k + 1) * per)
         pairs = [(j, order[j]) for j in range(lo // 2, math.ceil(hi / 2))]  # seeds: labelable_pair draws them
-        jobs.append({"shard": k, "lo": lo, "hi": hi, "pairs": pairs, "seed": int(cfg.seed),
-                     "render_frames": cfg.get("render_frames")})
+        jobs.append(
+            {
+                "shard": k,
+                "lo": lo,
+                "hi": hi,
+                "pairs": pairs,
+                "seed": int(cfg.seed),
+                "render_frames": cfg.get("render_frames"),
+            }
+        )
     return jobs
 
 
@@ -228,10 +268,14 @@ def _star_run_shard(a: tuple) -> int:
 def _run_ray(jobs, cfg, kwargs) -> Iterator[int]:
     import ray
 
-    root = str(Path(__file__).resolve().parents[1])
-    ray.init(address=cfg.ray_address, num_cpus=None if cfg.ray_address else cfg.workers,
-             runtime_env={"env_vars": {"PYTHONPATH": root}}, include_dashboard=False,
-             ignore_reinit_error=True, log_to_driver=False)
+    # workers import sim_backends from the installed package (pip install on every node of a cluster)
+    ray.init(
+        address=cfg.ray_address,
+        num_cpus=None if cfg.ray_address else cfg.workers,
+        include_dashboard=False,
+        ignore_reinit_error=True,
+        log_to_driver=False,
+    )
     remote = ray.remote(num_cpus=1)(run_shard)
     pending = [remote.remote(job, cfg.backend, kwargs, cfg.variant, cfg.out_dir) for job in jobs]
     try:
@@ -256,12 +300,16 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
         old = _upgrade_identity(json.loads(run_file.read_text()), identity)
         diff = [k for k in IDENTITY_KEYS if old.get(k) != identity[k]]
         if diff:
-            raise ConfigError(f"{diff[0]}: out_dir {cfg.out_dir!r} holds a run with {diff[0]}={old.get(diff[0])!r}; "
-                              "use a new out_dir (nothing was changed)")
+            raise ConfigError(
+                f"{diff[0]}: out_dir {cfg.out_dir!r} holds a run with {diff[0]}={old.get(diff[0])!r}; "
+                "use a new out_dir (nothing was changed)"
+            )
         edited = [k for k, v in identity["backend_files"].items() if old["backend_files"].get(k) != v]
         if edited:
-            raise ConfigError(f"backend_kwargs.{edited[0]}: the file {identity['backend_kwargs'][edited[0]]!r} changed "
-                              f"since out_dir {cfg.out_dir!r} was started; use a new out_dir (nothing was changed)")
+            raise ConfigError(
+                f"backend_kwargs.{edited[0]}: the file {identity['backend_kwargs'][edited[0]]!r} changed "
+                f"since out_dir {cfg.out_dir!r} was started; use a new out_dir (nothing was changed)"
+            )
     else:
         atomic_write_json(run_file, identity, indent=2)
     for stale in out.glob("*.tmp"):  # leftovers of a killed run; their shard is simply redone
@@ -271,17 +319,60 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
     jobs = shard_jobs(cfg, scenarios, repeats)
     todo = [j for j in jobs if not (out / f"shard-{j['shard']:05d}.parquet").exists()]
     done_eps = sum(j["hi"] - j["lo"] for j in jobs) - sum(j["hi"] - j["lo"] for j in todo)
-    bar = tqdm(total=int(cfg.num_episodes), initial=done_eps, unit="ep", disable=not cfg.progress,
-               desc=f"{cfg.backend}:{cfg.variant}")
+    bar = tqdm(
+        total=int(cfg.num_episodes),
+        initial=done_eps,
+        unit="ep",
+        disable=not cfg.progress,
+        desc=f"{cfg.backend}:{cfg.variant}",
+    )
     runner = _run_ray if cfg.executor == "ray" else _run_process
     for n in runner(todo, cfg, kwargs):
         bar.update(n)
     bar.close()
     shards = sorted(out.glob("shard-*.parquet"))
     rows = read_labels(shards)
-    records = [r for s in shards for r in json.loads(s.with_suffix(".rejects.json").read_text())
-               ] if all(s.with_suffix(".rejects.json").exists() for s in shards) else None
-    man = manifest(rows, {"backend": cfg.backend, "variant": cfg.variant, "seed": int(cfg.seed),
-                          "shards": [s.name for s in shards], "scenarios": scenarios}, records)
+    records = (
+        [r for s in shards for r in json.loads(s.with_suffix(".rejects.json").read_text())]
+        if all(s.with_suffix(".rejects.json").exists() for s in shards)
+        else None
+    )
+    man = manifest(
+        rows,
+        {
+            "backend": cfg.backend,
+            "variant": cfg.variant,
+            "seed": int(cfg.seed),
+            "shards": [s.name for s in shards],
+            "scenarios": scenarios,
+        },
+        records,
+    )
     atomic_write_json(out / "manifest.json", man, indent=2)
     return man
+
+
+def main(argv: list[str]) -> int:
+    man = generate(load_config(argv))
+    print(json.dumps({k: man[k] for k in ("episodes", "by_outcome", "by_failure_type", "by_action", "by_horizon")}))
+    return 0
+
+
+def cli() -> None:
+    """The `labrobfail-generate` console script (and scripts/generate.py)."""
+    from labrobfail_vlm.config import cli_main
+
+    cli_main(main, GENERATE_DOC)
+
+
+GENERATE_DOC = """Generate labeled failure/success episode pairs into Parquet shards (scripts/generate.py,
+labrobfail-generate).
+
+Run as:
+    python scripts/generate.py backend=pybullet num_episodes=200 out_dir=outputs/shards seed=0 workers=2
+    python scripts/generate.py --num-episodes 100 --out-dir outputs/unseen --variant unseen_both
+    labrobfail-generate num_episodes=1000 out_dir=outputs/big executor=ray workers=8
+
+Rerunning the same command after a kill resumes; DIR/manifest.json summarises the run. Defaults:
+configs/generate.yaml.
+"""

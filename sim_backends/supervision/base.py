@@ -18,11 +18,17 @@ from PIL import Image
 
 from labrobfail_vlm.grid import GridConfig, build_grid, sample_keyframes
 from labrobfail_vlm.registry import Registry
-from policies.base import EpisodeContext
+from sim_backends.policies.base import EpisodeContext
 from sim_backends.source import FailureSource
 
-SUPERVISORS = Registry("supervisor", lazy={"none": "supervision.oracle", "oracle": "supervision.oracle",
-                                           "vlm": "supervision.vlm"})
+SUPERVISORS = Registry(
+    "supervisor",
+    lazy={
+        "none": "sim_backends.supervision.oracle",
+        "oracle": "sim_backends.supervision.oracle",
+        "vlm": "sim_backends.supervision.vlm",
+    },
+)
 register_supervisor = SUPERVISORS.register
 
 
@@ -42,9 +48,15 @@ class Verdict:
     grid: Image.Image | None = None  # what the supervisor looked at (VLM)
 
     def to_log(self) -> dict[str, Any]:
-        return {"failure": self.failure, "failure_type": self.failure_type, "failure_keyframe": self.failure_keyframe,
-                "correction": self.correction, "strategy": self.strategy, "primitives": self.primitives,
-                "diagnosis": self.diagnosis}
+        return {
+            "failure": self.failure,
+            "failure_type": self.failure_type,
+            "failure_keyframe": self.failure_keyframe,
+            "correction": self.correction,
+            "strategy": self.strategy,
+            "primitives": self.primitives,
+            "diagnosis": self.diagnosis,
+        }
 
 
 class Supervisor(ABC):
@@ -83,12 +95,14 @@ def live_grid(src: FailureSource, nominal: list, cfg: GridConfig) -> LiveGrid:
     units = [i for i in range(len(done)) if i == len(done) - 1 or done[i + 1].name != done[i].name]
     names = [k.name for k in nominal]
     last = done[units[-1]].name if units else None
-    rest = nominal[len(names) - names[::-1].index(last):] if last in names else nominal[len(units):]
+    rest = nominal[len(names) - names[::-1].index(last) :] if last in names else nominal[len(units) :]
     segments = [done[i].segment for i in units] + [k.segment for k in rest]
     picks = sample_keyframes(segments, cfg.max_frames)
     shown = [p for p in picks if p < len(units)]
     pngs = src.images_so_far()
     blank = np.zeros((8, 8, 3), np.uint8)
-    views = [[Image.open(io.BytesIO(view[units[p]])).convert("RGB") if p < len(units) else blank for p in picks]
-             for view in pngs]
+    views = [
+        [Image.open(io.BytesIO(view[units[p]])).convert("RGB") if p < len(units) else blank for p in picks]
+        for view in pngs
+    ]
     return LiveGrid(build_grid(views, cfg, visible=len(shown)), [units[p] for p in shown], len(shown))

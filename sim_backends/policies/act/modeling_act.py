@@ -20,7 +20,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from policies.act.configuration_act import ACTConfig
+from sim_backends.policies.act.configuration_act import ACTConfig
 
 
 def sine_table(n: int, dim: int) -> Tensor:
@@ -37,7 +37,9 @@ def sine_2d(h: int, w: int, dim: int) -> Tensor:
     """2-D sinusoidal embeddings of an h x w feature map, flattened row-major: (h*w, dim)."""
     half = dim // 2
     ys, xs = sine_table(h, half), sine_table(w, dim - half)
-    return torch.cat([ys[:, None, :].expand(h, w, half), xs[None, :, :].expand(h, w, dim - half)], -1).reshape(h * w, dim)
+    return torch.cat([ys[:, None, :].expand(h, w, half), xs[None, :, :].expand(h, w, dim - half)], -1).reshape(
+        h * w, dim
+    )
 
 
 class Backbone(nn.Module):
@@ -102,8 +104,14 @@ class ACTModel(nn.Module):
         _, d, h, w = feats.shape
         tokens = feats.flatten(2).transpose(1, 2).reshape(b, v, h * w, d)
         tokens = tokens + sine_2d(h, w, d).to(tokens)[None, None] + self.camera_embed[None, :v, None]
-        x = torch.cat([(self.latent_in(z) + self.token_pos[0])[:, None], (self.state_in(state) + self.token_pos[1])[:, None],
-                       tokens.reshape(b, v * h * w, d)], 1)
+        x = torch.cat(
+            [
+                (self.latent_in(z) + self.token_pos[0])[:, None],
+                (self.state_in(state) + self.token_pos[1])[:, None],
+                tokens.reshape(b, v * h * w, d),
+            ],
+            1,
+        )
         memory = self.encoder(x)
         out = self.decoder(self.queries[None].expand(b, -1, -1), memory)
         return self.action_head(out)

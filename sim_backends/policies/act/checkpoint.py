@@ -6,7 +6,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from policies.act.configuration_act import ACTConfig
+from sim_backends.policies.act.configuration_act import ACTConfig
 
 WEIGHTS, CONFIG = "model.safetensors", "act.json"
 
@@ -28,7 +28,7 @@ def load_checkpoint(path: str | Path, device: str = "cpu", key: str = "act.check
     from safetensors import SafetensorError
     from safetensors.torch import load_file
 
-    from policies.act.modeling_act import ACTModel
+    from sim_backends.policies.act.modeling_act import ACTModel
 
     p = Path(path) if path else None
     if p is None or not p.is_dir():

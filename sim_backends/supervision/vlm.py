@@ -2,8 +2,8 @@
 
 Q6 is decoded in template mode (the paper's correction-strategy table filled with the scene's names), so
 every correction it gives maps to primitives. The model names a category (Q5), not a fine-grained type: the
-verdict's `failure_type` stays None and the diagnosis carries the category. A failure whose grid frame lies at or before the last
-correction is taken as already handled.
+verdict's `failure_type` stays None and the diagnosis carries the category. A failure whose grid frame lies at or
+before the last correction is taken as already handled.
 """
 
 from __future__ import annotations
@@ -13,15 +13,21 @@ from typing import Any
 
 from labrobfail_vlm.config import ConfigError
 from sim_backends.source import FailureSource
-from supervision.base import Supervisor, Verdict, live_grid, register_supervisor
+from sim_backends.supervision.base import Supervisor, Verdict, live_grid, register_supervisor
 
 
 @register_supervisor("vlm")
 class VLMSupervisor(Supervisor):
     name = "vlm"
 
-    def __init__(self, model: str | None = None, q6_mode: str = "template", device: str | None = None,
-                 analyzer: Any = None, threshold: float = 0.5):
+    def __init__(
+        self,
+        model: str | None = None,
+        q6_mode: str = "template",
+        device: str | None = None,
+        analyzer: Any = None,
+        threshold: float = 0.5,
+    ):
         from labrobfail_vlm.analyzer import FailureAnalyzer, check_threshold
 
         try:
@@ -40,6 +46,13 @@ class VLMSupervisor(Supervisor):
         d = self.fa.analyze(g.image, task=self.ctx.instruction, frames=max(1, g.visible), objects=self.ctx.objects)
         kf = g.keyframes[d.failure_frame - 1] if d.failure and d.failure_frame and g.keyframes else None
         new = d.failure and (kf is None or kf > self.handled_upto)
-        return Verdict(bool(new), None, kf, d.correction if new else "",
-                       d.correction_strategy if new else None, list(d.primitives or []) if new else [],
-                       {k: v for k, v in d.__dict__.items() if k != "raw"} | {"raw": d.raw}, g.image)
+        return Verdict(
+            bool(new),
+            None,
+            kf,
+            d.correction if new else "",
+            d.correction_strategy if new else None,
+            list(d.primitives or []) if new else [],
+            {k: v for k, v in d.__dict__.items() if k != "raw"} | {"raw": d.raw},
+            g.image,
+        )

@@ -25,13 +25,13 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from policies.base import Action, EpisodeContext, Policy, PolicyError
+from labrobfail_vlm.grid import GridConfig
 from sim_backends.executor import CorrectionExecutor
 from sim_backends.goals import failed_goals
+from sim_backends.policies.base import Action, EpisodeContext, Policy, PolicyError
 from sim_backends.source import FailureSource, Observation
+from sim_backends.supervision.base import Supervisor, live_grid
 from sim_backends.types import Episode, Keyframe, rotation_angle
-from supervision.base import Supervisor, live_grid
-from labrobfail_vlm.grid import GridConfig
 
 REACH_POS, REACH_ROT = 0.02, 0.25  # m, rad: a target this close to a plan keyframe is that keyframe
 
@@ -76,8 +76,11 @@ class TaskFamily:
 
 
 def _matches(pos: Any, quat: Any, grip: int, k: Keyframe) -> bool:
-    return float(np.linalg.norm(np.asarray(pos) - np.asarray(k.pos))) < REACH_POS \
-        and rotation_angle(tuple(quat), k.quat) < REACH_ROT and int(grip) == k.gripper
+    return (
+        float(np.linalg.norm(np.asarray(pos) - np.asarray(k.pos))) < REACH_POS
+        and rotation_angle(tuple(quat), k.quat) < REACH_ROT
+        and int(grip) == k.gripper
+    )
 
 
 class PhaseTracker:
@@ -101,15 +104,27 @@ class PhaseTracker:
             ahead = range(self.c + 1, min(self.c + 4, len(self.nominal)))
             i = next((q for q in ahead if _matches(a.pos, a.quat, a.gripper, self.nominal[q])), -1)
             if i < 0:
-                i = self.c if self.c >= 0 and _matches(a.pos, a.quat, a.gripper, self.nominal[self.c]) else \
-                    min(self.c + 1, len(self.nominal) - 1)
+                i = (
+                    self.c
+                    if self.c >= 0 and _matches(a.pos, a.quat, a.gripper, self.nominal[self.c])
+                    else min(self.c + 1, len(self.nominal) - 1)
+                )
             if state is not None and not settle and int(a.gripper) != int(state["grip_cmd"]):
                 settle = 50 if a.gripper else 40
         if named or _matches(a.pos, a.quat, a.gripper, self.nominal[i]):
             self.c = max(self.c, i)
         base = self.nominal[i]
-        return Keyframe(base.name, tuple(map(float, a.pos)), tuple(map(float, a.quat)), int(a.gripper), base.target,
-                        base.segment, base.action, float(a.speed), settle)
+        return Keyframe(
+            base.name,
+            tuple(map(float, a.pos)),
+            tuple(map(float, a.quat)),
+            int(a.gripper),
+            base.target,
+            base.segment,
+            base.action,
+            float(a.speed),
+            settle,
+        )
 
 
 class RunLog:
@@ -125,8 +140,10 @@ class RunLog:
         self.f.flush()
 
     def grid(self, img: Any, stem: str) -> str:
-        from labrobfail_vlm.io import atomic_write_bytes
         import io
+
+        from labrobfail_vlm.io import atomic_write_bytes
+
         buf = io.BytesIO()
         img.save(buf, format="PNG")
         rel = f"grids/{stem}.png"
@@ -139,9 +156,19 @@ class RunLog:
 
 def episode_context(src: FailureSource, family: TaskFamily, scenario: str, seed: int, variant: str) -> EpisodeContext:
     meta = src.task_meta([])
-    return EpisodeContext(src.name, scenario, seed, variant, meta.description, family.plan(src.scripted_keyframes()),
-                          src.object_positions(), list(src.scenario_info(scenario)["perturbations"]),
-                          sorted(set(meta.labels.values())), list(src.camera_names), family.goals)
+    return EpisodeContext(
+        src.name,
+        scenario,
+        seed,
+        variant,
+        meta.description,
+        family.plan(src.scripted_keyframes()),
+        src.object_positions(),
+        list(src.scenario_info(scenario)["perturbations"]),
+        sorted(set(meta.labels.values())),
+        list(src.camera_names),
+        family.goals,
+    )
 
 
 @dataclass
@@ -155,9 +182,19 @@ class _Trial:
     corrected: bool = False  # the last query's correction ran
 
 
-def _act(src: FailureSource, policy: Policy, supervisor: Supervisor, executor: CorrectionExecutor,
-         tracker: PhaseTracker, cfg: LoopConfig, log: RunLog | None, trial: str, t: _Trial, grid_cfg: GridConfig,
-         ctx: EpisodeContext) -> None:
+def _act(
+    src: FailureSource,
+    policy: Policy,
+    supervisor: Supervisor,
+    executor: CorrectionExecutor,
+    tracker: PhaseTracker,
+    cfg: LoopConfig,
+    log: RunLog | None,
+    trial: str,
+    t: _Trial,
+    grid_cfg: GridConfig,
+    ctx: EpisodeContext,
+) -> None:
     """Step the policy, querying as `cfg` says, until it stops, errs, a correction stops the episode or the
     step limit is reached."""
     prev_name: str | None = None
@@ -186,9 +223,19 @@ def _act(src: FailureSource, policy: Policy, supervisor: Supervisor, executor: C
             return
 
 
-def run_trial(src: FailureSource, policy: Policy, supervisor: Supervisor, family: TaskFamily, scenario: str,
-              seed: int, variant: str, cfg: LoopConfig, log: RunLog | None, trial: str,
-              grid_cfg: GridConfig = GridConfig()) -> dict[str, Any]:
+def run_trial(
+    src: FailureSource,
+    policy: Policy,
+    supervisor: Supervisor,
+    family: TaskFamily,
+    scenario: str,
+    seed: int,
+    variant: str,
+    cfg: LoopConfig,
+    log: RunLog | None,
+    trial: str,
+    grid_cfg: GridConfig = GridConfig(),
+) -> dict[str, Any]:
     src.reset(scenario, seed, variant)
     ctx = episode_context(src, family, scenario, seed, variant)
     events = policy.reset(ctx)
@@ -201,8 +248,11 @@ def run_trial(src: FailureSource, policy: Policy, supervisor: Supervisor, family
         if not src.executed_so_far():  # nothing ran (a policy that failed at once): hold still, so the episode
             # has a keyframe to label
             s = src.observe().state
-            src.step(tracker.keyframe(Action(tuple(s["ee_pos"]), tuple(s["ee_quat"]), int(s["grip_cmd"]),
-                                             name=tracker.nominal[0].name)))
+            src.step(
+                tracker.keyframe(
+                    Action(tuple(s["ee_pos"]), tuple(s["ee_quat"]), int(s["grip_cmd"]), name=tracker.nominal[0].name)
+                )
+            )
         if not cfg.final_query or t.stopped is not None:
             break
         _query(src, policy, supervisor, executor, cfg, log, trial, t, src.observe(), grid_cfg, ctx, final=True)
@@ -215,26 +265,59 @@ def run_trial(src: FailureSource, policy: Policy, supervisor: Supervisor, family
     success = family.success(ep)
     # `success` is judged on the final state whatever happened; `outcome` also says why a trial ended early
     outcome = "policy_error" if t.error is not None else ("success" if success else "failure")
-    res = {"event": "episode", "trial": trial, "scenario": scenario, "seed": seed, "variant": variant,
-           "family": family.name, "policy": policy.name, "supervisor": supervisor.name, "outcome": outcome,
-           "error": t.error, "success": success, "steps": t.steps, "keyframes": len(ep.executed_keyframes),
-           "queries": t.queries, "interventions": t.interventions, "stopped": t.stopped,
-           "labels": ep.labels.to_dict(), "latency_s": t.latency, **policy.info()}
+    res = {
+        "event": "episode",
+        "trial": trial,
+        "scenario": scenario,
+        "seed": seed,
+        "variant": variant,
+        "family": family.name,
+        "policy": policy.name,
+        "supervisor": supervisor.name,
+        "outcome": outcome,
+        "error": t.error,
+        "success": success,
+        "steps": t.steps,
+        "keyframes": len(ep.executed_keyframes),
+        "queries": t.queries,
+        "interventions": t.interventions,
+        "stopped": t.stopped,
+        "labels": ep.labels.to_dict(),
+        "latency_s": t.latency,
+        **policy.info(),
+    }
     if log is not None:
         log.write(res)
     return res
 
 
-def _query(src: FailureSource, policy: Policy, sup: Supervisor, executor: CorrectionExecutor, cfg: LoopConfig,
-           log: RunLog | None, trial: str, t: _Trial, obs: Observation, grid_cfg: GridConfig, ctx: EpisodeContext,
-           final: bool = False) -> bool:
+def _query(
+    src: FailureSource,
+    policy: Policy,
+    sup: Supervisor,
+    executor: CorrectionExecutor,
+    cfg: LoopConfig,
+    log: RunLog | None,
+    trial: str,
+    t: _Trial,
+    obs: Observation,
+    grid_cfg: GridConfig,
+    ctx: EpisodeContext,
+    final: bool = False,
+) -> bool:
     """Ask the supervisor once and correct on a failure; False when the episode must stop."""
     t0 = time.perf_counter()
     v = sup.query(src, final)
     t.latency.append(round(time.perf_counter() - t0, 4))
     t.queries += 1
-    rec: dict[str, Any] = {"event": "query", "trial": trial, "keyframe": obs.keyframe, "final": final,
-                           "latency_s": t.latency[-1], **v.to_log()}
+    rec: dict[str, Any] = {
+        "event": "query",
+        "trial": trial,
+        "keyframe": obs.keyframe,
+        "final": final,
+        "latency_s": t.latency[-1],
+        **v.to_log(),
+    }
     if log is not None and (cfg.grids == "all" or (cfg.grids == "failures" and v.failure)):
         img = v.grid if v.grid is not None else live_grid(src, ctx.nominal, grid_cfg).image
         rec["grid"] = log.grid(img, f"{trial}-q{t.queries:03d}")

@@ -2,12 +2,12 @@
 
 A policy sees what a robot's controller would: `Observation` (one image per camera view and the latest
 state sample: ee_pos, ee_quat, width, grip_cmd, ...) and answers an `Action`, an end-effector target
-(position, orientation, gripper). The supervision loop (supervision/loop.py) turns each action into a
+(position, orientation, gripper). The supervision loop (sim_backends/supervision/loop.py) turns each action into a
 keyframe of the backend's stepping contract. Policies register by name:
 
     @register_policy("scripted")
     class ScriptedPolicy(Policy): ...
-    make_policy("act", checkpoint="outputs/act/final")   # imports policies.act.policy on first use
+    make_policy("act", checkpoint="outputs/act/final")   # imports sim_backends.policies.act.policy on first use
 """
 
 from __future__ import annotations
@@ -21,8 +21,14 @@ from sim_backends.perturbations.physics import PhysicsEvent
 from sim_backends.source import Observation
 from sim_backends.types import Keyframe
 
-POLICIES = Registry("policy", lazy={"scripted": "policies.scripted", "act": "policies.act.policy",
-                                    "openvla": "policies.openvla_client"})
+POLICIES = Registry(
+    "policy",
+    lazy={
+        "scripted": "sim_backends.policies.scripted",
+        "act": "sim_backends.policies.act.policy",
+        "openvla": "sim_backends.policies.openvla_client",
+    },
+)
 register_policy = POLICIES.register
 
 
@@ -38,7 +44,7 @@ class PolicyError(RuntimeError):
 @dataclass
 class Action:
     """An end-effector target. `name` is the plan keyframe it belongs to when the policy knows it (the
-    scripted policy); otherwise the loop assigns one by progress along the plan (supervision/loop.py)."""
+    scripted policy); otherwise the loop assigns one by progress along the plan (sim_backends/supervision/loop.py)."""
 
     pos: tuple[float, float, float]
     quat: tuple[float, float, float, float]  # x, y, z, w

@@ -13,9 +13,9 @@ from tqdm import tqdm
 
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
-from policies.act.checkpoint import save_checkpoint
-from policies.act.configuration_act import ACTConfig
-from policies.act.data import DemoDataset, normalisation, record_demo
+from sim_backends.policies.act.checkpoint import save_checkpoint
+from sim_backends.policies.act.configuration_act import ACTConfig
+from sim_backends.policies.act.data import DemoDataset, normalisation, record_demo
 
 IDENTITY = ("task", "demos", "seed", "variant", "backend", "backend_kwargs", "max_dist", "max_angle")
 
@@ -37,15 +37,28 @@ def load_or_record(cfg: DictConfig, family: Any, out: Path) -> tuple[list[dict[s
                 demos = [{k: z[k][a:b] for k in ("images", "state", "action")} for a, b in zip(bounds[:-1], bounds[1:])]
                 return demos, json.loads(str(z["info"]))
     t0 = time.perf_counter()
-    src = make_backend(cfg.backend, image_size=int(cfg.model.image_size), cameras=list(cfg.model.cameras),
-                       **backend_options(cfg.backend, OmegaConf.to_container(cfg.backend_kwargs, resolve=True) or {}))
+    src = make_backend(
+        cfg.backend,
+        image_size=int(cfg.model.image_size),
+        cameras=list(cfg.model.cameras),
+        **backend_options(cfg.backend, OmegaConf.to_container(cfg.backend_kwargs, resolve=True) or {}),
+    )
     demos, tried = [], 0
     bar = tqdm(total=int(cfg.demos), desc="demos", unit="demo", disable=not cfg.progress)
     try:
         while len(demos) < int(cfg.demos) and tried < 3 * int(cfg.demos):
             scenario = family.scenarios[tried % len(family.scenarios)]
-            d = record_demo(src, family.plan, family.success, scenario, int(cfg.seed) + tried, cfg.variant,
-                            list(cfg.model.cameras), float(cfg.max_dist), float(cfg.max_angle))
+            d = record_demo(
+                src,
+                family.plan,
+                family.success,
+                scenario,
+                int(cfg.seed) + tried,
+                cfg.variant,
+                list(cfg.model.cameras),
+                float(cfg.max_dist),
+                float(cfg.max_angle),
+            )
             tried += 1
             if d is not None:
                 demos.append(d)
@@ -55,13 +68,23 @@ def load_or_record(cfg: DictConfig, family: Any, out: Path) -> tuple[list[dict[s
         src.close()
     if not demos:
         raise ConfigError(f"task: no successful demonstration of {family.name!r} in {tried} tries")
-    info = {"recorded": len(demos), "tried": tried, "record_s": round(time.perf_counter() - t0, 1),
-            "ticks": int(sum(len(d["action"]) for d in demos))}
+    info = {
+        "recorded": len(demos),
+        "tried": tried,
+        "record_s": round(time.perf_counter() - t0, 1),
+        "ticks": int(sum(len(d["action"]) for d in demos)),
+    }
     bounds = np.cumsum([0] + [len(d["action"]) for d in demos])
     import io
+
     buf = io.BytesIO()
-    np.savez(buf, identity=json.dumps(ident), info=json.dumps(info), bounds=bounds,
-             **{k: np.concatenate([d[k] for d in demos]) for k in ("images", "state", "action")})
+    np.savez(
+        buf,
+        identity=json.dumps(ident),
+        info=json.dumps(info),
+        bounds=bounds,
+        **{k: np.concatenate([d[k] for d in demos]) for k in ("images", "state", "action")},
+    )
     atomic_write_bytes(path, buf.getvalue())
     return demos, info
 
@@ -70,7 +93,7 @@ def train(cfg: DictConfig, family: Any) -> dict[str, Any]:
     import torch
     from torch.utils.data import DataLoader
 
-    from policies.act.modeling_act import ACTModel
+    from sim_backends.policies.act.modeling_act import ACTModel
 
     out = Path(cfg.out_dir)
     try:
@@ -88,10 +111,17 @@ def train(cfg: DictConfig, family: Any) -> dict[str, Any]:
     model = ACTModel(model_cfg)
     backbone = [p for n, p in model.named_parameters() if n.startswith("backbone.")]
     rest = [p for n, p in model.named_parameters() if not n.startswith("backbone.")]
-    opt = torch.optim.AdamW([{"params": rest, "lr": float(t.lr)}, {"params": backbone, "lr": float(t.lr_backbone)}],
-                            weight_decay=float(t.weight_decay))
-    loader = DataLoader(DemoDataset(demos, model_cfg), batch_size=int(t.batch_size), shuffle=True, drop_last=True,
-                        generator=torch.Generator().manual_seed(int(t.seed)))
+    opt = torch.optim.AdamW(
+        [{"params": rest, "lr": float(t.lr)}, {"params": backbone, "lr": float(t.lr_backbone)}],
+        weight_decay=float(t.weight_decay),
+    )
+    loader = DataLoader(
+        DemoDataset(demos, model_cfg),
+        batch_size=int(t.batch_size),
+        shuffle=True,
+        drop_last=True,
+        generator=torch.Generator().manual_seed(int(t.seed)),
+    )
     curve: list[dict[str, float]] = []
     step, t0, budget = 0, time.perf_counter(), float(t.max_minutes) * 60
     bar = tqdm(total=int(t.steps), desc="train", unit="step", disable=not cfg.progress)
@@ -112,8 +142,15 @@ def train(cfg: DictConfig, family: Any) -> dict[str, Any]:
                 break
     bar.close()
     save_checkpoint(model.eval(), model_cfg, out / "final")
-    summary = {"task": family.name, "demos": info, "steps": step, "train_minutes": round((time.perf_counter() - t0) / 60, 2),
-               "samples": step * int(t.batch_size), "parameters": sum(p.numel() for p in model.parameters()),
-               "final": str(out / "final"), "curve": curve}
+    summary = {
+        "task": family.name,
+        "demos": info,
+        "steps": step,
+        "train_minutes": round((time.perf_counter() - t0) / 60, 2),
+        "samples": step * int(t.batch_size),
+        "parameters": sum(p.numel() for p in model.parameters()),
+        "final": str(out / "final"),
+        "curve": curve,
+    }
     atomic_write_json(out / "train_log.json", summary)
     return summary

@@ -19,29 +19,74 @@ import pyarrow.parquet as pq
 from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, FAILURE_TYPE_NAMES, HORIZONS, Category
 from sim_backends.types import Episode
 
-SCHEMA = pa.schema([
-    ("episode_id", pa.string()), ("pair_id", pa.string()), ("role", pa.string()), ("backend", pa.string()),
-    ("task", pa.string()), ("scenario", pa.string()), ("variant", pa.string()), ("seed", pa.int64()),
-    ("success", pa.bool_()), ("failure_type", pa.string()), ("category", pa.int8()), ("severity", pa.int8()),
-    ("failure_keyframe", pa.int32()), ("evidence", pa.string()), ("actions", pa.list_(pa.string())),
-    ("horizon", pa.string()), ("num_keyframes", pa.int32()), ("camera_names", pa.list_(pa.string())),
-    ("images", pa.list_(pa.list_(pa.binary()))), ("state_trace", pa.string()), ("task_meta", pa.string()),
-    ("keyframes", pa.string()), ("nominal_keyframes", pa.string()), ("perturbation", pa.string()),
-    ("cameras", pa.string()),  # JSON [view][keyframe]: view + projection matrix, or null (Episode.cameras)
-])
-LABEL_COLUMNS = ["episode_id", "pair_id", "role", "scenario", "task", "success", "failure_type", "category",
-                 "severity", "actions", "horizon", "evidence", "perturbation"]
+SCHEMA = pa.schema(
+    [
+        ("episode_id", pa.string()),
+        ("pair_id", pa.string()),
+        ("role", pa.string()),
+        ("backend", pa.string()),
+        ("task", pa.string()),
+        ("scenario", pa.string()),
+        ("variant", pa.string()),
+        ("seed", pa.int64()),
+        ("success", pa.bool_()),
+        ("failure_type", pa.string()),
+        ("category", pa.int8()),
+        ("severity", pa.int8()),
+        ("failure_keyframe", pa.int32()),
+        ("evidence", pa.string()),
+        ("actions", pa.list_(pa.string())),
+        ("horizon", pa.string()),
+        ("num_keyframes", pa.int32()),
+        ("camera_names", pa.list_(pa.string())),
+        ("images", pa.list_(pa.list_(pa.binary()))),
+        ("state_trace", pa.string()),
+        ("task_meta", pa.string()),
+        ("keyframes", pa.string()),
+        ("nominal_keyframes", pa.string()),
+        ("perturbation", pa.string()),
+        ("cameras", pa.string()),  # JSON [view][keyframe]: view + projection matrix, or null (Episode.cameras)
+    ]
+)
+LABEL_COLUMNS = [
+    "episode_id",
+    "pair_id",
+    "role",
+    "scenario",
+    "task",
+    "success",
+    "failure_type",
+    "category",
+    "severity",
+    "actions",
+    "horizon",
+    "evidence",
+    "perturbation",
+]
 
 
 def episode_row(ep: Episode) -> dict[str, Any]:
     lab = ep.labels
     return {
-        "episode_id": ep.episode_id, "pair_id": ep.pair_id, "role": ep.role, "backend": ep.backend,
-        "task": ep.task, "scenario": ep.scenario, "variant": ep.variant, "seed": ep.seed,
-        "success": lab.success, "failure_type": lab.failure_type, "category": lab.category,
-        "severity": lab.severity, "failure_keyframe": lab.failure_keyframe, "evidence": lab.evidence,
-        "actions": ep.actions, "horizon": ep.horizon, "num_keyframes": len(ep.executed_keyframes),
-        "camera_names": ep.camera_names, "images": ep.images,
+        "episode_id": ep.episode_id,
+        "pair_id": ep.pair_id,
+        "role": ep.role,
+        "backend": ep.backend,
+        "task": ep.task,
+        "scenario": ep.scenario,
+        "variant": ep.variant,
+        "seed": ep.seed,
+        "success": lab.success,
+        "failure_type": lab.failure_type,
+        "category": lab.category,
+        "severity": lab.severity,
+        "failure_keyframe": lab.failure_keyframe,
+        "evidence": lab.evidence,
+        "actions": ep.actions,
+        "horizon": ep.horizon,
+        "num_keyframes": len(ep.executed_keyframes),
+        "camera_names": ep.camera_names,
+        "images": ep.images,
         "state_trace": json.dumps(ep.state_trace, separators=(",", ":")),
         "task_meta": ep.task_meta.to_json(),
         "keyframes": json.dumps([k.to_dict() for k in ep.executed_keyframes]),
@@ -74,11 +119,18 @@ def draw_summary(records: list[dict[str, Any]] | None) -> dict[str, Any]:
     red = [r for r in records if r["kind"] == "nominal_redraw"]
     out = [r for r in records if r["kind"] == "left_out"]
     return {
-        "nominal_redraws": {"count": len(red), "by_reason": dict(Counter(r["reason"] for r in red)),
-                            "by_scenario": dict(sorted(Counter(r["scenario"] for r in red).items()))},
-        "left_out": {"count": len(out), "by_scenario": dict(sorted(Counter(r["scenario"] for r in out).items())),
-                     "records": [{k: r[k] for k in ("pair", "scenario", "seed", "draw", "perturbation", "evidence")}
-                                 for r in out]},
+        "nominal_redraws": {
+            "count": len(red),
+            "by_reason": dict(Counter(r["reason"] for r in red)),
+            "by_scenario": dict(sorted(Counter(r["scenario"] for r in red).items())),
+        },
+        "left_out": {
+            "count": len(out),
+            "by_scenario": dict(sorted(Counter(r["scenario"] for r in out).items())),
+            "records": [
+                {k: r[k] for k in ("pair", "scenario", "seed", "draw", "perturbation", "evidence")} for r in out
+            ],
+        },
         "pairs_given_up": sum(r["kind"] == "given_up" for r in records),
     }
 
@@ -103,13 +155,17 @@ def injection_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
             flips[f"to_{f['to']}" if isinstance(f, dict) else "to_open"] += 1  # older shards: closing faults only
         if prov.get("rejected"):
             rejected[prov["op"]] += int(prov["rejected"])
-    return {"by_operator": {k: dict(v) for k, v in sorted(ops.items())},
-            "physics_events": {k: dict(sorted(v.items())) for k, v in sorted(phys.items())},
-            "gripper_faults": dict(sorted(flips.items())), "filter_rejections": dict(sorted(rejected.items()))}
+    return {
+        "by_operator": {k: dict(v) for k, v in sorted(ops.items())},
+        "physics_events": {k: dict(sorted(v.items())) for k, v in sorted(phys.items())},
+        "gripper_faults": dict(sorted(flips.items())),
+        "filter_rejections": dict(sorted(rejected.items())),
+    }
 
 
-def manifest(rows: list[dict[str, Any]], extra: dict[str, Any],
-             records: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+def manifest(
+    rows: list[dict[str, Any]], extra: dict[str, Any], records: list[dict[str, Any]] | None = None
+) -> dict[str, Any]:
     fails = [r for r in rows if not r["success"]]
     by_type = {t: 0 for t in FAILURE_TYPE_NAMES}
     by_type.update(Counter(r["failure_type"] for r in fails))
@@ -134,7 +190,9 @@ def manifest(rows: list[dict[str, Any]], extra: dict[str, Any],
         "by_task": dict(sorted(Counter(r["scenario"] for r in rows).items())),
         "scenario_count": len({r["scenario"] for r in rows}),
         # A label is a guess when no detector explained it; the labeler no longer makes them (must stay 0).
-        "guessed_labels": sum(1 for r in fails if r["failure_type"] is None or "no earlier signature" in (r["evidence"] or "")),
+        "guessed_labels": sum(
+            1 for r in fails if r["failure_type"] is None or "no earlier signature" in (r["evidence"] or "")
+        ),
         **draw_summary(records),
         "injection": injection_summary(rows),
     }

@@ -20,9 +20,9 @@ from tqdm import tqdm
 
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.taxonomy import SCENE_VARIANTS
-from policies.base import POLICIES, Policy, make_policy
-from supervision.base import SUPERVISORS, Supervisor, make_supervisor
-from supervision.loop import LoopConfig, RunLog, TaskFamily, run_trial
+from sim_backends.policies.base import POLICIES, Policy, make_policy
+from sim_backends.supervision.base import SUPERVISORS, Supervisor, make_supervisor
+from sim_backends.supervision.loop import LoopConfig, RunLog, TaskFamily, run_trial
 
 
 def families(cfg: DictConfig, templates: dict[str, str]) -> dict[str, TaskFamily]:
@@ -33,8 +33,10 @@ def families(cfg: DictConfig, templates: dict[str, str]) -> dict[str, TaskFamily
         scenarios = list(f.get("scenarios") or [s for s, t in templates.items() if t == f.get("template")])
         bad = [s for s in scenarios if s not in templates]
         if bad or not scenarios:
-            raise ConfigError(f"families.{name}: " + (f"unknown scenario {bad[0]!r}" if bad else
-                                                      f"no scenario of template {f.get('template')!r}"))
+            raise ConfigError(
+                f"families.{name}: "
+                + (f"unknown scenario {bad[0]!r}" if bad else f"no scenario of template {f.get('template')!r}")
+            )
         out[name] = TaskFamily(name, scenarios, f.get("steps"), f.get("goals"))
     return out
 
@@ -83,14 +85,19 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
     lat = [x for r in rows for x in r["latency_s"]]
     n = len(rows)
     ok = sum(bool(r["success"]) for r in rows)
-    return {"success": ok, "trials": n, "rate": round(100.0 * ok / n, 2) if n else None,
-            "interventions": sum(r["interventions"] for r in rows),
-            "episodes_with_intervention": sum(r["interventions"] > 0 for r in rows),
-            "stopped": sum(r["stopped"] is not None for r in rows),
-            "policy_errors": [{"trial": r["trial"], "reason": r["error"]} for r in rows
-                              if r["outcome"] == "policy_error"],
-            "latency_p50_s": percentile(lat, 50), "latency_p95_s": percentile(lat, 95),
-            "latency_mean_s": round(statistics.fmean(lat), 4) if lat else None, "queries": len(lat)}
+    return {
+        "success": ok,
+        "trials": n,
+        "rate": round(100.0 * ok / n, 2) if n else None,
+        "interventions": sum(r["interventions"] for r in rows),
+        "episodes_with_intervention": sum(r["interventions"] > 0 for r in rows),
+        "stopped": sum(r["stopped"] is not None for r in rows),
+        "policy_errors": [{"trial": r["trial"], "reason": r["error"]} for r in rows if r["outcome"] == "policy_error"],
+        "latency_p50_s": percentile(lat, 50),
+        "latency_p95_s": percentile(lat, 95),
+        "latency_mean_s": round(statistics.fmean(lat), 4) if lat else None,
+        "queries": len(lat),
+    }
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
@@ -135,8 +142,20 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                 rows = per.setdefault(name, [])
                 for i in range(cfg.trials):
                     scenario = fam.scenarios[i % len(fam.scenarios)]
-                    rows.append(run_trial(src, policy, supervisors[name], fam, scenario, int(cfg.seed) + i,
-                                          cfg.variant, loop, log, f"{fam.name}-{name}-{i:03d}"))
+                    rows.append(
+                        run_trial(
+                            src,
+                            policy,
+                            supervisors[name],
+                            fam,
+                            scenario,
+                            int(cfg.seed) + i,
+                            cfg.variant,
+                            loop,
+                            log,
+                            f"{fam.name}-{name}-{i:03d}",
+                        )
+                    )
                     if rows[-1]["outcome"] == "policy_error":  # said once per trial; the run goes on
                         tqdm.write(f"trial {rows[-1]['trial']}: policy error: {rows[-1]['error']}", file=sys.stderr)
                     bar.update(1)
@@ -156,16 +175,23 @@ def table_md(res: dict[str, Any]) -> str:
     """The paper's table: Task | Baseline | Rate | +Supervisor | Rate | Improv."""
     cfg = res["config"]
     sup = cfg["supervisor"]
-    lines = [f"Success rate of downstream policy recovery ({cfg['policy']} policy, supervisor {sup}, "
-             f"{cfg['trials']} trials per task, variant {cfg['variant']})", "",
-             f"| Task | Baseline | Rate (%) | +{sup} | Rate (%) | Improv. |", "|---|---|---|---|---|---|"]
+    lines = [
+        f"Success rate of downstream policy recovery ({cfg['policy']} policy, supervisor {sup}, "
+        f"{cfg['trials']} trials per task, variant {cfg['variant']})",
+        "",
+        f"| Task | Baseline | Rate (%) | +{sup} | Rate (%) | Improv. |",
+        "|---|---|---|---|---|---|",
+    ]
     for task, r in res["tasks"].items():
         base = r.get("none")
         s = r.get(sup, base)
-        lines.append(f"| {task} | {cfg['policy']} | {base['rate'] if base else '-'} | {s['success']}/{s['trials']} | "
-                     f"{s['rate']} | {('%+.0f%%' % r['improvement']) if 'improvement' in r else '-'} |")
-    errors = sum(len(v.get("policy_errors", [])) for r in res["tasks"].values() for v in r.values()
-                 if isinstance(v, dict))
+        lines.append(
+            f"| {task} | {cfg['policy']} | {base['rate'] if base else '-'} | {s['success']}/{s['trials']} | "
+            f"{s['rate']} | {('%+.0f%%' % r['improvement']) if 'improvement' in r else '-'} |"
+        )
+    errors = sum(
+        len(v.get("policy_errors", [])) for r in res["tasks"].values() for v in r.values() if isinstance(v, dict)
+    )
     if errors:
         lines += ["", f"{errors} trial(s) ended on a policy error (results.json `policy_errors`, log.jsonl `error`)."]
     return "\n".join(lines) + "\n"

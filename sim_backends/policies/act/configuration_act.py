@@ -38,8 +38,15 @@ class ACTConfig:
     stats: dict[str, list[float]] = field(default_factory=dict)  # state/action mean and std of the demos
 
     def __post_init__(self) -> None:
-        for k in ("image_size", "chunk_size", "dim_model", "n_heads", "n_encoder_layers", "n_decoder_layers",
-                  "latent_dim"):
+        for k in (
+            "image_size",
+            "chunk_size",
+            "dim_model",
+            "n_heads",
+            "n_encoder_layers",
+            "n_decoder_layers",
+            "latent_dim",
+        ):
             if int(getattr(self, k)) < 1:
                 raise ValueError(f"act.{k}: must be a positive integer, got {getattr(self, k)!r}")
         if self.dim_model % self.n_heads:
@@ -58,6 +65,7 @@ class ACTConfig:
 
     def save(self, path: Path) -> None:
         from labrobfail_vlm.io import atomic_write_json
+
         atomic_write_json(path, self.to_dict())
 
     @classmethod

@@ -19,9 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from policies.base import Action, EpisodeContext, Policy, register_policy
 from sim_backends.failure_generator import apply_spec, draw_spec, perturbation_rng
 from sim_backends.perturbations.physics import PhysicsEvent
+from sim_backends.policies.base import Action, EpisodeContext, Policy, register_policy
 from sim_backends.source import Observation
 
 
@@ -81,7 +81,7 @@ class ScriptedPolicy(Policy):
     def after_correction(self, obs: Observation, executed: bool = True) -> None:
         if self.resume == "queue" or not self.nominal or not executed:  # a refused correction changes nothing
             return
-        self.queue, self.i = self.nominal[resume_index(self.nominal, obs.state):], 0
+        self.queue, self.i = self.nominal[resume_index(self.nominal, obs.state) :], 0
 
     def info(self) -> dict[str, Any]:
         return {"perturbation": self.perturbation}

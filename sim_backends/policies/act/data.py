@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from policies.act.configuration_act import ACTConfig
+from sim_backends.policies.act.configuration_act import ACTConfig
 from sim_backends.source import FailureSource
 from sim_backends.types import Keyframe, quat_to_matrix, rotation_angle
 
@@ -47,24 +47,36 @@ def grip_settle(gripper: int, current: int) -> int:
     return 0 if int(gripper) == int(current) else (50 if gripper else 40)
 
 
-def ticks(pos0: np.ndarray, quat0: tuple, kf: Keyframe, max_dist: float, max_angle: float,
-          gripper_change: bool = False) -> list[tuple]:
+def ticks(
+    pos0: np.ndarray, quat0: tuple, kf: Keyframe, max_dist: float, max_angle: float, gripper_change: bool = False
+) -> list[tuple]:
     """Targets sliding from (pos0, quat0) to the keyframe, then hold ticks for its settling time (a gripper
     change settles within its own tick, see `grip_settle`)."""
     import pybullet as p  # slerp only; recording drives a simulator anyway
 
     dist = float(np.linalg.norm(np.asarray(kf.pos) - pos0))
     n = max(1, math.ceil(max(dist / max_dist, rotation_angle(quat0, kf.quat) / max_angle)))
-    out = [(tuple(pos0 + (np.asarray(kf.pos) - pos0) * i / n), tuple(p.getQuaternionSlerp(quat0, kf.quat, i / n)))
-           for i in range(1, n + 1)]
+    out = [
+        (tuple(pos0 + (np.asarray(kf.pos) - pos0) * i / n), tuple(p.getQuaternionSlerp(quat0, kf.quat, i / n)))
+        for i in range(1, n + 1)
+    ]
     holds = 0 if gripper_change else kf.settle_steps // HOLD_STEPS
     return out + [out[-1]] * holds
 
 
-def record_demo(src: FailureSource, nominal_filter: Any, success: Any, scenario: str, seed: int, variant: str,
-                cameras: list[str], max_dist: float = 0.03, max_angle: float = 0.15) -> dict[str, np.ndarray] | None:
+def record_demo(
+    src: FailureSource,
+    nominal_filter: Any,
+    success: Any,
+    scenario: str,
+    seed: int,
+    variant: str,
+    cameras: list[str],
+    max_dist: float = 0.03,
+    max_angle: float = 0.15,
+) -> dict[str, np.ndarray] | None:
     """One demonstration (images (T, V, H, W, 3) uint8, state (T, 9), action (T, 10)), or None if it failed."""
-    from policies.openvla_client import proprio_vector
+    from sim_backends.policies.openvla_client import proprio_vector
 
     src.reset(scenario, seed, variant)
     plan = nominal_filter(src.scripted_keyframes())
@@ -78,8 +90,19 @@ def record_demo(src: FailureSource, nominal_filter: Any, success: Any, scenario:
             images.append(np.stack([obs.images[c] for c in cameras]))
             states.append(proprio_vector(obs.state))
             actions.append(action_vector(tp, tq, kf.gripper))
-            src.step(Keyframe(kf.name, tp, tq, kf.gripper, kf.target, kf.segment, kf.action, kf.speed,
-                              grip_settle(kf.gripper, grip)))
+            src.step(
+                Keyframe(
+                    kf.name,
+                    tp,
+                    tq,
+                    kf.gripper,
+                    kf.target,
+                    kf.segment,
+                    kf.action,
+                    kf.speed,
+                    grip_settle(kf.gripper, grip),
+                )
+            )
             grip = kf.gripper
         pos, quat = np.asarray(kf.pos, float), tuple(kf.quat)
     ep = src.finish()
@@ -92,8 +115,12 @@ def normalisation(demos: list[dict[str, np.ndarray]]) -> dict[str, list[float]]:
     st = np.concatenate([d["state"] for d in demos])
     ac = np.concatenate([d["action"] for d in demos])
     std = lambda x: np.maximum(x.std(0), 1e-3)  # noqa: E731 - constant columns (the gripper) stay finite
-    return {"state_mean": st.mean(0).tolist(), "state_std": std(st).tolist(),
-            "action_mean": ac.mean(0).tolist(), "action_std": std(ac).tolist()}
+    return {
+        "state_mean": st.mean(0).tolist(),
+        "state_std": std(st).tolist(),
+        "action_mean": ac.mean(0).tolist(),
+        "action_std": std(ac).tolist(),
+    }
 
 
 class DemoDataset(Dataset):

@@ -1,6 +1,6 @@
 """OpenVLA through its REST deploy server: `POST /act` with the image and the instruction, a 7-D action back.
 
-Request (json-numpy, the real `json_numpy` package behind policies/wire.py): `{"image": uint8 HxWx3,
+Request (json-numpy, the real `json_numpy` package behind sim_backends/policies/wire.py): `{"image": uint8 HxWx3,
 "instruction": str, "unnorm_key"?}`, as OpenVLA's own client sends it, or the `{"encoded": "<json-numpy
 string>"}` form (`encoded: true`; note that OpenVLA's deploy.py fails on it, see README). The plain form also
 carries the project's extras, which OpenVLA's server ignores and scripts/serve_policy.py uses: `images` (every
@@ -36,9 +36,9 @@ from urllib.parse import urlparse
 import numpy as np
 
 from labrobfail_vlm.config import ConfigError
-from policies import wire
-from policies.base import Action, EpisodeContext, Policy, PolicyError, register_policy
 from sim_backends.perturbations.control import so3_exp
+from sim_backends.policies import wire
+from sim_backends.policies.base import Action, EpisodeContext, Policy, PolicyError, register_policy
 from sim_backends.source import Observation
 from sim_backends.types import matrix_to_quat, quat_to_matrix
 
@@ -105,11 +105,29 @@ _OPENER = urllib.request.build_opener(_NoRedirect)
 class OpenVLAClient(Policy):
     name = "openvla"
 
-    def __init__(self, url: str = "http://127.0.0.1:8777/act", timeout_s: float = 10.0, unnorm_key: str | None = None,
-                 view: str = "front", encoded: bool = False, idle_stop: int = 3, max_step_m: float = 1.0,
-                 max_reply_bytes: int = MAX_REPLY_BYTES, check: bool = True):
-        check_options({"timeout_s": timeout_s, "idle_stop": idle_stop, "max_step_m": max_step_m, "encoded": encoded,
-                       "max_reply_bytes": max_reply_bytes, "view": view, "unnorm_key": unnorm_key})
+    def __init__(
+        self,
+        url: str = "http://127.0.0.1:8777/act",
+        timeout_s: float = 10.0,
+        unnorm_key: str | None = None,
+        view: str = "front",
+        encoded: bool = False,
+        idle_stop: int = 3,
+        max_step_m: float = 1.0,
+        max_reply_bytes: int = MAX_REPLY_BYTES,
+        check: bool = True,
+    ):
+        check_options(
+            {
+                "timeout_s": timeout_s,
+                "idle_stop": idle_stop,
+                "max_step_m": max_step_m,
+                "encoded": encoded,
+                "max_reply_bytes": max_reply_bytes,
+                "view": view,
+                "unnorm_key": unnorm_key,
+            }
+        )
         if check:
             check_reachable(url)
         self.url, self.timeout, self.unnorm_key, self.view = url, float(timeout_s), unnorm_key, view
@@ -167,20 +185,32 @@ class OpenVLAClient(Policy):
     def act(self, obs: Observation) -> Action | None:
         if self.view not in obs.images:
             raise PolicyError(f"openvla.view: no camera view {self.view!r}; views: {', '.join(obs.images)}")
-        payload: dict[str, Any] = {"image": np.ascontiguousarray(obs.images[self.view], np.uint8),
-                                   "instruction": self.ctx.instruction if self.ctx else ""}
+        payload: dict[str, Any] = {
+            "image": np.ascontiguousarray(obs.images[self.view], np.uint8),
+            "instruction": self.ctx.instruction if self.ctx else "",
+        }
         if self.unnorm_key:
             payload["unnorm_key"] = self.unnorm_key
         if not self.encoded:  # the project's extras (OpenVLA's server only reads image/instruction/unnorm_key)
-            payload.update(images={k: np.ascontiguousarray(v, np.uint8) for k, v in obs.images.items()},
-                           proprio=proprio_vector(obs.state))
+            payload.update(
+                images={k: np.ascontiguousarray(v, np.uint8) for k, v in obs.images.items()},
+                proprio=proprio_vector(obs.state),
+            )
             if self.ctx is not None:
-                payload["episode"] = {"backend": self.ctx.backend, "scenario": self.ctx.scenario,
-                                      "seed": self.ctx.seed, "variant": self.ctx.variant, "id": self.episode_token}
+                payload["episode"] = {
+                    "backend": self.ctx.backend,
+                    "scenario": self.ctx.scenario,
+                    "seed": self.ctx.seed,
+                    "variant": self.ctx.variant,
+                    "id": self.episode_token,
+                }
         a = self.request(payload)
         target = action_to_target(a, obs.state)
-        idle = float(np.linalg.norm(a[:3])) < IDLE_POS and float(np.linalg.norm(a[3:6])) < IDLE_ROT \
+        idle = (
+            float(np.linalg.norm(a[:3])) < IDLE_POS
+            and float(np.linalg.norm(a[3:6])) < IDLE_ROT
             and target.gripper == int(obs.state["grip_cmd"])
+        )
         self.idle = self.idle + 1 if idle else 0
         return None if self.idle_stop and self.idle >= self.idle_stop else target
 
@@ -191,14 +221,15 @@ def _is_number(x: Any) -> bool:
 
 def check_options(opts: dict[str, Any]) -> None:
     """One-line ConfigErrors for client settings (YAML values are untyped: `encoded=maybe` arrives as a string)."""
-    checks = {"timeout_s": (lambda v: _is_number(v) and v > 0, "a positive number of seconds"),
-              "idle_stop": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
-              "max_step_m": (lambda v: _is_number(v) and v > 0, "a positive number of metres"),
-              "max_reply_bytes": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 2,
-                                  "an integer >= 2"),
-              "encoded": (lambda v: isinstance(v, bool), "true or false"),
-              "view": (lambda v: isinstance(v, str) and v != "", "a camera view name"),
-              "unnorm_key": (lambda v: v is None or isinstance(v, str), "null or a string")}
+    checks = {
+        "timeout_s": (lambda v: _is_number(v) and v > 0, "a positive number of seconds"),
+        "idle_stop": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
+        "max_step_m": (lambda v: _is_number(v) and v > 0, "a positive number of metres"),
+        "max_reply_bytes": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 2, "an integer >= 2"),
+        "encoded": (lambda v: isinstance(v, bool), "true or false"),
+        "view": (lambda v: isinstance(v, str) and v != "", "a camera view name"),
+        "unnorm_key": (lambda v: v is None or isinstance(v, str), "null or a string"),
+    }
     for key, (ok, what) in checks.items():
         if not ok(opts[key]):
             raise ConfigError(f"openvla.{key}: must be {what}, got {opts[key]!r}")

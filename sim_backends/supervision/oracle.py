@@ -11,15 +11,15 @@ from __future__ import annotations
 
 from typing import Any
 
-from data.annotate import failure_context
 from labrobfail_vlm.actions import to_primitives
 from labrobfail_vlm.corrections import correction
 from labrobfail_vlm.taxonomy import category_of
 from sim_backends import labeler
+from sim_backends.failure_context import failure_context
 from sim_backends.goals import failed_goals
 from sim_backends.schema import TaskMeta, Trace
 from sim_backends.source import FailureSource
-from supervision.base import Supervisor, Verdict, register_supervisor
+from sim_backends.supervision.base import Supervisor, Verdict, register_supervisor
 
 Event = tuple[int, str, str]
 
@@ -47,7 +47,11 @@ def logic_so_far(trace: Trace, meta: TaskMeta) -> Event | None:
     first = seg.index(s)
     j = trace["kf_end"][first - 1] + 1 if first > 0 else 0
     kind = "step_omission" if expected not in ran else "sequence_reversal"
-    return j, kind, f"step {s} ({meta.steps[s].action}) ran where step {expected} ({meta.steps[expected].action}) was due"
+    return (
+        j,
+        kind,
+        f"step {s} ({meta.steps[s].action}) ran where step {expected} ({meta.steps[expected].action}) was due",
+    )
 
 
 def live_failure(trace: Trace, meta: TaskMeta, after_sample: int) -> Event | None:
@@ -101,8 +105,15 @@ class OracleSupervisor(Supervisor):
         sev = int(labeler.severity(trace, md, ftype))
         ctx = failure_context({"failure_keyframe": kf, "failure_type": ftype, "severity": sev}, md, trace)
         sid, text = correction(ctx)
-        return Verdict(True, ftype, kf, text, sid, to_primitives(text, list(meta.labels.values())),
-                       {"evidence": why, "severity": sev, "category": int(category_of(ftype)), "sample": j})
+        return Verdict(
+            True,
+            ftype,
+            kf,
+            text,
+            sid,
+            to_primitives(text, list(meta.labels.values())),
+            {"evidence": why, "severity": sev, "category": int(category_of(ftype)), "sample": j},
+        )
 
     def handled(self, src: FailureSource) -> None:
         super().handled(src)

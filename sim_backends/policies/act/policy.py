@@ -13,10 +13,10 @@ import cv2
 import numpy as np
 
 from labrobfail_vlm.config import ConfigError
-from policies.act.checkpoint import load_checkpoint
-from policies.act.data import from_rot6d
-from policies.act.modeling_act import ChunkRunner, TemporalEnsembler
-from policies.base import Action, EpisodeContext, Policy, PolicyError, register_policy
+from sim_backends.policies.act.checkpoint import load_checkpoint
+from sim_backends.policies.act.data import from_rot6d
+from sim_backends.policies.act.modeling_act import ChunkRunner, TemporalEnsembler
+from sim_backends.policies.base import Action, EpisodeContext, Policy, PolicyError, register_policy
 from sim_backends.source import Observation
 from sim_backends.types import matrix_to_quat
 
@@ -27,8 +27,14 @@ IDLE_POS = 0.002  # m
 class ACTPolicy(Policy):
     name = "act"
 
-    def __init__(self, checkpoint: str | None = None, device: str = "cpu", max_ticks: int = 400, idle_stop: int = 8,
-                 speed: float = 0.3):
+    def __init__(
+        self,
+        checkpoint: str | None = None,
+        device: str = "cpu",
+        max_ticks: int = 400,
+        idle_stop: int = 8,
+        speed: float = 0.3,
+    ):
         import torch
 
         try:
@@ -60,16 +66,19 @@ class ACTPolicy(Policy):
         self.idle, self.last = 0, None
 
     def _chunk(self, obs: Observation) -> np.ndarray:
-        from policies.openvla_client import proprio_vector
+        from sim_backends.policies.openvla_client import proprio_vector
 
         size = self.cfg.image_size
         views = []
         for c in self.cfg.cameras:
             if c not in obs.images:
-                raise PolicyError(f"act: the checkpoint needs camera view {c!r}; the backend renders {list(obs.images)}")
+                raise PolicyError(
+                    f"act: the checkpoint needs camera view {c!r}; the backend renders {list(obs.images)}"
+                )
             img = np.asarray(obs.images[c], np.uint8)
-            views.append(img if img.shape[:2] == (size, size) else cv2.resize(img, (size, size),
-                                                                               interpolation=cv2.INTER_AREA))
+            views.append(
+                img if img.shape[:2] == (size, size) else cv2.resize(img, (size, size), interpolation=cv2.INTER_AREA)
+            )
         t = self.torch
         images = t.from_numpy(np.stack(views)).permute(0, 3, 1, 2).float()[None].to(self.device) / 255.0
         state = t.from_numpy((proprio_vector(obs.state) - self.sm) / self.ss)[None].to(self.device)
@@ -84,8 +93,11 @@ class ACTPolicy(Policy):
             vec = self.chunks(self._chunk(obs) if self.chunks.needs_query() else None)
         self.t += 1
         a = Action(tuple(map(float, vec[:3])), matrix_to_quat(from_rot6d(vec[3:9])), int(vec[9] > 0.5), self.speed)
-        still = self.last is not None and float(np.linalg.norm(np.subtract(a.pos, self.last.pos))) < IDLE_POS \
+        still = (
+            self.last is not None
+            and float(np.linalg.norm(np.subtract(a.pos, self.last.pos))) < IDLE_POS
             and a.gripper == self.last.gripper
+        )
         self.idle = self.idle + 1 if still else 0
         self.last = a
         return None if self.idle_stop and self.idle >= self.idle_stop else a

@@ -1,0 +1,239 @@
+"""Score a model (or a predictions file) on LabRobFail-Bench and write results.json, results.md and PNGs. The code
+behind scripts/evaluate.py and the `labrobfail-evaluate` console script.
+
+Run as:
+    python scripts/evaluate.py model=outputs/demo_train/final dataset_dir=outputs/demo_dataset split=test
+    python scripts/evaluate.py predictions=preds.jsonl dataset_dir=outputs/dataset split=object
+    python scripts/evaluate.py model=DIR dataset_dir=DIR external.enabled=true external.model=gpt-4o
+    python scripts/evaluate.py endpoint=http://127.0.0.1:8000/v1 dataset_dir=outputs/dataset split=test
+    python scripts/evaluate.py model=DIR dataset_dir=DIR batch_size=16      # grids decoded together
+    python scripts/evaluate.py model=DIR dataset_dir=DIR executable.enabled=true executable.shards=SHARDS_DIR
+
+results.json: q1..q5 (top-1 %, Q1 exact ordered list, Q3 exact frame), q3_within1, q6 {bleu1..bleu4
+(nltk corpus_bleu, smoothing method1), rougeL (rouge-score, stemmer)} over ALL trajectories, breakdowns per
+category and task, confusion matrices; `failure_only`: Q3-Q6 over the failed trajectories (the paper-comparable
+scores); `detection`: AUROC, AUPRC and ECE of P(failure) (reliability_q2.png); plus the same for each baseline.
+With `executable.enabled`, `q6_executable`: the share of failures that the model's (and the gold) corrections fix
+when run in the simulator (sim_backends/supervision/executable.py; needs the simulator installed, and it is the
+one place the model core reaches into it, by name and only when asked). Defaults: configs/evaluate.yaml.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from labrobfail_vlm.config import ConfigError, cli_main, load_config
+
+
+def main(argv: list[str]) -> int:
+    from labrobfail_vlm import questions as Q
+    from labrobfail_vlm.bench import evaluate as ev
+    from labrobfail_vlm.bench.detection import reliability_png
+    from labrobfail_vlm.bench.report import (
+        PAPER_ROWS,
+        PAPER_UNSEEN_ROWS,
+        confusion_png,
+        detection_markdown,
+        markdown,
+        paper_row,
+        row,
+    )
+    from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
+
+    cfg = load_config("evaluate.yaml", argv)
+    if sum(x is not None for x in (cfg.model, cfg.predictions, cfg.endpoint)) != 1:
+        raise ConfigError("model/predictions/endpoint: give exactly one of model=DIR, predictions=FILE or endpoint=URL")
+    if cfg.dataset_dir is None:
+        raise ConfigError("dataset_dir: required")
+    if not isinstance(cfg.batch_size, int) or cfg.batch_size < 1:
+        raise ConfigError(f"batch_size: expected a positive integer, got {cfg.batch_size!r}")
+    if cfg.model is not None and not Path(cfg.model).is_dir():  # before anything is written
+        raise ConfigError(f"model: no such directory {cfg.model!r}")
+    if cfg.predictions is not None:  # a folder or an unreadable file is refused before the output folder is made
+        try:
+            with open(str(cfg.predictions), "rb") as f:  # str(): open(5) would read file descriptor 5
+                f.read(1)
+        except OSError as e:
+            raise ConfigError(
+                f"predictions: cannot read {cfg.predictions} ({e.strerror or type(e).__name__})"
+            ) from None
+    recs, traj = ev.load_split(cfg.dataset_dir, cfg.split)
+    if cfg.endpoint is not None:
+        out = Path(cfg.out_dir or Path("outputs") / f"eval_endpoint_{cfg.split}")
+    else:
+        src = Path(cfg.model or cfg.predictions)
+        out = Path(cfg.out_dir or (src if src.is_dir() else src.parent) / f"eval_{cfg.split}")
+    out.mkdir(parents=True, exist_ok=True)
+    log_lines: list[str] = []
+    results: dict[str, dict] = {}
+    analyzer = None
+    tmpl: dict[str, str] = {}  # Q6 in template mode (model and endpoint runs)
+    if cfg.model is not None or cfg.endpoint is not None:
+        if cfg.endpoint is not None:
+            from labrobfail_vlm.endpoint import EndpointAnalyzer
+
+            analyzer = EndpointAnalyzer(
+                str(cfg.endpoint),
+                cfg.endpoint_model,
+                cfg.endpoint_key_env,
+                cfg.endpoint_timeout_s,
+                concurrency=cfg.batch_size,
+            )
+            name = f"LabRobFail-VLM endpoint ({analyzer.client.model})"
+        else:
+            from labrobfail_vlm.analyzer import FailureAnalyzer
+
+            analyzer = FailureAnalyzer.from_pretrained(cfg.model)
+            name = "LabRobFail-VLM (" + Path(cfg.model).name + ")"
+        preds = ev.model_predictions(
+            analyzer, cfg.dataset_dir, recs, traj, progress=cfg.progress, batch_size=cfg.batch_size
+        )
+        q6 = [r for r in recs if r["id"].endswith("_Q6")]
+        if cfg.q6_template and q6:
+            # the same model, Q6 chosen among the correction-strategy table's filled templates; the other
+            # answers do not depend on the Q6 mode, so only Q6 (and the Q2 verdict it follows) is asked again
+            analyzer.q6_mode = "template"
+            tmpl = ev.model_predictions(
+                analyzer, cfg.dataset_dir, q6, traj, progress=cfg.progress, batch_size=cfg.batch_size
+            )
+            results[name + ", Q6 template"] = ev.score(
+                recs, ev.Predictions({**preds, **tmpl}, p_failure=preds.p_failure), traj
+            )
+            analyzer.q6_mode = "free"
+    else:
+        preds = ev.read_predictions(cfg.predictions)
+        name = Path(cfg.predictions).stem
+    p_fail = getattr(preds, "p_failure", {})
+    atomic_write_bytes(
+        out / "predictions.jsonl",
+        "".join(
+            json.dumps(
+                {
+                    "id": k,
+                    "prediction": v,
+                    **(
+                        {"p_failure": round(p_fail[Q.traj_of(k)], 6)}
+                        if k.endswith("_Q2") and Q.traj_of(k) in p_fail
+                        else {}
+                    ),
+                }
+            )
+            + "\n"
+            for k, v in preds.items()
+        ).encode(),
+    )
+    results = {name: ev.score(recs, preds, traj, log_lines.append), **results}
+    for b in cfg.baselines:
+        if b == "majority":  # needs training answers: this dataset's train split, or majority_train=DIR's
+            train_dir = cfg.majority_train or cfg.dataset_dir
+            try:
+                train, _ = ev.load_split(train_dir, "train")
+                results["majority class"] = ev.score(
+                    recs,
+                    ev.majority_predictions(train, recs),
+                    traj,
+                    failure_preds=ev.majority_predictions(train, recs, True),
+                )
+            except ConfigError as e:
+                note = f"majority baseline skipped: {e} (give majority_train=DATASET_DIR with a train split)"
+                print(note, file=sys.stderr)
+                log_lines.append(note)
+        elif b == "blind":
+            if analyzer is None:
+                continue  # needs a model to blindfold
+            results["blind (grey grid)"] = ev.score(
+                recs,
+                ev.model_predictions(
+                    analyzer, cfg.dataset_dir, recs, traj, blind=True, progress=cfg.progress, batch_size=cfg.batch_size
+                ),
+                traj,
+            )
+        else:
+            raise ConfigError(f"baselines: unknown baseline {b!r}; known: majority, blind")
+    if cfg.external.enabled:
+        from labrobfail_vlm.llm_client import ChatClient
+
+        client = ChatClient(cfg.external.base_url, cfg.external.model, cfg.external.api_key_env, cfg.external.timeout_s)
+        ext = ev.external_predictions(client, cfg.dataset_dir, recs, cfg.progress, log_lines.append)
+        results[str(cfg.external.name)] = ev.score(recs, ext, traj, log_lines.append)
+    executable_rows = {}
+    if cfg.executable.enabled:
+        executable_rows = q6_executable(
+            cfg, recs, traj, {name: preds, **({name + ", Q6 template": tmpl} if tmpl else {})}
+        )
+        for k, v in executable_rows.items():
+            if k in results:
+                results[k]["q6_executable"] = v
+    main_res = results[name]
+    fo = main_res["failure_only"]
+    rows = {k: paper_row(v) for k, v in results.items()}
+    if cfg.reference_rows and cfg.split in ("test", *PAPER_UNSEEN_ROWS):
+        # the paper's rows for the same setting (its unseen table has LabRobFail-VLM only)
+        rows.update(
+            {"LabRobFail-VLM (paper)": PAPER_UNSEEN_ROWS[cfg.split]} if cfg.split in PAPER_UNSEEN_ROWS else PAPER_ROWS
+        )
+    md = markdown(
+        rows,
+        f"LabRobFail-Bench, split {cfg.split}: paper-comparable (Q1, Q2 over all "
+        f"{len({Q.traj_of(r['id']) for r in recs})} trajectories; Q3-Q6 "
+        f"over the {fo['trajectories']} failed ones)",
+    )
+    md += "\n" + markdown(
+        {k: row(v) for k, v in results.items()},
+        f"All-trajectory scores (Q3-Q6 over successes too, where the answer is None; not "
+        f"comparable with the paper), {len(recs)} records",
+    )
+    md += "\n" + detection_markdown(results, "Failure detection as a score: P(failure) for Q2")
+    payload = {
+        **main_res,
+        "split": cfg.split,
+        "method": name,
+        "baselines": {k: v for k, v in results.items() if k != name},
+    }
+    if executable_rows:
+        payload["q6_executable_gold"] = executable_rows["gold corrections"]
+        md += (
+            "\nExecutable correction accuracy (simulated: replay to the failure, run the correction, finish)\n\n"
+            "| Corrections | Fixed | Failures | Accuracy (%) | Mapped (%) |\n|---|---|---|---|---|\n"
+            + "".join(
+                f"| {k} | {v['success']} | {v['failures']} | {v['accuracy']} | {v['mapped']} |\n"
+                for k, v in executable_rows.items()
+            )
+        )
+    atomic_write_json(out / "results.json", payload)
+    atomic_write_bytes(out / "results.md", md.encode())
+    atomic_write_bytes(out / "unparseable.log", "\n".join(log_lines).encode())
+    curves = {k: v["detection"] for k, v in results.items() if v.get("detection")}
+    if curves:
+        reliability_png(curves, f"Q2 reliability, split {cfg.split}", out / "reliability_q2.png")
+    from labrobfail_vlm.taxonomy import Severity
+
+    sev_names = {str(s.value): f"{s.value} {s.title.removesuffix(' Level')} / {s.main_text}" for s in Severity}
+    for d in ("Q2", "Q4", "Q5"):
+        if main_res["confusion"][d]:
+            confusion_png(
+                main_res["confusion"][d],
+                f"{d} confusion ({name})",
+                out / f"confusion_{d.lower()}.png",
+                sev_names if d == "Q4" else None,
+            )
+    print(md)
+    return 0
+
+
+def q6_executable(cfg, recs: list[dict], traj: dict[str, dict], predictions: dict[str, dict[str, str]]) -> dict:
+    """Executable correction accuracy, from the simulator side (imported by name: the core imports no simulator)."""
+    import importlib
+
+    try:
+        mod = importlib.import_module("sim_backends.supervision.executable")
+    except ImportError as e:
+        raise ConfigError(f"executable.enabled: needs the simulator package sim_backends ({e})") from None
+    return mod.executable_rows(cfg.executable, recs, traj, predictions)
+
+
+def cli() -> None:
+    """The `labrobfail-evaluate` console script."""
+    cli_main(main, __doc__)

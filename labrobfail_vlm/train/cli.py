@@ -1,0 +1,326 @@
+"""Fine-tune LabRobFail-VLM (Qwen3-VL): full vision encoder + merger, LoRA on the language decoder. The code behind
+train.py and the `labrobfail-train` console script.
+
+Run as:
+    python train.py preset=tiny dataset_dir=outputs/demo_dataset output_dir=outputs/demo_train max_steps=50
+    python train.py model.path=/models/Qwen3-VL-8B-Instruct dataset_dir=outputs/dataset output_dir=outputs/run
+    python train.py preset=frozen_vision ...          # ablations: full | frozen_vision | no_index
+    deepspeed --num_gpus 2 train.py deepspeed=configs/ds_zero3.json model.path=... dataset_dir=... output_dir=...
+    python train.py ... resume=true                   # continue from the newest checkpoint in output_dir
+
+Defaults and presets: configs/train.yaml. Checkpoints: labrobfail_vlm/train/checkpoint.py.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
+
+from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from labrobfail_vlm.io import atomic_write_json
+
+
+def _world_size() -> int:
+    return int(os.environ.get("WORLD_SIZE", "1"))
+
+
+def _check_dataset(cfg: Any) -> dict[str, Any]:
+    """The dataset's grid config, after checking it matches the run."""
+    stats = Path(cfg.dataset_dir or "") / "stats.json"
+    if cfg.dataset_dir is None or not stats.is_file():
+        raise ConfigError(f"dataset_dir: {cfg.dataset_dir!r} is not a dataset built by scripts/build_dataset.py")
+    grid = json.loads(stats.read_text()).get("grid", {})
+    drawn = grid.get("draw_index", True)
+    if bool(drawn) != bool(cfg.grid_index):
+        raise ConfigError(
+            f"grid_index: the dataset was built with grid.draw_index={drawn}, the run expects "
+            f"{cfg.grid_index} (the no_index preset needs a dataset built with grid.draw_index=false)"
+        )
+    return grid
+
+
+def _augment(cfg: Any, grid: dict[str, Any]) -> Any:
+    """Twin-consistent grid augmentation for training (labrobfail_vlm/augment.py), or None when off."""
+    a = cfg.augment
+    if not a.enabled:
+        return None
+    from labrobfail_vlm.augment import AugmentConfig
+    from labrobfail_vlm.grid import GridConfig
+    from labrobfail_vlm.train.data import GridAugment
+
+    trajs = json.loads((Path(cfg.dataset_dir) / "trajectories.json").read_text())
+    views = {t.get("views") for t in trajs}
+    if len(views) != 1 or None in views:
+        raise ConfigError("augment.enabled: the dataset's trajectories.json lacks one common 'views' count; rebuild it")
+    return GridAugment(
+        AugmentConfig(float(a.colour), float(a.shift_px), float(a.scale)),
+        GridConfig.from_dict(grid),
+        int(views.pop()),
+        int(cfg.seed),
+    )
+
+
+def _grounding(cfg: Any, model: Any, grid: dict[str, Any]) -> tuple[dict[str, Any] | None, dict | None]:
+    """The grounding head and its per-frame targets (labrobfail_vlm/train/grounding.py), or (None, None)."""
+    g = cfg.grounding
+    if float(g.weight) == 0:
+        return None, None
+    from labrobfail_vlm.grid import GridConfig
+    from labrobfail_vlm.train.grounding import dataset_targets, make_head
+
+    gcfg = GridConfig.from_dict(grid)
+    trajs = json.loads((Path(cfg.dataset_dir) / "trajectories.json").read_text())
+    targets, views = dataset_targets(trajs, gcfg)
+    head = make_head(str(g.head), int(model.config.vision_config.out_hidden_size), gcfg, views)
+    return {"head": head, "weight": float(g.weight), "rank": float(g.rank), "lr": float(g.lr)}, targets
+
+
+def run(cfg: Any) -> dict[str, Any]:
+    import torch
+    from transformers import TrainingArguments, set_seed
+
+    from labrobfail_vlm.model.hybrid import apply_tuning, count_trainable, freeze_zero_lr
+    from labrobfail_vlm.model.loading import load_model, load_processor
+    from labrobfail_vlm.train.checkpoint import last_complete_checkpoint
+    from labrobfail_vlm.train.curriculum import DetectFirst, PolarityWarmup, Rewording
+    from labrobfail_vlm.train.data import Collator, VQADataset
+    from labrobfail_vlm.train.packing import TrajectoryDataset
+    from labrobfail_vlm.train.trainer import HybridTrainer, ProgressLog, check_loss_mode
+
+    # Seed before anything random is made: the grounding head is initialised before the Trainer seeds, and a
+    # run that starts from a checkpoint (model.path) builds nothing that would seed it (torch's start-up seed
+    # differs from process to process here).
+    set_seed(int(cfg.seed))
+    grid = _check_dataset(cfg)
+    check_loss_mode(str(cfg.loss.mode))  # before the model loads
+    pairs, warm = bool(cfg.curriculum.pairs), float(cfg.curriculum.polarity_warmup)
+    detect = float(cfg.curriculum.detect_first)
+    for key, v in (("polarity_warmup", warm), ("detect_first", detect)):
+        if not 0.0 <= v <= 1.0:
+            raise ConfigError(f"curriculum.{key}: a fraction of the steps in [0, 1], got {v}")
+    for key in ("weight", "rank", "lr", "pretrain_epochs"):
+        if float(cfg.grounding[key]) < 0:
+            raise ConfigError(f"grounding.{key}: must be >= 0, got {cfg.grounding[key]}")
+    from labrobfail_vlm.train.grounding import check_head
+
+    check_head(str(cfg.grounding.head))  # before the model loads
+    pre_epochs = int(cfg.grounding.pretrain_epochs)
+    if pre_epochs and float(cfg.grounding.weight) == 0:
+        raise ConfigError("grounding.pretrain_epochs: needs grounding.weight > 0 (the head it trains)")
+    if float(cfg.grounding.weight) > 0 and cfg.deepspeed is not None:  # the head lives outside DeepSpeed's engine
+        raise ConfigError(
+            f"grounding.weight: the grounding head and stage A run on one process, not under "
+            f"deepspeed={cfg.deepspeed}; set grounding.weight=0 grounding.pretrain_epochs=0 (or "
+            f"pre-train the tower in a separate run and pass its final/ as model.path)"
+        )
+    if detect and cfg.loss.mode != "record":
+        raise ConfigError("curriculum.detect_first: needs loss.mode=record (it sets per-record loss weights)")
+    if cfg.model.path is None:
+        raise ConfigError("model.path: give a local Qwen3-VL directory (or use preset=tiny)")
+    from labrobfail_vlm.model.tower import read_card, resolve
+
+    tower_dir = resolve(cfg.tower)
+    if tower_dir is not None and cfg.preset != "tiny":
+        raise ConfigError(
+            f"tower: {cfg.tower} replaces the random tower of preset=tiny; a real checkpoint keeps its "
+            "own (set tower=scratch)"
+        )
+    tower_info: dict[str, Any] = {}
+    if tower_dir is not None and not Path(cfg.model.path).is_dir():
+        card = read_card(tower_dir)  # before anything is built (a model.path that exists already has its tower)
+        tower_info = {"path": str(cfg.tower), "sha256": card["sha256"], "parameters": card.get("parameters")}
+    if cfg.preset == "tiny" and not Path(cfg.model.path).is_dir():
+        from labrobfail_vlm.model.tiny import build_tiny, dataset_texts
+
+        # The vocabulary comes from this dataset's training text (task descriptions, object names).
+        build_tiny(
+            cfg.model.path,
+            seed=int(cfg.seed),
+            texts=dataset_texts(cfg.dataset_dir),
+            vision=OmegaConf.to_container(cfg.tiny_arch.vision),  # type: ignore[arg-type]
+            text=OmegaConf.to_container(cfg.tiny_arch.text),  # type: ignore[arg-type]
+            tower=tower_dir,
+        )
+    dtype = {"bfloat16": torch.bfloat16, "float32": torch.float32}.get(cfg.model.dtype)
+    if dtype is None:
+        raise ConfigError(f"model.dtype: expected bfloat16 or float32, got {cfg.model.dtype!r}")
+    per_dev, world = int(cfg.per_device_batch), _world_size()
+    if per_dev < 1 or int(cfg.global_batch) % (per_dev * world):
+        raise ConfigError(
+            f"global_batch: {cfg.global_batch} is not a multiple of per_device_batch x ranks ({per_dev} x {world})"
+        )
+    if cfg.wandb.enabled:
+        os.environ.setdefault("WANDB_MODE", str(cfg.wandb.mode))
+        os.environ.setdefault("WANDB_PROJECT", str(cfg.wandb.project))
+        os.environ.setdefault("WANDB_DIR", str(Path(cfg.output_dir)))
+        os.environ.setdefault("WANDB_SILENT", "true")
+    if cfg.deepspeed is not None:
+        if not Path(cfg.deepspeed).is_file():
+            raise ConfigError(f"deepspeed: no such config file {cfg.deepspeed!r}")
+        import deepspeed  # DeepSpeed's own process group: its config reads the world size from it
+
+        deepspeed.init_distributed(dist_backend="nccl" if torch.cuda.is_available() else "gloo")
+    args = TrainingArguments(
+        output_dir=str(cfg.output_dir),
+        per_device_train_batch_size=per_dev,
+        gradient_accumulation_steps=int(cfg.global_batch) // (per_dev * world),
+        num_train_epochs=float(cfg.epochs),
+        max_steps=int(cfg.max_steps),
+        lr_scheduler_type=str(cfg.scheduler),
+        warmup_steps=float(cfg.warmup_ratio),
+        learning_rate=float(cfg.lr.lora),
+        weight_decay=float(cfg.weight_decay),
+        logging_steps=int(cfg.logging_steps),
+        save_steps=int(cfg.save_steps),
+        save_total_limit=None if cfg.save_total_limit is None else int(cfg.save_total_limit),
+        save_strategy="steps",
+        report_to=["wandb"] if cfg.wandb.enabled else "none",
+        seed=int(cfg.seed),
+        bf16=dtype == torch.bfloat16 and torch.cuda.is_available(),
+        remove_unused_columns=False,
+        dataloader_num_workers=0,
+        deepspeed=cfg.deepspeed,
+        disable_tqdm=not cfg.progress,
+        gradient_checkpointing=bool(cfg.gradient_checkpointing),
+        use_cpu=not torch.cuda.is_available(),
+        max_grad_norm=1.0,
+        logging_first_step=True,
+    )
+    # Under ZeRO-3 the HfDeepSpeedConfig made by TrainingArguments must exist, and the process group be up
+    # (reading world_size initialises it), before the model is built.
+    if args.world_size != world:
+        raise ConfigError(f"deepspeed: {args.world_size} ranks are up but WORLD_SIZE says {world}")
+    processor = load_processor(cfg.model.path)
+    processor.tokenizer.padding_side = "right"
+    model = load_model(cfg.model.path, dtype)
+    model.config.use_cache = False
+    model = apply_tuning(model, str(cfg.tuning), dict(cfg.lora))
+    freeze_zero_lr(model, dict(cfg.lr))
+    counts = count_trainable(model)
+    if args.process_index == 0:
+        print(json.dumps({"trainable_parameters": counts, "tuning": cfg.tuning, "preset": cfg.preset}), flush=True)
+    # packing: a trajectory's records share one row and one image encoding (labrobfail_vlm/train/packing.py);
+    # per_device_batch and global_batch then count trajectories
+    train = TrajectoryDataset(cfg.dataset_dir, "train") if cfg.packing else VQADataset(cfg.dataset_dir, "train")
+    rewording = Rewording(train.group_of, pairs) if pairs or warm > 0 or detect > 0 else None
+    records_per_item = len(train.records) / len(train) if cfg.packing else 1.0
+    progress_log = ProgressLog(Path(cfg.output_dir), records_per_item)
+    callbacks = [
+        progress_log,
+        *([PolarityWarmup(rewording, warm)] if rewording is not None and warm else []),
+        *([DetectFirst(rewording, detect)] if rewording is not None and detect else []),
+    ]
+    grounding, targets = _grounding(cfg, model, grid)
+    trainer = HybridTrainer(
+        model=model,
+        args=args,
+        train_dataset=train,
+        data_collator=Collator(
+            processor,
+            int(cfg.max_length),
+            dict(cfg.loss.question_weights) if cfg.loss.mode == "record" else None,
+            rewording,
+            targets,
+            train.group_of,
+            _augment(cfg, grid),
+        ),
+        processing_class=processor,
+        group_lrs=dict(cfg.lr),
+        base_model=str(cfg.model.path),
+        tuning=str(cfg.tuning),
+        loss_mode=str(cfg.loss.mode),
+        grid=grid,
+        pair_batches=pairs,
+        grounding=grounding,
+        callbacks=callbacks,
+    )
+    resume = None
+    if cfg.resume is True:
+        last, partial = last_complete_checkpoint(cfg.output_dir)
+        for d in partial:  # a kill while saving: the run resumes from the checkpoint before it
+            print(f"resume: skipping {d} (incompletely written)", file=sys.stderr, flush=True)
+        if last is None:
+            raise ConfigError(f"resume: no complete checkpoint-N in {cfg.output_dir}")
+        resume = str(last)
+    elif isinstance(cfg.resume, str):
+        if not Path(cfg.resume).is_dir():
+            raise ConfigError(f"resume: no such checkpoint {cfg.resume!r}")
+        resume = cfg.resume
+    if resume is not None and grounding is not None:
+        from labrobfail_vlm.train.grounding import load_head
+
+        if not load_head(grounding["head"], Path(resume)):  # a run made without grounding: its optimizer differs
+            raise ConfigError(
+                f"resume: {resume} was trained without frame grounding; resume it with "
+                f"grounding.weight=0 grounding.pretrain_epochs=0"
+            )
+    pre: dict[str, float] = {}
+    if pre_epochs and resume is None:  # stage A; a resumed run's checkpoint already holds the grounded tower
+        from labrobfail_vlm.train.grounding import pretrain
+
+        wall, cpu = time.perf_counter(), time.process_time()
+        pre = pretrain(
+            model,
+            grounding["head"],
+            trainer.get_train_dataloader(),
+            pre_epochs,  # type: ignore[index]
+            float(cfg.grounding.lr),
+            float(cfg.grounding.rank),
+            bool(cfg.progress),
+        )
+        pre |= {
+            "epochs": pre_epochs,
+            "wall_s": round(time.perf_counter() - wall, 1),
+            "cpu_s": round(time.process_time() - cpu, 1),
+        }
+        progress_log.start_after(pre["wall_s"], pre["cpu_s"])  # the learning curve's clocks include stage A
+        print(json.dumps({"grounding_pretrain": pre}), flush=True)
+    result = trainer.train(resume_from_checkpoint=resume)
+    trainer.save_model(str(Path(cfg.output_dir) / "final"))
+    losses = [h["loss"] for h in trainer.state.log_history if "loss" in h]
+    summary = {
+        "global_step": trainer.state.global_step,
+        "train_loss": result.training_loss,
+        "first_loss": losses[0] if losses else None,
+        "last_loss": losses[-1] if losses else None,
+        "trainable_parameters": counts,
+        **({"grounding_pretrain": pre} if pre else {}),
+        **({"tower": tower_info} if tower_info else {}),
+    }
+    if args.process_index == 0:
+        atomic_write_json(Path(cfg.output_dir) / "train_summary.json", summary)
+        print(json.dumps(summary), flush=True)
+    return summary
+
+
+def resolve_config(argv: list[str]) -> Any:
+    """train.yaml + preset + (preset tiny) the recipe of its kind of tower + the command line, which wins."""
+    args = [a for a in argv if not a.startswith("--local_rank")]
+    cfg = load_config("train.yaml", args)
+    if cfg.preset == "tiny":
+        kind = "scratch" if str(cfg.tower) == "scratch" else "pretrained"
+        cfg = OmegaConf.merge(cfg, cfg.tiny_towers[kind], OmegaConf.from_dotlist(args))
+    return cfg
+
+
+def main(argv: list[str]) -> int:
+    run(resolve_config(argv))
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        # A rank that exits with its gloo process group alive can abort at interpreter shutdown ("terminate
+        # called without an active exception", SIGABRT) once the run has already succeeded. Only after success:
+        # tearing down while another rank still waits in a collective would hang instead.
+        dist.destroy_process_group()
+    return 0
+
+
+def cli() -> None:
+    """The `labrobfail-train` console script (and train.py, which deepspeed launches)."""
+    cli_main(main, __doc__)
