@@ -3,7 +3,7 @@ VENV  ?= .venv
 PY    := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: install browser vulkan demo demo-online reproduce reproduce-rows ablate tower sim20k test bench clean
+.PHONY: install browser vulkan demo demo-online reproduce reproduce-rows ablate tower sim20k lint test test-fast bench clean
 APT_STAMP := $(VENV)/.apt-stamp
 VULKAN_STAMP := $(VENV)/.vulkan-stamp
 BACKPORTS := /etc/apt/sources.list.d/bookworm-backports.sources
@@ -175,8 +175,17 @@ sim20k: $(STAMP)
 	  $(PY) scripts/generate.py seed=0 workers=$(SIM_WORKERS) $(SIM_EXEC) num_episodes=$(SIM_UNSEEN) variant=$$v \
 	    out_dir=$(SIM)/$$v || exit 1; done
 
-test: $(STAMP) $(APT_STAMP) $(VULKAN_STAMP)
+# Lint and format check (ruff, line length 120), then every test. `make test-fast`: the quick ones only (no long
+# runs, no browser, no ManiSkill; pytest markers in pyproject.toml).
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+test: $(STAMP) $(APT_STAMP) $(VULKAN_STAMP) lint
 	LABROBFAIL_REQUIRE_BROWSER=1 $(PY) -m pytest -q tests
+
+test-fast: $(STAMP) lint
+	$(PY) -m pytest -q tests -m "not slow and not browser and not maniskill"
 
 bench: $(STAMP)
 	$(PY) scripts/bench_grid.py

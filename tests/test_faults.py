@@ -18,6 +18,8 @@ from serve_fixtures import grids, mixed_model  # noqa: F401  (fixtures)
 from test_serve import Server
 from test_train import small_ds, tiny  # noqa: F401  (session fixtures)
 
+pytestmark = pytest.mark.slow
+
 
 def _wait_for(path, proc, timeout_s=300):
     t0 = time.monotonic()

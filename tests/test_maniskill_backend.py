@@ -16,6 +16,8 @@ from sim_backends.failure_generator import run_pair  # noqa: E402
 from sim_backends.perturbations import control  # noqa: E402
 from sim_backends.perturbations.physics import PhysicsEvent  # noqa: E402
 
+pytestmark = pytest.mark.maniskill
+
 SIZE = 32
 
 

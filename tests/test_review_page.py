@@ -9,6 +9,8 @@ import pytest
 from data.annotate import Annotated
 from data.review import write_review_page
 
+pytestmark = pytest.mark.browser
+
 CHROMIUM, DRIVER = shutil.which("chromium"), shutil.which("chromedriver")
 needs_browser = pytest.mark.skipif(
     not (CHROMIUM and DRIVER) and not os.environ.get("LABROBFAIL_REQUIRE_BROWSER"),
