@@ -68,7 +68,7 @@ demo: $(STAMP)
 	  trials=25 loop.query_every=-1 out_dir=outputs/demo_supervise progress=false $(DEMO_WORLD)
 	$(PY) scripts/demo_diagnosis.py dataset=outputs/demo_dataset model=outputs/demo_train/final
 
-# After `make demo`: its model taught to supervise a running trajectory (docs/ARCHITECTURE.md, "Eighth round").
+# After `make demo`: its model taught to supervise a running trajectory (docs/EXPERIMENTS.md, 2026-11-23 "With Q5 and Q6 on prefix grids ...").
 # A third stage on prefix grids (one per trajectory, twins cut at the same keyframes, each asked Q2, Q3, Q5 and
 # Q6 as the failure stands at the cut), then the bench on whole and prefix grids, then the supervisor asked at
 # every keyframe. About 10 minutes on 2 cores.

@@ -274,7 +274,7 @@ class Decoder:
         """Per row, the candidate (followed by the end of turn) with the highest log-likelihood; None rows skip.
         A row with `per_token` true ranks by the mean log-likelihood per token instead: sentences of 16 to 30
         tokens (the correction strategies) are otherwise decided by their length, a small model's per-token
-        doubt adding up over the longer ones (docs/ARCHITECTURE.md, "Eighth round")."""
+        doubt adding up over the longer ones (docs/EXPERIMENTS.md, 2026-11-23 "With Q5 and Q6 on prefix grids ...")."""
         scores = self.option_scores_rows(pre, candidates, per_token)
         return [
             cands[max(range(len(cands)), key=sc.__getitem__)] if cands else None

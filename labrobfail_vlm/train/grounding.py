@@ -2,11 +2,11 @@
 
 Trained from scratch, the VLM gets one Yes/No per grid for Q2, and that signal must travel through two decoder
 layers and the merger before it reaches the vision tower; the model settles on text priors instead (see
-docs/ARCHITECTURE.md, "The from-scratch recipe"). The simulator says more for free: the grid frame where the
-failure first shows (the labeler's failure keyframe, from simulator state). So every cell of the grid gets a
-target, "has the trajectory failed by this frame?" (0 before that frame and in successes, 1 from it on, none for
-cells the grid leaves blank), and a small head reads it from the visual tokens the language model receives
-(the merger's output). Two heads (`grounding.head`):
+docs/EXPERIMENTS.md, 2026-11-22 "From-scratch recipe, lever by lever"). The simulator says more for free: the
+grid frame where the failure first shows (the labeler's failure keyframe, from simulator state). So every cell
+of the grid gets a target, "has the trajectory failed by this frame?" (0 before that frame and in successes, 1
+from it on, none for cells the grid leaves blank), and a small head reads it from the visual tokens the language
+model receives (the merger's output). Two heads (`grounding.head`):
 
     token: each token -> MLP -> one score; a cell's mean score + a per-cell bias; the time step's views summed
     cell:  a cell's tokens (flattened) -> MLP -> + time/view embedding -> the time step's views -> one logit
@@ -14,7 +14,7 @@ cells the grid leaves blank), and a small head reads it from the visual tokens t
 The `token` head is the default because it asks for what a small decoder can read: its first layer's MLP
 works on one token at a time and its attention then averages tokens, so the evidence must sit in single
 tokens. The `cell` head reads combinations of a cell's tokens; it learns faster, but the decoder cannot use
-what it learns (docs/ARCHITECTURE.md, "Frame grounding", table).
+what it learns (docs/EXPERIMENTS.md, 2026-11-22 "The decoder reads the tower once ...").
 
 Its loss is the mean binary cross-entropy over shown cells, plus a ranking term for success/failure twins in
 the same batch (same scene, camera and distractors; only the failure differs): the failed twin's last frame

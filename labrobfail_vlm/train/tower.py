@@ -11,11 +11,10 @@ the decoder will receive:
     cell targets   each token -> MLP -> K scores; a cell's K logits = the mean over its 16 tokens + a bias
     token targets  each token -> MLP -> C scores: is the gripper / a task object / a goal place in this token?
 
-so the evidence must sit in single tokens, which is what a small decoder reads (docs/ARCHITECTURE.md, "Frame
-grounding"). The head is thrown away; the tower and merger are exported (`export`) as `tower.safetensors` plus a
-card (`tower.json`: config, data, held-out accuracy per target, command, sha256), which
-labrobfail_vlm/model/tower.py loads into the tiny Qwen3-VL.
-"""
+so the evidence must sit in single tokens, which is what a small decoder reads (docs/EXPERIMENTS.md, 2026-11-22
+"The decoder reads the tower once ..."). The head is thrown away; the tower and merger are exported (`export`)
+as `tower.safetensors` plus a card (`tower.json`: config, data, held-out accuracy per target, command, sha256),
+which labrobfail_vlm/model/tower.py loads into the tiny Qwen3-VL."""
 
 from __future__ import annotations
 
