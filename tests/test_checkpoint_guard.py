@@ -127,7 +127,7 @@ def _one_line_error(r, needle, what):
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 2, (what, r.returncode, r.stderr[-800:])
     assert len(lines) == 1 and needle in lines[0] and "Traceback" not in r.stderr, (what, r.stderr[-800:])
-    assert lines[0].startswith("error: --model"), (what, lines[0])
+    assert lines[0].startswith(("error: model:", "error: model (")), (what, lines[0])
 
 
 def test_infer_refuses_bad_checkpoints_in_one_line(bad_models, tmp_path):
@@ -151,7 +151,7 @@ def test_budget_argument_and_good_checkpoints(tiny, bad_models, tmp_path):  # no
     r = guarded(["infer.py", "--grid", str(tmp_path / "g.png"), "--model", str(tiny), "--max-model-gb", "0.001"])
     _one_line_error(r, "over the 1.0 MB model memory budget", "argument")
     r = guarded(["infer.py", "--grid", str(tmp_path / "g.png"), "--model", str(tiny), "--max-model-gb", "-1"])
-    assert r.returncode == 2 and "--max-model-gb: expected a positive number" in r.stderr, r.stderr[-500:]
+    assert r.returncode == 2 and "max_model_gb: expected a positive number" in r.stderr, r.stderr[-500:]
     r = guarded(["scripts/serve.py", "--model", str(tiny), "--max-model-gb", "0.001"], timeout=120)
     _one_line_error(r, "over the 1.0 MB model memory budget", "serve argument")
     hybrid = next(m for what, m, *_ in bad_models if m.name == "hybrid_over_empty").parent / "hybrid_ok"

@@ -130,7 +130,7 @@ def _bad_inputs(tmp, tiny):  # noqa: F811
         (["--grid", str(tmp / "missing.png"), *m], "does not exist"),
         (["--grid", _unreadable(tmp), *m], "not readable"),
         (["--grid", str(tmp / "notimg.png"), *m], "not an image"),
-        (["--grid", str(tmp / "corrupt.png"), *m], "--grid"),
+        (["--grid", str(tmp / "corrupt.png"), *m], "grid:"),
         (["--grid", str(tmp / "trunc.png"), *m], "truncated"),
         (["--grid", str(tmp), *m], "is a directory"),
         (["--grid", str(tmp / "tiny.png"), *m], "at least 32 px"),
@@ -139,7 +139,7 @@ def _bad_inputs(tmp, tiny):  # noqa: F811
         (["--grid", str(tmp / "ok.png"), "--model", str(tmp / "incomplete")], "no .safetensors weights"),
         (["--frames", str(tmp / "uneq"), *m], "unequal numbers of frames"),
         (["--frames", str(tmp / "ok.png"), *m], "not a directory"),
-        (["--grid"], "usage"),
+        (["--grid"], "grid: expected a path"),
     ]
 
 
@@ -424,7 +424,7 @@ def test_json_output_and_frame_count_are_checked_before_inference(tiny, tmp_path
         (["--json", str(tmp_path / "out")], "is a directory"),
         (["--json", str(unwritable)], "cannot write"),
         (["--json", str(tmp_path / "nope" / "d.json")], "does not exist"),
-        (["--num-frames", "0"], "--num-frames"),
+        (["--num-frames", "0"], "num_frames:"),
     ):
         r = infer("--grid", str(tmp_path / "g.png"), "--model", str(tiny), *args)
         lines = r.stderr.strip().splitlines()

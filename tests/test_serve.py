@@ -220,8 +220,8 @@ def test_shutdown_finishes_requests_in_flight(mixed_model, grids, tmp_path):  # 
 def test_bad_arguments_are_one_line_errors(tmp_path):
     for args, needle in (
         (["--model", str(tmp_path / "none")], "no such model directory"),
-        (["--model", str(tmp_path), "--port", "70000"], "--port"),
-        (["--model", str(tmp_path), "--max-batch", "0"], "--max-batch"),
+        (["--model", str(tmp_path), "--port", "70000"], "port:"),
+        (["--model", str(tmp_path), "--max-batch", "0"], "max_batch:"),
     ):
         r = subprocess.run(
             [sys.executable, "scripts/serve.py", *args], cwd=ROOT, capture_output=True, text=True, timeout=120

@@ -220,6 +220,7 @@ def test_deepspeed_two_cpu_ranks_train_save_resume(tiny, small_ds, tmp_path):
         "deepspeed=configs/ds_zero3.json",
         "global_batch=4",
         "per_device_batch=1",
+        "tower=scratch",  # a trained tower, so ZeRO-3 must gather the vision and merger weights
         "grounding.weight=0",
         "grounding.pretrain_epochs=0",  # the grounding head runs on one process only
         "save_steps=2",
