@@ -48,8 +48,8 @@ vulkan: $(VULKAN_STAMP)
 # The main job on the embedded default, all on CPU: PyBullet episodes (success/failure pairs) in the demo world
 # (configs/generate.yaml preset=demo: pick-and-place on one bench, fixed cameras, no distractors), rendered at the
 # grid's cell size -> keyframe strips -> the VQA dataset (512x512 grids of 8 keyframes, 128 px cells, 256 visual
-# tokens) -> the tiny Qwen3-VL trained from scratch (preset tiny: stage A frame grounding, then packed rows, pair
-# batches, detection first) -> the bench with majority/blind baselines -> the model as the supervisor of a
+# tokens) -> the tiny Qwen3-VL on the shipped sim-pretrained tower (preset tiny: the tower and merger frozen, the
+# decoder trained from scratch on packed rows, pair batches, detection first) -> the bench with majority/blind baselines -> the model as the supervisor of a
 # scripted policy in its world (25 place trials, one review once the policy stops) -> one failure diagnosed (Q6
 # from the strategy table). About 11 minutes on 2 cores after the install.
 DEMO_EPISODES ?= 400
@@ -149,7 +149,7 @@ ablate: $(STAMP)
 T            ?= outputs/tower
 TOWER_SEEN   ?= 6000
 TOWER_UNSEEN ?= 200
-TOWER_EPOCHS ?= 12
+TOWER_EPOCHS ?= 6
 TOWER_EXPORT ?= labrobfail_vlm/assets/tower
 TOWER_GEN    := backend=pybullet seed=1000 workers=2 image_size=128 render_frames=8 backend_kwargs.wrist=true progress=false
 tower: $(STAMP)
