@@ -51,7 +51,7 @@ vulkan: $(VULKAN_STAMP)
 # tokens) -> the tiny Qwen3-VL on the shipped sim-pretrained tower (preset tiny: the tower and merger frozen, the
 # decoder trained from scratch on packed rows, pair batches, detection first) -> the bench with majority/blind baselines -> the model as the supervisor of a
 # scripted policy in its world (25 place trials, one review once the policy stops) -> one failure diagnosed (Q6
-# from the strategy table). About 11 minutes on 2 cores after the install.
+# from the strategy table). About 5 minutes on 2 cores after the install.
 DEMO_EPISODES ?= 400
 DEMO_EPOCHS   ?= 10
 DEMO_GRID     := grid.width=512 grid.height=512 grid.max_frames=8 grid.columns=4

@@ -193,7 +193,13 @@ def main(argv: list[str]) -> int:
         lines += [
             f"`make reproduce` end to end: **{total_min:.1f} min** wall-clock. Steps: "
             + ", ".join(f"{n} {s / 60:.1f} min" for n, s in steps)
-            + ".",
+            + "."
+            # a rerun resumes complete shards in seconds: say so rather than pass it off as generation time
+            + (
+                " Generation found its shards already complete, so their generation time is not in this figure."
+                if dict(steps).get("generate", 60) < 60
+                else ""
+            ),
             "",
         ]
     params = sum(v for k, v in summary["trainable_parameters"].items() if k != "frozen")
