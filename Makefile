@@ -88,7 +88,7 @@ demo-online: $(STAMP)
 # The CPU recipe at full size (docs/RESULTS.md): seen and unseen data (front, side and wrist views rendered), the
 # dataset on front + side grids, the tiny Qwen3-VL on the shipped sim-pretrained tower (preset=tiny's default), every
 # split's bench with baselines and 95 % intervals, the learning curve. At least 400 seen test trajectories and 150
-# per unseen split. Resumable: generation resumes its shards; delete outputs/reproduce to start over. About 90 min
+# per unseen split. Resumable: generation resumes its shards; delete outputs/reproduce to start over. About 80 min
 # on 2 cores. Then, on the same data: make reproduce-rows (the scratch-tower and front + wrist rows) and make ablate
 # (the paper's ablation table); each rewrites docs/RESULTS.md with what exists.
 R              ?= outputs/reproduce

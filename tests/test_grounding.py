@@ -199,7 +199,7 @@ def test_bad_grounding_config_is_one_line(tiny, small_ds, tmp_path, bad, field):
 
 
 def test_resuming_a_run_made_without_grounding_is_one_line(tiny, small_ds, tmp_path):  # noqa: F811
-    """The tiny preset on a scratch tower grounds by default; a checkpoint from a run without the head cannot continue with one."""
+    """On a scratch tower the tiny preset grounds by default; a run without the head cannot resume with one."""
     common = [
         sys.executable,
         "train.py",
