@@ -100,10 +100,11 @@ def rows_table(run: Path) -> list[str]:
         "object Q2 | scene Q2 | both Q2 |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
-    lines = []
+    lines, missing = [], []
     for folder, title in ROWS.items():
         ev = _evals(run / folder)
         if not ev or "test" not in ev:
+            missing.append(f"{title} (`{folder}`)")
             continue
         t = ev["test"]
         det = (t.get("detection") or {}).get("auroc")
@@ -113,14 +114,15 @@ def rows_table(run: Path) -> list[str]:
             + " | ".join(_ci(ev[s], "q2") if s in ev else "–" for s in ("object", "scene", "both"))
             + " |"
         )
-    return head + lines if lines else []
+    tail = ["", "Not run for this page: " + "; ".join(missing) + "."] if missing else []
+    return head + lines + tail if lines else []
 
 
 def ablation_table(run: Path, main_title: str) -> list[str]:
     """The paper's ablation table (seen split: Q2, Q3, Q5, Q6 ROUGE-L) for the runs `make ablate` made."""
     from labrobfail_vlm.bench.report import PAPER_ABLATION
 
-    lines = []
+    lines, missing = [], []
     for folder, title in ABLATIONS.items():
         ev = _evals(run / folder, ("test",))
         if ev:
@@ -128,6 +130,8 @@ def ablation_table(run: Path, main_title: str) -> list[str]:
             lines.append(
                 f"| {title} | {_ci(t, 'q2')} | {_ci(t, 'q3', True)} | {_ci(t, 'q5', True)} | {_ci(t, 'rougeL', True)} |"
             )
+        else:
+            missing.append(f"{title} (`{folder}`)")
     if not lines:
         return []
     return [
@@ -135,6 +139,7 @@ def ablation_table(run: Path, main_title: str) -> list[str]:
         "|---|---|---|---|---|",
         *lines,
         *(f"| {k} | {v[0]} | {v[1]} | {v[2]} | {v[3]} |" for k, v in PAPER_ABLATION.items()),
+        *(["", "Not run for this page: " + "; ".join(missing) + "."] if missing else []),
     ]
 
 
