@@ -114,8 +114,12 @@ def rows_table(run: Path) -> list[str]:
             + " | ".join(_ci(ev[s], "q2") if s in ev else "–" for s in ("object", "scene", "both"))
             + " |"
         )
-    tail = ["", "Not run for this page: " + "; ".join(missing) + "."] if missing else []
-    return head + lines + tail if lines else []
+    return head + lines + _not_run(missing) if lines else []
+
+
+def _not_run(missing: list[str]) -> list[str]:
+    """The closing line of a table that names the runs it lacks (`make reproduce-rows` / `make ablate` steps)."""
+    return ["", "Not run for this page: " + "; ".join(missing) + "."] if missing else []
 
 
 def ablation_table(run: Path, main_title: str) -> list[str]:
@@ -139,7 +143,7 @@ def ablation_table(run: Path, main_title: str) -> list[str]:
         "|---|---|---|---|---|",
         *lines,
         *(f"| {k} | {v[0]} | {v[1]} | {v[2]} | {v[3]} |" for k, v in PAPER_ABLATION.items()),
-        *(["", "Not run for this page: " + "; ".join(missing) + "."] if missing else []),
+        *_not_run(missing),
     ]
 
 
