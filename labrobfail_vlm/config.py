@@ -62,6 +62,17 @@ def _defaults(defaults: str | Path) -> tuple[DictConfig, str]:
     return OmegaConf.load(path), path.read_text()
 
 
+def size_setting(key: str, value: object, example: str) -> tuple[int, int]:
+    """A `WxH` setting (e.g. grid=512x512) as positive (width, height), or a one-line ConfigError naming `key`."""
+    try:
+        w, h = (int(x) for x in str(value).lower().split("x"))
+    except ValueError:
+        w = h = 0
+    if w < 1 or h < 1:
+        raise ConfigError(f"{key}: expected a positive WxH (e.g. {example}), got {value!r}")
+    return w, h
+
+
 def load_config(defaults: str | Path, argv: list[str]) -> DictConfig:
     """Defaults (a YAML file under configs/, or YAML text; struct: unknown keys are errors) merged with the command
     line (`dotlist`). A top-level mapping that is empty in the defaults (`backend_kwargs: {}`) is a free-form

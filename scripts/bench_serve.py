@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from labrobfail_vlm.config import ConfigError, cli_main, load_config, size_setting
 from labrobfail_vlm.serve.client import DiagnosisClient, Part
 
 SCRIPTS = Path(__file__).resolve().parent  # serve.py runs from here, with the repository root as its cwd
@@ -251,12 +251,7 @@ def check(a: Any) -> tuple[tuple[int, int], list[int]]:
 
     if a.model is not None and not isinstance(a.model, str):
         raise ConfigError(f"model: expected a folder path, got {a.model!r}")
-    try:
-        w, h = (int(x) for x in str(a.grid).lower().split("x"))
-    except ValueError:
-        w = h = 0
-    if w < 1 or h < 1:
-        raise ConfigError(f"grid: expected a positive WxH (e.g. 512x512), got {a.grid!r}")
+    w, h = size_setting("grid", a.grid, "512x512")
     try:
         levels = [int(x) for x in str(a.clients).split(",")]
     except ValueError:

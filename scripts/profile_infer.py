@@ -23,7 +23,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from labrobfail_vlm.config import ConfigError, cli_main, load_config, size_setting
 
 DEFAULTS = """
 model: null                      # model folder to profile; null = a tiny random model, built on the fly
@@ -100,12 +100,7 @@ def main(argv: list[str]) -> int:
             raise ConfigError(f"{key}: expected an integer >= 1, got {v!r}")
     if a.model is not None and not isinstance(a.model, str):
         raise ConfigError(f"model: expected a folder path, got {a.model!r}")
-    try:
-        w, h = (int(x) for x in str(a.grid).lower().split("x"))
-    except ValueError:
-        w = h = 0
-    if w < 1 or h < 1:
-        raise ConfigError(f"grid: expected a positive WxH (e.g. 1536x768), got {a.grid!r}")
+    w, h = size_setting("grid", a.grid, "1536x768")
     import torch
 
     from labrobfail_vlm.analyzer import FailureAnalyzer
