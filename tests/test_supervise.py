@@ -138,6 +138,42 @@ def test_bad_settings_are_one_line_errors(tmp_path, args, msg):
     assert r.returncode == 2 and msg in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
 
 
+def test_a_stopped_learned_policy_is_reviewed_on_its_whole_trajectory():
+    """ACT's ticks that the phase tracker cannot place on the plan all carry the first keyframe's name. While the
+    policy runs they are one keyframe of a prefix grid; once it stops, the review grid spreads its cells over the
+    ticks (a whole-trajectory grid), and a scripted run that stopped early keeps no blank cells for the steps it
+    never ran."""
+    import dataclasses
+
+    from labrobfail_vlm.grid import GridConfig
+    from sim_backends.registry import make_backend
+    from sim_backends.supervision.base import live_grid
+
+    cfg = GridConfig(width=256, height=64, max_frames=8, columns=8)
+    src = make_backend("pybullet", image_size=32, cameras=["front"], max_distractors=0)
+    try:
+        src.reset("pick_place_beaker_small", 0, "seen")
+        plan = src.scripted_keyframes()
+        src.begin()
+        for k in plan + plan[::-1][:4]:  # twelve ticks along the plan, all named as its first keyframe
+            src.step(dataclasses.replace(k, name=plan[0].name, segment=0))
+        running, stopped = live_grid(src, plan, cfg), live_grid(src, plan, cfg, final=True)
+        assert running.visible == 1 and running.keyframes == [11]
+        assert stopped.visible == 8 and stopped.keyframes[0] == 0 and stopped.keyframes[-1] == 11
+        assert len(set(stopped.keyframes)) == 8
+
+        src.reset("pick_place_beaker_small", 0, "seen")
+        src.begin()
+        for k in plan[:6]:  # a scripted run that stopped after six of its eight keyframes
+            src.step(k)
+        small = dataclasses.replace(cfg, max_frames=4, columns=4)
+        running, stopped = live_grid(src, plan, small), live_grid(src, plan, small, final=True)
+        # while running, cells are kept (blank) for the plan's last two keyframes; the stopped run fills all four
+        assert running.visible < 4 and stopped.visible == 4 and stopped.keyframes[-1] == 5
+    finally:
+        src.close()
+
+
 def test_oracle_names_a_stopped_policy_with_an_unmet_goal_an_incomplete_trajectory():
     """A policy (ACT, OpenVLA) that stops short of its goal leaves no detector signature; the oracle must still
     act at the final query: incomplete trajectory, corrected by resuming the unfinished grasp."""

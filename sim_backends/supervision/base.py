@@ -83,19 +83,29 @@ class LiveGrid:
     visible: int
 
 
-def live_grid(src: FailureSource, nominal: list, cfg: GridConfig) -> LiveGrid:
+def live_grid(src: FailureSource, nominal: list, cfg: GridConfig, final: bool = False) -> LiveGrid:
     """The prefix grid of an episode so far, laid out as the dataset lays out prefix grids.
 
     Consecutive executed keyframes with one name (a learned policy's control ticks, a correction's
     keyframes) count as one keyframe, shown by its last image. The cells are sampled from the keyframes so
     far plus the plan's remaining ones (the episode's length is not known yet), and the cells not reached
     yet stay blank, as in a training prefix grid (`build_grid(..., visible=k)`).
+
+    `final`: the policy has stopped, so the episode is whole and laid out as a whole-trajectory grid: no cells
+    are kept for plan steps it never ran. When its names group it into fewer keyframes than the grid has cells
+    (ACT's ticks that the phase tracker could not place on the plan all carry the first keyframe's name), the
+    cells are spread over the executed ticks themselves; grouped, such an episode showed a single cell.
     """
     done = src.executed_so_far()
     units = [i for i in range(len(done)) if i == len(done) - 1 or done[i + 1].name != done[i].name]
+    if final and len(units) < cfg.max_frames:
+        units = list(range(len(done)))
     names = [k.name for k in nominal]
     last = done[units[-1]].name if units else None
-    rest = nominal[len(names) - names[::-1].index(last) :] if last in names else nominal[len(units) :]
+    if final:
+        rest = []
+    else:
+        rest = nominal[len(names) - names[::-1].index(last) :] if last in names else nominal[len(units) :]
     segments = [done[i].segment for i in units] + [k.segment for k in rest]
     picks = sample_keyframes(segments, cfg.max_frames)
     shown = [p for p in picks if p < len(units)]

@@ -319,7 +319,7 @@ def _query(
         **v.to_log(),
     }
     if log is not None and (cfg.grids == "all" or (cfg.grids == "failures" and v.failure)):
-        img = v.grid if v.grid is not None else live_grid(src, ctx.nominal, grid_cfg).image
+        img = v.grid if v.grid is not None else live_grid(src, ctx.nominal, grid_cfg, final).image
         rec["grid"] = log.grid(img, f"{trial}-q{t.queries:03d}")
     go_on, t.corrected = True, False
     if v.failure and t.interventions >= cfg.budget:

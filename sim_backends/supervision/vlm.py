@@ -42,7 +42,7 @@ class VLMSupervisor(Supervisor):
         self.fa = analyzer
 
     def query(self, src: FailureSource, final: bool = False) -> Verdict:
-        g = live_grid(src, self.ctx.nominal, self.fa.grid)
+        g = live_grid(src, self.ctx.nominal, self.fa.grid, final)
         d = self.fa.analyze(g.image, task=self.ctx.instruction, frames=max(1, g.visible), objects=self.ctx.objects)
         kf = g.keyframes[d.failure_frame - 1] if d.failure and d.failure_frame and g.keyframes else None
         new = d.failure and (kf is None or kf > self.handled_upto)
