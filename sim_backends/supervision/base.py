@@ -100,11 +100,10 @@ def live_grid(src: FailureSource, nominal: list, cfg: GridConfig, final: bool = 
     units = [i for i in range(len(done)) if i == len(done) - 1 or done[i + 1].name != done[i].name]
     if final and len(units) < cfg.max_frames:
         units = list(range(len(done)))
-    names = [k.name for k in nominal]
-    last = done[units[-1]].name if units else None
-    if final:
-        rest = []
-    else:
+    rest: list = []  # final: the episode is whole, no cells for the plan's remaining keyframes
+    if not final:
+        names = [k.name for k in nominal]
+        last = done[units[-1]].name if units else None
         rest = nominal[len(names) - names[::-1].index(last) :] if last in names else nominal[len(units) :]
     segments = [done[i].segment for i in units] + [k.segment for k in rest]
     picks = sample_keyframes(segments, cfg.max_frames)
