@@ -5,8 +5,10 @@ Run as:
 
 Reads <run>/dataset/stats.json, <run>/timeline.txt (one "<step> <unix seconds>" line per step), the main model's
 <run>/train/{train_summary,progress}.json and final/eval_<split>/results.json, the tower card it started from, and
-the optional rows <run>/rows/{scratch,wrist}/ and ablations <run>/ablate/{frozen,tuned,no_index}/ (same layout).
-Sections: the issue's targets, the tower and sensor rows, the paper's ablation table, the paper-comparable tables
+the optional rows <run>/rows/{scratch,wrist}/ and ablations <run>/ablate/{frozen,tuned,no_index}/ (same layout),
+`make reproduce-online`'s model <run>/online/ and `make recovery`'s tables <run>/recovery/{scripted,act/<task>}/.
+Sections: the issue's targets, the tower and sensor rows, the paper's ablation table, supervision (the online model
+on whole and prefix grids, the recovery table), the paper-comparable tables
 (Q3-Q6 over failed trajectories) with 95 % intervals, failure detection as a score, the all-trajectory tables,
 Q2 recall per failure type, the learning curve.
 """
@@ -36,6 +38,7 @@ ROWS = {
     "train": "sim-pretrained tower (shipped), front + side",
     "rows/wrist": "sim-pretrained tower, front + wrist (sensor ablation, not the paper's views)",
 }
+RECOVERY_TARGET = 4  # points of success rate that supervision must add per task and policy (the tower issue)
 ABLATIONS = {
     "ablate/tuned": "tuned tower and merger",
     "ablate/frozen": "frozen tower and merger",
@@ -145,6 +148,51 @@ def ablation_table(run: Path, main_title: str) -> list[str]:
         *(f"| {k} | {v[0]} | {v[1]} | {v[2]} | {v[3]} |" for k, v in PAPER_ABLATION.items()),
         *_not_run(missing),
     ]
+
+
+def supervision(run: Path) -> list[str]:
+    """The online model (make reproduce-online) on whole and prefix grids, and the recovery table (make recovery):
+    success out of the trials per task and policy, without a supervisor and with the VLM."""
+    lines = []
+    ev = _evals(run / "online", ("test", "prefix", "both"))
+    titles = {"test": "seen, whole", "prefix": "seen, prefix (first k keyframes)", "both": "unseen both, whole"}
+    if ev:
+        lines += [
+            "| grids | Q2 | majority Q2 | AUROC | Q3 (failures) | Q5 (failures) |",
+            "|---|---|---|---|---|---|",
+            *(
+                f"| {titles[s]} | {_ci(r, 'q2')} | {r['baselines'].get('majority class', {}).get('q2')} | "
+                f"{(r.get('detection') or {}).get('auroc')} | {_ci(r, 'q3', True)} | {_ci(r, 'q5', True)} |"
+                for s, r in ev.items()
+            ),
+            "",
+        ]
+    rec = run / "recovery"
+    tables = [rec / "scripted" / "results.json", *sorted((rec / "act").glob("*/results.json"))]
+    rows = []
+    for f in (t for t in tables if t.is_file()):
+        res = json.loads(f.read_text())
+        sup = res["config"]["supervisor"]
+        for task, r in res["tasks"].items():
+            base, got = r.get("none"), r.get(sup)
+            if base and got:
+                rows.append(
+                    f"| {task} | {r['policy']} | {base['success']}/{base['trials']} | {got['success']}/{got['trials']} "
+                    f"| {r['improvement']:+.0f} | {'yes' if r['improvement'] >= RECOVERY_TARGET else 'no'} | "
+                    f"{got['episodes_with_intervention']} | {got['stopped']} |"
+                )
+    if rows:
+        lines += [
+            "Recovery (25 trials per cell, the same initial states and injections with and without the supervisor; "
+            "the VLM asked at every keyframe and once more when the policy stops; budget 2 corrections; a manual "
+            "correction stops the episode):",
+            "",
+            f"| task | policy | none | +VLM | diff (points) | >= +{RECOVERY_TARGET} | episodes with an intervention "
+            "| stopped early |",
+            "|---|---|---|---|---|---|---|---|",
+            *rows,
+        ]
+    return lines
 
 
 def per_type(run: Path, res: dict[str, Any]) -> list[str]:
@@ -269,6 +317,17 @@ def main(argv: list[str]) -> int:
     at = ablation_table(run, ROWS["train"])
     if at:
         lines += ["## Ablation (the paper's table, seen split)", "", *at, ""]
+    sv = supervision(run)
+    if sv:
+        lines += [
+            "## Supervision",
+            "",
+            "`make reproduce-online`: the model above, a third stage on prefix grids (the first k keyframes, later "
+            "cells blank), the supervisor of `make recovery`.",
+            "",
+            *sv,
+            "",
+        ]
 
     def named(res: dict[str, Any]) -> dict[str, dict[str, Any]]:
         return {
