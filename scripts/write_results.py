@@ -169,10 +169,20 @@ def supervision(run: Path) -> list[str]:
         ]
     rec = run / "recovery"
     tables = [rec / "scripted" / "results.json", *sorted((rec / "act").glob("*/results.json"))]
-    rows = []
+    rows, settings = [], set()
     for f in (t for t in tables if t.is_file()):
         res = json.loads(f.read_text())
-        sup = res["config"]["supervisor"]
+        cfg = res["config"]
+        sup, loop = cfg["supervisor"], cfg["loop"]
+        asked = {0: "at every keyframe", -1: "only when the policy stops"}.get(
+            loop["query_every"], f"every {loop['query_every']} policy steps"
+        )
+        settings.add(
+            f"{cfg['trials']} trials per cell, variant {cfg['variant']}, supervisor {sup} "
+            f"(`{(cfg.get(sup) or {}).get('model', '')}`) asked {asked}"
+            + (" and once more when the policy stops" if loop["final_query"] and loop["query_every"] >= 0 else "")
+            + f", budget {loop['budget']}, a manual correction: {loop['on_manual']}"
+        )
         for task, r in res["tasks"].items():
             base, got = r.get("none"), r.get(sup)
             if base and got:
@@ -183,9 +193,9 @@ def supervision(run: Path) -> list[str]:
                 )
     if rows:
         lines += [
-            "Recovery (25 trials per cell, the same initial states and injections with and without the supervisor; "
-            "the VLM asked at every keyframe and once more when the policy stops; budget 2 corrections; a manual "
-            "correction stops the episode):",
+            "Recovery: the same initial states and injections with and without the supervisor; "
+            + "; ".join(sorted(settings))
+            + ".",
             "",
             f"| task | policy | none | +VLM | diff (points) | >= +{RECOVERY_TARGET} | episodes with an intervention "
             "| stopped early |",
