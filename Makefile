@@ -72,14 +72,15 @@ demo: $(STAMP)
 # A third stage on prefix grids (one per trajectory, twins cut at the same keyframes, each asked Q2, Q3, Q5 and
 # Q6 as the failure stands at the cut), then the bench on whole and prefix grids, then the supervisor asked at
 # every keyframe. About 10 minutes on 2 cores.
-DEMO_ONLINE_PREFIX := prefix.cuts=1 prefix.pair_cuts=true 'prefix.questions=[Q2,Q3,Q5,Q6]'
+ONLINE_PREFIX := prefix.cuts=1 prefix.pair_cuts=true 'prefix.questions=[Q2,Q3,Q5,Q6]'
+# the third stage continues a trained model: no frame-grounding stage, no detection-first or polarity curriculum
+ONLINE_STAGE  := grounding.pretrain_epochs=0 curriculum.detect_first=0 curriculum.polarity_warmup=0
 demo-online: $(STAMP)
 	@test -d outputs/demo_train/final || { echo "demo-online: run make demo first (no outputs/demo_train/final)" >&2; exit 2; }
 	$(PY) -m scripts.build_dataset shards=outputs/demo_shards out_dir=outputs/demo_online_dataset $(DEMO_GRID) \
-	  $(DEMO_ONLINE_PREFIX) progress=false
+	  $(ONLINE_PREFIX) progress=false
 	$(PY) train.py preset=tiny dataset_dir=outputs/demo_online_dataset output_dir=outputs/demo_online_train epochs=8 \
-	  model.path=outputs/demo_train/final grounding.pretrain_epochs=0 curriculum.detect_first=0 \
-	  curriculum.polarity_warmup=0
+	  model.path=outputs/demo_train/final $(ONLINE_STAGE)
 	for s in test prefix; do $(PY) scripts/evaluate.py model=outputs/demo_online_train/final \
 	  dataset_dir=outputs/demo_online_dataset split=$$s progress=false || exit 1; done
 	$(PY) scripts/supervise.py policy=scripted supervisor=vlm vlm.model=outputs/demo_online_train/final task=place \
@@ -149,9 +150,9 @@ ONLINE_EPOCHS ?= 3
 reproduce-online: $(STAMP)
 	@test -d $(R)/train/final || { echo "reproduce-online: run make reproduce first (no $(R)/train/final)" >&2; exit 2; }
 	$(PY) -m scripts.build_dataset $(REPRO_SHARDS) out_dir=$(R)/dataset_online $(DEMO_GRID) 'views=[front,side]' \
-	  $(DEMO_ONLINE_PREFIX) progress=false
+	  $(ONLINE_PREFIX) progress=false
 	$(PY) train.py $(REPRO_TRAIN) epochs=$(ONLINE_EPOCHS) dataset_dir=$(R)/dataset_online output_dir=$(R)/online \
-	  model.path=$(R)/train/final grounding.pretrain_epochs=0 curriculum.detect_first=0 curriculum.polarity_warmup=0
+	  model.path=$(R)/train/final $(ONLINE_STAGE)
 	$(call bench,$(R)/online,test prefix both,$(R)/dataset_online)
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 
