@@ -99,10 +99,16 @@ class Ask:
 
 
 def plan_reply(
-    dim: str, failed: bool | None, frames: int, objects: Sequence[str] = (), q6_mode: str = "free"
+    dim: str,
+    failed: bool | None,
+    frames: int,
+    objects: Sequence[str] = (),
+    q6_mode: str = "free",
+    category: str | None = None,
 ) -> str | Ask:
     """The reply to `dim` when the Q2 verdict (`failed`; None before Q2) already settles it, else what the model
-    must decode. Shared by the local decoder and the endpoint path, so both ask the same things."""
+    must decode. `category`: the Q5 reply, which narrows a template Q6 to that category's strategies. Shared by
+    the local decoder and the endpoint path, so both ask the same things."""
     if dim == "Q1":
         return Ask("actions")
     if dim == "Q2":
@@ -112,13 +118,23 @@ def plan_reply(
         if failed is False:
             return Q.NO_CORRECTION
         if q6_mode == "template":
-            return Ask("choose", tuple(text for _, text in candidates(objects)), per_token=True)
+            cat = int(category) if category and category.isdigit() and 1 <= int(category) <= len(Category) else None
+            return Ask("choose", tuple(text for _, text in candidates(objects, cat)), per_token=True)
         closed = (Q.NO_CORRECTION, Q.NO_FAILURE, "Yes", "No", *map(str, range(10)))
         return Ask("free", closed if failed else ())
     if failed is False:
         return Q.NO_FAILURE
     hi = {"Q3": frames, "Q4": len(Severity), "Q5": len(Category)}[dim]
     return Ask("choose", tuple(str(i) for i in range(1, hi + 1)))
+
+
+def asked_dims(dims: Collection[str], q6_mode: str) -> set[str]:
+    """The dimensions to decode for a request of `dims`: Q2 always (the others follow its verdict), and Q5 with a
+    template Q6 (the correction is chosen among the answered category's strategies)."""
+    out = set(dims) | {"Q2"}
+    if q6_mode == "template" and "Q6" in out:
+        out.add("Q5")
+    return out
 
 
 @dataclass
@@ -140,7 +156,8 @@ def check_threshold(value: Any) -> float:
 
 class FailureAnalyzer:
     """`q6_mode`: "free" (greedy text) or "template" (the most likely entry of the paper's correction-strategy
-    table, placeholders filled from the `objects` given to `analyze`, so every correction maps to primitives).
+    table among the strategies of the answered Q5 category, placeholders filled from the `objects` given to
+    `analyze`, so every correction maps to primitives and agrees with the diagnosis).
     `threshold`: Q2 answers "Yes" (a failure, and Q3-Q6 are asked as one) when P(failure) >= threshold; 0.5 is
     the decoder's argmax, a lower value makes a supervisor intervene earlier."""
 
@@ -221,8 +238,16 @@ class FailureAnalyzer:
         probs = [p_yes(ask.options, sc) for sc in self.decoder.option_scores_rows(pre, [ask.options] * rows)]
         return ["Yes" if p >= self.threshold else "No" for p in probs], probs
 
-    def _answer(self, dim: str, pre: Any, failed: bool | None, frames: int, objects: Sequence[str] = ()) -> str:
-        return str(self._decode(pre, [plan_reply(dim, failed, frames, objects, self.q6_mode)])[0])
+    def _answer(
+        self,
+        dim: str,
+        pre: Any,
+        failed: bool | None,
+        frames: int,
+        objects: Sequence[str] = (),
+        category: str | None = None,
+    ) -> str:
+        return str(self._decode(pre, [plan_reply(dim, failed, frames, objects, self.q6_mode, category)])[0])
 
     def _prefixes(self, image: Image.Image, prompts: dict[str, str]) -> Iterator[tuple[str, Any]]:
         """Six-prompt mode (the reference path): (dimension, model state after its whole prompt, image included)."""
@@ -238,11 +263,12 @@ class FailureAnalyzer:
         objects: Sequence[str] = (),
         dims: Collection[str] = Q.DIMENSIONS,
     ) -> dict[str, str]:
-        """The replies to `dims` (Q2 is always asked: the others follow its verdict)."""
+        """The replies to `dims`, and to what they depend on (`asked_dims`)."""
         if one_pass:
             return self.answers_batch([image], [task], [frames], [objects], [dims])[0]
         frames = frames or self.num_frames
-        prompts = {dim: self._prompt(dim, task) for dim in Q.DIMENSIONS if dim in dims or dim == "Q2"}
+        need = asked_dims(dims, self.q6_mode)
+        prompts = {dim: self._prompt(dim, task) for dim in Q.DIMENSIONS if dim in need}
         out = Answers()
         failed: bool | None = None
         for dim, pre in self._prefixes(image, prompts):
@@ -250,7 +276,7 @@ class FailureAnalyzer:
                 (out[dim],), (out.p_failure,) = self._decide_q2(pre, 1)
                 failed = out[dim] == "Yes"
             else:
-                out[dim] = self._answer(dim, pre, failed, frames, objects)
+                out[dim] = self._answer(dim, pre, failed, frames, objects, out.get("Q5"))
         return out
 
     def answers_batch(
@@ -300,10 +326,8 @@ class FailureAnalyzer:
         """One pass over a batch: each grid's image and preamble are prefilled once (one forward for the batch);
         a question's own tokens are fed only for the rows whose reply needs the model (Q3-Q6 follow Q2)."""
         d = self.decoder
-        prompts = [
-            {dim: self._prompt(dim, t) for dim in Q.DIMENSIONS if dim in ds or dim == "Q2"}
-            for t, ds in zip(tasks, dims)
-        ]
+        needs = [asked_dims(ds, self.q6_mode) for ds in dims]
+        prompts = [{dim: self._prompt(dim, t) for dim in Q.DIMENSIONS if dim in need} for t, need in zip(tasks, needs)]
         import torch
 
         # one image per call: the image processor on a list of large grids is ~3x slower per image (measured)
@@ -322,7 +346,9 @@ class FailureAnalyzer:
         failed: list[bool | None] = [None] * len(images)
         for dim in Q.DIMENSIONS:
             plans = [
-                plan_reply(dim, failed[i], frames[i], objects[i], self.q6_mode) if dim in ids[i] else None
+                plan_reply(dim, failed[i], frames[i], objects[i], self.q6_mode, out[i].get("Q5"))
+                if dim in ids[i]
+                else None
                 for i in range(len(images))
             ]
             replies: list[str | None] = [p if isinstance(p, str) else None for p in plans]

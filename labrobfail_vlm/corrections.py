@@ -19,6 +19,7 @@ on the atomic action that failed):
 
 from __future__ import annotations
 
+import functools
 import itertools
 import string
 from dataclasses import dataclass, replace
@@ -174,13 +175,31 @@ def correction(ctx: Context) -> tuple[str, str]:
     return sid, instruction(sid, ctx)
 
 
+@functools.cache
+def strategies_of(category: int) -> frozenset[str]:
+    """The strategy ids `choose` can give a failure of the Q5 `category` (1-5): those of its failure types over
+    every atomic action and device, plus MANUAL (a fall or a fatal failure, whatever the category). Read off the
+    rule itself, so the grouping cannot drift from it."""
+    from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, FAILURE_TYPES
+
+    types = [ft.name for ft in FAILURE_TYPES.values() if ft.category == category]
+    if not types:
+        raise ValueError(f"correction: no failure category {category!r}")
+    out = {"MANUAL"}
+    for ft, act, dev in itertools.product(types, ATOMIC_ACTIONS, ("", "door", "button")):
+        out.add(choose(Context(failure_type=ft, action=act, device=dev)))
+    return frozenset(out)
+
+
 # Places a correction may name besides the scene's objects (failure_context's fallbacks).
 GENERIC_DESTINATIONS = ("its original position", "target position")
 
 
-def candidates(names: Sequence[str]) -> list[tuple[str, str]]:
+def candidates(names: Sequence[str], category: int | None = None) -> list[tuple[str, str]]:
     """Every (strategy id, instruction) the template-constrained Q6 decoder may choose, with the placeholders
-    filled from `names` (the scene's object and place labels; generic fallbacks are always included)."""
+    filled from `names` (the scene's object and place labels; generic fallbacks are always included).
+    `category`: the Q5 answer, when one was given: only that category's strategies (`strategies_of`), so the
+    correction agrees with the diagnosis (a grasping failure is not corrected by redoing an omitted step)."""
     from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS
 
     names = list(dict.fromkeys(n for n in names if n)) or ["object"]
@@ -192,7 +211,10 @@ def candidates(names: Sequence[str]) -> list[tuple[str, str]]:
         "opening": [True, False],
     }
     out: list[tuple[str, str]] = []
+    allowed = strategies_of(category) if category is not None else STRATEGIES
     for sid, (_, text) in STRATEGIES.items():
+        if sid not in allowed:
+            continue
         fields = {f for _, f, _, _ in string.Formatter().parse(text) if f}
         # direction/open_closed/open_close all follow whether a door is being opened
         keys = sorted(

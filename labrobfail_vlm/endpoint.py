@@ -21,7 +21,7 @@ from typing import Any, Collection, Sequence
 from PIL import Image
 
 from labrobfail_vlm import questions as Q
-from labrobfail_vlm.analyzer import Q6_MODES, Ask, FailureAnalyzer, plan_reply
+from labrobfail_vlm.analyzer import Q6_MODES, Ask, FailureAnalyzer, asked_dims, plan_reply
 from labrobfail_vlm.bench.parse import parse
 from labrobfail_vlm.grid import GridConfig
 from labrobfail_vlm.llm_client import ChatClient, image_data_url
@@ -106,10 +106,11 @@ class EndpointAnalyzer(FailureAnalyzer):
         url = image_data_url(image)
         out: dict[str, str] = {}
         failed: bool | None = None
+        need = asked_dims(dims, self.q6_mode)
         for dim in Q.DIMENSIONS:
-            if dim not in dims and dim != "Q2":
+            if dim not in need:
                 continue
-            p = plan_reply(dim, failed, frames, objects, self.q6_mode)
+            p = plan_reply(dim, failed, frames, objects, self.q6_mode, out.get("Q5"))
             if isinstance(p, Ask):
                 text = Q.question_text(dim, 0, task, self.time_axis, self.index)
                 reply = self._ask(url, text.removeprefix("<image>\n"), p)

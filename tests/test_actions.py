@@ -3,7 +3,7 @@
 import pytest
 
 from labrobfail_vlm.actions import PRIMITIVES, clauses, executable, format_primitive, to_primitives
-from labrobfail_vlm.corrections import STRATEGIES, candidates
+from labrobfail_vlm.corrections import STRATEGIES, Context, candidates, choose, strategies_of
 from labrobfail_vlm.questions import NO_CORRECTION
 
 SCENE = [
@@ -32,6 +32,25 @@ def test_every_filled_template_maps_without_manual_phrases():
         else:
             assert executable(prims), (sid, text, prims)
             assert all(p["op"] in PRIMITIVES for p in prims)
+
+
+def test_a_category_narrows_the_templates_to_its_own_strategies():
+    """Every strategy the rule gives a failure type lies in its category's set, the sets cover the table, and a
+    category's candidates are exactly its strategies (MANUAL in each: a fall is possible in any category)."""
+    from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, FAILURE_TYPES, Category
+
+    for ft in FAILURE_TYPES.values():
+        for act in ATOMIC_ACTIONS:
+            for dev in ("", "door", "button"):
+                assert choose(Context(ft.name, act, dev)) in strategies_of(ft.category)
+    assert set().union(*(strategies_of(c) for c in Category)) == set(STRATEGIES)
+    assert strategies_of(Category.LOGIC) == {"L1", "L2", "MANUAL"}
+    assert "L2" not in strategies_of(Category.GRASPING) | strategies_of(Category.PERCEPTION)
+    for c in Category:
+        assert {sid for sid, _ in candidates(SCENE, c)} == strategies_of(c)
+        assert set(candidates(SCENE, c)) <= set(candidates(SCENE))
+    with pytest.raises(ValueError, match="category"):
+        strategies_of(9)
 
 
 @pytest.mark.parametrize(

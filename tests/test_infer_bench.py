@@ -339,6 +339,24 @@ def test_q6_template_mode_picks_a_filled_strategy(tiny, grid):  # noqa: F811
         FailureAnalyzer.from_pretrained(tiny, q6_mode="beam")
 
 
+def test_template_q6_follows_the_answered_category(tiny, grid):  # noqa: F811
+    """A template Q6 is chosen among the strategies of the category Q5 gave (Q5 is decoded for it even when only
+    Q6 is asked), the same in one pass and six prompts; free Q6 does not ask Q5."""
+    from labrobfail_vlm.analyzer import FailureAnalyzer
+    from labrobfail_vlm.corrections import candidates
+
+    fa = FailureAnalyzer.from_pretrained(tiny, q6_mode="template", threshold=1e-6)  # every grid a failure
+    names = ["small beaker", "target area"]
+    img = Image.open(grid).convert("RGB")
+    one = fa.answers(img, "pick up the small beaker", True, objects=names, dims={"Q6"})
+    six = fa.answers(img, "pick up the small beaker", False, objects=names, dims={"Q6"})
+    assert one == six and set(one) == {"Q2", "Q5", "Q6"} and one["Q2"] == "Yes"
+    narrowed = {t for _, t in candidates(names, int(one["Q5"]))}
+    assert one["Q6"] in narrowed and len(narrowed) < len(candidates(names))
+    fa.q6_mode = "free"
+    assert set(fa.answers(img, "pick up the small beaker", True, objects=names, dims={"Q6"})) == {"Q2", "Q6"}
+
+
 def test_evaluate_reports_types_template_row_and_skips_majority_without_train(tiny, small_ds, tmp_path):  # noqa: F811
     import shutil
 
