@@ -1,9 +1,9 @@
 """The VLM supervisor: `FailureAnalyzer` on the prefix grid of the keyframes so far (in process, one pass).
 
 Q6 is decoded in template mode (the paper's correction-strategy table filled with the scene's names, among the
-strategies of the category the model gave for Q5), so every correction it gives maps to primitives. The model names a category (Q5), not a fine-grained type: the
-verdict's `failure_type` stays None and the diagnosis carries the category. A failure whose grid frame lies at or
-before the last correction is taken as already handled.
+strategies of the category the model gave for Q5), so every correction it gives maps to primitives. The model
+names a category (Q5), not a fine-grained type: the verdict's `failure_type` stays None and the diagnosis carries
+the category. A failure whose grid frame lies at or before the last correction is taken as already handled.
 """
 
 from __future__ import annotations
