@@ -34,6 +34,7 @@ Event = tuple[int, str, str]  # (sample index, failure type, evidence)
 
 MISALIGN_XY = 0.012  # m: gripper-to-object lateral offset at closure that counts as a misaligned grasp
 OPEN_WIDTH = 0.07  # m: finger opening that means the gripper did not close
+EMPTY_GRIP = 0.5  # closed fingers under this fraction of a vessel's planned grasp width hold nothing
 SLIP_DRIFT = 0.04  # m: object-to-gripper drift while held, measured in the gripper frame
 POSE_ERR = 0.3  # rad: end-effector orientation error against the plan
 WRONG_PLACE = 0.08  # m: release this far from the planned spot = put somewhere else entirely
@@ -100,10 +101,17 @@ def detect_grasp(trace: Trace, meta: Meta) -> Optional[Event]:
         if not js:
             continue
         j, obj = js[0], st["object"]
-        if trace[f"{obj}.contacts"][j] > 0:
+        # A vessel keeps closed fingers about its diameter apart; fingers that closed far past it (a vessel
+        # pushed aside by an off-centre reach, touching a fingertip) hold nothing. A rod is too thin to tell.
+        empty = meta["objects"][obj]["kind"] == "vessel" and trace["width"][j] < EMPTY_GRIP * st.get("width", 0.0)
+        if trace[f"{obj}.contacts"][j] > 0 and not empty:
             continue
         grasp_pt = np.asarray(trace[f"{obj}.pos"][j]) + np.asarray(st["grip_offset"])
         off = float(np.linalg.norm(np.asarray(trace["ee_pos"][j])[:2] - grasp_pt[:2]))
+        if empty and off > MISALIGN_XY:
+            return j, "grasp_target_misalignment", f"fingers closed on nothing {off:.3f} m beside {obj}"
+        if empty:
+            continue  # closed on nothing right at the vessel: no detector here explains it
         if trace["width"][j] >= OPEN_WIDTH:
             return (
                 j,
@@ -132,13 +140,17 @@ def detect_slip(trace: Trace, meta: Meta) -> Optional[Event]:
             continue
         j0 = js[0]
         rel = [k for s in meta["steps"] if s.get("object") == obj and "release_kf" in s for k in [s["release_kf"]]]
-        ends = _kf_samples(trace, meta, set(rel))
-        j1 = min([e for e in ends if e > j0], default=len(trace["t"]) - 1)
-        # The release keyframe opens the fingers: stop before it starts (by the program counter) and
-        # RELEASE_LEAD before its end, whichever is earlier.
-        rel_i = trace["kf"][j1]
-        start = next((k for k in range(j0, j1 + 1) if trace["kf"][k] == rel_i), j1)
-        j1 = max(j0, min(start, j1 - 1 - samples_in(trace, RELEASE_LEAD)))
+        ends = [e for e in _kf_samples(trace, meta, set(rel)) if e > j0]
+        if not ends and not any(s.get("object") == obj for s in meta["steps"][st["index"] + 1 :]):
+            j1 = len(trace["t"])  # the task ends holding it (a pick): watch it to the end
+        else:
+            # The release keyframe (or, without one, the last: an insertion pushes the rod in the fingers)
+            # opens the fingers: stop before it starts (by the program counter) and RELEASE_LEAD before
+            # its end, whichever is earlier.
+            j1 = min(ends, default=len(trace["t"]) - 1)
+            rel_i = trace["kf"][j1]
+            start = next((k for k in range(j0, j1 + 1) if trace["kf"][k] == rel_i), j1)
+            j1 = max(j0, min(start, j1 - 1 - samples_in(trace, RELEASE_LEAD)))
         d0 = _in_gripper(trace, obj, j0)
         for j in range(j0, j1):
             d = _in_gripper(trace, obj, j)
@@ -146,11 +158,12 @@ def detect_slip(trace: Trace, meta: Meta) -> Optional[Event]:
                 # Fingers commanded open before the release keyframe: the object was let go, not lost.
                 opened = next((k for k in range(j0, j + 1) if trace["grip_cmd"][k] == 0), None)
                 if opened is not None:
-                    return (
-                        opened,
-                        "gripper_control_failure",
-                        f"the gripper opened while carrying {obj}, before its release",
+                    how = (
+                        f"the fingers stayed open at {st['close_kf']} and left {obj} behind"
+                        if opened == j0
+                        else f"the gripper opened while carrying {obj}, before its release"
                     )
+                    return opened, "gripper_control_failure", how
                 return j, "object_slippage", f"{obj} drifted {np.linalg.norm(d - d0):.3f} m from the gripper while held"
     return None
 

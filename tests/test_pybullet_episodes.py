@@ -77,3 +77,24 @@ def test_logic_failures_from_step_order(src):
     rev = _run(src, "stir_beaker", 1, lambda k: semantic.permute(k, 0, 2))
     assert rev.labels.failure_type == "sequence_reversal" and rev.labels.category == 4
     assert rev.labels.failure_keyframe == 0  # it stirred before it had the rod
+
+
+def _shifted(kfs, names, dy):
+    import dataclasses
+
+    return [dataclasses.replace(k, pos=(k.pos[0], k.pos[1] + dy, k.pos[2])) if k.name in names else k for k in kfs], {}
+
+
+def test_a_pick_that_ends_holding_is_watched_to_the_end(src):
+    """The pick template ends on its lift: fingers that open there drop the vessel (no release step follows to
+    end the watch early), and an off-centre reach that pushes the vessel aside closes the fingers on nothing
+    (a misaligned grasp, not a slip: the vessel never left the bench)."""
+    rng = np.random.default_rng(0)
+    ok = _run(src, "pick_bottle", 1)
+    assert ok.labels.success
+    dropped = _run(src, "pick_bottle", 1, lambda k: control.corrupt_gripper(k, ["s0_lift"], 1.0, rng))
+    assert dropped.labels.failure_type == "gripper_control_failure", dropped.labels.evidence
+    assert "opened while carrying" in dropped.labels.evidence
+    pushed = _run(src, "pick_bottle", 1, lambda k: _shifted(k, {"s0_reach", "s0_close"}, 0.032))
+    assert pushed.labels.failure_type == "grasp_target_misalignment", pushed.labels.evidence
+    assert "closed on nothing" in pushed.labels.evidence and max(p[2] for p in pushed.state_trace["obj.pos"]) < 0.02
