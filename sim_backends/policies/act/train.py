@@ -34,7 +34,9 @@ def load_or_record(cfg: DictConfig, family: Any, out: Path) -> tuple[list[dict[s
         with np.load(path, allow_pickle=False) as z:
             if json.loads(str(z["identity"])) == ident:
                 bounds = z["bounds"]
-                demos = [{k: z[k][a:b] for k in ("images", "state", "action")} for a, b in zip(bounds[:-1], bounds[1:])]
+                # z[k] decompresses the whole array on every access: read each once, then slice views of it
+                arrays = {k: z[k] for k in ("images", "state", "action")}
+                demos = [{k: v[a:b] for k, v in arrays.items()} for a, b in zip(bounds[:-1], bounds[1:])]
                 return demos, json.loads(str(z["info"]))
     t0 = time.perf_counter()
     src = make_backend(
