@@ -72,6 +72,21 @@ def _shard_files(cfg: DictConfig) -> list[Path]:
     return files
 
 
+def check_unique(files: list[Path]) -> None:
+    """Two shards holding the same trajectory id (a folder given twice, or two runs numbered alike) would
+    overwrite each other's grids and count twice: refuse before anything is written."""
+    seen: dict[str, Path] = {}
+    for f in files:
+        for row in _rows([f], ["variant", "episode_id"]):
+            traj = f"{row['variant']}-{row['episode_id']}"
+            if traj in seen:
+                raise ConfigError(
+                    f"shards: trajectory {traj} is in both {seen[traj]} and {f} (a folder given twice, or two "
+                    "generation runs numbered alike: give the second its own first_pair)"
+                )
+            seen[traj] = f
+
+
 def check_rendered(cfg: DictConfig, max_frames: int) -> None:
     """Shards generated with `render_frames=M` hold the images of the keyframes an M-frame grid shows (the
     picks of a smaller grid are not always among them): refuse another grid size before anything is written."""
@@ -126,6 +141,7 @@ def _review_marks(path: str | None) -> dict[str, str]:
 
 def build(cfg: DictConfig) -> dict[str, Any]:
     files = _shard_files(cfg)
+    check_unique(files)
     try:
         gcfg = GridConfig(**OmegaConf.to_container(cfg.grid))  # type: ignore[arg-type]
     except (TypeError, ValueError) as e:

@@ -2,7 +2,9 @@
 
 Episode i belongs to pair i // 2 (role nominal for even i, injected for odd i);
 pair j runs scenario order[j] with episode seed derived from (seed, j), so the
-same seed gives the same data whatever the number of workers. Shard k holds
+same seed gives the same data whatever the number of workers. `first_pair` shifts
+the pair numbers (ids and seeds) of a run, so a second run can add episodes to a
+dataset without reusing an id or an initial state. Shard k holds
 episodes [k*E, (k+1)*E); a finished shard is a complete file, so a rerun of
 the same command after a kill skips finished shards and redoes the rest.
 """
@@ -36,6 +38,7 @@ IDENTITY_KEYS = (
     "cameras",
     "backend_kwargs",
     "render_frames",
+    "first_pair",
 )
 
 
@@ -53,12 +56,11 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
 
     if cfg.backend not in available_backends():
         raise ConfigError(f"backend: unknown backend {cfg.backend!r}; available: {', '.join(available_backends())}")
-    for key in ("num_episodes", "workers", "episodes_per_shard", "image_size"):
+    for key in ("num_episodes", "first_pair", "workers", "episodes_per_shard", "image_size"):
         v = cfg[key]
-        if not isinstance(v, int) or isinstance(v, bool) or v < (0 if key == "num_episodes" else 1):
-            raise ConfigError(
-                f"{key}: must be a {'non-negative' if key == 'num_episodes' else 'positive'} integer, got {v!r}"
-            )
+        if not isinstance(v, int) or isinstance(v, bool) or v < (0 if key in ("num_episodes", "first_pair") else 1):
+            kind = "non-negative" if key in ("num_episodes", "first_pair") else "positive"
+            raise ConfigError(f"{key}: must be a {kind} integer, got {v!r}")
     rf = cfg.render_frames
     if rf is not None and (not isinstance(rf, int) or isinstance(rf, bool) or rf < 1):
         raise ConfigError(f"render_frames: must be a positive integer or null (every keyframe), got {rf!r}")
@@ -127,6 +129,7 @@ def _upgrade_identity(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any
         **old,
         "backend_kwargs": {**_default_backend_kwargs(), **(old["backend_kwargs"] or {})},
         "backend_files": old.get("backend_files", new["backend_files"]),
+        "first_pair": old.get("first_pair", 0),
     }
 
 
@@ -195,12 +198,13 @@ def labelable_pair(src, scenario: str, seed: int, j: int, variant: str) -> tuple
 
 
 def shard_jobs(cfg: DictConfig, scenarios: list[str], repeats: dict[str, int] | None = None) -> list[dict[str, Any]]:
-    n, per = int(cfg.num_episodes), int(cfg.episodes_per_shard)
+    n, per, first = int(cfg.num_episodes), int(cfg.episodes_per_shard), int(cfg.first_pair)
     order = scenario_order(scenarios, int(cfg.seed), math.ceil(n / 2), repeats)
     jobs = []
     for k in range(math.ceil(n / per)):
         lo, hi = k * per, min(n, (k + 1) * per)
-        pairs = [(j, order[j]) for j in range(lo // 2, math.ceil(hi / 2))]  # seeds: labelable_pair draws them
+        # pair numbers from `first`; labelable_pair draws the seeds from them
+        pairs = [(first + j, order[j]) for j in range(lo // 2, math.ceil(hi / 2))]
         jobs.append(
             {
                 "shard": k,
@@ -208,6 +212,7 @@ def shard_jobs(cfg: DictConfig, scenarios: list[str], repeats: dict[str, int] | 
                 "hi": hi,
                 "pairs": pairs,
                 "seed": int(cfg.seed),
+                "first_pair": first,
                 "render_frames": cfg.get("render_frames"),
             }
         )
@@ -226,7 +231,7 @@ def run_shard(job: dict[str, Any], backend: str, kwargs: dict[str, Any], variant
             continue
         for role_i, ep in enumerate((nominal, injected)):
             i = 2 * j + role_i
-            if not job["lo"] <= i < job["hi"]:
+            if not job["lo"] <= i - 2 * job.get("first_pair", 0) < job["hi"]:
                 continue
             ep.episode_id, ep.pair_id, ep.role = f"ep{i:07d}", f"pair{j:07d}", ("nominal", "injected")[role_i]
             rows.append(episode_row(ep))

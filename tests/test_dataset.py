@@ -171,6 +171,7 @@ def test_bad_inputs_are_one_line_errors(run6, tmp_path):
         (["prefix.cuts=1", "prefix.pair_cuts=maybe"], "prefix.pair_cuts"),
         (["prefix.cuts=1", "prefix.questions=[Q2,Q3,Q4]"], "prefix.questions"),
         (["prefix.cuts=1", "prefix.questions=Q6"], "prefix.questions"),
+        ([f"shards=[{run6},{run6}]"], "first_pair"),  # the same trajectories twice
     ]:
         r = subprocess.run(
             [

@@ -85,6 +85,18 @@ def test_resume_after_sigkill_gives_identical_data(run6, tmp_path):
     ]
 
 
+def test_first_pair_numbers_ids_and_seeds_so_a_second_run_adds_new_pairs(tmp_path):
+    one = ["scenarios=[press_button_red]", "seed=5"]
+    gen(tmp_path / "a", "num_episodes=6", *one)
+    gen(tmp_path / "b", "num_episodes=2", "first_pair=2", *one)  # pair 2 of the same seed, alone
+    a, b = rows(tmp_path / "a"), rows(tmp_path / "b")
+    assert [(r["episode_id"], r["pair_id"]) for r in b] == [("ep0000004", "pair0000002"), ("ep0000005", "pair0000002")]
+    assert [r["state_trace"] for r in b] == [r["state_trace"] for r in a[4:]]  # its seed follows the pair number
+    assert a[0]["state_trace"] != b[0]["state_trace"]
+    r = gen(tmp_path / "b", "num_episodes=2", *one, check=False)  # resuming with another numbering is refused
+    assert r.returncode == 2 and "first_pair" in r.stderr
+
+
 @pytest.mark.parametrize(
     "arg, field",
     [
@@ -93,6 +105,7 @@ def test_resume_after_sigkill_gives_identical_data(run6, tmp_path):
         ("variant=unseen_moon", "variant"),
         ("scenarios=[fly_to_moon]", "scenarios"),
         ("workers=0", "workers"),
+        ("first_pair=-1", "first_pair"),
         ("bogus_key=1", "bogus_key"),
         ("render_frames=0", "render_frames"),
         ("preset=moon", "preset"),
