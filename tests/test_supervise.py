@@ -98,13 +98,13 @@ def test_a_family_runs_in_make_demos_world_from_the_command_line(tmp_path):
         "backend_kwargs.custom_scene=configs/scenes/demo_bench.yaml",
         "backend_kwargs.camera_jitter=false",
         "backend_kwargs.max_distractors=0",
-        "families.pick.scenarios=[pick_place_right_beaker_large]",
+        "families.pick.scenarios=[pick_far_beaker_large]",
     ]
     supervise(
         "supervisor=oracle", "baseline=false", "task=pick", "trials=2", "loop.query_every=-1", *world, f"out_dir={out}"
     )
     eps = [x for x in records(out) if x["event"] == "episode"]
-    assert [e["scenario"] for e in eps] == ["pick_place_right_beaker_large"] * 2
+    assert [e["scenario"] for e in eps] == ["pick_far_beaker_large"] * 2
     queries = [x for x in records(out) if x["event"] == "query"]  # query_every=-1: only reviews once it stops
     assert queries and all(q["final"] for q in queries)
     for e in eps:  # a review that corrects hands control back; the next review finds nothing more to correct

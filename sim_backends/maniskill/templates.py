@@ -34,6 +34,13 @@ def _retreat(p: dict[str, Any]) -> tuple[float, float, float]:
     return (-0.12, 0.0, 0.0) if p.get("grasp", "side") == "side" else (0.0, 0.0, 0.10)
 
 
+@register_task("pick", backend="maniskill")
+def pick(plan: Plan, p: dict[str, Any]) -> None:
+    """The atomic pick (the recovery table's pick row): grasp, lift, hold."""
+    _grasp(plan, "obj", p)
+    plan.goal("held", object="obj")
+
+
 @register_task("pick_place", backend="maniskill")
 def pick_place(plan: Plan, p: dict[str, Any]) -> None:
     q = _grasp(plan, "obj", p)

@@ -12,6 +12,13 @@ from sim_backends.pybullet.plan import Plan
 from sim_backends.registry import register_task
 
 
+@register_task("pick", backend="pybullet")
+def pick(plan: Plan, p: dict[str, Any]) -> None:
+    """The atomic pick of the paper's short-horizon tasks (and of its recovery table): grasp, lift, hold."""
+    plan.grasp("obj")
+    plan.goal("held", object="obj")
+
+
 @register_task("pick_place", backend="pybullet")
 def pick_place(plan: Plan, p: dict[str, Any]) -> None:
     plan.grasp("obj")
