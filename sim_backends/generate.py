@@ -57,10 +57,9 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
     if cfg.backend not in available_backends():
         raise ConfigError(f"backend: unknown backend {cfg.backend!r}; available: {', '.join(available_backends())}")
     for key in ("num_episodes", "first_pair", "workers", "episodes_per_shard", "image_size"):
-        v = cfg[key]
-        if not isinstance(v, int) or isinstance(v, bool) or v < (0 if key in ("num_episodes", "first_pair") else 1):
-            kind = "non-negative" if key in ("num_episodes", "first_pair") else "positive"
-            raise ConfigError(f"{key}: must be a {kind} integer, got {v!r}")
+        v, may_be_zero = cfg[key], key in ("num_episodes", "first_pair")
+        if not isinstance(v, int) or isinstance(v, bool) or v < (0 if may_be_zero else 1):
+            raise ConfigError(f"{key}: must be a {'non-negative' if may_be_zero else 'positive'} integer, got {v!r}")
     rf = cfg.render_frames
     if rf is not None and (not isinstance(rf, int) or isinstance(rf, bool) or rf < 1):
         raise ConfigError(f"render_frames: must be a positive integer or null (every keyframe), got {rf!r}")
@@ -208,11 +207,10 @@ def shard_jobs(cfg: DictConfig, scenarios: list[str], repeats: dict[str, int] | 
         jobs.append(
             {
                 "shard": k,
-                "lo": lo,
-                "hi": hi,
+                "lo": 2 * first + lo,  # episode numbers, which follow the pair numbers
+                "hi": 2 * first + hi,
                 "pairs": pairs,
                 "seed": int(cfg.seed),
-                "first_pair": first,
                 "render_frames": cfg.get("render_frames"),
             }
         )
@@ -231,7 +229,7 @@ def run_shard(job: dict[str, Any], backend: str, kwargs: dict[str, Any], variant
             continue
         for role_i, ep in enumerate((nominal, injected)):
             i = 2 * j + role_i
-            if not job["lo"] <= i - 2 * job.get("first_pair", 0) < job["hi"]:
+            if not job["lo"] <= i < job["hi"]:
                 continue
             ep.episode_id, ep.pair_id, ep.role = f"ep{i:07d}", f"pair{j:07d}", ("nominal", "injected")[role_i]
             rows.append(episode_row(ep))
