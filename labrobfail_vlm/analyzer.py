@@ -19,7 +19,7 @@ import difflib
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Collection, Iterator, Sequence
+from typing import Any, Collection, Iterator, Mapping, Sequence
 
 import numpy as np
 from PIL import Image
@@ -104,11 +104,12 @@ def plan_reply(
     frames: int,
     objects: Sequence[str] = (),
     q6_mode: str = "free",
-    category: str | None = None,
+    earlier: Mapping[str, str] | None = None,
 ) -> str | Ask:
     """The reply to `dim` when the Q2 verdict (`failed`; None before Q2) already settles it, else what the model
-    must decode. `category`: the Q5 reply, which narrows a template Q6 to that category's strategies. Shared by
-    the local decoder and the endpoint path, so both ask the same things."""
+    must decode. `earlier`: the replies decoded so far; a template Q6 is chosen among the strategies the Q5
+    category and the Q4 severity admit (`corrections.admissible`). Shared by the local decoder and the endpoint
+    path, so both ask the same things."""
     if dim == "Q1":
         return Ask("actions")
     if dim == "Q2":
@@ -118,8 +119,9 @@ def plan_reply(
         if failed is False:
             return Q.NO_CORRECTION
         if q6_mode == "template":
-            cat = int(category) if category and category.isdigit() and 1 <= int(category) <= len(Category) else None
-            return Ask("choose", tuple(text for _, text in candidates(objects, cat)), per_token=True)
+            earlier = earlier or {}
+            cat, sev = _option(earlier.get("Q5"), len(Category)), _option(earlier.get("Q4"), len(Severity))
+            return Ask("choose", tuple(text for _, text in candidates(objects, cat, sev)), per_token=True)
         closed = (Q.NO_CORRECTION, Q.NO_FAILURE, "Yes", "No", *map(str, range(10)))
         return Ask("free", closed if failed else ())
     if failed is False:
@@ -128,12 +130,17 @@ def plan_reply(
     return Ask("choose", tuple(str(i) for i in range(1, hi + 1)))
 
 
+def _option(reply: str | None, n: int) -> int | None:
+    """A closed-set reply as its option number (1..n), or None (not asked, "None", or out of range)."""
+    return int(reply) if reply and reply.isdigit() and 1 <= int(reply) <= n else None
+
+
 def asked_dims(dims: Collection[str], q6_mode: str) -> set[str]:
-    """The dimensions to decode for a request of `dims`: Q2 always (the others follow its verdict), and Q5 with a
-    template Q6 (the correction is chosen among the answered category's strategies)."""
+    """The dimensions to decode for a request of `dims`: Q2 always (the others follow its verdict), and Q4 and Q5
+    with a template Q6 (the correction is chosen among the strategies the answered severity and category admit)."""
     out = set(dims) | {"Q2"}
     if q6_mode == "template" and "Q6" in out:
-        out.add("Q5")
+        out |= {"Q4", "Q5"}
     return out
 
 
@@ -245,9 +252,9 @@ class FailureAnalyzer:
         failed: bool | None,
         frames: int,
         objects: Sequence[str] = (),
-        category: str | None = None,
+        earlier: Mapping[str, str] | None = None,
     ) -> str:
-        return str(self._decode(pre, [plan_reply(dim, failed, frames, objects, self.q6_mode, category)])[0])
+        return str(self._decode(pre, [plan_reply(dim, failed, frames, objects, self.q6_mode, earlier)])[0])
 
     def _prefixes(self, image: Image.Image, prompts: dict[str, str]) -> Iterator[tuple[str, Any]]:
         """Six-prompt mode (the reference path): (dimension, model state after its whole prompt, image included)."""
@@ -276,7 +283,7 @@ class FailureAnalyzer:
                 (out[dim],), (out.p_failure,) = self._decide_q2(pre, 1)
                 failed = out[dim] == "Yes"
             else:
-                out[dim] = self._answer(dim, pre, failed, frames, objects, out.get("Q5"))
+                out[dim] = self._answer(dim, pre, failed, frames, objects, out)
         return out
 
     def answers_batch(
@@ -346,7 +353,7 @@ class FailureAnalyzer:
         failed: list[bool | None] = [None] * len(images)
         for dim in Q.DIMENSIONS:
             plans = [
-                plan_reply(dim, failed[i], frames[i], objects[i], self.q6_mode, out[i].get("Q5"))
+                plan_reply(dim, failed[i], frames[i], objects[i], self.q6_mode, out[i])
                 if dim in ids[i]
                 else None
                 for i in range(len(images))

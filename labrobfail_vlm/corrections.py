@@ -25,6 +25,8 @@ import string
 from dataclasses import dataclass, replace
 from typing import Sequence
 
+from labrobfail_vlm.taxonomy import Severity
+
 STRATEGIES: dict[str, tuple[str, str]] = {  # id -> (category of the paper's table, instruction)
     "S1": (
         "Safety",
@@ -191,15 +193,36 @@ def strategies_of(category: int) -> frozenset[str]:
     return frozenset(out)
 
 
+# The severities a fall can carry in the labeler's severity table (sim_backends/labeler.severity): glassware
+# off the bench or breaking is Fatal, a vessel lying on its side is tipped over (Risk). `choose` gives MANUAL
+# exactly for a fall or a Fatal failure, so Fatal admits only MANUAL and Dangerous or Management incident never
+# admit it.
+FALL_SEVERITIES = frozenset({Severity.RISK, Severity.FATAL})
+
+
+def admissible(category: int | None = None, severity: int | None = None) -> frozenset[str]:
+    """The strategy ids `choose` can give a failure of the Q5 `category` at the Q4 `severity` (1-4); None for a
+    reply not given. Decoding Q6 among these makes the correction agree with the rest of the diagnosis."""
+    out = strategies_of(category) if category is not None else frozenset(STRATEGIES)
+    if severity == Severity.FATAL:
+        return frozenset({"MANUAL"})
+    if severity is not None and severity not in FALL_SEVERITIES:
+        return out - {"MANUAL"}
+    return out
+
+
 # Places a correction may name besides the scene's objects (failure_context's fallbacks).
 GENERIC_DESTINATIONS = ("its original position", "target position")
 
 
-def candidates(names: Sequence[str], category: int | None = None) -> list[tuple[str, str]]:
+def candidates(
+    names: Sequence[str], category: int | None = None, severity: int | None = None
+) -> list[tuple[str, str]]:
     """Every (strategy id, instruction) the template-constrained Q6 decoder may choose, with the placeholders
     filled from `names` (the scene's object and place labels; generic fallbacks are always included).
-    `category`: the Q5 answer, when one was given: only that category's strategies (`strategies_of`), so the
-    correction agrees with the diagnosis (a grasping failure is not corrected by redoing an omitted step)."""
+    `category`, `severity`: the Q5 and Q4 answers, when given: only the strategies they admit (`admissible`), so
+    the correction agrees with the diagnosis (a grasping failure is not corrected by redoing an omitted step, a
+    recoverable one is not handed to a person)."""
     from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS
 
     names = list(dict.fromkeys(n for n in names if n)) or ["object"]
@@ -211,7 +234,7 @@ def candidates(names: Sequence[str], category: int | None = None) -> list[tuple[
         "opening": [True, False],
     }
     out: list[tuple[str, str]] = []
-    allowed = strategies_of(category) if category is not None else STRATEGIES
+    allowed = admissible(category, severity)
     for sid, (_, text) in STRATEGIES.items():
         if sid not in allowed:
             continue

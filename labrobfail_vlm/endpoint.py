@@ -110,7 +110,7 @@ class EndpointAnalyzer(FailureAnalyzer):
         for dim in Q.DIMENSIONS:
             if dim not in need:
                 continue
-            p = plan_reply(dim, failed, frames, objects, self.q6_mode, out.get("Q5"))
+            p = plan_reply(dim, failed, frames, objects, self.q6_mode, out)
             if isinstance(p, Ask):
                 text = Q.question_text(dim, 0, task, self.time_axis, self.index)
                 reply = self._ask(url, text.removeprefix("<image>\n"), p)

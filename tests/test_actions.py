@@ -53,6 +53,22 @@ def test_a_category_narrows_the_templates_to_its_own_strategies():
         strategies_of(9)
 
 
+def test_a_severity_narrows_the_templates_to_the_strategies_the_rule_gives_it():
+    """MANUAL is the rule's answer to a fall or a Fatal failure: a Fatal answer admits only MANUAL, a Dangerous or
+    Management-incident answer never admits it, a Risk answer (a vessel tipped over) admits both."""
+    from labrobfail_vlm.corrections import admissible
+    from labrobfail_vlm.taxonomy import Category, Severity
+
+    for c in (None, *Category):
+        every = admissible(c)
+        assert admissible(c, Severity.FATAL) == {"MANUAL"}
+        assert admissible(c, Severity.RISK) == every
+        for sev in (Severity.DANGEROUS, Severity.MANAGEMENT_INCIDENT):
+            assert admissible(c, sev) == every - {"MANUAL"} and admissible(c, sev)
+            assert {sid for sid, _ in candidates(SCENE, c, sev)} == every - {"MANUAL"}
+    assert admissible(Category.GRASPING, Severity.DANGEROUS) == {"G1", "G3", "P1"}
+
+
 @pytest.mark.parametrize(
     "sid, want",
     [

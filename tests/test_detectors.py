@@ -314,3 +314,25 @@ def test_impact_speed_does_not_depend_on_where_the_impact_falls_between_samples(
             speed = impact_speed({"obj.pos": [[0.5, 0.0, v] for v in z], "rate_hz": 40.0}, "obj")
             assert speed <= hit + 1e-9
             assert (speed >= BREAK_SPEED) == (height == 0.10), (height, phase, speed)
+
+
+@pytest.mark.parametrize("how", ["on_its_side", "off_the_bench"])
+def test_a_fall_carries_a_severity_that_admits_manual(how):
+    """The template Q6 decoder admits MANUAL only at the severities a fall can carry (corrections.admissible):
+    a vessel on its side is tipped over (Risk), one off the bench is Fatal."""
+    from labrobfail_vlm.corrections import FALL_SEVERITIES, Context, choose
+    from labrobfail_vlm.taxonomy import Severity
+    from sim_backends.goals import object_fell
+    from sim_backends.schema import meta_dict
+
+    tr, meta = _case("target_positioning_deviation")  # set down gently in the wrong place: not a fall yet
+    assert not object_fell(tr, meta_dict(meta)) and derive_labels(tr, meta).severity == int(Severity.DANGEROUS)
+    last = len(tr["t"]) - 1
+    if how == "on_its_side":
+        tr["obj.quat"][last] = _twist(math.pi / 2)
+    else:
+        x, y, _ = tr["obj.pos"][last]
+        tr["obj.pos"][last] = (x, y, -0.5)
+    lab = derive_labels(tr, meta)
+    assert object_fell(tr, meta_dict(meta)) and lab.severity in FALL_SEVERITIES
+    assert choose(Context(lab.failure_type, "place", fell=True)) == "MANUAL"

@@ -339,9 +339,9 @@ def test_q6_template_mode_picks_a_filled_strategy(tiny, grid):  # noqa: F811
         FailureAnalyzer.from_pretrained(tiny, q6_mode="beam")
 
 
-def test_template_q6_follows_the_answered_category(tiny, grid):  # noqa: F811
-    """A template Q6 is chosen among the strategies of the category Q5 gave (Q5 is decoded for it even when only
-    Q6 is asked), the same in one pass and six prompts; free Q6 does not ask Q5."""
+def test_template_q6_follows_the_answered_category_and_severity(tiny, grid):  # noqa: F811
+    """A template Q6 is chosen among the strategies the category Q5 gave and the severity Q4 gave admit (both are
+    decoded for it even when only Q6 is asked), the same in one pass and six prompts; free Q6 asks neither."""
     from labrobfail_vlm.analyzer import FailureAnalyzer
     from labrobfail_vlm.corrections import candidates
 
@@ -350,8 +350,8 @@ def test_template_q6_follows_the_answered_category(tiny, grid):  # noqa: F811
     img = Image.open(grid).convert("RGB")
     one = fa.answers(img, "pick up the small beaker", True, objects=names, dims={"Q6"})
     six = fa.answers(img, "pick up the small beaker", False, objects=names, dims={"Q6"})
-    assert one == six and set(one) == {"Q2", "Q5", "Q6"} and one["Q2"] == "Yes"
-    narrowed = {t for _, t in candidates(names, int(one["Q5"]))}
+    assert one == six and set(one) == {"Q2", "Q4", "Q5", "Q6"} and one["Q2"] == "Yes"
+    narrowed = {t for _, t in candidates(names, int(one["Q5"]), int(one["Q4"]))}
     assert one["Q6"] in narrowed and len(narrowed) < len(candidates(names))
     fa.q6_mode = "free"
     assert set(fa.answers(img, "pick up the small beaker", True, objects=names, dims={"Q6"})) == {"Q2", "Q6"}
