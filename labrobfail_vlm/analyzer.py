@@ -353,9 +353,7 @@ class FailureAnalyzer:
         failed: list[bool | None] = [None] * len(images)
         for dim in Q.DIMENSIONS:
             plans = [
-                plan_reply(dim, failed[i], frames[i], objects[i], self.q6_mode, out[i])
-                if dim in ids[i]
-                else None
+                plan_reply(dim, failed[i], frames[i], objects[i], self.q6_mode, out[i]) if dim in ids[i] else None
                 for i in range(len(images))
             ]
             replies: list[str | None] = [p if isinstance(p, str) else None for p in plans]

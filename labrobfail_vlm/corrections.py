@@ -215,9 +215,7 @@ def admissible(category: int | None = None, severity: int | None = None) -> froz
 GENERIC_DESTINATIONS = ("its original position", "target position")
 
 
-def candidates(
-    names: Sequence[str], category: int | None = None, severity: int | None = None
-) -> list[tuple[str, str]]:
+def candidates(names: Sequence[str], category: int | None = None, severity: int | None = None) -> list[tuple[str, str]]:
     """Every (strategy id, instruction) the template-constrained Q6 decoder may choose, with the placeholders
     filled from `names` (the scene's object and place labels; generic fallbacks are always included).
     `category`, `severity`: the Q5 and Q4 answers, when given: only the strategies they admit (`admissible`), so
