@@ -25,7 +25,7 @@ import string
 from dataclasses import dataclass, replace
 from typing import Sequence
 
-from labrobfail_vlm.taxonomy import Severity
+from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, FAILURE_TYPES, Severity
 
 STRATEGIES: dict[str, tuple[str, str]] = {  # id -> (category of the paper's table, instruction)
     "S1": (
@@ -182,8 +182,6 @@ def strategies_of(category: int) -> frozenset[str]:
     """The strategy ids `choose` can give a failure of the Q5 `category` (1-5): those of its failure types over
     every atomic action and device, plus MANUAL (a fall or a fatal failure, whatever the category). Read off the
     rule itself, so the grouping cannot drift from it."""
-    from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, FAILURE_TYPES
-
     types = [ft.name for ft in FAILURE_TYPES.values() if ft.category == category]
     if not types:
         raise ValueError(f"correction: no failure category {category!r}")
@@ -221,8 +219,6 @@ def candidates(names: Sequence[str], category: int | None = None, severity: int 
     `category`, `severity`: the Q5 and Q4 answers, when given: only the strategies they admit (`admissible`), so
     the correction agrees with the diagnosis (a grasping failure is not corrected by redoing an omitted step, a
     recoverable one is not handed to a person)."""
-    from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS
-
     names = list(dict.fromkeys(n for n in names if n)) or ["object"]
     choices = {
         "target": names,
