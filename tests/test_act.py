@@ -111,6 +111,8 @@ def test_bad_checkpoints_are_one_line_errors(tmp_path):
 
 
 def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
+    """A front + wrist ACT: the wrist view is recorded, rendered for the policy in the supervised run (the
+    backend's wrist option), and taken by the policy server."""
     out = tmp_path / "act"
     toy = [f"model.{k}={json.dumps(v).replace(' ', '')}" for k, v in TOY.items() if k != "cameras"]
     r = subprocess.run(
@@ -121,7 +123,7 @@ def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
             "demos=1",
             "train.steps=3",
             "train.batch_size=4",
-            "model.cameras=[front]",
+            "model.cameras=[front,wrist]",
             *toy,
             "progress=false",
             f"out_dir={out}",
@@ -137,6 +139,10 @@ def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
     assert (out / "final" / "model.safetensors").is_file() and (out / "demos.npz").is_file()
     log = json.loads((out / "train_log.json").read_text())
     assert log["curve"][0]["step"] == 1 and log["demos"]["ticks"] > 10
+    with np.load(out / "demos.npz") as z:
+        assert z["images"].shape[1] == 2  # front and wrist at every tick
+        front, wrist = z["images"][:, 0], z["images"][:, 1]
+        assert np.abs(front.astype(int) - wrist.astype(int)).mean() > 5  # two different cameras
     sup = tmp_path / "sup"
     r = subprocess.run(
         [
@@ -149,6 +155,7 @@ def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
             "trials=1",
             "image_size=48",
             "cameras=[front]",
+            "backend_kwargs.wrist=true",
             "progress=false",
             f"out_dir={sup}",
         ],
@@ -177,7 +184,7 @@ def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
             {
                 "image": np.zeros((48, 48, 3), np.uint8),
                 "instruction": "pick",
-                "images": {"front": np.zeros((48, 48, 3), np.uint8)},
+                "images": {"front": np.zeros((48, 48, 3), np.uint8), "wrist": np.zeros((48, 48, 3), np.uint8)},
                 "proprio": np.array([*state["ee_pos"], *state["ee_quat"], 0.08, 0], np.float32),
             }
         )

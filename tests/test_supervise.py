@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import ROOT
 from test_train import tiny  # noqa: F401  (session fixture: a tiny Qwen3-VL checkpoint)
@@ -86,6 +87,11 @@ def test_vlm_supervisor_queries_the_analyzer_on_prefix_grids(tmp_path, tiny):  #
         assert d["primitives"] and all(p["op"] in PRIMITIVES for p in d["primitives"]), d
     lat = json.loads((out / "results.json").read_text())["tasks"]["open_oven_center"]["vlm"]
     assert lat["latency_p50_s"] > 0 and lat["latency_p95_s"] >= lat["latency_p50_s"]
+    # a grid view the backend does not render is refused before the first trial
+    r = supervise("supervisor=vlm", f"vlm.model={tiny}", "vlm.views=[front,wrist]", f"out_dir={out}_x", check=False)
+    last = r.stderr.strip().splitlines()[-1]  # after the weights' loading bar
+    assert r.returncode == 2 and last == "error: vlm.views: the backend renders ['front'], not ['wrist']", r.stderr
+    assert "Traceback" not in r.stderr and not (out.parent / "vlm_x" / "log.jsonl").exists()
 
 
 def test_a_family_runs_in_make_demos_world_from_the_command_line(tmp_path):
@@ -172,6 +178,37 @@ def test_a_stopped_learned_policy_is_reviewed_on_its_whole_trajectory():
         assert running.visible < 4 and stopped.visible == 4 and stopped.keyframes[-1] == 5
     finally:
         src.close()
+
+
+def test_the_live_grid_keeps_to_the_supervisors_views_when_the_policy_sees_a_wrist_camera():
+    """An ACT with a wrist camera needs the backend's wrist view, but the VLM was trained on front + side grids:
+    its grid must show just those, in its order, and a view the backend does not render is a config error."""
+    from labrobfail_vlm.config import ConfigError
+    from labrobfail_vlm.grid import GridConfig
+    from sim_backends.registry import make_backend
+    from sim_backends.supervision.base import live_grid, view_indices
+
+    cfg = GridConfig(width=128, height=64, max_frames=4, columns=4)
+    src = make_backend("pybullet", image_size=32, cameras=["front", "side"], wrist=True, max_distractors=0)
+    try:
+        assert src.camera_names == ["front", "side", "wrist"]
+        src.reset("pick_place_beaker_small", 0, "seen")
+        plan = src.scripted_keyframes()
+        src.begin()
+        for k in plan[:4]:
+            src.step(k)
+        every = np.asarray(live_grid(src, plan, cfg).image)
+        grid = lambda names: np.asarray(live_grid(src, plan, cfg, views=view_indices(src.camera_names, names)).image)  # noqa: E731
+        fs, sf = grid(["front", "side"]), grid(["side", "front"])
+    finally:
+        src.close()
+    # two views: rows of 32 px cells, one row per view in the order asked; every view: three rows (the wrist too)
+    assert np.array_equal(fs[:32], sf[32:]) and np.array_equal(fs[32:], sf[:32])
+    assert np.abs(fs[:32].astype(int) - fs[32:].astype(int)).mean() > 3
+    assert not np.array_equal(every, fs)
+    assert view_indices(["front", "side", "wrist"], None) is None
+    with pytest.raises(ConfigError, match=r"vlm.views: the backend renders \['front', 'wrist'\], not \['side'\]"):
+        view_indices(["front", "wrist"], ["front", "side"])
 
 
 def test_oracle_names_a_stopped_policy_with_an_unmet_goal_an_incomplete_trajectory():

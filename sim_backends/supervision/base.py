@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
+from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import GridConfig, build_grid, sample_keyframes
 from labrobfail_vlm.registry import Registry
 from sim_backends.policies.base import EpisodeContext
@@ -66,6 +67,9 @@ class Supervisor(ABC):
         self.ctx = ctx
         self.handled_upto = -1  # failures at or before this executed keyframe were corrected already
 
+    def check_cameras(self, rendered: list[str]) -> None:  # noqa: B027 - optional hook
+        """Called before the first trial with the views the backend renders: refuse (ConfigError) a view it needs."""
+
     @abstractmethod
     def query(self, src: FailureSource, final: bool = False) -> Verdict:
         """Has a (new) failure shown up in the episode so far? `final`: the policy has stopped."""
@@ -83,7 +87,20 @@ class LiveGrid:
     visible: int
 
 
-def live_grid(src: FailureSource, nominal: list, cfg: GridConfig, final: bool = False) -> LiveGrid:
+def view_indices(rendered: list[str], views: list[str] | None) -> list[int] | None:
+    """Where the named views lie among the backend's rendered views (None: every rendered view). A policy may
+    need a view the supervisor's model was never shown (ACT's wrist camera): the grid keeps to its own views."""
+    if views is None:
+        return None
+    missing = [v for v in views if v not in rendered]
+    if missing or not views:
+        raise ConfigError(f"vlm.views: the backend renders {rendered}, not {missing or views}")
+    return [rendered.index(v) for v in views]
+
+
+def live_grid(
+    src: FailureSource, nominal: list, cfg: GridConfig, final: bool = False, views: list[int] | None = None
+) -> LiveGrid:
     """The prefix grid of an episode so far, laid out as the dataset lays out prefix grids.
 
     Consecutive executed keyframes with one name (a learned policy's control ticks, a correction's
@@ -95,6 +112,8 @@ def live_grid(src: FailureSource, nominal: list, cfg: GridConfig, final: bool = 
     are kept for plan steps it never ran. When its names group it into fewer keyframes than the grid has cells
     (ACT's ticks that the phase tracker could not place on the plan all carry the first keyframe's name), the
     cells are spread over the executed ticks themselves; grouped, such an episode showed a single cell.
+
+    `views`: the rendered views shown, in order (`view_indices`); None: all of them.
     """
     done = src.executed_so_far()
     units = [i for i in range(len(done)) if i == len(done) - 1 or done[i + 1].name != done[i].name]
@@ -109,6 +128,7 @@ def live_grid(src: FailureSource, nominal: list, cfg: GridConfig, final: bool = 
     picks = sample_keyframes(segments, cfg.max_frames)
     shown = [p for p in picks if p < len(units)]
     pngs = src.images_so_far()
+    pngs = pngs if views is None else [pngs[i] for i in views]
     blank = np.zeros((8, 8, 3), np.uint8)
     views = [
         [Image.open(io.BytesIO(view[units[p]])).convert("RGB") if p < len(units) else blank for p in picks]

@@ -123,6 +123,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         # everything that can be refused is built before the first trial runs
         policy = build_policy(cfg)
         supervisors = {n: build_supervisor(cfg, n) for n in sups}
+        for s in supervisors.values():
+            s.check_cameras(list(src.camera_names))
         out = Path(cfg.out_dir)
         try:
             out.mkdir(parents=True, exist_ok=True)

@@ -4,6 +4,7 @@ Q6 is decoded in template mode (the paper's correction-strategy table filled wit
 strategies of the category the model gave for Q5), so every correction it gives maps to primitives. The model
 names a category (Q5), not a fine-grained type: the verdict's `failure_type` stays None and the diagnosis carries
 the category. A failure whose grid frame lies at or before the last correction is taken as already handled.
+The grid shows the supervisor's own `views` (supervise.yaml: the `cameras`), whatever else the policy sees.
 """
 
 from __future__ import annotations
@@ -12,8 +13,9 @@ from pathlib import Path
 from typing import Any
 
 from labrobfail_vlm.config import ConfigError
+from sim_backends.policies.base import EpisodeContext
 from sim_backends.source import FailureSource
-from sim_backends.supervision.base import Supervisor, Verdict, live_grid, register_supervisor
+from sim_backends.supervision.base import Supervisor, Verdict, live_grid, register_supervisor, view_indices
 
 
 @register_supervisor("vlm")
@@ -27,6 +29,7 @@ class VLMSupervisor(Supervisor):
         device: str | None = None,
         analyzer: Any = None,
         threshold: float = 0.5,
+        views: list[str] | None = None,
     ):
         from labrobfail_vlm.analyzer import FailureAnalyzer, check_threshold
 
@@ -40,9 +43,17 @@ class VLMSupervisor(Supervisor):
             analyzer = FailureAnalyzer.from_pretrained(model, device=device, q6_mode=q6_mode)
         analyzer.threshold = threshold  # intervene when P(failure) >= threshold
         self.fa = analyzer
+        self.views = None if views is None else [str(v) for v in views]
+
+    def check_cameras(self, rendered: list[str]) -> None:
+        view_indices(rendered, self.views)
+
+    def reset(self, ctx: EpisodeContext) -> None:
+        super().reset(ctx)
+        self.view_idx = view_indices(ctx.camera_names, self.views)
 
     def query(self, src: FailureSource, final: bool = False) -> Verdict:
-        g = live_grid(src, self.ctx.nominal, self.fa.grid, final)
+        g = live_grid(src, self.ctx.nominal, self.fa.grid, final, self.view_idx)
         d = self.fa.analyze(g.image, task=self.ctx.instruction, frames=max(1, g.visible), objects=self.ctx.objects)
         kf = g.keyframes[d.failure_frame - 1] if d.failure and d.failure_frame and g.keyframes else None
         new = d.failure and (kf is None or kf > self.handled_upto)

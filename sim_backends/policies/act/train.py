@@ -17,6 +17,7 @@ from sim_backends.policies.act.checkpoint import save_checkpoint
 from sim_backends.policies.act.configuration_act import ACTConfig
 from sim_backends.policies.act.data import DemoDataset, normalisation, record_demo
 
+WRIST = "wrist"  # both backends name their hand camera so
 IDENTITY = ("task", "demos", "seed", "variant", "backend", "backend_kwargs", "max_dist", "max_angle")
 
 
@@ -39,11 +40,15 @@ def load_or_record(cfg: DictConfig, family: Any, out: Path) -> tuple[list[dict[s
                 demos = [{k: v[a:b] for k, v in arrays.items()} for a, b in zip(bounds[:-1], bounds[1:])]
                 return demos, json.loads(str(z["info"]))
     t0 = time.perf_counter()
+    cams = [str(c) for c in cfg.model.cameras]
+    section = dict(OmegaConf.to_container(cfg.backend_kwargs, resolve=True) or {})
+    if WRIST in cams:  # the wrist view is a backend option, not one of its fixed cameras
+        section["wrist"] = True
     src = make_backend(
         cfg.backend,
         image_size=int(cfg.model.image_size),
-        cameras=list(cfg.model.cameras),
-        **backend_options(cfg.backend, OmegaConf.to_container(cfg.backend_kwargs, resolve=True) or {}),
+        cameras=[c for c in cams if c != WRIST],
+        **backend_options(cfg.backend, section),
     )
     demos, tried = [], 0
     bar = tqdm(total=int(cfg.demos), desc="demos", unit="demo", disable=not cfg.progress)
