@@ -192,3 +192,33 @@ def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
     finally:
         p.terminate()
         p.wait(timeout=10)
+
+
+def test_dart_demonstrations_drift_off_the_line_and_are_labelled_back_onto_it():
+    """With `noise`, free moves of the open hand end off their keyframe, the recorded actions stay on the plan's
+    line and the grasp is still made where the plan makes it; the same seed gives the same demonstration."""
+    from labrobfail_vlm.config import load_config
+    from sim_backends.policies.act.data import record_demo
+    from sim_backends.registry import make_backend
+    from sim_backends.supervision.experiment import families, resolve_tasks, scenario_templates
+
+    src = make_backend("pybullet", image_size=32, cameras=["front"], max_distractors=0)
+    try:
+        fam = resolve_tasks("pick", families(load_config("supervise.yaml", []), scenario_templates(src)), [])[0]
+        rec = lambda noise: record_demo(  # noqa: E731
+            src, fam.plan, fam.success, fam.scenarios[0], 3, "seen", ["front"], 0.03, 0.15, noise
+        )
+        clean, noisy, again = rec(0.0), rec(0.03), rec(0.03)
+    finally:
+        src.close()
+    assert clean is not None and noisy is not None and again is not None
+    assert all(np.array_equal(noisy[k], again[k]) for k in ("images", "state", "action"))
+
+    def close_and_drift(d):
+        a, s = d["action"], d["state"]
+        t = int(np.argmax(a[:, 9] > 0.5))  # the grasp tick
+        return a[t, :3], float(np.abs(s[1 : t + 1, :2] - a[:t, :2]).max())  # where the hand is vs the last action
+
+    (grasp_clean, drift_clean), (grasp_noisy, drift_noisy) = close_and_drift(clean), close_and_drift(noisy)
+    assert np.allclose(grasp_clean, grasp_noisy, atol=1e-4)
+    assert drift_noisy > drift_clean + 0.008, (drift_clean, drift_noisy)

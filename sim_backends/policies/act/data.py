@@ -74,8 +74,16 @@ def record_demo(
     cameras: list[str],
     max_dist: float = 0.03,
     max_angle: float = 0.15,
+    noise: float = 0.0,
 ) -> dict[str, np.ndarray] | None:
-    """One demonstration (images (T, V, H, W, 3) uint8, state (T, 9), action (T, 10)), or None if it failed."""
+    """One demonstration (images (T, V, H, W, 3) uint8, state (T, 9), action (T, 10)), or None if it failed.
+
+    `noise` > 0 (metres) records DART-style corrections: a free move of the open hand (not the last one before
+    the gripper closes) drifts off its line, reaching up to `noise` from its keyframe on each horizontal axis
+    (drawn per keyframe from the demo's seed), while the recorded actions stay on the line and the next move
+    starts from where the hand really is. A policy taught only on perfect approaches never sees itself off the
+    line, so it cannot learn to come back (the wrist view shows the vessel off centre; the action re-centres it).
+    """
     from sim_backends.policies.openvla_client import proprio_vector
 
     src.reset(scenario, seed, variant)
@@ -83,9 +91,14 @@ def record_demo(
     src.begin()
     s = src.observe().state
     pos, quat, grip = np.asarray(s["ee_pos"], float), tuple(s["ee_quat"]), int(s["grip_cmd"])
+    rng = np.random.default_rng(seed)
     images, states, actions = [], [], []
-    for kf in plan:
-        for tp, tq in ticks(pos, quat, kf, max_dist, max_angle, kf.gripper != grip):
+    for i, kf in enumerate(plan):
+        nxt = plan[i + 1] if i + 1 < len(plan) else None
+        free = noise > 0 and kf.gripper == grip == 0 and nxt is not None and nxt.gripper == 0
+        off = np.append(rng.uniform(-noise, noise, 2), 0.0) if free else np.zeros(3)
+        line = ticks(pos, quat, kf, max_dist, max_angle, kf.gripper != grip)
+        for j, (tp, tq) in enumerate(line):
             obs = src.observe()
             images.append(np.stack([obs.images[c] for c in cameras]))
             states.append(proprio_vector(obs.state))
@@ -93,7 +106,7 @@ def record_demo(
             src.step(
                 Keyframe(
                     kf.name,
-                    tp,
+                    tuple(np.asarray(tp) + off * (j + 1) / len(line)),
                     tq,
                     kf.gripper,
                     kf.target,
@@ -104,7 +117,7 @@ def record_demo(
                 )
             )
             grip = kf.gripper
-        pos, quat = np.asarray(kf.pos, float), tuple(kf.quat)
+        pos, quat = np.asarray(kf.pos, float) + off, tuple(kf.quat)
     ep = src.finish()
     if not success(ep):
         return None

@@ -18,7 +18,7 @@ from sim_backends.policies.act.configuration_act import ACTConfig
 from sim_backends.policies.act.data import DemoDataset, normalisation, record_demo
 
 WRIST = "wrist"  # both backends name their hand camera so
-IDENTITY = ("task", "demos", "seed", "variant", "backend", "backend_kwargs", "max_dist", "max_angle")
+IDENTITY = ("task", "demos", "seed", "variant", "backend", "backend_kwargs", "max_dist", "max_angle", "noise")
 
 
 def _identity(cfg: DictConfig) -> dict[str, Any]:
@@ -65,6 +65,7 @@ def load_or_record(cfg: DictConfig, family: Any, out: Path) -> tuple[list[dict[s
                 list(cfg.model.cameras),
                 float(cfg.max_dist),
                 float(cfg.max_angle),
+                float(cfg.noise),
             )
             tried += 1
             if d is not None:
