@@ -18,6 +18,8 @@ import numpy as np
 
 from sim_backends.schema import TaskMeta
 
+WRIST = "wrist"  # the hand camera's view name in every backend (`backend_kwargs.wrist=true` adds it)
+
 
 def quat_to_matrix(q: tuple[float, float, float, float]) -> np.ndarray:
     """Rotation matrix of a unit quaternion in (x, y, z, w) order (PyBullet's)."""

@@ -32,6 +32,7 @@ from mani_skill.utils.scene_builder.table import TableSceneBuilder
 from mani_skill.utils.structs.pose import Pose
 
 from sim_backends.maniskill import assets
+from sim_backends.types import WRIST
 
 ROBOT_BASE = (-0.615, 0.0, 0.0)
 # eye, target, vertical field of view (deg), framed on the workspace (x -0.25..0.2, |y| < 0.35).
@@ -39,7 +40,6 @@ CAMERAS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float],
     "front": ((0.32, 0.30, 0.42), (-0.10, 0.0, 0.05), 55.0),
     "side": ((-0.08, -0.66, 0.36), (-0.08, 0.0, 0.07), 55.0),
 }
-WRIST = "wrist"
 
 
 @dataclass

@@ -8,6 +8,7 @@ import numpy as np
 import pybullet as p
 
 from sim_backends.pybullet.robot import EE_LINK
+from sim_backends.types import WRIST
 
 # eye, target: framed on the workspace (x 0.3-0.8 m, |y| < 0.3 m) so a beaker spans ~15 px in a 224 image.
 CAMERAS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float], float]] = {
@@ -27,7 +28,7 @@ class Renderer:
         if unknown:
             raise ValueError(f"cameras: unknown view(s) {unknown}; available: {', '.join(CAMERAS)}")
         self.cid, self.size = cid, int(size)
-        self.views = list(views) + (["wrist"] if wrist else [])
+        self.views = list(views) + ([WRIST] if wrist else [])
         self.proj = p.computeProjectionMatrixFOV(50.0, 1.0, 0.02, 4.0)
         self.view_mats = {v: p.computeViewMatrix(CAMERAS[v][0], CAMERAS[v][1], (0, 0, 1)) for v in views}
         self.projs = {v: self.proj for v in views}
@@ -62,7 +63,7 @@ class Renderer:
         """Per view, its view matrix then its projection matrix (OpenGL column-major, 16 + 16 floats): where a
         world point lands in that view's image now (the wrist camera moves with the hand)."""
         return [
-            [float(x) for x in (self._wrist_view(robot_id) if v == "wrist" else self.view_mats[v])]
+            [float(x) for x in (self._wrist_view(robot_id) if v == WRIST else self.view_mats[v])]
             + [float(x) for x in self.projs.get(v, self.proj)]
             for v in self.views
         ]
@@ -70,7 +71,7 @@ class Renderer:
     def render(self, robot_id: int) -> list[np.ndarray]:
         out = []
         for v in self.views:
-            vm = self._wrist_view(robot_id) if v == "wrist" else self.view_mats[v]
+            vm = self._wrist_view(robot_id) if v == WRIST else self.view_mats[v]
             _, _, rgb, _, _ = p.getCameraImage(
                 self.size,
                 self.size,

@@ -130,8 +130,8 @@ def live_grid(
     pngs = src.images_so_far()
     pngs = pngs if views is None else [pngs[i] for i in views]
     blank = np.zeros((8, 8, 3), np.uint8)
-    views = [
+    frames = [
         [Image.open(io.BytesIO(view[units[p]])).convert("RGB") if p < len(units) else blank for p in picks]
         for view in pngs
     ]
-    return LiveGrid(build_grid(views, cfg, visible=len(shown)), [units[p] for p in shown], len(shown))
+    return LiveGrid(build_grid(frames, cfg, visible=len(shown)), [units[p] for p in shown], len(shown))

@@ -16,8 +16,8 @@ from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
 from sim_backends.policies.act.checkpoint import save_checkpoint
 from sim_backends.policies.act.configuration_act import ACTConfig
 from sim_backends.policies.act.data import DemoDataset, normalisation, record_demo
+from sim_backends.types import WRIST
 
-WRIST = "wrist"  # both backends name their hand camera so
 IDENTITY = ("task", "demos", "seed", "variant", "backend", "backend_kwargs", "max_dist", "max_angle", "noise")
 
 
@@ -62,7 +62,7 @@ def load_or_record(cfg: DictConfig, family: Any, out: Path) -> tuple[list[dict[s
                 scenario,
                 int(cfg.seed) + tried,
                 cfg.variant,
-                list(cfg.model.cameras),
+                cams,
                 float(cfg.max_dist),
                 float(cfg.max_angle),
                 float(cfg.noise),
