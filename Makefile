@@ -89,16 +89,18 @@ demo-online: $(STAMP)
 # The CPU recipe at full size (docs/RESULTS.md): seen and unseen data (front, side and wrist views rendered), the
 # dataset on front + side grids, the tiny Qwen3-VL on the shipped sim-pretrained tower (preset=tiny's default), every
 # split's bench with baselines and 95 % intervals, the learning curve. At least 400 seen test trajectories and 150
-# per unseen split. Resumable: generation resumes its shards; delete outputs/reproduce to start over. About 80 min
-# on 2 cores. Then, on the same data: make reproduce-rows (the scratch-tower and front + wrist rows) and make ablate
-# (the paper's ablation table); each rewrites docs/RESULTS.md with what exists.
+# per unseen split (seen: two generation runs of REPRO_SEEN episodes, the second's pairs numbered after the first's,
+# so a larger recipe extends the smaller one's data instead of redrawing it). Resumable: generation resumes its
+# shards; delete outputs/reproduce to start over. About 80 min on 2 cores. Then, on the same data: make
+# reproduce-rows (the scratch-tower and front + wrist rows) and make ablate (the paper's ablation table); each
+# rewrites docs/RESULTS.md with what exists.
 R              ?= outputs/reproduce
 REPRO_SEEN     ?= 4000
 REPRO_UNSEEN   ?= 150
-REPRO_EPOCHS   ?= 8
+REPRO_EPOCHS   ?= 6
 RESULTS        ?= docs/RESULTS.md
 REPRO_GEN      := backend=pybullet seed=0 workers=2 image_size=128 render_frames=8 backend_kwargs.wrist=true progress=false
-REPRO_SHARDS   := 'shards=[$(R)/shards/seen,$(R)/shards/unseen_object,$(R)/shards/unseen_scene,$(R)/shards/unseen_both]'
+REPRO_SHARDS   := 'shards=[$(R)/shards/seen,$(R)/shards/seen2,$(R)/shards/unseen_object,$(R)/shards/unseen_scene,$(R)/shards/unseen_both]'
 REPRO_TRAIN    := preset=tiny epochs=$(REPRO_EPOCHS) save_steps=1600 save_total_limit=null progress=false
 stamp           = echo "$(1) $$(date +%s)" >> $(R)/timeline.txt
 bench          = for s in $(2); do $(PY) scripts/evaluate.py model=$(1)/final dataset_dir=$(3) split=$$s batch_size=8 \
@@ -106,6 +108,8 @@ bench          = for s in $(2); do $(PY) scripts/evaluate.py model=$(1)/final da
 reproduce: $(STAMP)
 	mkdir -p $(R) && rm -f $(R)/timeline.txt && $(call stamp,generate)
 	$(PY) scripts/generate.py $(REPRO_GEN) num_episodes=$(REPRO_SEEN) out_dir=$(R)/shards/seen
+	$(PY) scripts/generate.py $(REPRO_GEN) num_episodes=$(REPRO_SEEN) first_pair=$$(($(REPRO_SEEN) / 2)) \
+	  out_dir=$(R)/shards/seen2
 	for v in unseen_object unseen_scene unseen_both; do \
 	  $(PY) scripts/generate.py $(REPRO_GEN) num_episodes=$(REPRO_UNSEEN) variant=$$v out_dir=$(R)/shards/$$v || exit 1; done
 	$(call stamp,dataset)
