@@ -24,6 +24,9 @@ def main(argv: list[str]) -> int:
     from sim_backends.supervision.experiment import families, resolve_tasks, scenario_templates
 
     cfg = load_config("act.yaml", argv)
+    for key in ("noise", "carry_noise"):  # metres of drift: a negative or non-number draw is meaningless
+        if not isinstance(cfg[key], (int, float)) or isinstance(cfg[key], bool) or cfg[key] < 0:
+            raise ConfigError(f"{key}: a drift in metres >= 0, not {cfg[key]!r}")
     if cfg.backend not in available_backends():
         raise ConfigError(f"backend: unknown backend {cfg.backend!r}; available: {', '.join(available_backends())}")
     src = make_backend(cfg.backend, render=False)  # only its scenario catalogue

@@ -222,3 +222,49 @@ def test_dart_demonstrations_drift_off_the_line_and_are_labelled_back_onto_it():
     (grasp_clean, drift_clean), (grasp_noisy, drift_noisy) = close_and_drift(clean), close_and_drift(noisy)
     assert np.allclose(grasp_clean, grasp_noisy, atol=1e-4)
     assert drift_noisy > drift_clean + 0.008, (drift_clean, drift_noisy)
+
+
+def test_carrying_drift_comes_back_onto_the_line_before_the_pour():
+    """With `carry_noise`, the closed hand drifts off its line while it carries, but the tilt is made exactly
+    where a clean demonstration makes it, and the same seed gives the same demonstration."""
+    from labrobfail_vlm.config import load_config
+    from sim_backends.policies.act.data import record_demo
+    from sim_backends.registry import make_backend
+    from sim_backends.supervision.experiment import families, resolve_tasks, scenario_templates
+
+    src = make_backend("pybullet", image_size=32, cameras=["front"], max_distractors=0)
+    try:
+        fam = resolve_tasks("pour", families(load_config("supervise.yaml", []), scenario_templates(src)), [])[0]
+        rec = lambda carry: record_demo(  # noqa: E731
+            src, fam.plan, fam.success, fam.scenarios[0], 4, "seen", ["front"], 0.03, 0.15, 0.0, carry
+        )
+        clean, noisy, again = rec(0.0), rec(0.03), rec(0.03)
+    finally:
+        src.close()
+    assert clean is not None and noisy is not None and again is not None
+    assert all(np.array_equal(noisy[k], again[k]) for k in ("images", "state", "action"))
+
+    def tilt_and_drift(d):
+        a, s = d["action"], d["state"]
+        carried = a[:, 9] > 0.5
+        tilt = int(np.argmax(np.abs(a[:, 3:9] - a[0, 3:9]).sum(1)))  # the tick of the deepest tilt
+        off = np.abs(s[1:, :2] - a[:-1, :2]).max(1)  # where the hand is vs the last action
+        return s[tilt, :3], float(off[carried[:-1]].max())
+
+    (tilt_clean, drift_clean), (tilt_noisy, drift_noisy) = tilt_and_drift(clean), tilt_and_drift(noisy)
+    assert np.allclose(tilt_clean, tilt_noisy, atol=5e-3), (tilt_clean, tilt_noisy)
+    assert drift_noisy > drift_clean + 0.008, (drift_clean, drift_noisy)
+
+
+@pytest.mark.parametrize("arg", ["noise=-0.01", "carry_noise=far"])
+def test_bad_drift_is_a_one_line_error(arg, tmp_path):
+    r = subprocess.run(
+        [sys.executable, "scripts/train_act.py", arg, f"out_dir={tmp_path / 'act'}"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode != 0 and "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith(f"error: {arg.split('=')[0]}:"), r.stderr
+    assert not (tmp_path / "act").exists()

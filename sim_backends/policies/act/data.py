@@ -75,6 +75,7 @@ def record_demo(
     max_dist: float = 0.03,
     max_angle: float = 0.15,
     noise: float = 0.0,
+    carry_noise: float = 0.0,
 ) -> dict[str, np.ndarray] | None:
     """One demonstration (images (T, V, H, W, 3) uint8, state (T, 9), action (T, 10)), or None if it failed.
 
@@ -83,6 +84,9 @@ def record_demo(
     (drawn per keyframe from the demo's seed), while the recorded actions stay on the line and the next move
     starts from where the hand really is. A policy taught only on perfect approaches never sees itself off the
     line, so it cannot learn to come back (the wrist view shows the vessel off centre; the action re-centres it).
+    `carry_noise` > 0 does the same for moves of the closed hand (carrying), except a move that ends where the
+    next keyframe acts in place (a tilt, a release) and a keyframe that acts in place itself: the pour is made
+    exactly over the destination, and the demonstration shows the way back onto the line before it.
     """
     from sim_backends.policies.openvla_client import proprio_vector
 
@@ -96,7 +100,16 @@ def record_demo(
     for i, kf in enumerate(plan):
         nxt = plan[i + 1] if i + 1 < len(plan) else None
         free = noise > 0 and kf.gripper == grip == 0 and nxt is not None and nxt.gripper == 0
-        off = np.append(rng.uniform(-noise, noise, 2), 0.0) if free else np.zeros(3)
+        carrying = (
+            carry_noise > 0
+            and kf.gripper == grip == 1
+            and nxt is not None
+            and nxt.gripper == 1
+            and not np.allclose(kf.pos, pos)  # this keyframe moves the hand ...
+            and not np.allclose(nxt.pos, kf.pos)  # ... and the next one does not act where it ends
+        )
+        size = noise if free else carry_noise if carrying else 0.0
+        off = np.append(rng.uniform(-size, size, 2), 0.0) if size else np.zeros(3)
         line = ticks(pos, quat, kf, max_dist, max_angle, kf.gripper != grip)
         for j, (tp, tq) in enumerate(line):
             obs = src.observe()

@@ -18,7 +18,18 @@ from sim_backends.policies.act.configuration_act import ACTConfig
 from sim_backends.policies.act.data import DemoDataset, normalisation, record_demo
 from sim_backends.types import WRIST
 
-IDENTITY = ("task", "demos", "seed", "variant", "backend", "backend_kwargs", "max_dist", "max_angle", "noise")
+IDENTITY = (
+    "task",
+    "demos",
+    "seed",
+    "variant",
+    "backend",
+    "backend_kwargs",
+    "max_dist",
+    "max_angle",
+    "noise",
+    "carry_noise",
+)
 
 
 def _identity(cfg: DictConfig) -> dict[str, Any]:
@@ -66,6 +77,7 @@ def load_or_record(cfg: DictConfig, family: Any, out: Path) -> tuple[list[dict[s
                 float(cfg.max_dist),
                 float(cfg.max_angle),
                 float(cfg.noise),
+                float(cfg.carry_noise),
             )
             tried += 1
             if d is not None:
