@@ -194,9 +194,9 @@ def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
         p.wait(timeout=10)
 
 
-def test_dart_demonstrations_drift_off_the_line_and_are_labelled_back_onto_it():
-    """With `noise`, free moves of the open hand end off their keyframe, the recorded actions stay on the plan's
-    line and the grasp is still made where the plan makes it; the same seed gives the same demonstration."""
+def _clean_and_drifted(task: str, seed: int, **drift: float):
+    """A clean demonstration of the task's first scenario and two drifted ones (same seed, same `drift`
+    settings of record_demo), on real PyBullet; the two drifted ones must be identical."""
     from labrobfail_vlm.config import load_config
     from sim_backends.policies.act.data import record_demo
     from sim_backends.registry import make_backend
@@ -204,15 +204,22 @@ def test_dart_demonstrations_drift_off_the_line_and_are_labelled_back_onto_it():
 
     src = make_backend("pybullet", image_size=32, cameras=["front"], max_distractors=0)
     try:
-        fam = resolve_tasks("pick", families(load_config("supervise.yaml", []), scenario_templates(src)), [])[0]
-        rec = lambda noise: record_demo(  # noqa: E731
-            src, fam.plan, fam.success, fam.scenarios[0], 3, "seen", ["front"], 0.03, 0.15, noise
+        fam = resolve_tasks(task, families(load_config("supervise.yaml", []), scenario_templates(src)), [])[0]
+        rec = lambda **kw: record_demo(  # noqa: E731
+            src, fam.plan, fam.success, fam.scenarios[0], seed, "seen", ["front"], 0.03, 0.15, **kw
         )
-        clean, noisy, again = rec(0.0), rec(0.03), rec(0.03)
+        clean, noisy, again = rec(), rec(**drift), rec(**drift)
     finally:
         src.close()
     assert clean is not None and noisy is not None and again is not None
     assert all(np.array_equal(noisy[k], again[k]) for k in ("images", "state", "action"))
+    return clean, noisy
+
+
+def test_dart_demonstrations_drift_off_the_line_and_are_labelled_back_onto_it():
+    """With `noise`, free moves of the open hand end off their keyframe, the recorded actions stay on the plan's
+    line and the grasp is still made where the plan makes it; the same seed gives the same demonstration."""
+    clean, noisy = _clean_and_drifted("pick", 3, noise=0.03)
 
     def close_and_drift(d):
         a, s = d["action"], d["state"]
@@ -227,22 +234,7 @@ def test_dart_demonstrations_drift_off_the_line_and_are_labelled_back_onto_it():
 def test_carrying_drift_comes_back_onto_the_line_before_the_pour():
     """With `carry_noise`, the closed hand drifts off its line while it carries, but the tilt is made exactly
     where a clean demonstration makes it, and the same seed gives the same demonstration."""
-    from labrobfail_vlm.config import load_config
-    from sim_backends.policies.act.data import record_demo
-    from sim_backends.registry import make_backend
-    from sim_backends.supervision.experiment import families, resolve_tasks, scenario_templates
-
-    src = make_backend("pybullet", image_size=32, cameras=["front"], max_distractors=0)
-    try:
-        fam = resolve_tasks("pour", families(load_config("supervise.yaml", []), scenario_templates(src)), [])[0]
-        rec = lambda carry: record_demo(  # noqa: E731
-            src, fam.plan, fam.success, fam.scenarios[0], 4, "seen", ["front"], 0.03, 0.15, 0.0, carry
-        )
-        clean, noisy, again = rec(0.0), rec(0.03), rec(0.03)
-    finally:
-        src.close()
-    assert clean is not None and noisy is not None and again is not None
-    assert all(np.array_equal(noisy[k], again[k]) for k in ("images", "state", "action"))
+    clean, noisy = _clean_and_drifted("pour", 4, carry_noise=0.03)
 
     def tilt_and_drift(d):
         a, s = d["action"], d["state"]
