@@ -27,6 +27,10 @@ def main(argv: list[str]) -> int:
     for key in ("noise", "carry_noise"):  # metres of drift: a negative or non-number draw is meaningless
         if not isinstance(cfg[key], (int, float)) or isinstance(cfg[key], bool) or cfg[key] < 0:
             raise ConfigError(f"{key}: a drift in metres >= 0, not {cfg[key]!r}")
+    if cfg.train.schedule not in ("constant", "cosine"):
+        raise ConfigError(f"train.schedule: expected constant or cosine, got {cfg.train.schedule!r}")
+    if not isinstance(cfg.train.warmup, int) or isinstance(cfg.train.warmup, bool) or cfg.train.warmup < 0:
+        raise ConfigError(f"train.warmup: a number of steps >= 0, not {cfg.train.warmup!r}")
     if cfg.backend not in available_backends():
         raise ConfigError(f"backend: unknown backend {cfg.backend!r}; available: {', '.join(available_backends())}")
     src = make_backend(cfg.backend, render=False)  # only its scenario catalogue

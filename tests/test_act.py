@@ -96,6 +96,49 @@ def test_act_trains_a_few_steps_and_predicts_chunks(tmp_path):
     assert cfg2 == cfg and torch.equal(again.predict(img, state), model.predict(img, state))
 
 
+def test_spatial_softmax_finds_a_peak_between_feature_tokens():
+    from sim_backends.policies.act.modeling_act import spatial_softmax
+
+    maps = torch.full((1, 2, 8, 8), -50.0)
+    maps[0, 0, 2, 5] = 50.0  # row 2, column 5 of 8: pixel centre x = -1 + (2*5+1)/8, y = -1 + (2*2+1)/8
+    maps[0, 1, 6, 1] = maps[0, 1, 6, 2] = 50.0  # two equal peaks: their midpoint
+    xy = spatial_softmax(maps)[0]  # the x of every map, then the y of every map
+    assert torch.allclose(xy, torch.tensor([0.375, -0.5, -0.375, 0.625]), atol=1e-4)
+
+
+def test_keypoint_tokens_train_and_round_trip(tmp_path):
+    torch.manual_seed(0)
+    stats = {"state_mean": [0.0] * 9, "state_std": [1.0] * 9, "action_mean": [0.0] * 10, "action_std": [1.0] * 10}
+    cfg = ACTConfig(**{**TOY, "cameras": ["front", "wrist"]}, keypoints=6, stats=stats)
+    model = ACTModel(cfg)
+    img, state = torch.rand(2, 2, 3, 32, 32), torch.randn(2, 9)
+    actions, pad = torch.randn(2, 4, 10), torch.zeros(2, 4, dtype=torch.bool)
+    loss, _ = model.loss(img, state, actions, pad)
+    loss.backward()
+    assert model.backbone.kp_maps.weight.grad.abs().sum() > 0  # the keypoints reach the loss
+    model.eval()
+    save_checkpoint(model, cfg, tmp_path / "ck")
+    again, cfg2 = load_checkpoint(tmp_path / "ck")
+    assert cfg2.keypoints == 6 and torch.equal(again.predict(img, state), model.predict(img, state))
+    with pytest.raises(ValueError, match="act.keypoints"):
+        ACTConfig(**TOY, keypoints=-1)
+
+
+def test_an_act_tilting_in_place_is_not_idle():
+    from sim_backends.perturbations.control import so3_exp
+    from sim_backends.policies.act.policy import still
+    from sim_backends.policies.base import Action
+    from sim_backends.types import matrix_to_quat
+
+    up = matrix_to_quat(np.eye(3))
+    tilted = matrix_to_quat(so3_exp(np.array([0.15, 0.0, 0.0])))  # one tick of a pour's tilt, the hand in place
+    here = Action((0.5, 0.1, 0.2), up, 1)
+    assert still(Action((0.5, 0.1, 0.2005), up, 1), here)  # a target that stands still
+    assert not still(Action((0.5, 0.1, 0.2), tilted, 1), here)  # tilting in place is work, not idleness
+    assert not still(Action((0.5, 0.1, 0.2), up, 0), here)  # so is a release
+    assert not still(Action((0.51, 0.1, 0.2), up, 1), here) and not still(here, None)
+
+
 def test_bad_checkpoints_are_one_line_errors(tmp_path):
     with pytest.raises(ValueError, match="act.checkpoint: no checkpoint directory"):
         load_checkpoint(tmp_path / "none")
@@ -248,8 +291,8 @@ def test_carrying_drift_comes_back_onto_the_line_before_the_pour():
     assert drift_noisy > drift_clean + 0.008, (drift_clean, drift_noisy)
 
 
-@pytest.mark.parametrize("arg", ["noise=-0.01", "carry_noise=far"])
-def test_bad_drift_is_a_one_line_error(arg, tmp_path):
+@pytest.mark.parametrize("arg", ["noise=-0.01", "carry_noise=far", "train.schedule=linear", "train.warmup=-5"])
+def test_bad_drift_or_schedule_is_a_one_line_error(arg, tmp_path):
     r = subprocess.run(
         [sys.executable, "scripts/train_act.py", arg, f"out_dir={tmp_path / 'act'}"],
         cwd=ROOT,

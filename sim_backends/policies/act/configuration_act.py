@@ -23,6 +23,7 @@ class ACTConfig:
     action_dim: int = ACTION_DIM
     chunk_size: int = 20  # k: actions predicted per query
     backbone_channels: list[int] = field(default_factory=lambda: [16, 32, 64, 128])  # stride-2 conv stages
+    keypoints: int = 0  # K > 0: a spatial-softmax token of K image keypoints per view (modeling_act.Backbone)
     dim_model: int = 128
     n_heads: int = 4
     dim_feedforward: int = 256
@@ -49,6 +50,8 @@ class ACTConfig:
         ):
             if int(getattr(self, k)) < 1:
                 raise ValueError(f"act.{k}: must be a positive integer, got {getattr(self, k)!r}")
+        if int(self.keypoints) < 0:
+            raise ValueError(f"act.keypoints: must be 0 (none) or a positive integer, got {self.keypoints!r}")
         if self.dim_model % self.n_heads:
             raise ValueError(f"act.dim_model: {self.dim_model} is not divisible by n_heads={self.n_heads}")
 

@@ -8,6 +8,11 @@
 The backbone is a small CNN written here (torchvision, hence ResNet-18, is not available on the project's
 machines): four stride-2 3x3 conv stages with GroupNorm, so a 64 px view becomes 4x4 feature tokens. Loss: L1
 on the (normalised) actions of the chunk, masked past the episode's end, plus kl_weight x KL(q || N(0, I)).
+
+Optional `keypoints` (K > 0): a spatial softmax over the backbone's second-to-last stage (twice the final
+resolution) turns K learned feature maps into K expected image positions (Levine et al. 2016, robomimic's default
+for visuomotor BC), one extra encoder token per view. The 16 px feature tokens place an 8 px vessel only to within
+a token; the soft-argmax is continuous, so the decoder can read where a vessel is to a fraction of a token.
 """
 
 from __future__ import annotations
@@ -43,7 +48,7 @@ def sine_2d(h: int, w: int, dim: int) -> Tensor:
 
 
 class Backbone(nn.Module):
-    def __init__(self, channels: list[int], dim: int):
+    def __init__(self, channels: list[int], dim: int, keypoints: int = 0):
         super().__init__()
         layers: list[nn.Module] = []
         cin = 3
@@ -52,9 +57,34 @@ class Backbone(nn.Module):
             cin = c
         self.net = nn.Sequential(*layers)
         self.proj = nn.Conv2d(cin, dim, 1)
+        self.keypoints = int(keypoints)
+        if self.keypoints:
+            mid = channels[-2] if len(channels) > 1 else 3
+            self.kp_maps = nn.Conv2d(mid, self.keypoints, 1)
+            self.kp_proj = nn.Linear(2 * self.keypoints, dim)
 
-    def forward(self, x: Tensor) -> Tensor:  # (B, 3, H, W) in [0, 1] -> (B, dim, H/16, W/16)
-        return self.proj(self.net(x * 2.0 - 1.0))
+    def forward(self, x: Tensor) -> tuple[Tensor, Tensor | None]:
+        """(B, 3, H, W) in [0, 1] -> feature map (B, dim, H/2^n, W/2^n) and, with keypoints, (B, dim) tokens."""
+        h = x * 2.0 - 1.0
+        mid = h
+        cut = len(self.net) - 3  # the input of the last stage (each stage is conv, norm, relu)
+        for i, layer in enumerate(self.net):
+            if i == cut:
+                mid = h
+            h = layer(h)
+        if not self.keypoints:
+            return self.proj(h), None
+        return self.proj(h), self.kp_proj(spatial_softmax(self.kp_maps(mid)))
+
+
+def spatial_softmax(maps: Tensor) -> Tensor:
+    """(B, K, h, w) -> (B, 2K): the expected x of each map's softmax, then the expected y, in [-1, 1] (pixel
+    centres)."""
+    b, k, h, w = maps.shape
+    p = torch.softmax(maps.flatten(2), -1).reshape(b, k, h, w)
+    ys = torch.linspace(-1 + 1 / h, 1 - 1 / h, h, device=maps.device, dtype=maps.dtype)
+    xs = torch.linspace(-1 + 1 / w, 1 - 1 / w, w, device=maps.device, dtype=maps.dtype)
+    return torch.cat([(p.sum(2) * xs).sum(-1), (p.sum(3) * ys).sum(-1)], -1)
 
 
 class ACTModel(nn.Module):
@@ -75,7 +105,7 @@ class ACTModel(nn.Module):
         self.vae_out = nn.Linear(d, 2 * cfg.latent_dim)
         self.register_buffer("vae_pos", sine_table(cfg.chunk_size + 2, d), persistent=False)
         # observation encoder
-        self.backbone = Backbone(list(cfg.backbone_channels), d)
+        self.backbone = Backbone(list(cfg.backbone_channels), d, cfg.keypoints)
         self.latent_in = nn.Linear(cfg.latent_dim, d)
         self.state_in = nn.Linear(cfg.state_dim, d)
         self.token_pos = nn.Parameter(torch.zeros(2, d))  # learned embeddings of the latent and state tokens
@@ -100,15 +130,18 @@ class ACTModel(nn.Module):
     def forward(self, images: Tensor, state: Tensor, z: Tensor) -> Tensor:
         """images (B, V, 3, H, W) in [0, 1], state (B, state_dim), z (B, latent) -> actions (B, k, action_dim)."""
         b, v = images.shape[:2]
-        feats = self.backbone(images.flatten(0, 1))  # (B*V, d, h, w)
+        feats, kp = self.backbone(images.flatten(0, 1))  # (B*V, d, h, w), (B*V, d) or None
         _, d, h, w = feats.shape
         tokens = feats.flatten(2).transpose(1, 2).reshape(b, v, h * w, d)
-        tokens = tokens + sine_2d(h, w, d).to(tokens)[None, None] + self.camera_embed[None, :v, None]
+        tokens = tokens + sine_2d(h, w, d).to(tokens)[None, None]
+        if kp is not None:  # one keypoint token per view, after its feature tokens
+            tokens = torch.cat([tokens, kp.reshape(b, v, 1, d)], 2)
+        tokens = tokens + self.camera_embed[None, :v, None]
         x = torch.cat(
             [
                 (self.latent_in(z) + self.token_pos[0])[:, None],
                 (self.state_in(state) + self.token_pos[1])[:, None],
-                tokens.reshape(b, v * h * w, d),
+                tokens.flatten(1, 2),
             ],
             1,
         )

@@ -2,7 +2,8 @@
 
 Every step queries the model (with ensembling) or every k steps (`temporal_ensemble_coeff: null`); the
 action is the target position, its rotation (6-D, orthonormalised) and the gripper (> 0.5: closed). ACT has
-no stop signal: the policy is done when its targets stand still for `idle_stop` steps or after `max_ticks`.
+no stop signal: the policy is done when its targets stand still (position, orientation and gripper) for
+`idle_stop` steps or after `max_ticks`.
 """
 
 from __future__ import annotations
@@ -18,9 +19,20 @@ from sim_backends.policies.act.data import from_rot6d
 from sim_backends.policies.act.modeling_act import ChunkRunner, TemporalEnsembler
 from sim_backends.policies.base import Action, EpisodeContext, Policy, PolicyError, register_policy
 from sim_backends.source import Observation
-from sim_backends.types import matrix_to_quat
+from sim_backends.types import matrix_to_quat, rotation_angle
 
-IDLE_POS = 0.002  # m
+IDLE_POS, IDLE_ROT = 0.002, 0.01  # m, rad between consecutive targets
+
+
+def still(a: Action, last: Action | None) -> bool:
+    """The target did not move: same position, same orientation, same gripper. A pour tilts in place for a
+    quarter of its demonstration (about 23 ticks of 100), so position alone would end every pour mid-tilt."""
+    return (
+        last is not None
+        and float(np.linalg.norm(np.subtract(a.pos, last.pos))) < IDLE_POS
+        and rotation_angle(a.quat, last.quat) < IDLE_ROT
+        and a.gripper == last.gripper
+    )
 
 
 @register_policy("act")
@@ -93,12 +105,7 @@ class ACTPolicy(Policy):
             vec = self.chunks(self._chunk(obs) if self.chunks.needs_query() else None)
         self.t += 1
         a = Action(tuple(map(float, vec[:3])), matrix_to_quat(from_rot6d(vec[3:9])), int(vec[9] > 0.5), self.speed)
-        still = (
-            self.last is not None
-            and float(np.linalg.norm(np.subtract(a.pos, self.last.pos))) < IDLE_POS
-            and a.gripper == self.last.gripper
-        )
-        self.idle = self.idle + 1 if still else 0
+        self.idle = self.idle + 1 if still(a, self.last) else 0
         self.last = a
         return None if self.idle_stop and self.idle >= self.idle_stop else a
 

@@ -135,6 +135,15 @@ def train(cfg: DictConfig, family: Any) -> dict[str, Any]:
         [{"params": rest, "lr": float(t.lr)}, {"params": backbone, "lr": float(t.lr_backbone)}],
         weight_decay=float(t.weight_decay),
     )
+    # cosine: warm up, then anneal to 0 over train.steps (a wall-clock stop before then leaves it part-annealed)
+    from transformers import get_constant_schedule_with_warmup, get_cosine_schedule_with_warmup
+
+    warmup = int(t.warmup)
+    sched = (
+        get_cosine_schedule_with_warmup(opt, warmup, int(t.steps))
+        if t.schedule == "cosine"
+        else get_constant_schedule_with_warmup(opt, warmup)
+    )
     loader = DataLoader(
         DemoDataset(demos, model_cfg),
         batch_size=int(t.batch_size),
@@ -152,10 +161,14 @@ def train(cfg: DictConfig, family: Any) -> dict[str, Any]:
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
+            sched.step()
             step += 1
             bar.update(1)
             if step % int(t.log_every) == 0 or step == 1:
-                curve.append({"step": step, "minutes": round((time.perf_counter() - t0) / 60, 3), **parts})
+                curve.append(
+                    {"step": step, "minutes": round((time.perf_counter() - t0) / 60, 3), "lr": sched.get_last_lr()[0]}
+                    | parts
+                )
             if step % int(t.save_every) == 0:
                 save_checkpoint(model, model_cfg, out / "checkpoints" / f"step-{step}")
             if step >= int(t.steps) or time.perf_counter() - t0 >= budget:
