@@ -167,20 +167,24 @@ reproduce-online: $(STAMP)
 VLM ?= $(R)/online/final
 # Per task: the ACT's training arguments and the backend options its cameras need. A pour must find the destination:
 # a hand camera, DART-style drift of every free and carrying move, keypoint tokens and a cosine schedule
-# (docs/EXPERIMENTS.md, 26 Nov: the only pour ACT measured to pour)
+# (docs/EXPERIMENTS.md, 26 Nov: the best-fitting pour ACT, L1 0.048). Its own folder, so a pour ACT of an older recipe
+# left in $(R)/act/pour is never mistaken for it.
 ACT_pick := demos=120 train.max_minutes=8 train.threads=1
 ACT_place := $(ACT_pick)
 ACT_pour := demos=240 'model.cameras=[front,wrist]' model.image_size=96 noise=0.03 carry_noise=0.03 \
   model.keypoints=32 train.lr=5e-4 train.lr_backbone=5e-4 train.schedule=cosine train.warmup=500 train.steps=20000 \
   train.max_minutes=30
 ACT_SUP_pour := backend_kwargs.wrist=true
+ACT_DIR_pour := pour_kpcos
 recovery: $(STAMP)
 	@test -d $(VLM) || { echo "recovery: no model $(VLM) (make reproduce-online, or VLM=<model dir>)" >&2; exit 2; }
-	$(foreach t,pick place pour,test -f $(R)/act/$(t)/final/model.safetensors || OMP_NUM_THREADS=1 $(PY) \
-	  scripts/train_act.py task=$(t) $(ACT_$(t)) progress=false out_dir=$(R)/act/$(t) || exit 1;)
+	$(foreach t,pick place pour,test -f $(R)/act/$(or $(ACT_DIR_$(t)),$(t))/final/model.safetensors || \
+	  OMP_NUM_THREADS=1 $(PY) scripts/train_act.py task=$(t) $(ACT_$(t)) progress=false \
+	  out_dir=$(R)/act/$(or $(ACT_DIR_$(t)),$(t)) || exit 1;)
 	$(PY) scripts/supervise.py policy=scripted supervisor=vlm vlm.model=$(VLM) task=pick,place,pour trials=25 \
 	  progress=false out_dir=$(R)/recovery/scripted
-	$(foreach t,pick place pour,$(PY) scripts/supervise.py policy=act act.checkpoint=$(R)/act/$(t)/final $(ACT_SUP_$(t)) \
+	$(foreach t,pick place pour,$(PY) scripts/supervise.py policy=act \
+	  act.checkpoint=$(R)/act/$(or $(ACT_DIR_$(t)),$(t))/final $(ACT_SUP_$(t)) \
 	  supervisor=vlm vlm.model=$(VLM) task=$(t) trials=25 progress=false out_dir=$(R)/recovery/act/$(t) || exit 1;)
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 

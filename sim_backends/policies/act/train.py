@@ -161,14 +161,12 @@ def train(cfg: DictConfig, family: Any) -> dict[str, Any]:
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
+            lr = sched.get_last_lr()[0]  # the rate this step used
             sched.step()
             step += 1
             bar.update(1)
             if step % int(t.log_every) == 0 or step == 1:
-                curve.append(
-                    {"step": step, "minutes": round((time.perf_counter() - t0) / 60, 3), "lr": sched.get_last_lr()[0]}
-                    | parts
-                )
+                curve.append({"step": step, "minutes": round((time.perf_counter() - t0) / 60, 3), "lr": lr} | parts)
             if step % int(t.save_every) == 0:
                 save_checkpoint(model, model_cfg, out / "checkpoints" / f"step-{step}")
             if step >= int(t.steps) or time.perf_counter() - t0 >= budget:
