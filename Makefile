@@ -176,16 +176,16 @@ ACT_pour := demos=240 'model.cameras=[front,wrist]' model.image_size=96 noise=0.
   train.max_minutes=30
 ACT_SUP_pour := backend_kwargs.wrist=true
 ACT_DIR_pour := pour_kpcos
+act_dir = $(R)/act/$(or $(ACT_DIR_$(1)),$(1))
 recovery: $(STAMP)
 	@test -d $(VLM) || { echo "recovery: no model $(VLM) (make reproduce-online, or VLM=<model dir>)" >&2; exit 2; }
-	$(foreach t,pick place pour,test -f $(R)/act/$(or $(ACT_DIR_$(t)),$(t))/final/model.safetensors || \
-	  OMP_NUM_THREADS=1 $(PY) scripts/train_act.py task=$(t) $(ACT_$(t)) progress=false \
-	  out_dir=$(R)/act/$(or $(ACT_DIR_$(t)),$(t)) || exit 1;)
+	$(foreach t,pick place pour,test -f $(call act_dir,$(t))/final/model.safetensors || OMP_NUM_THREADS=1 \
+	  $(PY) scripts/train_act.py task=$(t) $(ACT_$(t)) progress=false out_dir=$(call act_dir,$(t)) || exit 1;)
 	$(PY) scripts/supervise.py policy=scripted supervisor=vlm vlm.model=$(VLM) task=pick,place,pour trials=25 \
 	  progress=false out_dir=$(R)/recovery/scripted
-	$(foreach t,pick place pour,$(PY) scripts/supervise.py policy=act \
-	  act.checkpoint=$(R)/act/$(or $(ACT_DIR_$(t)),$(t))/final $(ACT_SUP_$(t)) \
-	  supervisor=vlm vlm.model=$(VLM) task=$(t) trials=25 progress=false out_dir=$(R)/recovery/act/$(t) || exit 1;)
+	$(foreach t,pick place pour,$(PY) scripts/supervise.py policy=act act.checkpoint=$(call act_dir,$(t))/final \
+	  $(ACT_SUP_$(t)) supervisor=vlm vlm.model=$(VLM) task=$(t) trials=25 progress=false \
+	  out_dir=$(R)/recovery/act/$(t) || exit 1;)
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 
 # The sim-pretrained vision tower shipped in labrobfail_vlm/assets/tower (its TOWER_CARD.md says what it learned and

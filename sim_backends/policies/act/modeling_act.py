@@ -65,16 +65,9 @@ class Backbone(nn.Module):
 
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor | None]:
         """(B, 3, H, W) in [0, 1] -> feature map (B, dim, H/2^n, W/2^n) and, with keypoints, (B, dim) tokens."""
-        h = x * 2.0 - 1.0
-        mid = h
-        cut = len(self.net) - 3  # the input of the last stage (each stage is conv, norm, relu)
-        for i, layer in enumerate(self.net):
-            if i == cut:
-                mid = h
-            h = layer(h)
-        if not self.keypoints:
-            return self.proj(h), None
-        return self.proj(h), self.kp_proj(spatial_softmax(self.kp_maps(mid)))
+        mid = self.net[:-3](x * 2.0 - 1.0)  # the input of the last stage (each stage is conv, norm, relu)
+        feats = self.proj(self.net[-3:](mid))
+        return feats, self.kp_proj(spatial_softmax(self.kp_maps(mid))) if self.keypoints else None
 
 
 def spatial_softmax(maps: Tensor) -> Tensor:
