@@ -23,10 +23,17 @@ class AugmentConfig:
     colour: float = 0.25  # brightness, contrast, saturation factors in [1 - c, 1 + c]; hue shift up to c / 5 turn
     shift_px: float = 8.0  # per view, in pixels of the view image
     scale: float = 0.1  # per view, zoom in [1 - s, 1 + s] about the image centre
+    hue: float | None = None  # hue shift up to this many turns (0.5: any hue); None: colour / 5
 
     def __post_init__(self) -> None:
         if not (0 <= self.colour < 1 and self.shift_px >= 0 and 0 <= self.scale < 0.5):
             raise ValueError(f"augment: expected 0 <= colour < 1, shift_px >= 0, 0 <= scale < 0.5, got {self}")
+        if self.hue is not None and not 0 <= self.hue <= 0.5:
+            raise ValueError(f"augment: expected 0 <= hue <= 0.5 (turns), got {self.hue!r}")
+
+    @property
+    def hue_turns(self) -> float:
+        return self.colour / 5 if self.hue is None else self.hue
 
 
 @dataclass(frozen=True)
@@ -51,7 +58,7 @@ class Augment:
             float(rng.uniform(1 - c, 1 + c)),
             float(rng.uniform(1 - c, 1 + c)),
             float(rng.uniform(1 - c, 1 + c)),
-            float(rng.uniform(-c / 5, c / 5)),
+            float(rng.uniform(-cfg.hue_turns, cfg.hue_turns)),
         )
         return cls(v, col)
 

@@ -178,6 +178,8 @@ def main(argv: list[str]) -> int:
     from labrobfail_vlm.grid import GridConfig
     from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
     from labrobfail_vlm.model.processor import image_processor
+    from labrobfail_vlm.model.tower import load_visual, read_card
+    from labrobfail_vlm.model.tower import resolve as tower_dir
     from labrobfail_vlm.train import tower as T
 
     cfg = load_config("tower.yaml", argv)
@@ -196,6 +198,10 @@ def main(argv: list[str]) -> int:
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     tower = T.build_tower(vision, int(cfg.out_hidden_size), int(cfg.seed))
+    init = None if cfg.init is None else tower_dir(str(cfg.init))
+    if init is not None:  # before the resume check, so a checkpoint still wins
+        read_card(init)
+        load_visual(tower, init)
     heads = T.TowerHeads(int(cfg.out_hidden_size), len(train.cell_names), len(train.token_names))
     params = list(tower.parameters()) + list(heads.parameters())
     opt = torch.optim.AdamW(params, lr=float(cfg.lr), weight_decay=float(cfg.weight_decay))
@@ -307,6 +313,7 @@ def main(argv: list[str]) -> int:
                 "token_weight",
                 "balance_cells",
                 "seed",
+                "init",
             )
         }
         | {"augment": dict(cfg.augment), "wall_s": state["wall_s"], "cpu_s": state["cpu_s"]},

@@ -118,6 +118,22 @@ def test_pretraining_resumes_exports_and_the_tiny_model_takes_the_tower(tower_da
     assert want.keys() == got.keys() and all(torch.equal(want[k], got[k]) for k in want)
     scratch = load_model(build_tiny(tmp_path / "scratch")).model.visual.state_dict()
     assert not torch.equal(scratch["blocks.0.attn.qkv.weight"][:4, :4], want["blocks.0.attn.qkv.weight"][:4, :4])
+    # a run started from that tower (init=), all hues, a vanishing learning rate: it exports the tower it started from
+    r = _pretrain(
+        tower_data,
+        tmp_path / "run2",
+        "epochs=1",
+        "layouts=[[front,side]]",
+        f"init={tmp_path / 'x'}",
+        "lr=1e-12",
+        "augment.hue=0.5",
+        f"export_dir={tmp_path / 'y'}",
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    again = load_file(str(tmp_path / "y" / "tower.safetensors"))
+    assert all(torch.allclose(want[k], again[k], atol=1e-6) for k in want)
+    card = json.loads((tmp_path / "y" / "tower.json").read_text())
+    assert card["training"]["init"] == str(tmp_path / "x") and card["training"]["augment"]["hue"] == 0.5
     # a damaged tower is refused in one line, before any model is built
     (tmp_path / "x" / "tower.safetensors").write_bytes(b"\0" * 64)
     with pytest.raises(Exception, match="does not match the sha256"):
@@ -188,7 +204,31 @@ def test_bad_tower_settings_are_one_line(tower_data, tmp_path):
         (["layouts=[[front,side],[front]]"], "layouts"),
         ([f"data.out_dir={tmp_path}"], "data"),
         (["grid.width=100"], "grid"),
+        ([f"init={tmp_path / 'none'}"], "tower"),
+        (["augment.hue=0.7"], "augment"),
     ):
         r = _pretrain(tower_data, tmp_path / "r", *args)
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-2000:]
         assert r.stderr.strip().splitlines()[-1].startswith(f"error: {key}"), r.stderr
+
+
+def test_hue_range_reaches_any_hue_and_the_default_draw_is_unchanged():
+    import cv2
+
+    from labrobfail_vlm.augment import Augment, AugmentConfig
+
+    def hues(cfg, n=200):
+        rng = np.random.default_rng(0)
+        patch = np.full((8, 8, 3), (178, 224, 242), np.uint8)  # the seen small beaker's pale blue
+        out = []
+        for _ in range(n):
+            img = Augment.draw(cfg, 1, rng).image(patch, 0)
+            out.append(int(cv2.cvtColor(img, cv2.COLOR_RGB2HSV)[4, 4, 0]))
+        return np.array(out)
+
+    base = hues(AugmentConfig(colour=0.25, shift_px=0, scale=0))
+    assert np.ptp(base) <= 30  # a 0.05-turn shift plus rounding on a pale colour: within a sixth of a turn
+    same = hues(AugmentConfig(colour=0.25, shift_px=0, scale=0, hue=0.05))
+    assert (base == same).all()  # hue=None is colour / 5: the same draws as before the option existed
+    wide = hues(AugmentConfig(colour=0.25, shift_px=0, scale=0, hue=0.5))
+    assert len(np.unique(wide // 30)) == 6  # every sixth of the hue circle

@@ -74,10 +74,14 @@ def vision_overrides(card: dict[str, Any]) -> dict[str, Any]:
 
 def load_into(model: Any, folder: Path) -> None:
     """Copy the tower's weights into a Qwen3-VL model's vision tower (every tensor, same shapes)."""
+    load_visual(model.model.visual, folder)
+
+
+def load_visual(visual: Any, folder: Path) -> None:
+    """Copy the tower's weights into a Qwen3-VL vision tower module (`model.visual`, every tensor, same shapes)."""
     from safetensors.torch import load_file
 
     state = load_file(str(folder / TOWER_FILE))
-    visual = model.model.visual
     try:
         missing, unexpected = visual.load_state_dict(state, strict=False)
     except RuntimeError:  # a shape mismatch: another tower size than the card says
