@@ -160,6 +160,11 @@ def card_markdown(card: dict[str, Any]) -> str:
         "",
         "## Reproduce",
         "",
+        *(
+            [f"Started from the tower with sha256 `{card['training']['init_sha256']}` (its own card says how).", ""]
+            if card["training"].get("init_sha256")
+            else []
+        ),
         f"```\n{card['command']}\n```",
         "",
         f"sha256 of {card['file']}: `{card['sha256']}`",
@@ -199,8 +204,9 @@ def main(argv: list[str]) -> int:
     out.mkdir(parents=True, exist_ok=True)
     tower = T.build_tower(vision, int(cfg.out_hidden_size), int(cfg.seed))
     init = None if cfg.init is None else tower_dir(str(cfg.init))
+    init_sha = None
     if init is not None:  # before the resume check, so a checkpoint still wins
-        read_card(init)
+        init_sha = read_card(init)["sha256"]
         load_visual(tower, init)
     heads = T.TowerHeads(int(cfg.out_hidden_size), len(train.cell_names), len(train.token_names))
     params = list(tower.parameters()) + list(heads.parameters())
@@ -316,7 +322,7 @@ def main(argv: list[str]) -> int:
                 "init",
             )
         }
-        | {"augment": dict(cfg.augment), "wall_s": state["wall_s"], "cpu_s": state["cpu_s"]},
+        | {"augment": dict(cfg.augment), "init_sha256": init_sha, "wall_s": state["wall_s"], "cpu_s": state["cpu_s"]},
         "heldout": heldout,
         "use": (
             "The tiny Qwen3-VL of `preset=tiny` (train.py) takes this tower and merger in place of its random "

@@ -134,6 +134,8 @@ def test_pretraining_resumes_exports_and_the_tiny_model_takes_the_tower(tower_da
     assert all(torch.allclose(want[k], again[k], atol=1e-6) for k in want)
     card = json.loads((tmp_path / "y" / "tower.json").read_text())
     assert card["training"]["init"] == str(tmp_path / "x") and card["training"]["augment"]["hue"] == 0.5
+    assert card["training"]["init_sha256"] == read_card(tmp_path / "x")["sha256"]
+    assert card["training"]["init_sha256"] in (tmp_path / "y" / "TOWER_CARD.md").read_text()
     # a damaged tower is refused in one line, before any model is built
     (tmp_path / "x" / "tower.safetensors").write_bytes(b"\0" * 64)
     with pytest.raises(Exception, match="does not match the sha256"):
@@ -232,3 +234,20 @@ def test_hue_range_reaches_any_hue_and_the_default_draw_is_unchanged():
     assert (base == same).all()  # hue=None is colour / 5: the same draws as before the option existed
     wide = hues(AugmentConfig(colour=0.25, shift_px=0, scale=0, hue=0.5))
     assert len(np.unique(wide // 30)) == 6  # every sixth of the hue circle
+
+
+def test_the_shipped_tower_matches_its_card_and_loads():
+    import torch
+    from safetensors.torch import load_file
+
+    from labrobfail_vlm.model.tower import load_visual, read_card, shipped_dir, vision_overrides
+    from labrobfail_vlm.train.tower import build_tower
+
+    card = read_card(shipped_dir())  # the sha256 on the card is the shipped file's
+    assert (shipped_dir() / "tower.safetensors").stat().st_size <= 25_000_000
+    assert card["sha256"] in (shipped_dir() / "TOWER_CARD.md").read_text()
+    tower = build_tower(vision_overrides(card), int(card["out_hidden_size"]), seed=1)
+    load_visual(tower, shipped_dir())
+    want = load_file(str(shipped_dir() / "tower.safetensors"))
+    got = tower.state_dict()
+    assert want.keys() == got.keys() and all(torch.equal(want[k], got[k]) for k in want)
