@@ -20,10 +20,10 @@ from labrobfail_vlm.grid import BLANK, GridConfig, index_tag
 
 @dataclass(frozen=True)
 class AugmentConfig:
-    colour: float = 0.25  # brightness, contrast, saturation factors in [1 - c, 1 + c]; hue shift up to c / 5 turn
+    colour: float = 0.25  # brightness, contrast, saturation factors in [1 - c, 1 + c]
     shift_px: float = 8.0  # per view, in pixels of the view image
     scale: float = 0.1  # per view, zoom in [1 - s, 1 + s] about the image centre
-    hue: float | None = None  # hue shift up to this many turns (0.5: any hue); None: colour / 5
+    hue: float | None = None  # hue shift up to this many turns (0.5: any hue); None: colour / 5 turn
 
     def __post_init__(self) -> None:
         if not (0 <= self.colour < 1 and self.shift_px >= 0 and 0 <= self.scale < 0.5):

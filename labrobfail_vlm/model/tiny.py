@@ -164,7 +164,7 @@ def build_tiny(
     torch.manual_seed(seed)
     model = Qwen3VLForConditionalGeneration(cfg)
     if tower is not None:
-        T.load_into(model, tower)
+        T.load_visual(model.model.visual, tower)
     # A config-built model has no eos in its generation config: without it generate never stops.
     model.generation_config = GenerationConfig(
         eos_token_id=ids["<|im_end|>"], pad_token_id=ids["<|endoftext|>"], do_sample=False

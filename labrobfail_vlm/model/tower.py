@@ -72,11 +72,6 @@ def vision_overrides(card: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in card["vision_config"].items() if k not in skip and not k.startswith("_")}
 
 
-def load_into(model: Any, folder: Path) -> None:
-    """Copy the tower's weights into a Qwen3-VL model's vision tower (every tensor, same shapes)."""
-    load_visual(model.model.visual, folder)
-
-
 def load_visual(visual: Any, folder: Path) -> None:
     """Copy the tower's weights into a Qwen3-VL vision tower module (`model.visual`, every tensor, same shapes)."""
     from safetensors.torch import load_file
