@@ -9,7 +9,7 @@ positions of things in a view) go through the same shift and zoom, so position t
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -30,6 +30,21 @@ class AugmentConfig:
             raise ValueError(f"augment: expected 0 <= colour < 1, shift_px >= 0, 0 <= scale < 0.5, got {self}")
         if self.hue is not None and not 0 <= self.hue <= 0.5:
             raise ValueError(f"augment: expected 0 <= hue <= 0.5 (turns), got {self.hue!r}")
+
+    @classmethod
+    def from_section(cls, section: Mapping[str, Any]) -> "AugmentConfig":
+        """From a config's `augment` section (train.yaml's also holds `enabled`, which is not a setting of the draw);
+        YAML numbers arrive as int or float alike."""
+        values: dict[str, float | None] = {}
+        for key in ("colour", "shift_px", "scale", "hue"):
+            v = section.get(key)
+            if v is None and key == "hue":
+                values[key] = None
+            elif isinstance(v, (int, float)) and not isinstance(v, bool):
+                values[key] = float(v)
+            else:
+                raise ValueError(f"augment.{key}: expected a number, got {v!r}")
+        return cls(**values)  # type: ignore[arg-type]
 
     @property
     def hue_turns(self) -> float:

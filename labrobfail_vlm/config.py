@@ -13,7 +13,7 @@ import os
 import sys
 from importlib import resources
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable, Iterable
 
 from omegaconf import DictConfig, OmegaConf
 
@@ -60,6 +60,18 @@ def _defaults(defaults: str | Path) -> tuple[DictConfig, str]:
         return OmegaConf.create(text), text
     path = CONFIG_DIR / defaults if not Path(defaults).is_absolute() else Path(defaults)
     return OmegaConf.load(path), path.read_text()
+
+
+def is_int(value: object, low: int) -> bool:
+    """An integer (YAML's true is not 1) of at least `low`."""
+    return isinstance(value, int) and not isinstance(value, bool) and value >= low
+
+
+def require_ints(cfg: Any, keys: Iterable[str], low: int = 1) -> None:
+    """A one-line ConfigError naming the first of `keys` in `cfg` that is not an integer >= `low`."""
+    for key in keys:
+        if not is_int(cfg[key], low):
+            raise ConfigError(f"{key}: expected an integer >= {low}, got {cfg[key]!r}")
 
 
 def size_setting(key: str, value: object, example: str) -> tuple[int, int]:

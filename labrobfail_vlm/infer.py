@@ -23,7 +23,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from labrobfail_vlm.config import ConfigError, cli_main, is_int, load_config
 
 DEFAULT_MODEL = "outputs/demo_train/final"
 
@@ -64,9 +64,7 @@ def _check(a) -> None:
             raise ConfigError(f"{key}: expected a path or text, got {a[key]!r}")
     if (a.grid is None) == (a.frames is None):
         raise ConfigError("grid/frames: give one of them (grid=IMAGE or frames=FOLDER)")
-    if a.num_frames is not None and (
-        isinstance(a.num_frames, bool) or not isinstance(a.num_frames, int) or a.num_frames < 1
-    ):
+    if a.num_frames is not None and not is_int(a.num_frames, 1):
         raise ConfigError(f"num_frames: expected a positive integer, got {a.num_frames!r}")
     if a.q6_mode not in ("free", "template"):
         raise ConfigError(f"q6_mode: expected free or template, got {a.q6_mode!r}")

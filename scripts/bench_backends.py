@@ -20,7 +20,7 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
-from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from labrobfail_vlm.config import ConfigError, cli_main, load_config, require_ints
 from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
 
 SCRIPTS = Path(__file__).resolve().parent  # bench_sim.py runs from here, with the repository root as its cwd
@@ -63,10 +63,8 @@ def main(argv: list[str]) -> int:
     backends = cfg.backends.split(",") if isinstance(cfg.backends, str) else cfg.backends
     if not isinstance(backends, Sequence) or not backends or not all(isinstance(b, str) and b for b in backends):
         raise ConfigError(f"backends: expected a list of backend names, got {cfg.backends!r}")
-    for key, low in (("episodes", 2), ("image_size", 1)):
-        v = cfg[key]
-        if isinstance(v, bool) or not isinstance(v, int) or v < low:
-            raise ConfigError(f"{key}: expected an integer >= {low}, got {v!r}")
+    require_ints(cfg, ("episodes",), 2)
+    require_ints(cfg, ("image_size",))
     n, size = cfg.episodes, cfg.image_size
     out = Path(str(cfg.out))
     results = {}

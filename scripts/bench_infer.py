@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from labrobfail_vlm.config import ConfigError, cli_main, load_config, require_ints
 
 DEFAULTS = """
 model: null                    # model folder to measure; null = a tiny random model, built on the fly
@@ -71,10 +71,7 @@ def evaluate_rows(fa: object, dataset: str, split: str, batch: int) -> dict[str,
 
 def main(argv: list[str]) -> int:
     a = load_config(DEFAULTS, argv)
-    for key in ("repeats", "batch"):
-        v = a[key]
-        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-            raise ConfigError(f"{key}: expected an integer >= 1, got {v!r}")
+    require_ints(a, ("repeats", "batch"))
     for key in ("model", "dataset"):
         if a[key] is not None and not isinstance(a[key], str):
             raise ConfigError(f"{key}: expected a folder path, got {a[key]!r}")

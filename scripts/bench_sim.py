@@ -21,7 +21,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from labrobfail_vlm.config import ConfigError, cli_main, load_config, require_ints
 from labrobfail_vlm.io import atomic_write_json
 from sim_backends.generate import generate, labelable_pair, scenario_order
 from sim_backends.generate import load_config as generate_config
@@ -79,10 +79,8 @@ def main(argv: list[str]) -> int:
     backend = str(cfg.backend)
     if backend not in available_backends():
         raise ConfigError(f"backend: unknown backend {backend!r}; available: {', '.join(available_backends())}")
-    for key, low in (("episodes", 2), ("image_size", 1)):
-        v = cfg[key]
-        if isinstance(v, bool) or not isinstance(v, int) or v < low:
-            raise ConfigError(f"{key}: expected an integer >= {low}, got {v!r}")
+    require_ints(cfg, ("episodes",), 2)
+    require_ints(cfg, ("image_size",))
     n, size = cfg.episodes, cfg.image_size
     out = Path(str(cfg.out))
     pairs = n // 2

@@ -17,7 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from labrobfail_vlm.config import cli_main, load_config, require_ints
 
 DEFAULTS = """
 steps: 6                       # timed optimizer steps per row (after one warm-up step)
@@ -46,10 +46,7 @@ def step_rate(model, batch, steps: int) -> dict[str, float]:
 
 def main(argv: list[str]) -> int:
     a = load_config(DEFAULTS, argv)
-    for key in ("steps", "batch"):
-        v = a[key]
-        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-            raise ConfigError(f"{key}: expected an integer >= 1, got {v!r}")
+    require_ints(a, ("steps", "batch"))
     import torch
     from PIL import Image
 

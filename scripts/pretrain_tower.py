@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from labrobfail_vlm.config import ConfigError, cli_main, load_config, require_ints
 
 EVAL_SETS = {
     "seen": ({"val"}, {"seen"}),
@@ -30,10 +30,7 @@ EVAL_SETS = {
 
 
 def _check(cfg: Any) -> None:
-    for key in ("epochs", "batch_size", "max_eval", "eval_every"):
-        v = cfg[key]
-        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-            raise ConfigError(f"{key}: expected a positive integer, got {v!r}")
+    require_ints(cfg, ("epochs", "batch_size", "max_eval", "eval_every"))
     if not float(cfg.lr) > 0:
         raise ConfigError(f"lr: expected a positive number, got {cfg.lr!r}")
     if not cfg.layouts or any(len(lay) != len(cfg.layouts[0]) for lay in cfg.layouts):
@@ -193,7 +190,7 @@ def main(argv: list[str]) -> int:
         torch.set_num_threads(int(cfg.threads))
     grid = GridConfig(**cfg.grid)
     vision = OmegaConf.to_container(cfg.vision)
-    aug_cfg = AugmentConfig(**cfg.augment)
+    aug_cfg = AugmentConfig.from_section(cfg.augment)
     layouts = [list(lay) for lay in cfg.layouts]
     train = T.TowerData(cfg.data.out_dir, {"train"}, {"seen"})
     if not len(train):

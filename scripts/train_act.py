@@ -18,7 +18,7 @@ from labrobfail_vlm.config import cli_main, load_config
 
 
 def main(argv: list[str]) -> int:
-    from labrobfail_vlm.config import ConfigError
+    from labrobfail_vlm.config import ConfigError, is_int
     from sim_backends.policies.act.train import train
     from sim_backends.registry import available_backends, make_backend
     from sim_backends.supervision.experiment import families, resolve_tasks, scenario_templates
@@ -29,7 +29,7 @@ def main(argv: list[str]) -> int:
             raise ConfigError(f"{key}: a drift in metres >= 0, not {cfg[key]!r}")
     if cfg.train.schedule not in ("constant", "cosine"):
         raise ConfigError(f"train.schedule: expected constant or cosine, got {cfg.train.schedule!r}")
-    if not isinstance(cfg.train.warmup, int) or isinstance(cfg.train.warmup, bool) or cfg.train.warmup < 0:
+    if not is_int(cfg.train.warmup, 0):
         raise ConfigError(f"train.warmup: a number of steps >= 0, not {cfg.train.warmup!r}")
     if cfg.backend not in available_backends():
         raise ConfigError(f"backend: unknown backend {cfg.backend!r}; available: {', '.join(available_backends())}")

@@ -19,7 +19,7 @@ from typing import Any, Iterator
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from labrobfail_vlm.config import CONFIG_DIR, ConfigError
+from labrobfail_vlm.config import CONFIG_DIR, ConfigError, is_int, require_ints
 from labrobfail_vlm.config import load_config as _load_config
 from labrobfail_vlm.io import atomic_write_json
 from labrobfail_vlm.taxonomy import SCENE_VARIANTS
@@ -56,12 +56,10 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
 
     if cfg.backend not in available_backends():
         raise ConfigError(f"backend: unknown backend {cfg.backend!r}; available: {', '.join(available_backends())}")
-    for key in ("num_episodes", "first_pair", "workers", "episodes_per_shard", "image_size"):
-        v, may_be_zero = cfg[key], key in ("num_episodes", "first_pair")
-        if not isinstance(v, int) or isinstance(v, bool) or v < (0 if may_be_zero else 1):
-            raise ConfigError(f"{key}: must be a {'non-negative' if may_be_zero else 'positive'} integer, got {v!r}")
+    require_ints(cfg, ("num_episodes", "first_pair"), 0)
+    require_ints(cfg, ("workers", "episodes_per_shard", "image_size"))
     rf = cfg.render_frames
-    if rf is not None and (not isinstance(rf, int) or isinstance(rf, bool) or rf < 1):
+    if rf is not None and not is_int(rf, 1):
         raise ConfigError(f"render_frames: must be a positive integer or null (every keyframe), got {rf!r}")
     if cfg.episodes_per_shard % 2:
         raise ConfigError("episodes_per_shard: must be even (a shard holds whole success/failure pairs)")

@@ -112,6 +112,7 @@ def test_first_pair_numbers_ids_and_seeds_so_a_second_run_adds_new_pairs(tmp_pat
         ("backend_kwargs.custom_objects=tests/data/bad_objects.yaml", "backend_kwargs.custom_objects"),
         ("backend_kwargs.custom_scene=nowhere.yaml", "backend_kwargs.custom_scene"),
         ("backend_kwargs.custom_scene=tests/data/bad_vary_scene.yaml", "vary"),
+        ("backend_kwargs.scene_family=moon", "scene_family"),
     ],
 )
 def test_bad_config_is_one_line(tmp_path, arg, field):

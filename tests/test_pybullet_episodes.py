@@ -98,3 +98,27 @@ def test_a_pick_that_ends_holding_is_watched_to_the_end(src):
     pushed = _run(src, "pick_bottle", 1, lambda k: _shifted(k, {"s0_reach", "s0_close"}, 0.032))
     assert pushed.labels.failure_type == "grasp_target_misalignment", pushed.labels.evidence
     assert "closed on nothing" in pushed.labels.evidence and max(p[2] for p in pushed.state_trace["obj.pos"]) < 0.02
+
+
+def test_randomised_scene_family_widens_seen_benches_only():
+    """The tower's domain randomisation (scene_family=randomised) draws seen benches of any brightness with textures
+    no split uses; an unseen-scene episode keeps the unseen family, and the same seed gives the same bench."""
+    from sim_backends.pybullet import scene
+
+    seen = [scene.draw_appearance("seen", np.random.default_rng(i), "randomised") for i in range(200)]
+    value = [max(a["bench"][:3]) for a in seen]
+    assert min(value) < 0.5 < 0.7 < max(value)  # beyond the seen family's 0.68-0.92 on both sides
+    kinds = {a["texture"] for a in seen}
+    assert {"stripes", "blotches"} <= kinds and not kinds & set(scene.SCENE_FAMILIES["unseen"]["textures"])
+    unseen = scene.draw_appearance("unseen_both", np.random.default_rng(0), "randomised")
+    assert unseen == scene.draw_appearance("unseen_both", np.random.default_rng(0))
+    assert seen[3] == scene.draw_appearance("seen", np.random.default_rng(3), "randomised")
+    with pytest.raises(ValueError, match="scene_family: unknown family 'moon'"):
+        scene.scene_family("seen", "moon")
+    src = make_backend("pybullet", image_size=32, cameras=["front"], max_distractors=0, scene_family="randomised")
+    try:
+        src.reset("press_button_red", 4)
+        assert src.scene.appearance == scene.draw_appearance("seen", np.random.default_rng(4), "randomised")
+        assert src.execute(src.scripted_keyframes()).labels.success  # a dark striped bench changes no physics
+    finally:
+        src.close()

@@ -208,6 +208,7 @@ def test_bad_tower_settings_are_one_line(tower_data, tmp_path):
         (["grid.width=100"], "grid"),
         ([f"init={tmp_path / 'none'}"], "tower"),
         (["augment.hue=0.7"], "augment"),
+        (["augment.colour=strong"], "augment.colour"),
     ):
         r = _pretrain(tower_data, tmp_path / "r", *args)
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-2000:]

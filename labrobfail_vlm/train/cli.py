@@ -58,9 +58,8 @@ def _augment(cfg: Any, grid: dict[str, Any]) -> Any:
     views = {t.get("views") for t in trajs}
     if len(views) != 1 or None in views:
         raise ConfigError("augment.enabled: the dataset's trajectories.json lacks one common 'views' count; rebuild it")
-    hue = None if a.get("hue") is None else float(a.hue)
     return GridAugment(
-        AugmentConfig(float(a.colour), float(a.shift_px), float(a.scale), hue),
+        AugmentConfig.from_section(a),
         GridConfig.from_dict(grid),
         int(views.pop()),
         int(cfg.seed),

@@ -35,7 +35,7 @@ from urllib.parse import urlparse
 
 import numpy as np
 
-from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.config import ConfigError, is_int
 from sim_backends.perturbations.control import so3_exp
 from sim_backends.policies import wire
 from sim_backends.policies.base import Action, EpisodeContext, Policy, PolicyError, register_policy
@@ -223,9 +223,9 @@ def check_options(opts: dict[str, Any]) -> None:
     """One-line ConfigErrors for client settings (YAML values are untyped: `encoded=maybe` arrives as a string)."""
     checks = {
         "timeout_s": (lambda v: _is_number(v) and v > 0, "a positive number of seconds"),
-        "idle_stop": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
+        "idle_stop": (lambda v: is_int(v, 0), "an integer >= 0"),
         "max_step_m": (lambda v: _is_number(v) and v > 0, "a positive number of metres"),
-        "max_reply_bytes": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 2, "an integer >= 2"),
+        "max_reply_bytes": (lambda v: is_int(v, 2), "an integer >= 2"),
         "encoded": (lambda v: isinstance(v, bool), "true or false"),
         "view": (lambda v: isinstance(v, str) and v != "", "a camera view name"),
         "unnorm_key": (lambda v: v is None or isinstance(v, str), "null or a string"),

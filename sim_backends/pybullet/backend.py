@@ -10,7 +10,7 @@ import numpy as np
 import pybullet as p
 from omegaconf import OmegaConf
 
-from labrobfail_vlm.config import CONFIG_DIR
+from labrobfail_vlm.config import CONFIG_DIR, is_int
 from sim_backends.perturbations.physics import PhysicsEvent
 from sim_backends.pybullet import (
     assets,
@@ -65,6 +65,7 @@ def _yaml_mapping(key: str, path: str | None) -> dict[str, Any] | None:
     camera_jitter=True,
     max_distractors=scene_mod.MAX_DISTRACTORS,
     lowpoly_robot=True,
+    scene_family=None,
 )
 class PyBulletSource(ScenarioConfig, FailureSource):
     name = "pybullet"
@@ -83,6 +84,7 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         camera_jitter: bool = True,
         max_distractors: int = scene_mod.MAX_DISTRACTORS,
         lowpoly_robot: bool = True,
+        scene_family: str | None = None,
     ):
         super().__init__()
         self.camera_jitter, self.max_distractors, self.lowpoly_robot = (
@@ -90,6 +92,7 @@ class PyBulletSource(ScenarioConfig, FailureSource):
             int(max_distractors),
             lowpoly_robot,
         )
+        self.scene_family = scene_family  # None: the variant's own family (scene.SCENE_FAMILIES)
         self.cfg = self.load_task_config(tasks_file)
         self.cid = p.connect(p.DIRECT)
         if egl:
@@ -125,7 +128,7 @@ class PyBulletSource(ScenarioConfig, FailureSource):
                 raise ValueError(
                     f"custom_objects: object {name!r} radius must be 0.01-0.038 m (the gripper opens 8 cm)"
                 )
-        if not isinstance(out.get("max_distractors", 0), int) or out.get("max_distractors", 0) < 0:
+        if not is_int(out.get("max_distractors", 0), 0):
             raise ValueError(f"max_distractors: must be a non-negative integer, got {out.get('max_distractors')!r}")
         scene = out["custom_scene"] = _yaml_mapping("custom_scene", kwargs.get("custom_scene"))
         for k in ("bench", "floor", "light"):
@@ -133,6 +136,8 @@ class PyBulletSource(ScenarioConfig, FailureSource):
                 raise ValueError(f"custom_scene: missing {k!r}")
         if scene is not None and "vary" in scene:
             scene_mod.vary_keys(scene["vary"])
+        if out.get("scene_family") is not None:
+            scene_mod.scene_family("seen", out["scene_family"])  # an unknown family fails here, before any episode
         return out
 
     # -- FailureSource ------------------------------------------------------------------------------
@@ -150,7 +155,14 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         p.setGravity(0, 0, -9.81, physicsClientId=cid)
         rng = np.random.default_rng(seed)
         self.scene = scene_mod.build(
-            cid, sc["layout"], variant, rng, self.custom_objects, self.custom_scene, lowpoly=self.lowpoly_robot
+            cid,
+            sc["layout"],
+            variant,
+            rng,
+            self.custom_objects,
+            self.custom_scene,
+            lowpoly=self.lowpoly_robot,
+            family=self.scene_family,
         )
         self.plan = Plan(self.scene)  # from the scene's layout (object homes), not from its physics state
         task_templates(self.name)[sc["template"]].cls(self.plan, dict(sc.get("params", {})))

@@ -67,6 +67,17 @@ SCENE_FAMILIES: dict[str, dict[str, Any]] = {
         "floor_value": (0.55, 0.80),
         "textures": ("checker", "tiles"),
     },
+    # Domain randomisation for the vision tower's pretraining data only (backend_kwargs.scene_family=randomised on
+    # seen episodes; never in a VQA split): any bench and floor colour, and texture kinds that no split uses, so the
+    # tower learns to read the task's objects over backgrounds it must ignore. Its colour range covers the unseen
+    # family's, as the tower's any-hue augmentation covers the unseen glassware's; its textures never include the
+    # unseen family's checker or tiles, so an unseen bench is still one the tower never saw.
+    "randomised": {
+        "bench_value": (0.15, 0.95),
+        "bench_sat": (0.0, 0.7),
+        "floor_value": (0.1, 0.9),
+        "textures": ("plain", "grain", "speckle", "stripes", "blotches"),
+    },
 }
 PLACEMENT_JITTER = 0.035  # m: objects and zones move by up to this much in x and y (times their `jitter`)
 MAX_DISTRACTORS = 3  # glassware on the bench that is not part of the task
@@ -84,9 +95,19 @@ def _rgb(rng: np.random.Generator, value: tuple[float, float], sat: tuple[float,
     return [round(r, 3), round(g, 3), round(b, 3), 1.0]
 
 
-def draw_appearance(variant: str, rng: np.random.Generator) -> dict[str, Any]:
-    """Bench and floor colours, bench texture and light of one episode (seeded)."""
-    fam = SCENE_FAMILIES["unseen" if variant in ("unseen_scene", "unseen_both") else "seen"]
+def scene_family(variant: str, override: str | None = None) -> str:
+    """The appearance family of an episode. `override` replaces the seen family only: an unseen-scene episode keeps
+    the unseen family, so one generation setting serves a tower run's seen and held-out shards alike."""
+    if override is not None and override not in SCENE_FAMILIES:
+        raise ValueError(f"scene_family: unknown family {override!r}; expected one of {', '.join(SCENE_FAMILIES)}")
+    if variant in ("unseen_scene", "unseen_both"):
+        return "unseen"
+    return override or "seen"
+
+
+def draw_appearance(variant: str, rng: np.random.Generator, family: str | None = None) -> dict[str, Any]:
+    """Bench and floor colours, bench texture and light of one episode (seeded); `family`: see scene_family."""
+    fam = SCENE_FAMILIES[scene_family(variant, family)]
     az, el = rng.uniform(0, 2 * math.pi), rng.uniform(math.radians(35), math.radians(80))
     return {
         "bench": _rgb(rng, fam["bench_value"], fam["bench_sat"]),
@@ -163,8 +184,15 @@ def _texture(cid: int, kind: str, rgba: list[float], seed: int) -> int | None:
         mask = 0.55 + 0.45 * phase
     elif kind == "speckle":
         mask = 1.0 - 0.5 * (rng.random((128, 128)) < 0.08)
+    elif kind == "stripes":  # straight bands at a random angle and period (the randomised family only)
+        angle, period = rng.uniform(0, math.pi), rng.uniform(6, 24)
+        mask = (np.sin((xx * math.cos(angle) + yy * math.sin(angle)) * 2 * math.pi / period) > 0).astype(float)
+    elif kind == "blotches":  # smooth low-frequency patches (the randomised family only)
+        coarse = Image.fromarray((rng.random((8, 8)) * 255).astype(np.uint8)).resize((128, 128), Image.BICUBIC)
+        mask = np.asarray(coarse, float) / 255.0
     else:
-        raise ValueError(f"custom_scene: unknown texture {kind!r}; expected plain, grain, speckle, checker or tiles")
+        kinds = "plain, grain, speckle, stripes, blotches, checker or tiles"
+        raise ValueError(f"custom_scene: unknown texture {kind!r}; expected {kinds}")
     img = (mask[..., None] * base + (1 - mask[..., None]) * alt).astype(np.uint8)
     fd, path = tempfile.mkstemp(suffix=".png")
     os.close(fd)
@@ -269,6 +297,7 @@ def build(
     custom_scene: dict[str, Any] | None = None,
     grip_force: float = 60.0,
     lowpoly: bool = True,
+    family: str | None = None,
 ) -> Scene:
     """Create the scene described by a scenario's `layout` (role -> {object, xy, ...})."""
     if custom_scene is not None:  # a user's scene file: fixed colours and light; texture optional
@@ -279,10 +308,10 @@ def build(
             **custom_scene,
         }
         if custom_scene.get("vary"):  # these factors are drawn per episode as in the wide world, the rest stay fixed
-            drawn = draw_appearance(variant, rng)
+            drawn = draw_appearance(variant, rng, family)
             appearance.update({k: drawn[k] for k in vary_keys(custom_scene["vary"])})
     else:
-        appearance = draw_appearance(variant, rng)
+        appearance = draw_appearance(variant, rng, family)
     bench_id, floor_id = assets.bench(cid, rgba=appearance["bench"], floor_rgba=appearance["floor"])
     tex = _texture(cid, appearance["texture"], appearance["bench"], int(rng.integers(1 << 30)))
     if tex is not None:

@@ -18,7 +18,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.config import ConfigError, is_int
 from labrobfail_vlm.taxonomy import SCENE_VARIANTS
 from sim_backends.policies.base import POLICIES, Policy, make_policy
 from sim_backends.supervision.base import SUPERVISORS, Supervisor, make_supervisor
@@ -107,7 +107,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         raise ConfigError(f"backend: unknown backend {cfg.backend!r}; available: {', '.join(available_backends())}")
     if cfg.variant not in SCENE_VARIANTS:
         raise ConfigError(f"variant: unknown variant {cfg.variant!r}; expected one of {', '.join(SCENE_VARIANTS)}")
-    if not isinstance(cfg.trials, int) or cfg.trials < 1:
+    if not is_int(cfg.trials, 1):
         raise ConfigError(f"trials: must be a positive integer, got {cfg.trials!r}")
     try:
         loop = LoopConfig(**OmegaConf.to_container(cfg.loop, resolve=True))  # type: ignore[arg-type]
