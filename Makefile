@@ -191,31 +191,39 @@ recovery: $(STAMP)
 # The sim-pretrained vision tower shipped in labrobfail_vlm/assets/tower (its TOWER_CARD.md says what it learned and
 # how well): seen-catalogue episodes with front, side and wrist views (seed 1000, so none of make reproduce's seed-0
 # episodes), small unseen-object and unseen-scene sets for the card's held-out accuracy only, dense per-frame
-# targets read from simulator state, then the Qwen3-VL vision tower and merger trained on them in two stages: from
-# random weights, then on a second seen run (same seed, fewer episodes) with any hue and wide brightness, contrast and
-# saturation (the glassware's and the bench's colours are no cue: docs/EXPERIMENTS.md, 26 Nov), and exported. Every
-# step resumes when rerun.
-# About 2.5 h on 2 cores.
+# targets read from simulator state, then the Qwen3-VL vision tower and merger trained on them in three stages: from
+# random weights; then on a second seen run (same seed, fewer episodes) with any hue and wide brightness, contrast and
+# saturation (the glassware's colour is no cue); then on seen scenes drawn from the randomised scene family (any bench
+# and floor colour, textures no split uses: the bench is no cue either; docs/EXPERIMENTS.md, 26 Nov), and exported.
+# Every step resumes when rerun.
+# About 2.7 h on 2 cores.
 T            ?= outputs/tower
 TOWER_SEEN   ?= 6000
 TOWER_UNSEEN ?= 200
 TOWER_EPOCHS ?= 6
 TOWER_DR_SEEN ?= 3000
+TOWER_RAND_SEEN ?= 3000
 TOWER_DR     := epochs=4 lr=5e-4 augment.colour=0.75 augment.hue=0.5
 TOWER_EXPORT ?= labrobfail_vlm/assets/tower
 TOWER_GEN    := backend=pybullet seed=1000 workers=2 image_size=128 render_frames=8 backend_kwargs.wrist=true progress=false
+TOWER_RAND_GEN := $(subst seed=1000,seed=2000,$(TOWER_GEN)) backend_kwargs.scene_family=randomised
 TOWER_HELD   := $(T)/shards/unseen_object,$(T)/shards/unseen_scene
 tower: $(STAMP)
 	$(PY) scripts/generate.py $(TOWER_GEN) num_episodes=$(TOWER_SEEN) out_dir=$(T)/shards/seen
 	$(PY) scripts/generate.py $(TOWER_GEN) num_episodes=$(TOWER_DR_SEEN) out_dir=$(T)/shards/seen_dr
+	$(PY) scripts/generate.py $(TOWER_RAND_GEN) num_episodes=$(TOWER_RAND_SEEN) out_dir=$(T)/shards/seen_rand
 	for v in unseen_object unseen_scene; do $(PY) scripts/generate.py $(TOWER_GEN) num_episodes=$(TOWER_UNSEEN) \
 	  variant=$$v out_dir=$(T)/shards/$$v || exit 1; done
 	$(PY) -m scripts.build_tower_data 'data.shards=[$(T)/shards/seen,$(TOWER_HELD)]' data.out_dir=$(T)/data \
 	  data.progress=false
 	$(PY) -m scripts.build_tower_data 'data.shards=[$(T)/shards/seen_dr,$(TOWER_HELD)]' data.out_dir=$(T)/data_dr \
 	  data.progress=false
+	$(PY) -m scripts.build_tower_data 'data.shards=[$(T)/shards/seen_rand,$(TOWER_HELD)]' \
+	  data.out_dir=$(T)/data_rand data.progress=false
 	$(PY) scripts/pretrain_tower.py data.out_dir=$(T)/data out_dir=$(T)/run epochs=$(TOWER_EPOCHS) progress=false
 	$(PY) scripts/pretrain_tower.py data.out_dir=$(T)/data_dr out_dir=$(T)/run_dr init=$(T)/run $(TOWER_DR) \
+	  progress=false
+	$(PY) scripts/pretrain_tower.py data.out_dir=$(T)/data_rand out_dir=$(T)/run_rand init=$(T)/run_dr $(TOWER_DR) \
 	  export_dir=$(TOWER_EXPORT) progress=false
 
 # LabRobFail-Sim at the paper's scale: 20,000 trajectories (17,000 seen + 1,000 per unseen set), resumable

@@ -83,6 +83,19 @@ def _resume(out: Path, tower: Any, heads: Any, opt: Any) -> dict[str, Any] | Non
     return json.loads((ck / "state.json").read_text())
 
 
+def shard_origin(shard_dir: str) -> str:
+    """How a shard folder was generated (its run.json), in words for the card: the variant, seed and any scene family
+    other than the variant's own, so a reader sees which frames were domain-randomised."""
+    try:
+        run = json.loads((Path(shard_dir) / "run.json").read_text())
+    except (OSError, ValueError):
+        return shard_dir
+    family = (run.get("backend_kwargs") or {}).get("scene_family")
+    return f"{shard_dir} ({run.get('variant')}, seed {run.get('seed')}" + (
+        f", scene family {family})" if family else ")"
+    )
+
+
 def card_markdown(card: dict[str, Any]) -> str:
     """TOWER_CARD.md: what the tower is, what it learned from, how well it reads each target held out."""
     v = card["vision_config"]
@@ -301,7 +314,7 @@ def main(argv: list[str]) -> int:
         "data_summary": (
             f"{len(train):,} seen training trajectories ({frames:,} view-frames of "
             f"{index['image_size']} px, views {sorted({v for r in train.rows for v in r['views']})}) "
-            f"from {', '.join(index['shards'])}; held out: "
+            f"from {', '.join(shard_origin(s) for s in index['shards'])}; held out: "
             + ", ".join(f"{k} {len(d)}" for k, d in evals.items())
             + " trajectories."
         ),

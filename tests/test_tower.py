@@ -103,6 +103,7 @@ def test_pretraining_resumes_exports_and_the_tiny_model_takes_the_tower(tower_da
     seen = card["heldout"]["front+side"]["seen"]
     assert "failed_by_now" in seen["cells"] and "gripper" in seen["tokens"]
     assert (tmp_path / "x" / "TOWER_CARD.md").read_text().startswith("# The LabRobFail vision tower")
+    assert "(seen, seed 5)" in card["data_summary"]  # the card says how its frames were generated
 
     import torch
     from safetensors.torch import load_file
