@@ -115,6 +115,8 @@ def test_randomised_scene_family_widens_seen_benches_only():
     assert seen[3] == scene.draw_appearance("seen", np.random.default_rng(3), "randomised")
     with pytest.raises(ValueError, match="scene_family: unknown family 'moon'"):
         scene.scene_family("seen", "moon")
+    with pytest.raises(ValueError, match="scene_family: unseen is the unseen splits' own family"):
+        scene.scene_family("seen", "unseen")  # never the held-out benches under a seen label
     src = make_backend("pybullet", image_size=32, cameras=["front"], max_distractors=0, scene_family="randomised")
     try:
         src.reset("press_button_red", 4)

@@ -100,6 +100,8 @@ def scene_family(variant: str, override: str | None = None) -> str:
     the unseen family, so one generation setting serves a tower run's seen and held-out shards alike."""
     if override is not None and override not in SCENE_FAMILIES:
         raise ValueError(f"scene_family: unknown family {override!r}; expected one of {', '.join(SCENE_FAMILIES)}")
+    if override == "unseen":  # seen-variant episodes on unseen benches would carry the held-out scenes into training
+        raise ValueError("scene_family: unseen is the unseen splits' own family; use variant=unseen_scene instead")
     if variant in ("unseen_scene", "unseen_both"):
         return "unseen"
     return override or "seen"
