@@ -205,8 +205,9 @@ TOWER_DR_SEEN ?= 3000
 TOWER_RAND_SEEN ?= 3000
 TOWER_DR     := epochs=4 lr=5e-4 augment.colour=0.75 augment.hue=0.5
 TOWER_EXPORT ?= labrobfail_vlm/assets/tower
-TOWER_GEN    := backend=pybullet seed=1000 workers=2 image_size=128 render_frames=8 backend_kwargs.wrist=true progress=false
-TOWER_RAND_GEN := $(subst seed=1000,seed=2000,$(TOWER_GEN)) backend_kwargs.scene_family=randomised
+TOWER_VIEWS  := backend=pybullet workers=2 image_size=128 render_frames=8 backend_kwargs.wrist=true progress=false
+TOWER_GEN    := $(TOWER_VIEWS) seed=1000
+TOWER_RAND_GEN := $(TOWER_VIEWS) seed=2000 backend_kwargs.scene_family=randomised
 TOWER_HELD   := $(T)/shards/unseen_object,$(T)/shards/unseen_scene
 tower: $(STAMP)
 	$(PY) scripts/generate.py $(TOWER_GEN) num_episodes=$(TOWER_SEEN) out_dir=$(T)/shards/seen
