@@ -181,3 +181,13 @@ UNSEEN_SPLITS: dict[str, str] = {
     "unseen_scene": "test_scene",
     "unseen_both": "test_both",
 }  # each unseen variant is a test set of its own
+
+
+def unseen_scene(variant: str) -> bool:
+    """Whether a variant draws its bench, floor and light from the held-out scenes."""
+    return variant in ("unseen_scene", "unseen_both")
+
+
+def unseen_objects(variant: str) -> bool:
+    """Whether a variant draws its glassware from the held-out objects."""
+    return variant in ("unseen_object", "unseen_both")

@@ -5,7 +5,17 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, FAILURE_TYPES, Category, Severity, horizon_of
+from labrobfail_vlm.taxonomy import (
+    ATOMIC_ACTIONS,
+    FAILURE_TYPES,
+    SCENE_VARIANTS,
+    UNSEEN_SPLITS,
+    Category,
+    Severity,
+    horizon_of,
+    unseen_objects,
+    unseen_scene,
+)
 from sim_backends.perturbations import control, physics, semantic
 from sim_backends.types import Keyframe, matrix_to_quat, quat_to_matrix, rotation_angle
 
@@ -26,6 +36,18 @@ def test_taxonomy_matches_paper():
     assert Severity(2).display == "Dangerous Level (option 2; the paper's main text: Recoverable)"
     assert ATOMIC_ACTIONS == ("grasp", "place", "open", "close", "pour", "shake", "insert", "stir")
     assert [horizon_of(n) for n in (10, 11, 30, 31)] == ["short", "medium", "medium", "long"]
+
+
+def test_each_variant_holds_out_what_its_name_says():
+    # the paper's four generalisation settings: seen, unseen objects, unseen scene, both held out
+    held = {v: (unseen_objects(v), unseen_scene(v)) for v in SCENE_VARIANTS}
+    assert held == {
+        "seen": (False, False),
+        "unseen_object": (True, False),
+        "unseen_scene": (False, True),
+        "unseen_both": (True, True),
+    }
+    assert set(UNSEEN_SPLITS) == {v for v, h in held.items() if any(h)}
 
 
 def _kfs():

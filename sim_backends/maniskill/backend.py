@@ -16,6 +16,7 @@ import numpy as np
 from mani_skill import logger as ms_logger
 
 from labrobfail_vlm.config import CONFIG_DIR
+from labrobfail_vlm.taxonomy import unseen_objects, unseen_scene
 from sim_backends.maniskill import (
     assets,
     envs,
@@ -149,9 +150,9 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
 
     def _scene_spec(self, sc: dict[str, Any], variant: str, rng: np.random.Generator) -> dict[str, Any]:
         """Appearance, colours and (for the lab bench) the layout of an episode, drawn from its seed."""
-        pool = self.cfg["scenes"]["unseen" if variant in ("unseen_scene", "unseen_both") else "seen"]
+        pool = self.cfg["scenes"]["unseen" if unseen_scene(variant) else "seen"]
         spec: dict[str, Any] = {"appearance": dict(pool[int(rng.integers(len(pool)))])}
-        unseen_obj = variant in ("unseen_object", "unseen_both")
+        unseen_obj = unseen_objects(variant)
         if unseen_obj and "unseen_colors" in sc:  # a stock task's objects recoloured, and named by colour
             spec["colors"] = dict(sc["unseen_colors"])
             spec["labels"] = dict(sc.get("unseen_labels", {}))

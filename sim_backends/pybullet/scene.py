@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pybullet as p
 
+from labrobfail_vlm.taxonomy import unseen_objects, unseen_scene
 from sim_backends.pybullet import assets
 from sim_backends.pybullet.robot import Panda
 
@@ -102,7 +103,7 @@ def scene_family(variant: str, override: str | None = None) -> str:
         raise ValueError(f"scene_family: unknown family {override!r}; expected one of {', '.join(SCENE_FAMILIES)}")
     if override == "unseen":  # seen-variant episodes on unseen benches would carry the held-out scenes into training
         raise ValueError("scene_family: unseen is the unseen splits' own family; use variant=unseen_scene instead")
-    if variant in ("unseen_scene", "unseen_both"):
+    if unseen_scene(variant):
         return "unseen"
     return override or "seen"
 
@@ -228,7 +229,7 @@ def place_distractors(
     Without the sweep, all 11 nominal failures in 432 runs were the forearm, wrist or hand hitting a distractor.
     """
     low = sweep[sweep[:, 2] < SWEEP_HEIGHT, :2] if sweep is not None and len(sweep) else np.zeros((0, 2))
-    table = UNSEEN_OBJECTS if variant in ("unseen_object", "unseen_both") else SEEN_OBJECTS
+    table = UNSEEN_OBJECTS if unseen_objects(variant) else SEEN_OBJECTS
     kinds = sorted(k for k, v in table.items() if v["kind"] == "vessel")
     items = [np.asarray(o.home[:2]) for o in objects.values()] + [np.asarray(z[:2]) for z in zones.values()]
     segs = [(a, b) for i, a in enumerate(items) for b in items[i + 1 :]]
@@ -284,7 +285,7 @@ KIND_LABELS = {"oven": "drying oven", "button": "button", "rack": "test tube rac
 def resolve_object(kind_name: str, variant: str, custom: dict[str, dict[str, Any]] | None) -> dict[str, Any]:
     if custom and kind_name in custom:
         return custom[kind_name]
-    table = UNSEEN_OBJECTS if variant in ("unseen_object", "unseen_both") else SEEN_OBJECTS
+    table = UNSEEN_OBJECTS if unseen_objects(variant) else SEEN_OBJECTS
     if kind_name not in table:
         raise ValueError(f"scenario: unknown object {kind_name!r}; known: {', '.join(sorted(table))}")
     return table[kind_name]
