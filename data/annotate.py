@@ -38,7 +38,7 @@ class Annotated:
     group: str  # split unit: a success/failure pair and its shared initial state
     variant: str
     image_name: str
-    grid: Image.Image
+    grid: Image.Image | None  # the keyframe grid; None once the builder has written it to image_name
     records: list[dict[str, Any]]
     meta: dict[str, Any] = field(default_factory=dict)  # what the review page and stats show
     prefixes: list["Annotated"] = field(default_factory=list)  # prefix grids of the first k keyframes

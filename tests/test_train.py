@@ -5,6 +5,7 @@ import os
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -231,6 +232,8 @@ def test_deepspeed_two_cpu_ranks_train_save_resume(tiny, small_ds, tmp_path):
     launch = [ds_bin, "--num_gpus", "2", "--master_port", str(free_port())]
     r = subprocess.run([*launch, *common, "max_steps=2"], cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    # DeepSpeed's CPU all-reduce segments (one per rank, named after the port) are gone from RAM-backed /dev/shm
+    assert not list(Path("/dev/shm").glob(f"deepspeed_allreduce_buffer_*_{launch[-1]}_*"))
     from safetensors.torch import load_file
 
     adapter = load_file(str(out / "checkpoint-2" / "adapter_model.safetensors"))
@@ -243,6 +246,7 @@ def test_deepspeed_two_cpu_ranks_train_save_resume(tiny, small_ds, tmp_path):
         [*launch, *common, "max_steps=3", "resume=true"], cwd=ROOT, capture_output=True, text=True, timeout=900
     )
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert not list(Path("/dev/shm").glob(f"deepspeed_allreduce_buffer_*_{launch[-1]}_*"))
     summary = json.loads((out / "train_summary.json").read_text())
     assert summary["global_step"] == 3
     assert (out / "final" / "adapter_model.safetensors").is_file()
