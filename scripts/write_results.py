@@ -11,6 +11,11 @@ Sections: the issue's targets, the tower and sensor rows, the paper's ablation t
 on whole and prefix grids, the recovery table), the paper-comparable tables
 (Q3-Q6 over failed trajectories) with 95 % intervals, failure detection as a score, the all-trajectory tables,
 Q2 recall per failure type, the learning curve.
+
+With `sections=[rows]` or `sections=[ablation]` it replaces only those sections of the existing page, from a run that
+holds just those folders (a fresh machine's regeneration with the same seed, say): it checks first that the run's data
+are the page's (the same trajectories and splits line), and the ablation's frozen row, when the run has none, is the
+page's own shipped front + side row (the recipe's model is the frozen one).
 """
 
 from __future__ import annotations
@@ -25,7 +30,23 @@ from labrobfail_vlm.config import ConfigError, cli_main, load_config
 DEFAULTS = """
 run: outputs/reproduce     # the make reproduce run folder
 out: docs/RESULTS.md       # the page to write
+sections: null             # null: the whole page; [rows] and/or [ablation]: replace only those in the existing page
 """
+# the sections a run beside the main one can add: heading, opening sentence, the run folders that feed it
+SECTIONS = {
+    "rows": (
+        "## Tower and sensor rows",
+        "The same data and bench; only the tower or the views differ. "
+        "95 % intervals: Wilson for accuracies, bootstrap for ROUGE-L.",
+        ("rows/scratch", "rows/wrist"),
+    ),
+    "ablation": (
+        "## Ablation (the paper's table, seen split)",
+        "The same data and bench; only the variant differs. 95 % intervals: Wilson for accuracies, bootstrap for "
+        "ROUGE-L.",
+        ("ablate/tuned", "ablate/frozen", "ablate/no_index"),
+    ),
+}
 SPLIT_TITLES = {
     "test": "Seen (test split)",
     "object": "Unseen objects",
@@ -96,8 +117,64 @@ def targets(evals: dict[str, Any]) -> list[str]:
     return out
 
 
-def rows_table(run: Path) -> list[str]:
-    """Tower and sensor rows side by side: seen Q2 and AUROC, failure-only Q3/Q5/ROUGE-L, unseen Q2."""
+def _data_line(stats: dict[str, Any]) -> str:
+    """The page's trajectories line: what a run spliced into the page must match."""
+    return (
+        f"- Trajectories: {stats['trajectories_kept']} kept of {stats['trajectories_in']} "
+        f"({stats['by_outcome']['success']} success, {stats['by_outcome']['failure']} failure); split sizes "
+        "(trajectories): " + ", ".join(f"{k} {v['trajectories']}" for k, v in stats["splits"].items()) + "."
+    )
+
+
+def _sections(page: str) -> list[list[str]]:
+    """The page cut at its "## " headings: the preamble first, then one list of lines per section."""
+    out: list[list[str]] = [[]]
+    for line in page.splitlines():
+        if line.startswith("## "):
+            out.append([])
+        out[-1].append(line)
+    return out
+
+
+def splice(run: Path, out: Path, names: list[str]) -> int:
+    """Replace the named sections of the existing page with this run's, leaving every other line as it was."""
+    unknown = sorted(set(names) - set(SECTIONS))
+    if unknown:
+        raise ConfigError(f"sections: unknown {unknown}; choose from {sorted(SECTIONS)}")
+    if not out.is_file():
+        raise ConfigError(f"sections: {out} does not exist; write the whole page first (sections=null)")
+    parts = _sections(out.read_text())
+    if _data_line(_load(run / "dataset" / "stats.json")) not in (line for p in parts for line in p):
+        raise ConfigError(f"sections: {run}'s data are not {out}'s (its trajectories and splits line differs)")
+    shipped = next((line for p in parts for line in p if line.startswith(f"| {ROWS['train']} |")), None)
+    cells = [c.strip() for c in shipped.strip("|").split("|")] if shipped else None
+    bodies = {
+        "rows": lambda: rows_table(run, shipped),
+        # the shipped row's seen Q2, Q3, Q5 and ROUGE-L cells
+        "ablation": lambda: ablation_table(run, [cells[1], cells[3], cells[4], cells[5]] if cells else None),
+    }
+    for name in names:
+        heading, intro, folders = SECTIONS[name]
+        if not any(_evals(run / f, ("test",)) for f in folders):
+            raise ConfigError(f"sections: {run} has no bench results under {', '.join(folders)}")
+        new = [heading, "", intro, f"Made on `{run}`, whose data are this page's.", "", *bodies[name](), ""]
+        at = next((i for i, p in enumerate(parts) if p[0] == heading), None)
+        if at is None:  # a new section goes where the whole page puts it: before the later ones
+            later = [h for h, _, _ in list(SECTIONS.values())[list(SECTIONS).index(name) + 1 :]] + ["## Supervision"]
+            at = next((i for i, p in enumerate(parts) if any(p[0].startswith(h) for h in later)), len(parts))
+            parts.insert(at, new)
+        else:
+            parts[at] = new
+    from labrobfail_vlm.io import atomic_write_bytes
+
+    atomic_write_bytes(out, ("\n".join(line for p in parts for line in p) + "\n").encode())
+    print(out)
+    return 0
+
+
+def rows_table(run: Path, shipped: str | None = None) -> list[str]:
+    """Tower and sensor rows side by side: seen Q2 and AUROC, failure-only Q3/Q5/ROUGE-L, unseen Q2.
+    `shipped` (the page's own row) stands in for a run without the main model."""
     head = [
         "| row | seen Q2 | seen AUROC | seen Q3 (failures) | seen Q5 (failures) | ROUGE-L (failures) | "
         "object Q2 | scene Q2 | both Q2 |",
@@ -106,6 +183,9 @@ def rows_table(run: Path) -> list[str]:
     lines, missing = [], []
     for folder, title in ROWS.items():
         ev = _evals(run / folder)
+        if folder == "train" and shipped and not ev:
+            lines.append(shipped)
+            continue
         if not ev or "test" not in ev:
             missing.append(f"{title} (`{folder}`)")
             continue
@@ -125,14 +205,17 @@ def _not_run(missing: list[str]) -> list[str]:
     return ["", "Not run for this page: " + "; ".join(missing) + "."] if missing else []
 
 
-def ablation_table(run: Path, main_title: str) -> list[str]:
-    """The paper's ablation table (seen split: Q2, Q3, Q5, Q6 ROUGE-L) for the runs `make ablate` made."""
+def ablation_table(run: Path, frozen_cells: list[str] | None = None) -> list[str]:
+    """The paper's ablation table (seen split: Q2, Q3, Q5, Q6 ROUGE-L) for the runs `make ablate` made.
+    `frozen_cells` (Q2, Q3, Q5, ROUGE-L as the page shows them) stand in for a run without `ablate/frozen`."""
     from labrobfail_vlm.bench.report import PAPER_ABLATION
 
     lines, missing = [], []
     for folder, title in ABLATIONS.items():
         ev = _evals(run / folder, ("test",))
-        if ev:
+        if not ev and folder == "ablate/frozen" and frozen_cells:
+            lines.append(f"| {title} (this page's `make reproduce` model) | " + " | ".join(frozen_cells) + " |")
+        elif ev:
             t = ev["test"]
             lines.append(
                 f"| {title} | {_ci(t, 'q2')} | {_ci(t, 'q3', True)} | {_ci(t, 'q5', True)} | {_ci(t, 'rougeL', True)} |"
@@ -236,6 +319,8 @@ def main(argv: list[str]) -> int:
 
     cfg = load_config(DEFAULTS, argv)
     run, out = Path(str(cfg.run)), Path(str(cfg.out))
+    if cfg.sections:
+        return splice(run, out, [str(n) for n in cfg.sections])
     stats = _load(run / "dataset" / "stats.json")
     summary = _load(run / "train" / "train_summary.json")
     progress = _load(run / "train" / "progress.json")
@@ -276,9 +361,7 @@ def main(argv: list[str]) -> int:
     lines += [
         "## Data and model",
         "",
-        f"- Trajectories: {stats['trajectories_kept']} kept of {stats['trajectories_in']} "
-        f"({stats['by_outcome']['success']} success, {stats['by_outcome']['failure']} failure); split sizes "
-        "(trajectories): " + ", ".join(f"{k} {v['trajectories']}" for k, v in stats["splits"].items()) + ".",
+        _data_line(stats),
         *(
             [
                 "- Injections of the seen run, drawn as the paper writes them (outcome per operator: "
@@ -315,18 +398,10 @@ def main(argv: list[str]) -> int:
     lines += ["## Targets of the tower issue", "", *targets(evals), ""]
     rt = rows_table(run)
     if rt:
-        lines += [
-            "## Tower and sensor rows",
-            "",
-            "The same data and bench; only the tower or the views differ. "
-            "95 % intervals: Wilson for accuracies, bootstrap for ROUGE-L.",
-            "",
-            *rt,
-            "",
-        ]
-    at = ablation_table(run, ROWS["train"])
+        lines += [SECTIONS["rows"][0], "", SECTIONS["rows"][1], "", *rt, ""]
+    at = ablation_table(run)
     if at:
-        lines += ["## Ablation (the paper's table, seen split)", "", *at, ""]
+        lines += [SECTIONS["ablation"][0], "", SECTIONS["ablation"][1], "", *at, ""]
     sv = supervision(run)
     if sv:
         lines += [

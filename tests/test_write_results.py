@@ -1,4 +1,5 @@
-"""docs/RESULTS.md's supervision section: the recovery table is read from `make recovery`'s results.json files."""
+"""docs/RESULTS.md from run folders: the recovery table read from `make recovery`'s results.json files, and a later run
+on the page's data spliced into it section by section."""
 
 from __future__ import annotations
 
@@ -47,3 +48,88 @@ def test_the_recovery_table_has_a_row_per_task_and_policy(tmp_path: Path) -> Non
         "| place | scripted | 8/25 | 16/25 | +32 | yes | 3 | 1 |",
         "| pour | act | 3/25 | 2/25 | -4 | no | 3 | 1 |",
     ]
+
+
+def _eval(path: Path, q2: float) -> None:
+    """A bench results.json with the fields the page's tables read (seen Q2, failure-only Q3/Q5/ROUGE-L, intervals)."""
+    path.mkdir(parents=True, exist_ok=True)
+    fo = {"q3": 61.0, "q5": 57.5, "q6": {"rougeL": 0.6}, "ci95": {"q3": [55.0, 66.0], "q5": [51.0, 63.0]}}
+    fo["ci95"]["rougeL"] = [0.55, 0.65]
+    (path / "results.json").write_text(json.dumps({"q2": q2, "ci95": {"q2": [q2 - 3, q2 + 3]}, "failure_only": fo}))
+
+
+STATS = {
+    "trajectories_kept": 10,
+    "trajectories_in": 12,
+    "by_outcome": {"success": 6, "failure": 4},
+    "splits": {"train": {"trajectories": 8}, "test": {"trajectories": 2}},
+}
+SHIPPED = (
+    "| sim-pretrained tower (shipped), front + side | 80.6 [77.7, 83.2] | 0.863 | 54.6 [48.8, 60.4] | "
+    "50.7 [44.9, 56.5] | 0.5014 [0.455, 0.549] | 78.1 [70.7, 84.0] | 78.0 [70.7, 83.9] | 76.0 [68.5, 82.2] |"
+)
+PAGE = "\n".join(
+    [
+        "# results",
+        "",
+        "## Data and model",
+        "",
+        "- Trajectories: 10 kept of 12 (6 success, 4 failure); split sizes (trajectories): train 8, test 2.",
+        "",
+        "## Tower and sensor rows",
+        "",
+        SHIPPED,
+        "",
+        "## Supervision",
+        "",
+        "| pick | scripted | 6/25 | 23/25 | +68 | yes | 19 | 0 |",
+        "",
+    ]
+)
+
+
+def test_a_run_of_the_same_data_replaces_only_its_section(tmp_path: Path) -> None:
+    """`sections=[ablation]`: a fresh run on the page's data (no main model) adds the ablation table, the frozen row
+    carried from the page's shipped row, and leaves every other line of the page as it was; again: same page."""
+    from scripts.write_results import main
+
+    page, run = tmp_path / "RESULTS.md", tmp_path / "run"
+    page.write_text(PAGE)
+    (run / "dataset").mkdir(parents=True)
+    (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
+    _eval(run / "ablate" / "tuned" / "final" / "eval_test", 83.0)
+    assert main([f"run={run}", f"out={page}", "sections=[ablation]"]) == 0
+    text = page.read_text()
+    head, rest = text.split("## Ablation (the paper's table, seen split)\n")
+    table, tail = rest.split("## Supervision\n")
+    assert head + "## Supervision\n" + tail == PAGE
+    assert (
+        "| tuned tower and merger | 83.0 [80.0, 86.0] | 61.0 [55.0, 66.0] | 57.5 [51.0, 63.0] | 0.6000 [0.550, 0.650] |"
+        in table
+    )
+    frozen = "| frozen tower and merger (this page's `make reproduce` model) | 80.6 [77.7, 83.2] | 54.6 [48.8, 60.4] | "
+    assert frozen + "50.7 [44.9, 56.5] | 0.5014 [0.455, 0.549] |" in table
+    assert "Not run for this page: no temporal index" in table
+    assert main([f"run={run}", f"out={page}", "sections=[ablation]"]) == 0
+    assert page.read_text() == text
+
+
+def test_a_run_of_other_data_or_without_the_section_is_refused(tmp_path: Path) -> None:
+    import pytest
+
+    from labrobfail_vlm.config import ConfigError
+    from scripts.write_results import main
+
+    page, run = tmp_path / "RESULTS.md", tmp_path / "run"
+    page.write_text(PAGE)
+    (run / "dataset").mkdir(parents=True)
+    (run / "dataset" / "stats.json").write_text(json.dumps({**STATS, "trajectories_kept": 11}))
+    _eval(run / "ablate" / "tuned" / "final" / "eval_test", 83.0)
+    with pytest.raises(ConfigError, match="data are not"):
+        main([f"run={run}", f"out={page}", "sections=[ablation]"])
+    (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
+    with pytest.raises(ConfigError, match="no bench results under rows/scratch"):
+        main([f"run={run}", f"out={page}", "sections=[rows]"])
+    with pytest.raises(ConfigError, match="unknown"):
+        main([f"run={run}", f"out={page}", "sections=[tables]"])
+    assert page.read_text() == PAGE
