@@ -136,6 +136,21 @@ def _sections(page: str) -> list[list[str]]:
     return out
 
 
+def _section(name: str, body: list[str], made_on: Path | None = None) -> list[str]:
+    """A rows or ablation section as the page prints it: heading, opening sentence (and the run a splice took it
+    from), the table."""
+    heading, intro, _ = SECTIONS[name]
+    return [
+        heading,
+        "",
+        intro,
+        *([f"Made on `{made_on}`, whose data are this page's."] if made_on else []),
+        "",
+        *body,
+        "",
+    ]
+
+
 def splice(run: Path, out: Path, names: list[str]) -> int:
     """Replace the named sections of the existing page with this run's, leaving every other line as it was."""
     unknown = sorted(set(names) - set(SECTIONS))
@@ -154,10 +169,10 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
         "ablation": lambda: ablation_table(run, [cells[1], cells[3], cells[4], cells[5]] if cells else None),
     }
     for name in names:
-        heading, intro, folders = SECTIONS[name]
+        heading, _, folders = SECTIONS[name]
         if not any(_evals(run / f, ("test",)) for f in folders):
             raise ConfigError(f"sections: {run} has no bench results under {', '.join(folders)}")
-        new = [heading, "", intro, f"Made on `{run}`, whose data are this page's.", "", *bodies[name](), ""]
+        new = _section(name, bodies[name](), made_on=run)
         at = next((i for i, p in enumerate(parts) if p[0] == heading), None)
         if at is None:  # a new section goes where the whole page puts it: before the later ones
             later = [h for h, _, _ in list(SECTIONS.values())[list(SECTIONS).index(name) + 1 :]] + ["## Supervision"]
@@ -398,10 +413,10 @@ def main(argv: list[str]) -> int:
     lines += ["## Targets of the tower issue", "", *targets(evals), ""]
     rt = rows_table(run)
     if rt:
-        lines += [SECTIONS["rows"][0], "", SECTIONS["rows"][1], "", *rt, ""]
+        lines += _section("rows", rt)
     at = ablation_table(run)
     if at:
-        lines += [SECTIONS["ablation"][0], "", SECTIONS["ablation"][1], "", *at, ""]
+        lines += _section("ablation", at)
     sv = supervision(run)
     if sv:
         lines += [
