@@ -248,8 +248,9 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 
 # Two pytest workers: most tests wait on a subprocess (a CLI's import of torch, a simulation) with one core idle,
-# so two halve the suite's time on 2 cores. Whole files go to one worker (--dist loadfile) so that a module's
-# fixtures (a trained tiny model, a generated run) are built once. The slowest tests are listed at the end.
+# so two cut the suite's time to about 0.6x on 2 cores (docs/EXPERIMENTS.md, 2026-11-27). Whole files go to one
+# worker (--dist loadfile) so that a module's fixtures (a trained tiny model, a generated run) are built once.
+# The slowest tests are listed at the end.
 TEST_WORKERS ?= 2
 PYTEST := $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=10
 test: $(STAMP) $(APT_STAMP) $(VULKAN_STAMP) lint
