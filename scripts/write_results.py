@@ -12,10 +12,11 @@ on whole and prefix grids, the recovery table), the paper-comparable tables
 (Q3-Q6 over failed trajectories) with 95 % intervals, failure detection as a score, the all-trajectory tables,
 Q2 recall per failure type, the learning curve.
 
-With `sections=[rows]` or `sections=[ablation]` it replaces only those sections of the existing page, from a run that
-holds just those folders (a fresh machine's regeneration with the same seed, say): it checks first that the run's data
-are the page's (the same trajectories and splits line), and the ablation's frozen row, when the run has none, is the
-page's own shipped front + side row (the recipe's model is the frozen one).
+With `sections=[rows]`, `[ablation]` or `[supervision]` it replaces only those sections of the existing page, from a
+run that holds just those folders (a fresh machine's regeneration with the same seed, say): it checks first that the
+run's data are the page's (the same trajectories and splits line). What such a run lacks is carried from the page and
+said so: the ablation's frozen row is the page's shipped front + side row (the recipe's model is the frozen one), and
+the online model's table stays when the run has only a recovery table.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from labrobfail_vlm.config import ConfigError, cli_main, load_config
 DEFAULTS = """
 run: outputs/reproduce     # the make reproduce run folder
 out: docs/RESULTS.md       # the page to write
-sections: null             # null: the whole page; [rows] and/or [ablation]: replace only those in the existing page
+sections: null             # null: the whole page; any of [rows, ablation, supervision]: replace only those
 """
 # the sections a run beside the main one can add: heading, opening sentence, the run folders that feed it
 SECTIONS = {
@@ -45,6 +46,13 @@ SECTIONS = {
         "The same data and bench; only the variant differs. 95 % intervals: Wilson for accuracies, bootstrap for "
         "ROUGE-L.",
         ("ablate/tuned", "ablate/frozen", "ablate/no_index"),
+    ),
+    "supervision": (
+        "## Supervision",
+        "`make reproduce-online`: the model above taught to read prefix grids (a third stage: the first k keyframes, "
+        "later cells blank), so that it can be asked at every keyframe. `make recovery`: the scripted and ACT policies "
+        "with and without a VLM supervisor; the line above its table names the model and when it was asked.",
+        ("online", "recovery"),
     ),
 }
 SPLIT_TITLES = {
@@ -163,19 +171,23 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
         raise ConfigError(f"sections: {run}'s data are not {out}'s (its trajectories and splits line differs)")
     shipped = next((line for p in parts for line in p if line.startswith(f"| {ROWS['train']} |")), None)
     cells = [c.strip() for c in shipped.strip("|").split("|")] if shipped else None
+    old_sv = next((p for p in parts if p[0] == SECTIONS["supervision"][0]), [])
     bodies = {
         "rows": lambda: rows_table(run, shipped),
         # the shipped row's seen Q2, Q3, Q5 and ROUGE-L cells
         "ablation": lambda: ablation_table(run, [cells[1], cells[3], cells[4], cells[5]] if cells else None),
+        "supervision": lambda: supervision(run, _online_table(old_sv)),
     }
     for name in names:
         heading, _, folders = SECTIONS[name]
-        if not any(_evals(run / f, ("test",)) for f in folders):
-            raise ConfigError(f"sections: {run} has no bench results under {', '.join(folders)}")
+        if not any(any((run / f).rglob("results.json")) for f in folders):
+            raise ConfigError(f"sections: {run} has no results under {', '.join(folders)}")
         new = _section(name, bodies[name](), made_on=run)
         at = next((i for i, p in enumerate(parts) if p[0] == heading), None)
         if at is None:  # a new section goes where the whole page puts it: before the later ones
-            later = [h for h, _, _ in list(SECTIONS.values())[list(SECTIONS).index(name) + 1 :]] + ["## Supervision"]
+            later = [h for h, _, _ in list(SECTIONS.values())[list(SECTIONS).index(name) + 1 :]] + [
+                "## Paper-comparable tables"
+            ]
             at = next((i for i, p in enumerate(parts) if any(p[0].startswith(h) for h in later)), len(parts))
             parts.insert(at, new)
         else:
@@ -248,12 +260,24 @@ def ablation_table(run: Path, frozen_cells: list[str] | None = None) -> list[str
     ]
 
 
-def supervision(run: Path) -> list[str]:
+def _online_table(section: list[str]) -> list[str]:
+    """The online model's table of an existing Supervision section (its header row to the blank line after it)."""
+    at = next((i for i, line in enumerate(section) if line.startswith("| grids |")), None)
+    if at is None:
+        return []
+    end = next((i for i in range(at, len(section)) if not section[i].startswith("|")), len(section))
+    return section[at:end]
+
+
+def supervision(run: Path, online_stand_in: list[str] | None = None) -> list[str]:
     """The online model (make reproduce-online) on whole and prefix grids, and the recovery table (make recovery):
-    success out of the trials per task and policy, without a supervisor and with the VLM."""
+    success out of the trials per task and policy, without a supervisor and with the VLM. `online_stand_in` (the
+    page's own online table) stands in for a run without the online model, and says so."""
     lines = []
     ev = _evals(run / "online", ("test", "prefix", "both"))
     titles = {"test": "seen, whole", "prefix": "seen, prefix (first k keyframes)", "both": "unseen both, whole"}
+    if not ev and online_stand_in:
+        lines += ["The online model as the page had it (this run has none):", "", *online_stand_in, ""]
     if ev:
         lines += [
             "| grids | Q2 | majority Q2 | AUROC | Q3 (failures) | Q5 (failures) |",
@@ -419,15 +443,7 @@ def main(argv: list[str]) -> int:
         lines += _section("ablation", at)
     sv = supervision(run)
     if sv:
-        lines += [
-            "## Supervision",
-            "",
-            "`make reproduce-online`: the model above, a third stage on prefix grids (the first k keyframes, later "
-            "cells blank), the supervisor of `make recovery`.",
-            "",
-            *sv,
-            "",
-        ]
+        lines += _section("supervision", sv)
 
     def named(res: dict[str, Any]) -> dict[str, dict[str, Any]]:
         return {

@@ -82,7 +82,13 @@ PAGE = "\n".join(
         "",
         "## Supervision",
         "",
+        "| grids | Q2 | majority Q2 | AUROC | Q3 (failures) | Q5 (failures) |",
+        "|---|---|---|---|---|---|",
+        "| seen, whole | 81.1 [78.3, 83.7] | 65.0 | 0.8782 | 59.3 [53.4, 64.9] | 56.8 [50.9, 62.5] |",
+        "",
         "| pick | scripted | 6/25 | 23/25 | +68 | yes | 19 | 0 |",
+        "",
+        "## Paper-comparable tables",
         "",
     ]
 )
@@ -128,8 +134,30 @@ def test_a_run_of_other_data_or_without_the_section_is_refused(tmp_path: Path) -
     with pytest.raises(ConfigError, match="data are not"):
         main([f"run={run}", f"out={page}", "sections=[ablation]"])
     (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
-    with pytest.raises(ConfigError, match="no bench results under rows/scratch"):
+    with pytest.raises(ConfigError, match="no results under rows/scratch"):
         main([f"run={run}", f"out={page}", "sections=[rows]"])
     with pytest.raises(ConfigError, match="unknown"):
         main([f"run={run}", f"out={page}", "sections=[tables]"])
     assert page.read_text() == PAGE
+
+
+def test_a_recovery_table_alone_replaces_the_pages_and_keeps_its_online_table(tmp_path: Path) -> None:
+    """`sections=[supervision]` from a run with `make recovery`'s tables and no online model: the new recovery rows
+    replace the old, the page's online table is carried (and said to be), every other section is untouched."""
+    from scripts.write_results import main
+
+    page, run = tmp_path / "RESULTS.md", tmp_path / "run"
+    page.write_text(PAGE)
+    (run / "dataset").mkdir(parents=True)
+    (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
+    _results(run / "recovery" / "scripted" / "results.json", "scripted", {"pick": (6, 25)})
+    assert main([f"run={run}", f"out={page}", "sections=[supervision]"]) == 0
+    text = page.read_text()
+    head, rest = text.split("## Supervision\n")
+    section, tail = rest.split("## Paper-comparable tables\n")
+    assert head == PAGE.split("## Supervision\n")[0] and tail == PAGE.split("## Paper-comparable tables\n")[1]
+    assert "| seen, whole | 81.1 [78.3, 83.7] |" in section and "as the page had it" in section
+    assert "| pick | scripted | 6/25 | 25/25 | +76 | yes | 3 | 1 |" in section
+    assert "23/25" not in section
+    assert main([f"run={run}", f"out={page}", "sections=[supervision]"]) == 0
+    assert page.read_text() == text
