@@ -55,6 +55,8 @@ SECTIONS = {
         ("online", "recovery"),
     ),
 }
+# the first section after the ones above: where a spliced section that the page lacks is inserted, at the latest
+PAPER_TABLES = "## Paper-comparable tables"
 SPLIT_TITLES = {
     "test": "Seen (test split)",
     "object": "Unseen objects",
@@ -145,7 +147,7 @@ def _sections(page: str) -> list[list[str]]:
 
 
 def _section(name: str, body: list[str], made_on: Path | None = None) -> list[str]:
-    """A rows or ablation section as the page prints it: heading, opening sentence (and the run a splice took it
+    """A section of SECTIONS as the page prints it: heading, opening sentence (and the run a splice took it
     from), the table."""
     heading, intro, _ = SECTIONS[name]
     return [
@@ -180,14 +182,12 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
     }
     for name in names:
         heading, _, folders = SECTIONS[name]
-        if not any(any((run / f).rglob("results.json")) for f in folders):
+        if not any(_ran(run, f) for f in folders):
             raise ConfigError(f"sections: {run} has no results under {', '.join(folders)}")
         new = _section(name, bodies[name](), made_on=run)
         at = next((i for i, p in enumerate(parts) if p[0] == heading), None)
         if at is None:  # a new section goes where the whole page puts it: before the later ones
-            later = [h for h, _, _ in list(SECTIONS.values())[list(SECTIONS).index(name) + 1 :]] + [
-                "## Paper-comparable tables"
-            ]
+            later = [h for h, _, _ in list(SECTIONS.values())[list(SECTIONS).index(name) + 1 :]] + [PAPER_TABLES]
             at = next((i for i, p in enumerate(parts) if any(p[0].startswith(h) for h in later)), len(parts))
             parts.insert(at, new)
         else:
@@ -260,6 +260,19 @@ def ablation_table(run: Path, frozen_cells: list[str] | None = None) -> list[str
     ]
 
 
+def _recovery_files(run: Path) -> list[Path]:
+    """`make recovery`'s results.json files of a run: the scripted policy's, then each ACT task's."""
+    rec = run / "recovery"
+    return [
+        f for f in (rec / "scripted" / "results.json", *sorted((rec / "act").glob("*/results.json"))) if f.is_file()
+    ]
+
+
+def _ran(run: Path, folder: str) -> bool:
+    """Whether a section's run folder holds results: `make recovery`'s tables, or a bench of the seen test split."""
+    return bool(_recovery_files(run)) if folder == "recovery" else bool(_evals(run / folder, ("test",)))
+
+
 def _online_table(section: list[str]) -> list[str]:
     """The online model's table of an existing Supervision section (its header row to the blank line after it)."""
     at = next((i for i, line in enumerate(section) if line.startswith("| grids |")), None)
@@ -289,10 +302,8 @@ def supervision(run: Path, online_stand_in: list[str] | None = None) -> list[str
             ),
             "",
         ]
-    rec = run / "recovery"
-    tables = [rec / "scripted" / "results.json", *sorted((rec / "act").glob("*/results.json"))]
     rows, settings = [], set()
-    for f in (t for t in tables if t.is_file()):
+    for f in _recovery_files(run):
         res = json.loads(f.read_text())
         cfg = res["config"]
         sup, loop = cfg["supervisor"], cfg["loop"]
@@ -455,7 +466,7 @@ def main(argv: list[str]) -> int:
         }
 
     lines += [
-        "## Paper-comparable tables",
+        PAPER_TABLES,
         "",
         "Q1 and Q2 over every trajectory of the split; Q3, Q4, Q5 and Q6 (BLEU, ROUGE-L) over its failed "
         'trajectories only, as the paper\'s table can be read (its Q4 and Q5 options have no "None"). The '
