@@ -61,6 +61,10 @@ class ExecResult:
     manual: list[str] = field(default_factory=list)  # phrases a person must handle (nothing was run)
     error: str | None = None  # the primitive that could not run, and why
     log: list[dict[str, Any]] = field(default_factory=list)  # per primitive: op, args, keyframes, note
+    # the plan step a primitive redid last (a grasp, a device approach, a replayed keyframe): where the arm stands
+    # near two keyframes of the plan (a pour sets the vessel back where it grasped it), the policy's re-planning
+    # goes on in this step (`resume_index`)
+    step: int | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -125,7 +129,7 @@ class CorrectionExecutor:
             )
             if not res.executed:
                 break
-        res.keyframes = self.count
+        res.keyframes, res.step = self.count, self.step
         return res
 
     # ---- state -------------------------------------------------------------------------------------------
@@ -140,6 +144,7 @@ class CorrectionExecutor:
         self.grip = int(s["grip_cmd"])
         self.count = 0
         self.note = ""
+        self.step: int | None = None
 
     def _state(self) -> dict[str, Any]:
         return self.src.observe().state
@@ -331,6 +336,7 @@ class CorrectionExecutor:
         self._go(goal - axis * span, rot)
         if stage != "pre":
             self._go(goal, rot, speed=SLOW, settle=10)
+        self.step = grasp.index
 
     def _align_device(self, role: str, stage: str | None) -> None:
         """The plan's approach to a handle or button: its step's keyframes before the contact keyframe."""
@@ -345,6 +351,7 @@ class CorrectionExecutor:
         for n in names:
             k = self._nominal(n)
             self._go(k.pos, quat_to_matrix(k.quat), grip=k.gripper, speed=min(k.speed, SPEED))
+        self.step = st.index
 
     def _ensure_held(self, obj: str) -> None:
         """Carrying primitives need the object in the hand: grasp it first when it is not."""
@@ -424,9 +431,11 @@ class CorrectionExecutor:
                     kf.pos, quat_to_matrix(kf.quat), grip=kf.gripper, speed=kf.speed, settle=kf.settle_steps, kf=kf
                 )
             self.cur = self.src.executed_so_far()[-1]
+            self.step = step.index
             return
         kf = self._nominal(pose_id)
         self._go(kf.pos, quat_to_matrix(kf.quat), grip=kf.gripper, speed=kf.speed, settle=kf.settle_steps, kf=kf)
+        self.step = kf.segment
 
     # ---- orientation primitives --------------------------------------------------------------------------
     def _set_orient(self, roll: float = 0.0, pitch: float = 0.0) -> None:

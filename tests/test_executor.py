@@ -236,3 +236,24 @@ def test_unrunnable_corrections_are_refused_with_a_reason(src):
     assert "unknown direction" in res.error
     assert "unknown primitive" in CorrectionExecutor(src).run([{"op": "teleport", "args": {}}]).error
     assert not math.isnan(ee(src)[0])
+
+
+def test_a_regrasp_in_a_pour_goes_on_with_the_pour_not_the_set_back(src):
+    """A pour sets the vessel back where it grasped it, so after a regrasp the arm stands as near the set-back as
+    the grasp; the correction names the step it redid, and the re-planned pour lifts, pours and succeeds."""
+    from sim_backends.policies.scripted import resume_index
+
+    start(src, first_of(src, "pour"), "s0_pre")
+    plan = src.scripted_keyframes()
+    for k in plan[1:3]:  # reach and close 4 cm beside the vessel: the fingers close on nothing
+        src.step(dataclasses.replace(k, pos=tuple(np.add(k.pos, [0, 0.04, 0]))))
+    assert state(src)["width"] < 0.01
+    label = src.task_meta([]).labels["src"]
+    res = run(src, prim("gripper_open"), prim("align_to", target_id=label), prim("gripper_close"))
+    assert res.step == 0 and state(src)["width"] > 0.03  # the grasp step, redone: the vessel is held
+    assert plan[resume_index(plan, state(src))].name == "s2_release"  # without the step: the set-back's release
+    i = resume_index(plan, state(src), res.step)
+    assert plan[i].name == "s0_lift"
+    for k in plan[i:]:
+        src.step(k)
+    assert src.finish().labels.success

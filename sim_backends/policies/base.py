@@ -86,9 +86,11 @@ class Policy(ABC):
     def act(self, obs: Observation) -> Action | None:
         """The next target, or None when the policy is done."""
 
-    def after_correction(self, obs: Observation, executed: bool = True) -> None:  # noqa: B027 - optional hook
+    def after_correction(  # noqa: B027 - optional hook
+        self, obs: Observation, executed: bool = True, step: int | None = None
+    ) -> None:
         """Called when a correction has run (`executed`: all of it; else it stopped early or was refused) and
-        control returns to the policy."""
+        control returns to the policy; `step`: the plan step the correction redid last, if any."""
 
     def info(self) -> dict[str, Any]:
         """What the log records about this episode's policy (e.g. the injected perturbation)."""

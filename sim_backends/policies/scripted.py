@@ -25,13 +25,16 @@ from sim_backends.policies.base import Action, EpisodeContext, Policy, register_
 from sim_backends.source import Observation
 
 
-def resume_index(plan: list, state: dict[str, Any]) -> int:
+def resume_index(plan: list, state: dict[str, Any], step: int | None = None) -> int:
     """Where a plan goes on after a correction: the keyframe after the one nearest to the arm (position, plus
-    5 cm for a different gripper command; of near ties the later one: a grasp's reach and close coincide)."""
+    5 cm for a different gripper command). Of near ties, one in `step` (the plan step the correction redid, e.g.
+    the grasp a regrasp made again: a pour sets the vessel down where it grasped it, and only the step tells a
+    fresh grasp from the set-back), else the later one (a grasp's reach and close coincide)."""
     ee, grip = np.asarray(state["ee_pos"], float), int(state["grip_cmd"])
     cost = [float(np.linalg.norm(np.asarray(k.pos) - ee)) + 0.05 * (k.gripper != grip) for k in plan]
     best = min(cost)
-    return max(j for j, c in enumerate(cost) if c <= best + 0.005) + 1
+    ties = [j for j, c in enumerate(cost) if c <= best + 0.005]
+    return max([j for j in ties if plan[j].segment == step] or ties) + 1
 
 
 def spec_applies(spec: dict[str, Any], names: set[str], steps: int) -> bool:
@@ -78,10 +81,10 @@ class ScriptedPolicy(Policy):
         self.i += 1
         return Action.from_keyframe(self.queue[self.i - 1])
 
-    def after_correction(self, obs: Observation, executed: bool = True) -> None:
+    def after_correction(self, obs: Observation, executed: bool = True, step: int | None = None) -> None:
         if self.resume == "queue" or not self.nominal or not executed:  # a refused correction changes nothing
             return
-        self.queue, self.i = self.nominal[resume_index(self.nominal, obs.state) :], 0
+        self.queue, self.i = self.nominal[resume_index(self.nominal, obs.state, step) :], 0
 
     def info(self) -> dict[str, Any]:
         return {"perturbation": self.perturbation}

@@ -56,7 +56,7 @@ def run_correction(
         src.step(Keyframe.from_dict(kd))
     res = CorrectionExecutor(src).run(prims)
     if res.executed:
-        for kf in plan[resume_index(plan, src.observe().state) :]:
+        for kf in plan[resume_index(plan, src.observe().state, res.step) :]:
             src.step(kf)
     ep = src.finish()
     return {

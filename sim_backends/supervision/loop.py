@@ -328,7 +328,7 @@ def _query(
         res = executor.run(v.primitives)
         t.interventions += 1
         sup.handled(src)
-        policy.after_correction(src.observe(), res.executed)
+        policy.after_correction(src.observe(), res.executed, res.step)
         rec["outcome"] = res.to_dict()
         t.corrected = bool(res.executed)
         if res.manual and cfg.on_manual == "stop":

@@ -70,7 +70,7 @@ class ACTPolicy(Policy):
         self.t, self.idle, self.last = 0, 0, None
         return []
 
-    def after_correction(self, obs: Observation, executed: bool = True) -> None:
+    def after_correction(self, obs: Observation, executed: bool = True, step: int | None = None) -> None:
         """A correction moved the arm: chunks predicted before it no longer apply."""
         if self.blend is not None:
             self.blend.reset()
