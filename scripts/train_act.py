@@ -24,9 +24,11 @@ def main(argv: list[str]) -> int:
     from sim_backends.supervision.experiment import families, resolve_tasks, scenario_templates
 
     cfg = load_config("act.yaml", argv)
-    for key in ("noise", "carry_noise"):  # metres of drift: a negative or non-number draw is meaningless
+    for key in ("noise", "carry_noise", "miss"):  # metres of drift: a negative or non-number draw is meaningless
         if not isinstance(cfg[key], (int, float)) or isinstance(cfg[key], bool) or cfg[key] < 0:
-            raise ConfigError(f"{key}: a drift in metres >= 0, not {cfg[key]!r}")
+            raise ConfigError(f"{key}: metres >= 0, not {cfg[key]!r}")
+    if not is_int(cfg.regrasp_demos, 0):
+        raise ConfigError(f"regrasp_demos: a number of demonstrations >= 0, not {cfg.regrasp_demos!r}")
     if cfg.train.schedule not in ("constant", "cosine"):
         raise ConfigError(f"train.schedule: expected constant or cosine, got {cfg.train.schedule!r}")
     if not is_int(cfg.train.warmup, 0):

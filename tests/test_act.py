@@ -291,7 +291,22 @@ def test_carrying_drift_comes_back_onto_the_line_before_the_pour():
     assert drift_noisy > drift_clean + 0.008, (drift_clean, drift_noisy)
 
 
-@pytest.mark.parametrize("arg", ["noise=-0.01", "carry_noise=far", "train.schedule=linear", "train.warmup=-5"])
+def test_regrasp_demonstrations_start_from_a_corrected_grasp_and_lift():
+    """With `miss`, the grasp closes beside the vessel, the P4 correction regrasps it unrecorded, and the
+    demonstration starts with the vessel held at grasp height (fingers on it, not shut) and lifts it; a plain
+    demonstration starts with the hand open, far above; the same seed gives the same demonstration."""
+    plain, regrasp = _clean_and_drifted("pour", 4, miss=0.08)
+    s0, r0, b0 = plain["state"][0], regrasp["state"][0], regrasp["action"][0]
+    assert s0[8] == 0 and s0[2] > 0.2  # grip_cmd open, the hand at its start pose
+    assert r0[8] == 1 and r0[7] > 0.03 and r0[2] < 0.08, r0  # closed on the vessel, at grasp height
+    assert b0[9] > 0.5 and b0[2] > r0[2]  # the first recorded action keeps holding and rises
+    assert len(regrasp["action"]) < len(plain["action"])  # the approach and grasp are not in it
+
+
+@pytest.mark.parametrize(
+    "arg",
+    ["noise=-0.01", "carry_noise=far", "miss=-0.01", "regrasp_demos=-1", "train.schedule=linear", "train.warmup=-5"],
+)
 def test_bad_drift_or_schedule_is_a_one_line_error(arg, tmp_path):
     r = subprocess.run(
         [sys.executable, "scripts/train_act.py", arg, f"out_dir={tmp_path / 'act'}"],

@@ -10,6 +10,7 @@ trained policy replays them in the same conditions. Only episodes the task famil
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -20,6 +21,8 @@ from torch.utils.data import Dataset
 from sim_backends.policies.act.configuration_act import ACTConfig
 from sim_backends.source import FailureSource
 from sim_backends.types import Keyframe, quat_to_matrix, rotation_angle
+
+MISS_MIN = 0.03  # m: the smallest grasp miss of a regrasp demonstration (closer ones often still catch the vessel)
 
 HOLD_STEPS = 12  # physics steps one hold tick stands for (a tick is >= 8 steps)
 
@@ -64,6 +67,36 @@ def ticks(
     return out + [out[-1]] * holds
 
 
+def regrasp_start(src: FailureSource, plan: list[Keyframe], miss: float, rng: np.random.Generator) -> int | None:
+    """Miss the plan's first grasp, then correct it as a supervisor would; the plan index to record from.
+
+    The grasp step's keyframes (those of the first closing keyframe's segment, up to it) run shifted in the plane
+    by MISS_MIN..`miss` metres in a random direction, so the fingers close beside the vessel; then the paper's P4
+    correction for a misaligned grasp (its own instruction text, through the primitive mapper and executor the
+    supervised loop uses) opens, re-centres on the vessel and closes. The recording starts where the scripted
+    policy's re-planning goes on (`resume_index`); None: the plan has no grasp or the correction could not run.
+    Neither the miss nor the correction is recorded: the demonstration starts where a supervisor hands the
+    policy back a corrected grasp, and shows it going on from there.
+    """
+    from labrobfail_vlm.actions import to_primitives
+    from labrobfail_vlm.corrections import STRATEGIES
+    from sim_backends.executor import CorrectionExecutor
+    from sim_backends.policies.scripted import resume_index
+
+    close = next((i for i, k in enumerate(plan) if k.gripper == 1), None)
+    if close is None:
+        return None
+    angle, r = rng.uniform(0, 2 * math.pi), rng.uniform(MISS_MIN, max(miss, MISS_MIN))
+    off = np.array([math.cos(angle) * r, math.sin(angle) * r, 0.0])
+    for kf in plan[: close + 1]:
+        shift = off if kf.segment == plan[close].segment else np.zeros(3)
+        src.step(dataclasses.replace(kf, pos=tuple(np.asarray(kf.pos) + shift)))
+    labels = src.task_meta([]).labels
+    text = STRATEGIES["P4"][1].format(target=labels.get(plan[close].target, plan[close].target))
+    res = CorrectionExecutor(src).run(to_primitives(text, list(labels.values())))
+    return resume_index(plan, src.observe().state, res.step) if res.executed else None
+
+
 def record_demo(
     src: FailureSource,
     nominal_filter: Any,
@@ -76,6 +109,7 @@ def record_demo(
     max_angle: float = 0.15,
     noise: float = 0.0,
     carry_noise: float = 0.0,
+    miss: float = 0.0,
 ) -> dict[str, np.ndarray] | None:
     """One demonstration (images (T, V, H, W, 3) uint8, state (T, 9), action (T, 10)), or None if it failed.
 
@@ -87,17 +121,22 @@ def record_demo(
     `carry_noise` > 0 does the same for moves of the closed hand (carrying), except a move that ends where the
     next keyframe acts in place (a tilt, a release) and a keyframe that acts in place itself: the pour is made
     exactly over the destination, and the demonstration shows the way back onto the line before it.
+    `miss` > 0 (metres) records a demonstration that starts from a corrected grasp (`regrasp_start`).
     """
     from sim_backends.policies.openvla_client import proprio_vector
 
     src.reset(scenario, seed, variant)
     plan = nominal_filter(src.scripted_keyframes())
     src.begin()
+    rng = np.random.default_rng(seed)
+    start = regrasp_start(src, plan, miss, rng) if miss > 0 else 0
+    if start is None:
+        src.finish()
+        return None
     s = src.observe().state
     pos, quat, grip = np.asarray(s["ee_pos"], float), tuple(s["ee_quat"]), int(s["grip_cmd"])
-    rng = np.random.default_rng(seed)
     images, states, actions = [], [], []
-    for i, kf in enumerate(plan):
+    for i, kf in enumerate(plan[start:], start):
         nxt = plan[i + 1] if i + 1 < len(plan) else None
         free = noise > 0 and kf.gripper == grip == 0 and nxt is not None and nxt.gripper == 0
         carrying = (

@@ -37,11 +37,28 @@ def _identity(cfg: DictConfig) -> dict[str, Any]:
     return {**{k: d[k] for k in IDENTITY}, "cameras": d["model"]["cameras"], "image_size": d["model"]["image_size"]}
 
 
+REGRASP_SEEDS = 1_000_000  # regrasp demonstrations draw seeds from `seed` + this on (none shared with the others)
+
+
 def load_or_record(cfg: DictConfig, family: Any, out: Path) -> tuple[list[dict[str, np.ndarray]], dict[str, Any]]:
-    """The cached demos when they were recorded with the same settings, else record them (atomically)."""
+    """The demonstrations (demos.npz), plus `regrasp_demos` that start from a corrected grasp (demos_regrasp.npz,
+    a cache of its own, so adding them keeps the plain demonstrations recorded before)."""
+    demos, info = _cached_or_recorded(cfg, family, out / "demos.npz", _identity(cfg), int(cfg.demos))
+    if int(cfg.regrasp_demos) > 0:
+        ident = _identity(cfg) | {"regrasp_demos": int(cfg.regrasp_demos), "miss": float(cfg.miss)}
+        extra, more = _cached_or_recorded(
+            cfg, family, out / "demos_regrasp.npz", ident, int(cfg.regrasp_demos), float(cfg.miss)
+        )
+        demos, info = demos + extra, info | {"regrasp": more}
+    return demos, info
+
+
+def _cached_or_recorded(
+    cfg: DictConfig, family: Any, path: Path, ident: dict[str, Any], n: int, miss: float = 0.0
+) -> tuple[list[dict[str, np.ndarray]], dict[str, Any]]:
+    """The cached demos when they were recorded with the same settings, else record `n` (atomically)."""
     from sim_backends.registry import backend_options, make_backend
 
-    path, ident = out / "demos.npz", _identity(cfg)
     if path.is_file():
         with np.load(path, allow_pickle=False) as z:
             if json.loads(str(z["identity"])) == ident:
@@ -62,22 +79,24 @@ def load_or_record(cfg: DictConfig, family: Any, out: Path) -> tuple[list[dict[s
         **backend_options(cfg.backend, section),
     )
     demos, tried = [], 0
-    bar = tqdm(total=int(cfg.demos), desc="demos", unit="demo", disable=not cfg.progress)
+    bar = tqdm(total=n, desc="regrasp demos" if miss else "demos", unit="demo", disable=not cfg.progress)
+    first = int(cfg.seed) + (REGRASP_SEEDS if miss else 0)
     try:
-        while len(demos) < int(cfg.demos) and tried < 3 * int(cfg.demos):
+        while len(demos) < n and tried < 3 * n:
             scenario = family.scenarios[tried % len(family.scenarios)]
             d = record_demo(
                 src,
                 family.plan,
                 family.success,
                 scenario,
-                int(cfg.seed) + tried,
+                first + tried,
                 cfg.variant,
                 cams,
                 float(cfg.max_dist),
                 float(cfg.max_angle),
                 float(cfg.noise),
                 float(cfg.carry_noise),
+                miss,
             )
             tried += 1
             if d is not None:
