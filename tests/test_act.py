@@ -154,8 +154,9 @@ def test_bad_checkpoints_are_one_line_errors(tmp_path):
 
 
 def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
-    """A front + wrist ACT: the wrist view is recorded, rendered for the policy in the supervised run (the
-    backend's wrist option), and taken by the policy server."""
+    """A front + wrist ACT, one plain and one regrasp demonstration (each in its own cache): the wrist view is
+    recorded, rendered for the policy in the supervised run (the backend's wrist option), and taken by the
+    policy server."""
     out = tmp_path / "act"
     toy = [f"model.{k}={json.dumps(v).replace(' ', '')}" for k, v in TOY.items() if k != "cameras"]
     r = subprocess.run(
@@ -164,6 +165,7 @@ def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
             "scripts/train_act.py",
             "task=pick_place_bottle",
             "demos=1",
+            "regrasp_demos=1",
             "train.steps=3",
             "train.batch_size=4",
             "model.cameras=[front,wrist]",
@@ -179,6 +181,7 @@ def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout.strip().splitlines()[-1])
     assert summary["steps"] == 3 and summary["demos"]["recorded"] == 1
+    assert summary["demos"]["regrasp"]["recorded"] == 1 and (out / "demos_regrasp.npz").is_file()
     assert (out / "final" / "model.safetensors").is_file() and (out / "demos.npz").is_file()
     log = json.loads((out / "train_log.json").read_text())
     assert log["curve"][0]["step"] == 1 and log["demos"]["ticks"] > 10
