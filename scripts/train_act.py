@@ -24,7 +24,7 @@ def main(argv: list[str]) -> int:
     from sim_backends.supervision.experiment import families, resolve_tasks, scenario_templates
 
     cfg = load_config("act.yaml", argv)
-    for key in ("noise", "carry_noise", "miss"):  # metres of drift: a negative or non-number draw is meaningless
+    for key in ("noise", "carry_noise", "miss"):  # metres: a negative or non-number draw is meaningless
         if not isinstance(cfg[key], (int, float)) or isinstance(cfg[key], bool) or cfg[key] < 0:
             raise ConfigError(f"{key}: metres >= 0, not {cfg[key]!r}")
     if not is_int(cfg.regrasp_demos, 0):
