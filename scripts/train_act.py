@@ -19,6 +19,7 @@ from labrobfail_vlm.config import cli_main, load_config
 
 def main(argv: list[str]) -> int:
     from labrobfail_vlm.config import ConfigError, is_int
+    from sim_backends.policies.act.data import MISS_MIN
     from sim_backends.policies.act.train import train
     from sim_backends.registry import available_backends, make_backend
     from sim_backends.supervision.experiment import families, resolve_tasks, scenario_templates
@@ -29,6 +30,8 @@ def main(argv: list[str]) -> int:
             raise ConfigError(f"{key}: metres >= 0, not {cfg[key]!r}")
     if not is_int(cfg.regrasp_demos, 0):
         raise ConfigError(f"regrasp_demos: a number of demonstrations >= 0, not {cfg.regrasp_demos!r}")
+    if cfg.regrasp_demos and cfg.miss < MISS_MIN:  # a smaller miss records plain demos under regrasp seeds
+        raise ConfigError(f"miss: regrasp demonstrations need a miss of at least {MISS_MIN} m, not {cfg.miss!r}")
     if cfg.train.schedule not in ("constant", "cosine"):
         raise ConfigError(f"train.schedule: expected constant or cosine, got {cfg.train.schedule!r}")
     if not is_int(cfg.train.warmup, 0):

@@ -308,11 +308,19 @@ def test_regrasp_demonstrations_start_from_a_corrected_grasp_and_lift():
 
 @pytest.mark.parametrize(
     "arg",
-    ["noise=-0.01", "carry_noise=far", "miss=-0.01", "regrasp_demos=-1", "train.schedule=linear", "train.warmup=-5"],
+    [
+        "noise=-0.01",
+        "carry_noise=far",
+        "miss=-0.01",
+        "regrasp_demos=-1",
+        "miss=0.01 regrasp_demos=2",
+        "train.schedule=linear",
+        "train.warmup=-5",
+    ],
 )
 def test_bad_drift_or_schedule_is_a_one_line_error(arg, tmp_path):
     r = subprocess.run(
-        [sys.executable, "scripts/train_act.py", arg, f"out_dir={tmp_path / 'act'}"],
+        [sys.executable, "scripts/train_act.py", *arg.split(), f"out_dir={tmp_path / 'act'}"],
         cwd=ROOT,
         capture_output=True,
         text=True,
