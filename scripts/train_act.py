@@ -20,7 +20,7 @@ from labrobfail_vlm.config import cli_main, load_config
 def main(argv: list[str]) -> int:
     from labrobfail_vlm.config import ConfigError, is_int
     from sim_backends.policies.act.data import MISS_MIN
-    from sim_backends.policies.act.train import train
+    from sim_backends.policies.act.train import augment_config, train
     from sim_backends.registry import available_backends, make_backend
     from sim_backends.supervision.experiment import families, resolve_tasks, scenario_templates
 
@@ -36,6 +36,7 @@ def main(argv: list[str]) -> int:
         raise ConfigError(f"train.schedule: expected constant or cosine, got {cfg.train.schedule!r}")
     if not is_int(cfg.train.warmup, 0):
         raise ConfigError(f"train.warmup: a number of steps >= 0, not {cfg.train.warmup!r}")
+    augment_config(cfg.train.augment)  # a bad value fails here, not after the demonstrations are recorded
     if cfg.backend not in available_backends():
         raise ConfigError(f"backend: unknown backend {cfg.backend!r}; available: {', '.join(available_backends())}")
     src = make_backend(cfg.backend, render=False)  # only its scenario catalogue

@@ -96,6 +96,31 @@ def test_act_trains_a_few_steps_and_predicts_chunks(tmp_path):
     assert cfg2 == cfg and torch.equal(again.predict(img, state), model.predict(img, state))
 
 
+def test_augmented_demonstrations_move_the_pictures_not_the_actions():
+    from labrobfail_vlm.augment import AugmentConfig
+    from sim_backends.policies.act.data import DemoDataset, normalisation
+
+    rng = np.random.default_rng(0)
+    images = np.zeros((6, 2, 32, 32, 3), np.uint8)
+    images[:, :, 12:20, 12:20] = 200  # a bright square in the middle of both views
+    demos = [{"images": images, "state": rng.normal(size=(6, 9)), "action": rng.normal(size=(6, 10))}]
+    cfg = ACTConfig(**TOY | {"cameras": ["front", "wrist"]})
+    cfg.stats = normalisation(demos)
+    aug = AugmentConfig(colour=0.0, shift_px=4.0, scale=0.0)
+    plain, a, b = DemoDataset(demos, cfg), DemoDataset(demos, cfg, aug, seed=3), DemoDataset(demos, cfg, aug, seed=3)
+    p, x, y = plain[2], a[2], b[2]
+    assert torch.equal(x[0], y[0])  # the same seed draws the same pictures
+    for k in (1, 2, 3):  # state, action chunk and padding are the demonstration's
+        assert torch.equal(x[k], p[k])
+    moved = [not torch.equal(x[0][v], p[0][v]) for v in range(2)]
+    assert all(moved)
+    # each view moved on its own, and only by a shift: the square keeps its size
+    centres = [torch.nonzero(x[0][v, 0] > 0.5).float().mean(0) for v in range(2)]
+    assert not torch.allclose(centres[0], centres[1])
+    assert all(int((x[0][v, 0] > 0.5).sum()) in range(49, 82) for v in range(2))
+    assert not torch.equal(a[2][0], x[0])  # a fresh draw per sample
+
+
 def test_spatial_softmax_finds_a_peak_between_feature_tokens():
     from sim_backends.policies.act.modeling_act import spatial_softmax
 
@@ -316,6 +341,7 @@ def test_regrasp_demonstrations_start_from_a_corrected_grasp_and_lift():
         "miss=0.01 regrasp_demos=2",
         "train.schedule=linear",
         "train.warmup=-5",
+        "train.augment.shift_px=wide train.augment.enabled=true",
     ],
 )
 def test_bad_drift_or_schedule_is_a_one_line_error(arg, tmp_path):

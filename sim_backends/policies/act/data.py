@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from labrobfail_vlm.augment import Augment, AugmentConfig
 from sim_backends.policies.act.configuration_act import ACTConfig
 from sim_backends.source import FailureSource
 from sim_backends.types import Keyframe, quat_to_matrix, rotation_angle
@@ -189,10 +190,22 @@ def normalisation(demos: list[dict[str, np.ndarray]]) -> dict[str, list[float]]:
 
 
 class DemoDataset(Dataset):
-    """(images, state, action chunk, padding) at every step of every demonstration, normalised."""
+    """(images, state, action chunk, padding) at every step of every demonstration, normalised.
 
-    def __init__(self, demos: list[dict[str, np.ndarray]], cfg: ACTConfig):
+    With `augment`, every sample's views are shifted, zoomed and recoloured by a fresh draw (the project's grid
+    augmentation, one affine per view): the cameras stand elsewhere in every episode of the wide world, so where a
+    vessel lies in the picture says where it stands only relative to the hand, and the draw keeps the policy from
+    learning absolute pixel positions of its few hundred demonstrations."""
+
+    def __init__(
+        self,
+        demos: list[dict[str, np.ndarray]],
+        cfg: ACTConfig,
+        augment: AugmentConfig | None = None,
+        seed: int = 0,
+    ):
         self.demos, self.k = demos, cfg.chunk_size
+        self.augment, self.rng = augment, np.random.default_rng(seed)
         self.index = [(i, t) for i, d in enumerate(demos) for t in range(len(d["action"]))]
         s = cfg.stats
         self.sm, self.ss = np.asarray(s["state_mean"], np.float32), np.asarray(s["state_std"], np.float32)
@@ -206,7 +219,11 @@ class DemoDataset(Dataset):
         d = self.demos[i]
         n = len(d["action"])
         idx = np.minimum(np.arange(t, t + self.k), n - 1)  # past the end: repeat the last action, masked out
-        img = torch.from_numpy(d["images"][t]).permute(0, 3, 1, 2).float() / 255.0
+        views = d["images"][t]
+        if self.augment is not None:
+            aug = Augment.draw(self.augment, len(views), self.rng)
+            views = np.stack([aug.image(v, k) for k, v in enumerate(views)])
+        img = torch.from_numpy(views).permute(0, 3, 1, 2).float() / 255.0
         state = torch.from_numpy((d["state"][t] - self.sm) / self.ss)
         act = torch.from_numpy((d["action"][idx] - self.am) / self.as_)
         pad = torch.from_numpy(np.arange(t, t + self.k) >= n)

@@ -11,6 +11,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
+from labrobfail_vlm.augment import AugmentConfig
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
 from sim_backends.policies.act.checkpoint import save_checkpoint
@@ -128,6 +129,16 @@ def _cached_or_recorded(
     return demos, info
 
 
+def augment_config(section: Any) -> AugmentConfig | None:
+    """train.augment -> the draw's settings, or None when disabled; a bad value is a ConfigError."""
+    if not section.enabled:
+        return None
+    try:
+        return AugmentConfig.from_section(section)
+    except ValueError as e:
+        raise ConfigError(f"train.{e}") from None
+
+
 def train(cfg: DictConfig, family: Any) -> dict[str, Any]:
     import torch
     from torch.utils.data import DataLoader
@@ -164,7 +175,7 @@ def train(cfg: DictConfig, family: Any) -> dict[str, Any]:
         else get_constant_schedule_with_warmup(opt, warmup)
     )
     loader = DataLoader(
-        DemoDataset(demos, model_cfg),
+        DemoDataset(demos, model_cfg, augment_config(t.augment), int(t.seed)),
         batch_size=int(t.batch_size),
         shuffle=True,
         drop_last=True,
