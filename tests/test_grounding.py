@@ -223,3 +223,72 @@ def test_resuming_a_run_made_without_grounding_is_one_line(tiny, small_ds, tmp_p
     r = subprocess.run([*common, "max_steps=2", "resume=true"], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith("error: resume:") and "grounding.weight=0" in r.stderr
+
+
+def test_a_run_killed_in_stage_a_resumes_and_ends_as_an_uninterrupted_one(tiny, small_ds, tmp_path):  # noqa: F811
+    import shutil
+    import time
+
+    from safetensors.torch import load_file
+
+    from labrobfail_vlm.train.grounding import stage_a_state
+
+    def cmd(out, *extra):
+        return [
+            sys.executable,
+            "train.py",
+            "preset=tiny",
+            "tower=scratch",
+            f"model.path={tiny}",
+            f"dataset_dir={small_ds}",
+            f"output_dir={out}",
+            "global_batch=2",
+            "per_device_batch=2",
+            "max_steps=1",
+            "grounding.weight=1.0",
+            "grounding.pretrain_epochs=6",
+            "augment.enabled=true",  # its generator is part of what a resume restores
+            "wandb.enabled=false",
+            "progress=false",
+            *extra,
+        ]
+
+    r = subprocess.run(cmd(tmp_path / "full"), cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    full = json.loads((tmp_path / "full" / "train_summary.json").read_text())
+    assert "resumed_at_epoch" not in full["grounding_pretrain"]
+    assert [d.name for d in (tmp_path / "full" / "stage_a").iterdir()] == ["epoch-6"]  # older epochs removed
+    # the same run, killed once stage A has saved an epoch
+    out = tmp_path / "killed"
+    p = subprocess.Popen(cmd(out), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        while stage_a_state(out) is None and p.poll() is None:
+            time.sleep(0.05)
+    finally:
+        p.kill()
+        p.wait()
+    at = stage_a_state(out)
+    assert at is not None and not (out / "train_summary.json").exists()
+    done = int(at.name.split("-")[1])
+    assert 1 <= done < 6
+    r = subprocess.run(cmd(out, "resume=true"), cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    again = json.loads((out / "train_summary.json").read_text())
+    assert again["grounding_pretrain"]["resumed_at_epoch"] >= done
+    for k in ("first_epoch_loss", "last_epoch_loss"):
+        assert again["grounding_pretrain"][k] == full["grounding_pretrain"][k]
+    assert again["first_loss"] == full["first_loss"]
+    a, b = (load_file(str(d / "final" / "model.safetensors")) for d in (tmp_path / "full", out))
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    # a stage A of another length is not resumed silently
+    other = tmp_path / "other"
+    shutil.copytree(tmp_path / "full" / "stage_a", other / "stage_a")
+    r = subprocess.run(
+        [*cmd(other, "resume=true"), "grounding.pretrain_epochs=3"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith("error: resume:") and "6 epochs" in r.stderr

@@ -6,7 +6,7 @@ Run as:
     python train.py model.path=/models/Qwen3-VL-8B-Instruct dataset_dir=outputs/dataset output_dir=outputs/run
     python train.py preset=frozen_vision ...          # ablations: full | frozen_vision | no_index
     deepspeed --num_gpus 2 train.py deepspeed=configs/ds_zero3.json model.path=... dataset_dir=... output_dir=...
-    python train.py ... resume=true                   # continue from the newest checkpoint in output_dir
+    python train.py ... resume=true                   # continue from the newest checkpoint (or stage-A epoch)
 
 Defaults and presets: configs/train.yaml. Checkpoints: labrobfail_vlm/train/checkpoint.py.
 """
@@ -241,13 +241,19 @@ def run(cfg: Any) -> dict[str, Any]:
         callbacks=callbacks,
     )
     resume = None
+    resume_stage_a = False
     if cfg.resume is True:
+        from labrobfail_vlm.train.grounding import stage_a_state
+
         last, partial = last_complete_checkpoint(cfg.output_dir)
         for d in partial:  # a kill while saving: the run resumes from the checkpoint before it
             print(f"resume: skipping {d} (incompletely written)", file=sys.stderr, flush=True)
-        if last is None:
+        if last is not None:
+            resume = str(last)
+        elif pre_epochs and stage_a_state(cfg.output_dir) is not None:  # killed in stage A (or before checkpoint-1)
+            resume_stage_a = True
+        else:
             raise ConfigError(f"resume: no complete checkpoint-N in {cfg.output_dir}")
-        resume = str(last)
     elif isinstance(cfg.resume, str):
         if not Path(cfg.resume).is_dir():
             raise ConfigError(f"resume: no such checkpoint {cfg.resume!r}")
@@ -273,6 +279,9 @@ def run(cfg: Any) -> dict[str, Any]:
             float(cfg.grounding.lr),
             float(cfg.grounding.rank),
             bool(cfg.progress),
+            state_dir=Path(cfg.output_dir),
+            resume=resume_stage_a,
+            augment_rng=getattr(getattr(trainer.data_collator, "augment", None), "rng", None),
         )
         pre |= {
             "epochs": pre_epochs,

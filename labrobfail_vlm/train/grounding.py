@@ -234,13 +234,65 @@ def load_head(head: _CellHead, ckpt: Path) -> bool:
     return True
 
 
+STAGE_A_DIR = "stage_a"  # under output_dir: epoch-N/ after each stage-A epoch (the newest complete one kept)
+
+
+def _stage_a_latest(root: Path) -> Path | None:
+    """The newest complete stage-A state under `root` (its state.json is written last)."""
+    done = [d for d in root.glob("epoch-*") if (d / "state.json").is_file() and d.name[6:].isdigit()]
+    return max(done, key=lambda d: int(d.name[6:])) if done else None
+
+
+def stage_a_state(output_dir: str | Path) -> Path | None:
+    """Where a killed stage A left off, or None (train.py resume=true goes on from it)."""
+    return _stage_a_latest(Path(output_dir) / STAGE_A_DIR)
+
+
+def _save_stage_a(root: Path, epoch: int, vm: nn.Module, head: nn.Module, opt: Any, sched: Any, meta: dict) -> None:
+    """One epoch's state, complete only once state.json lands; then older epochs go. Weights as safetensors;
+    the optimizer, schedule and torch RNG as plain tensors and numbers (read back with weights_only=True)."""
+    import shutil
+
+    from safetensors.torch import save_file
+
+    from labrobfail_vlm.io import atomic_write_json
+
+    d = root / f"epoch-{epoch}"
+    shutil.rmtree(d, ignore_errors=True)
+    d.mkdir(parents=True)
+    save_file({k: v.detach().cpu().contiguous() for k, v in vm.state_dict().items()}, str(d / "tower.safetensors"))
+    save_head(head, d)
+    torch.save({"opt": opt.state_dict(), "sched": sched.state_dict(), "rng": torch.get_rng_state()}, d / "optim.pt")
+    atomic_write_json(d / "state.json", meta)
+    for old in root.glob("epoch-*"):
+        if old != d:
+            shutil.rmtree(old, ignore_errors=True)
+
+
 def pretrain(
-    model: nn.Module, head: _CellHead, batches: Any, epochs: int, lr: float, rank: float = 1.0, progress: bool = True
+    model: nn.Module,
+    head: _CellHead,
+    batches: Any,
+    epochs: int,
+    lr: float,
+    rank: float = 1.0,
+    progress: bool = True,
+    state_dir: Path | None = None,
+    resume: bool = False,
+    augment_rng: Any = None,
 ) -> dict[str, float]:
     """Stage A: the vision tower (and its merger) with the head on the frame targets alone, `epochs` passes over
     `batches` (the training dataloader: collated batches with pixel_values, image_grid_thw, frame_target,
     pair_group), one AdamW at the head's rate `lr` with a linear warm-up and cosine decay (the VQA stage that
-    follows keeps its own per-group rates). Returns the mean grounding loss of the first and the last epoch."""
+    follows keeps its own per-group rates). Returns the mean grounding loss of the first and the last epoch.
+
+    With `state_dir`, the state after each epoch is saved there (STAGE_A_DIR/epoch-N); with `resume`, the run goes
+    on after the newest one: weights, optimizer, schedule, the torch RNG, the data order (the dataloader's epoch)
+    and the grid augmentation's generator (`augment_rng`), so a killed run ends as an uninterrupted one would."""
+    import json
+
+    import numpy as np
+    from safetensors.torch import load_file
     from tqdm.auto import tqdm
     from transformers import get_cosine_schedule_with_warmup
 
@@ -249,11 +301,32 @@ def pretrain(
     opt = torch.optim.AdamW(params, lr=float(lr))
     total = int(epochs) * len(batches)
     sched = get_cosine_schedule_with_warmup(opt, max(1, total // 10), total)
+    means: list[float] = []
+    start = 0
+    root = Path(state_dir) / STAGE_A_DIR if state_dir is not None else None
+    last = _stage_a_latest(root) if root is not None and resume else None
+    if last is not None:
+        meta = json.loads((last / "state.json").read_text())
+        if meta["epochs"] != int(epochs) or meta["batches"] != len(batches):
+            raise ConfigError(
+                f"resume: {last} is from a stage A of {meta['epochs']} epochs x {meta['batches']} batches, not "
+                f"{int(epochs)} x {len(batches)}; rerun without resume=true to start over"
+            )
+        vm.load_state_dict(load_file(str(last / "tower.safetensors")))
+        load_head(head, last)
+        state = torch.load(last / "optim.pt", weights_only=True)
+        opt.load_state_dict(state["opt"])
+        sched.load_state_dict(state["sched"])
+        torch.set_rng_state(state["rng"])
+        if augment_rng is not None and meta.get("augment_rng") is not None:
+            augment_rng.bit_generator.state = meta["augment_rng"]
+        start, means = int(meta["epoch"]), list(meta["means"])
+        if hasattr(batches, "iteration"):  # accelerate's loader: its pass count is the sampler's epoch
+            batches.iteration = start
     was = vm.training
     vm.train()
-    means: list[float] = []
-    bar = tqdm(total=total, desc="grounding pre-training", disable=not progress)
-    for _ in range(int(epochs)):
+    bar = tqdm(total=total, initial=start * len(batches), desc="grounding pre-training", disable=not progress)
+    for epoch in range(start, int(epochs)):
         losses = []
         for b in batches:
             tokens = merged_tokens(vm(b["pixel_values"], grid_thw=b["image_grid_thw"]))
@@ -267,6 +340,13 @@ def pretrain(
             bar.update(1)
             bar.set_postfix(loss=f"{losses[-1]:.3f}")
         means.append(sum(losses) / max(1, len(losses)))
+        if root is not None:
+            rng_state = augment_rng.bit_generator.state if isinstance(augment_rng, np.random.Generator) else None
+            meta = {"epoch": epoch + 1, "epochs": int(epochs), "batches": len(batches), "means": means}
+            _save_stage_a(root, epoch + 1, vm, head, opt, sched, meta | {"augment_rng": rng_state})
     bar.close()
     vm.train(was)
-    return {"first_epoch_loss": round(means[0], 4), "last_epoch_loss": round(means[-1], 4)} if means else {}
+    if not means:
+        return {}
+    out = {"first_epoch_loss": round(means[0], 4), "last_epoch_loss": round(means[-1], 4)}
+    return out | ({"resumed_at_epoch": start} if start else {})
