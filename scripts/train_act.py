@@ -4,6 +4,7 @@ Run as:
     python scripts/train_act.py task=pick demos=50 out_dir=outputs/act/pick
     python scripts/train_act.py task=pour demos=50 train.max_minutes=45 out_dir=outputs/act/pour
     python scripts/train_act.py task=pick demos=4 train.steps=20 out_dir=/tmp/act   # a smoke run
+    python scripts/train_act.py ... resume=true   # after a kill: on from the newest checkpoints/step-N
 
 Writes out_dir/demos.npz (reused by a rerun with the same recording settings), out_dir/final/
 (model.safetensors + act.json: the checkpoint scripts/supervise.py's policy=act and serve_policy.py load),
@@ -36,6 +37,8 @@ def main(argv: list[str]) -> int:
         raise ConfigError(f"train.schedule: expected constant or cosine, got {cfg.train.schedule!r}")
     if not is_int(cfg.train.warmup, 0):
         raise ConfigError(f"train.warmup: a number of steps >= 0, not {cfg.train.warmup!r}")
+    if not isinstance(cfg.resume, bool):
+        raise ConfigError(f"resume: true or false, not {cfg.resume!r}")
     augment_config(cfg.train.augment)  # a bad value fails here, not after the demonstrations are recorded
     if cfg.backend not in available_backends():
         raise ConfigError(f"backend: unknown backend {cfg.backend!r}; available: {', '.join(available_backends())}")

@@ -287,6 +287,64 @@ def _clean_and_drifted(task: str, seed: int, **drift: float):
     return clean, noisy
 
 
+def test_a_killed_act_training_resumes_and_ends_as_an_uninterrupted_one(tmp_path):
+    """Killed mid-epoch, `resume=true` goes on from the newest checkpoint with the same data order, augmentation
+    draws and RNG: the final weights are the uninterrupted run's, bit for bit."""
+    import shutil
+    import time
+
+    from safetensors.torch import load_file
+
+    from sim_backends.policies.act.checkpoint import OPTIM, TRAIN_STATE, last_progress
+
+    toy = [f"model.{k}={json.dumps(v).replace(' ', '')}" for k, v in TOY.items()]
+    args = [
+        *("task=pick_place_bottle", "demos=1", "train.steps=300", "train.batch_size=4", "train.save_every=10"),
+        *("train.threads=1", "train.schedule=cosine", "train.augment.enabled=true", "progress=false", *toy),
+    ]
+
+    def cmd(out, *extra):
+        return [sys.executable, "scripts/train_act.py", *args, f"out_dir={out}", *extra]
+
+    full, cut = tmp_path / "full", tmp_path / "cut"
+    r = subprocess.run(cmd(full), cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert "resumed_at_step" not in json.loads(r.stdout.strip().splitlines()[-1])
+    steps = sorted(full.glob("checkpoints/step-*"), key=lambda d: int(d.name.split("-")[1]))
+    assert [d for d in steps if (d / TRAIN_STATE).is_file()] == [full / "checkpoints" / "step-300"]
+    assert all((d / "model.safetensors").is_file() and not (d / OPTIM).exists() for d in steps[:-1])
+    cut.mkdir()
+    shutil.copy(full / "demos.npz", cut / "demos.npz")  # the same demonstration, not recorded again
+    p = subprocess.Popen(cmd(cut), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def reached() -> int:
+        last = last_progress(cut / "checkpoints")
+        return int(last.name.split("-")[1]) if last else 0
+
+    try:  # killed past its first epoch, where the data order and augmentation draws are no longer the seed's
+        while reached() < 100 and p.poll() is None:
+            time.sleep(0.02)
+    finally:
+        p.kill()
+        p.wait()
+    at = last_progress(cut / "checkpoints")
+    assert at is not None and not (cut / "final").exists()
+    assert json.loads((at / TRAIN_STATE).read_text())["batch"] < reached(), "killed in the first epoch"
+    r = subprocess.run(cmd(cut, "resume=true"), cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout.strip().splitlines()[-1])
+    assert summary["steps"] == 300 and summary["resumed_at_step"] >= int(at.name.split("-")[1])
+    a, b = (load_file(str(d / "final" / "model.safetensors")) for d in (full, cut))
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    # other settings are not resumed silently, and a run with nothing to resume says so
+    for extra, what in ((["train.lr=0.5"], "other settings"), ([f"out_dir={tmp_path / 'none'}"], "no complete")):
+        if "out_dir" in extra[0]:
+            shutil.copytree(cut, tmp_path / "none", ignore=shutil.ignore_patterns("checkpoints"))
+        r = subprocess.run([*cmd(cut, "resume=true"), *extra], cwd=ROOT, capture_output=True, text=True, timeout=600)
+        assert r.returncode == 2 and "Traceback" not in r.stderr
+        assert r.stderr.strip().splitlines()[-1].startswith("error: resume:") and what in r.stderr
+
+
 def test_dart_demonstrations_drift_off_the_line_and_are_labelled_back_onto_it():
     """With `noise`, free moves of the open hand end off their keyframe, the recorded actions stay on the plan's
     line and the grasp is still made where the plan makes it; the same seed gives the same demonstration."""

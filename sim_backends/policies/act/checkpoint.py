@@ -1,4 +1,9 @@
-"""ACT checkpoints: `model.safetensors` (weights) + `act.json` (ACTConfig with the demos' statistics)."""
+"""ACT checkpoints: `model.safetensors` (weights) + `act.json` (ACTConfig with the demos' statistics).
+
+A training checkpoint (checkpoints/step-N) also holds what a resumed run needs to go on as if never stopped:
+`optim.pt` (optimizer, schedule, torch RNG, the data order's generator at the start of the epoch; plain tensors,
+read back with weights_only=True) and `train_state.json` (written last: a checkpoint without it is incomplete).
+"""
 
 from __future__ import annotations
 
@@ -9,6 +14,7 @@ from typing import Any
 from sim_backends.policies.act.configuration_act import ACTConfig
 
 WEIGHTS, CONFIG = "model.safetensors", "act.json"
+OPTIM, TRAIN_STATE = "optim.pt", "train_state.json"
 
 
 def save_checkpoint(model: Any, cfg: ACTConfig, out: str | Path) -> Path:
@@ -45,3 +51,37 @@ def load_checkpoint(path: str | Path, device: str = "cpu", key: str = "act.check
     if not cfg.stats:
         raise ValueError(f"{key}: {p / CONFIG} has no normalisation statistics")
     return model.to(device).eval(), cfg
+
+
+def save_progress(model: Any, cfg: ACTConfig, out: Path, tensors: dict[str, Any], state: dict[str, Any]) -> None:
+    """A training checkpoint: the weights and config, `tensors` (optim.pt), then `state` (train_state.json)."""
+    import torch
+
+    from labrobfail_vlm.io import atomic_write_json
+
+    save_checkpoint(model, cfg, out)
+    tmp = out / (OPTIM + ".tmp")
+    torch.save(tensors, tmp)
+    os.replace(tmp, out / OPTIM)
+    atomic_write_json(out / TRAIN_STATE, state)
+    for old in out.parent.glob("step-*"):  # earlier steps stay policy checkpoints; only the newest resumes
+        if old != out:
+            for f in (TRAIN_STATE, OPTIM):
+                (old / f).unlink(missing_ok=True)
+
+
+def last_progress(root: Path) -> Path | None:
+    """The newest complete training checkpoint under `root` (checkpoints/), or None."""
+    done = [d for d in root.glob("step-*") if d.name[5:].isdigit() and (d / TRAIN_STATE).is_file()]
+    return max(done, key=lambda d: int(d.name[5:])) if done else None
+
+
+def load_progress(model: Any, path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Loads a training checkpoint's weights into `model`; returns its tensors (optim.pt) and state."""
+    import json
+
+    import torch
+    from safetensors.torch import load_file
+
+    model.load_state_dict(load_file(str(path / WEIGHTS)))
+    return torch.load(path / OPTIM, weights_only=True), json.loads((path / TRAIN_STATE).read_text())

@@ -14,7 +14,7 @@ from tqdm import tqdm
 from labrobfail_vlm.augment import AugmentConfig
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
-from sim_backends.policies.act.checkpoint import save_checkpoint
+from sim_backends.policies.act.checkpoint import last_progress, load_progress, save_checkpoint, save_progress
 from sim_backends.policies.act.configuration_act import ACTConfig
 from sim_backends.policies.act.data import DemoDataset, normalisation, record_demo
 from sim_backends.types import WRIST
@@ -129,6 +129,9 @@ def _cached_or_recorded(
     return demos, info
 
 
+RESUME_FREE = ("max_minutes", "save_every", "log_every", "threads")  # train settings a resumed run may change
+
+
 def augment_config(section: Any) -> AugmentConfig | None:
     """train.augment -> the draw's settings, or None when disabled; a bad value is a ConfigError."""
     if not section.enabled:
@@ -174,19 +177,37 @@ def train(cfg: DictConfig, family: Any) -> dict[str, Any]:
         if t.schedule == "cosine"
         else get_constant_schedule_with_warmup(opt, warmup)
     )
-    loader = DataLoader(
-        DemoDataset(demos, model_cfg, augment_config(t.augment), int(t.seed)),
-        batch_size=int(t.batch_size),
-        shuffle=True,
-        drop_last=True,
-        generator=torch.Generator().manual_seed(int(t.seed)),
-    )
+    data = DemoDataset(demos, model_cfg, augment_config(t.augment), int(t.seed))
+    order = torch.Generator().manual_seed(int(t.seed))  # the loader's shuffles, one draw per epoch
+    loader = DataLoader(data, batch_size=int(t.batch_size), shuffle=True, drop_last=True, generator=order)
     curve: list[dict[str, float]] = []
-    step, t0, budget = 0, time.perf_counter(), float(t.max_minutes) * 60
-    bar = tqdm(total=int(t.steps), desc="train", unit="step", disable=not cfg.progress)
+    step, done_s, skip, rng_after = 0, 0.0, 0, None
+    same = {k: v for k, v in OmegaConf.to_container(t, resolve=True).items() if k not in RESUME_FREE}  # type: ignore[union-attr]
+    if cfg.resume:
+        last = last_progress(out / "checkpoints")
+        if last is None:
+            raise ConfigError(f"resume: no complete checkpoint under {out / 'checkpoints'}")
+        tensors, saved = load_progress(model, last)
+        if saved["train"] != same or saved["model"] != model_cfg.to_dict():
+            raise ConfigError(f"resume: {last} was trained with other settings; rerun without resume=true")
+        opt.load_state_dict(tensors["opt"])
+        sched.load_state_dict(tensors["sched"])
+        order.set_state(tensors["order"])  # the epoch's shuffle, then its first batches skipped (loaded, not used)
+        data.rng.bit_generator.state = saved["augment_rng"]
+        step, done_s, skip, curve = saved["step"], saved["seconds"], saved["batch"], saved["curve"]
+        rng_after = tensors["rng"]
+    step0 = step
+    t0, budget = time.perf_counter() - done_s, float(t.max_minutes) * 60
+    bar = tqdm(total=int(t.steps), initial=step, desc="train", unit="step", disable=not cfg.progress)
     model.train()
     while step < int(t.steps) and time.perf_counter() - t0 < budget:
-        for images, state, actions, pad in loader:
+        at_epoch = {"order": order.get_state(), "augment_rng": data.rng.bit_generator.state}
+        for batch, (images, state, actions, pad) in enumerate(loader, 1):
+            if skip:
+                skip -= 1
+                if not skip:
+                    torch.set_rng_state(rng_after)  # dropout and the CVAE draws go on as they would have
+                continue
             loss, parts = model.loss(images, state, actions, pad)
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -198,7 +219,22 @@ def train(cfg: DictConfig, family: Any) -> dict[str, Any]:
             if step % int(t.log_every) == 0 or step == 1:
                 curve.append({"step": step, "minutes": round((time.perf_counter() - t0) / 60, 3), "lr": lr} | parts)
             if step % int(t.save_every) == 0:
-                save_checkpoint(model, model_cfg, out / "checkpoints" / f"step-{step}")
+                save_progress(
+                    model,
+                    model_cfg,
+                    out / "checkpoints" / f"step-{step}",
+                    {"opt": opt.state_dict(), "sched": sched.state_dict(), "rng": torch.get_rng_state()}
+                    | {"order": at_epoch["order"]},
+                    {
+                        "step": step,
+                        "batch": batch,
+                        "seconds": time.perf_counter() - t0,
+                        "augment_rng": at_epoch["augment_rng"],
+                        "curve": curve,
+                        "train": same,
+                        "model": model_cfg.to_dict(),
+                    },
+                )
             if step >= int(t.steps) or time.perf_counter() - t0 >= budget:
                 break
     bar.close()
@@ -207,6 +243,7 @@ def train(cfg: DictConfig, family: Any) -> dict[str, Any]:
         "task": family.name,
         "demos": info,
         "steps": step,
+        **({"resumed_at_step": step0} if step0 else {}),
         "train_minutes": round((time.perf_counter() - t0) / 60, 2),
         "samples": step * int(t.batch_size),
         "parameters": sum(p.numel() for p in model.parameters()),
