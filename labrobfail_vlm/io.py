@@ -1,4 +1,5 @@
-"""Atomic file output (temp file + fsync + rename): a killed run never leaves a half-written file."""
+"""Atomic file output (temp file + fsync + rename): a killed run never leaves a half-written file; the newest
+complete state folder of a resumable run."""
 
 from __future__ import annotations
 
@@ -19,6 +20,13 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
 
 def atomic_write_json(path: Path, obj: Any, indent: int = 1) -> None:
     atomic_write_bytes(Path(path), json.dumps(obj, indent=indent, ensure_ascii=False).encode())
+
+
+def newest_complete(root: Path, prefix: str, marker: str) -> Path | None:
+    """The `prefix-N` folder under `root` with the largest N whose `marker` file exists, or None. A resumable run
+    writes the marker last into each state folder it saves, so a folder without it was cut short."""
+    done = [d for d in Path(root).glob(f"{prefix}-*") if d.name[len(prefix) + 1 :].isdigit() and (d / marker).is_file()]
+    return max(done, key=lambda d: int(d.name[len(prefix) + 1 :])) if done else None
 
 
 def save_figure(fig: Any, path: Path, dpi: int = 110) -> None:

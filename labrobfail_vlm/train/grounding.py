@@ -237,15 +237,11 @@ def load_head(head: _CellHead, ckpt: Path) -> bool:
 STAGE_A_DIR = "stage_a"  # under output_dir: epoch-N/ after each stage-A epoch (the newest complete one kept)
 
 
-def _stage_a_latest(root: Path) -> Path | None:
-    """The newest complete stage-A state under `root` (its state.json is written last)."""
-    done = [d for d in root.glob("epoch-*") if (d / "state.json").is_file() and d.name[6:].isdigit()]
-    return max(done, key=lambda d: int(d.name[6:])) if done else None
-
-
 def stage_a_state(output_dir: str | Path) -> Path | None:
     """Where a killed stage A left off, or None (train.py resume=true goes on from it)."""
-    return _stage_a_latest(Path(output_dir) / STAGE_A_DIR)
+    from labrobfail_vlm.io import newest_complete
+
+    return newest_complete(Path(output_dir) / STAGE_A_DIR, "epoch", "state.json")
 
 
 def _save_stage_a(root: Path, epoch: int, vm: nn.Module, head: nn.Module, opt: Any, sched: Any, meta: dict) -> None:
@@ -304,7 +300,7 @@ def pretrain(
     means: list[float] = []
     start = 0
     root = Path(state_dir) / STAGE_A_DIR if state_dir is not None else None
-    last = _stage_a_latest(root) if root is not None and resume else None
+    last = stage_a_state(state_dir) if state_dir is not None and resume else None
     if last is not None:
         meta = json.loads((last / "state.json").read_text())
         if meta["epochs"] != int(epochs) or meta["batches"] != len(batches):

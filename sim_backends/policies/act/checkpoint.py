@@ -72,8 +72,9 @@ def save_progress(model: Any, cfg: ACTConfig, out: Path, tensors: dict[str, Any]
 
 def last_progress(root: Path) -> Path | None:
     """The newest complete training checkpoint under `root` (checkpoints/), or None."""
-    done = [d for d in root.glob("step-*") if d.name[5:].isdigit() and (d / TRAIN_STATE).is_file()]
-    return max(done, key=lambda d: int(d.name[5:])) if done else None
+    from labrobfail_vlm.io import newest_complete
+
+    return newest_complete(root, "step", TRAIN_STATE)
 
 
 def load_progress(model: Any, path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
