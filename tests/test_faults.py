@@ -16,7 +16,7 @@ import pytest
 from conftest import ROOT, free_port
 from serve_fixtures import grids, mixed_model  # noqa: F401  (fixtures)
 from test_serve import Server
-from test_train import small_ds, tiny  # noqa: F401  (session fixtures)
+from test_train import small_ds, tiny, tiny_train  # noqa: F401  (session fixtures)
 
 pytestmark = pytest.mark.slow
 
@@ -31,24 +31,12 @@ def _wait_for(path, proc, timeout_s=300):
 
 def test_training_killed_mid_run_resumes_to_the_final_step_and_evaluates(tiny, small_ds, tmp_path):  # noqa: F811
     out = tmp_path / "run"
-    common = [
-        sys.executable,
-        "train.py",
-        "preset=tiny",
-        "tower=scratch",
-        f"model.path={tiny}",
-        f"dataset_dir={small_ds}",
-        f"output_dir={out}",
-        "global_batch=2",
-        "per_device_batch=2",
-        "grounding.pretrain_epochs=0",
-        "save_steps=2",
-        "save_total_limit=null",
-        "logging_steps=1",
-        "max_steps=8",
-        "wandb.enabled=false",
-        "progress=false",
-    ]
+    common = tiny_train(
+        tiny,
+        small_ds,
+        out,
+        *("grounding.pretrain_epochs=0", "save_steps=2", "save_total_limit=null", "logging_steps=1", "max_steps=8"),
+    )
     proc = subprocess.Popen(common, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         _wait_for(out / "checkpoint-2" / "trainer_state.json", proc)

@@ -7,7 +7,7 @@ import sys
 import pytest
 import torch
 from conftest import ROOT
-from test_train import small_ds, tiny  # noqa: F401  (session fixtures)
+from test_train import small_ds, tiny, tiny_train  # noqa: F401  (session fixtures)
 
 
 def test_frame_targets_follow_the_failure_frame_and_the_shown_cells():
@@ -72,22 +72,7 @@ def test_head_reads_each_time_step_from_its_own_cells(kind):
 
 def test_training_with_grounding_logs_saves_and_resumes(tiny, small_ds, tmp_path):  # noqa: F811
     out = tmp_path / "g"
-    common = [
-        sys.executable,
-        "train.py",
-        "preset=tiny",
-        "tower=scratch",
-        f"model.path={tiny}",
-        f"dataset_dir={small_ds}",
-        f"output_dir={out}",
-        "global_batch=2",
-        "per_device_batch=2",
-        "grounding.weight=1.0",
-        "save_steps=2",
-        "logging_steps=1",
-        "wandb.enabled=false",
-        "progress=false",
-    ]
+    common = tiny_train(tiny, small_ds, out, "grounding.weight=1.0", "save_steps=2", "logging_steps=1")
     r = subprocess.run(
         [*common, "max_steps=2", "grounding.pretrain_epochs=1"], cwd=ROOT, capture_output=True, text=True, timeout=600
     )
@@ -234,24 +219,16 @@ def test_a_run_killed_in_stage_a_resumes_and_ends_as_an_uninterrupted_one(tiny, 
     from labrobfail_vlm.train.grounding import stage_a_state
 
     def cmd(out, *extra):
-        return [
-            sys.executable,
-            "train.py",
-            "preset=tiny",
-            "tower=scratch",
-            f"model.path={tiny}",
-            f"dataset_dir={small_ds}",
-            f"output_dir={out}",
-            "global_batch=2",
-            "per_device_batch=2",
+        return tiny_train(
+            tiny,
+            small_ds,
+            out,
             "max_steps=1",
             "grounding.weight=1.0",
             "grounding.pretrain_epochs=6",
             "augment.enabled=true",  # its generator is part of what a resume restores
-            "wandb.enabled=false",
-            "progress=false",
             *extra,
-        ]
+        )
 
     r = subprocess.run(cmd(tmp_path / "full"), cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]

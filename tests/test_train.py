@@ -14,6 +14,24 @@ from conftest import ROOT, free_port
 SMALL_GRID = ["grid.width=256", "grid.height=128", "grid.max_frames=8", "grid.columns=4"]
 
 
+def tiny_train(tiny, ds, out, *extra: str) -> list[str]:
+    """train.py on the tiny model from a scratch tower, batches of 2, no wandb or progress bars; `extra` wins."""
+    return [
+        sys.executable,
+        "train.py",
+        "preset=tiny",
+        "tower=scratch",
+        f"model.path={tiny}",
+        f"dataset_dir={ds}",
+        f"output_dir={out}",
+        "global_batch=2",
+        "per_device_batch=2",
+        "wandb.enabled=false",
+        "progress=false",
+        *extra,
+    ]
+
+
 @pytest.fixture(scope="session")
 def tiny(tmp_path_factory):
     from labrobfail_vlm.model.tiny import build_tiny
