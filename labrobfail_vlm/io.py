@@ -1,5 +1,5 @@
-"""Atomic file output (temp file + fsync + rename): a killed run never leaves a half-written file; the newest
-complete state folder of a resumable run."""
+"""Atomic file output (temp file + fsync + rename): a killed run never leaves a half-written file; the resume points
+of a resumable run (what they hold beside the weights, and the newest complete one)."""
 
 from __future__ import annotations
 
@@ -27,6 +27,25 @@ def newest_complete(root: Path, prefix: str, marker: str) -> Path | None:
     writes the marker last into each state folder it saves, so a folder without it was cut short."""
     done = [d for d in Path(root).glob(f"{prefix}-*") if d.name[len(prefix) + 1 :].isdigit() and (d / marker).is_file()]
     return max(done, key=lambda d: int(d.name[len(prefix) + 1 :])) if done else None
+
+
+RESUME_TENSORS = "optim.pt"  # beside a resumable run's weights: optimizer, schedule, RNG states (plain tensors)
+
+
+def save_resume_state(folder: Path, tensors: dict[str, Any], state: dict[str, Any], marker: str) -> None:
+    """The rest of a resume point whose weights are already in `folder`: `tensors` (optim.pt), then `state` as the
+    JSON `marker`, written last, so `newest_complete` never picks a folder a kill cut short."""
+    import torch
+
+    torch.save(tensors, folder / RESUME_TENSORS)
+    atomic_write_json(folder / marker, state)
+
+
+def load_resume_state(folder: Path, marker: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """What `save_resume_state` wrote: the tensors (read with weights_only=True, so no pickled code runs) and state."""
+    import torch
+
+    return torch.load(folder / RESUME_TENSORS, weights_only=True), json.loads((folder / marker).read_text())
 
 
 def save_figure(fig: Any, path: Path, dpi: int = 110) -> None:

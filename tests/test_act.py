@@ -295,7 +295,8 @@ def test_a_killed_act_training_resumes_and_ends_as_an_uninterrupted_one(tmp_path
 
     from safetensors.torch import load_file
 
-    from sim_backends.policies.act.checkpoint import OPTIM, TRAIN_STATE, last_progress
+    from labrobfail_vlm.io import RESUME_TENSORS as OPTIM
+    from sim_backends.policies.act.checkpoint import TRAIN_STATE, last_progress
 
     toy = [f"model.{k}={json.dumps(v).replace(' ', '')}" for k, v in TOY.items()]
     args = [

@@ -235,31 +235,32 @@ def load_head(head: _CellHead, ckpt: Path) -> bool:
 
 
 STAGE_A_DIR = "stage_a"  # under output_dir: epoch-N/ after each stage-A epoch (the newest complete one kept)
+STAGE_A_STATE = "state.json"  # written last into epoch-N
 
 
 def stage_a_state(output_dir: str | Path) -> Path | None:
     """Where a killed stage A left off, or None (train.py resume=true goes on from it)."""
     from labrobfail_vlm.io import newest_complete
 
-    return newest_complete(Path(output_dir) / STAGE_A_DIR, "epoch", "state.json")
+    return newest_complete(Path(output_dir) / STAGE_A_DIR, "epoch", STAGE_A_STATE)
 
 
 def _save_stage_a(root: Path, epoch: int, vm: nn.Module, head: nn.Module, opt: Any, sched: Any, meta: dict) -> None:
-    """One epoch's state, complete only once state.json lands; then older epochs go. Weights as safetensors;
-    the optimizer, schedule and torch RNG as plain tensors and numbers (read back with weights_only=True)."""
+    """One epoch's state, complete only once its state.json lands; then older epochs go. Weights as safetensors,
+    the optimizer, schedule and torch RNG beside them (labrobfail_vlm.io.save_resume_state)."""
     import shutil
 
     from safetensors.torch import save_file
 
-    from labrobfail_vlm.io import atomic_write_json
+    from labrobfail_vlm.io import save_resume_state
 
     d = root / f"epoch-{epoch}"
     shutil.rmtree(d, ignore_errors=True)
     d.mkdir(parents=True)
     save_file({k: v.detach().cpu().contiguous() for k, v in vm.state_dict().items()}, str(d / "tower.safetensors"))
     save_head(head, d)
-    torch.save({"opt": opt.state_dict(), "sched": sched.state_dict(), "rng": torch.get_rng_state()}, d / "optim.pt")
-    atomic_write_json(d / "state.json", meta)
+    tensors = {"opt": opt.state_dict(), "sched": sched.state_dict(), "rng": torch.get_rng_state()}
+    save_resume_state(d, tensors, meta, STAGE_A_STATE)
     for old in root.glob("epoch-*"):
         if old != d:
             shutil.rmtree(old, ignore_errors=True)
@@ -285,12 +286,11 @@ def pretrain(
     With `state_dir`, the state after each epoch is saved there (STAGE_A_DIR/epoch-N); with `resume`, the run goes
     on after the newest one: weights, optimizer, schedule, the torch RNG, the data order (the dataloader's epoch)
     and the grid augmentation's generator (`augment_rng`), so a killed run ends as an uninterrupted one would."""
-    import json
-
-    import numpy as np
     from safetensors.torch import load_file
     from tqdm.auto import tqdm
     from transformers import get_cosine_schedule_with_warmup
+
+    from labrobfail_vlm.io import load_resume_state
 
     vm = vision_module(model)
     params = [p for p in vm.parameters() if p.requires_grad] + list(head.parameters())
@@ -302,7 +302,7 @@ def pretrain(
     root = Path(state_dir) / STAGE_A_DIR if state_dir is not None else None
     last = stage_a_state(state_dir) if state_dir is not None and resume else None
     if last is not None:
-        meta = json.loads((last / "state.json").read_text())
+        state, meta = load_resume_state(last, STAGE_A_STATE)
         if meta["epochs"] != int(epochs) or meta["batches"] != len(batches):
             raise ConfigError(
                 f"resume: {last} is from a stage A of {meta['epochs']} epochs x {meta['batches']} batches, not "
@@ -310,7 +310,6 @@ def pretrain(
             )
         vm.load_state_dict(load_file(str(last / "tower.safetensors")))
         load_head(head, last)
-        state = torch.load(last / "optim.pt", weights_only=True)
         opt.load_state_dict(state["opt"])
         sched.load_state_dict(state["sched"])
         torch.set_rng_state(state["rng"])
@@ -337,7 +336,7 @@ def pretrain(
             bar.set_postfix(loss=f"{losses[-1]:.3f}")
         means.append(sum(losses) / max(1, len(losses)))
         if root is not None:
-            rng_state = augment_rng.bit_generator.state if isinstance(augment_rng, np.random.Generator) else None
+            rng_state = augment_rng.bit_generator.state if augment_rng is not None else None
             meta = {"epoch": epoch + 1, "epochs": int(epochs), "batches": len(batches), "means": means}
             _save_stage_a(root, epoch + 1, vm, head, opt, sched, meta | {"augment_rng": rng_state})
     bar.close()

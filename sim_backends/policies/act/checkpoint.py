@@ -14,7 +14,7 @@ from typing import Any
 from sim_backends.policies.act.configuration_act import ACTConfig
 
 WEIGHTS, CONFIG = "model.safetensors", "act.json"
-OPTIM, TRAIN_STATE = "optim.pt", "train_state.json"
+TRAIN_STATE = "train_state.json"  # written last into checkpoints/step-N, beside labrobfail_vlm.io's optim.pt
 
 
 def save_checkpoint(model: Any, cfg: ACTConfig, out: str | Path) -> Path:
@@ -55,18 +55,13 @@ def load_checkpoint(path: str | Path, device: str = "cpu", key: str = "act.check
 
 def save_progress(model: Any, cfg: ACTConfig, out: Path, tensors: dict[str, Any], state: dict[str, Any]) -> None:
     """A training checkpoint: the weights and config, `tensors` (optim.pt), then `state` (train_state.json)."""
-    import torch
-
-    from labrobfail_vlm.io import atomic_write_json
+    from labrobfail_vlm.io import RESUME_TENSORS, save_resume_state
 
     save_checkpoint(model, cfg, out)
-    tmp = out / (OPTIM + ".tmp")
-    torch.save(tensors, tmp)
-    os.replace(tmp, out / OPTIM)
-    atomic_write_json(out / TRAIN_STATE, state)
+    save_resume_state(out, tensors, state, TRAIN_STATE)
     for old in out.parent.glob("step-*"):  # earlier steps stay policy checkpoints; only the newest resumes
         if old != out:
-            for f in (TRAIN_STATE, OPTIM):
+            for f in (TRAIN_STATE, RESUME_TENSORS):
                 (old / f).unlink(missing_ok=True)
 
 
@@ -79,10 +74,9 @@ def last_progress(root: Path) -> Path | None:
 
 def load_progress(model: Any, path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     """Loads a training checkpoint's weights into `model`; returns its tensors (optim.pt) and state."""
-    import json
-
-    import torch
     from safetensors.torch import load_file
 
+    from labrobfail_vlm.io import load_resume_state
+
     model.load_state_dict(load_file(str(path / WEIGHTS)))
-    return torch.load(path / OPTIM, weights_only=True), json.loads((path / TRAIN_STATE).read_text())
+    return load_resume_state(path, TRAIN_STATE)
