@@ -7,6 +7,11 @@ Run as:
 Rows side by side in one run, same batch: hybrid vs full tuning, at the 1536x768 grid (1152 visual tokens)
 and a 768x384 grid (288). Reports samples/s, tokens/s and peak RSS. The GPU row (random weights with the
 real 8B dimensions) runs only where CUDA is available; CI and the CPU machines skip it and say so.
+
+With dataset_dir=DIR (a built dataset), also the frozen-tower recipe of `train.py preset=tiny` (the shipped
+tower) for `epochs` epochs on it, with and without the tower cache (labrobfail_vlm/train/tower_cache.py), one
+after the other in this run: the Trainer loop's seconds and their ratio.
+    python scripts/bench_train.py dataset_dir=outputs/demo_dataset epochs=6
 """
 
 from __future__ import annotations
@@ -23,7 +28,28 @@ DEFAULTS = """
 steps: 6                       # timed optimizer steps per row (after one warm-up step)
 batch: 4                       # samples per step (the same sample repeated)
 out: outputs/bench_train.json  # the JSON result
+dataset_dir: null              # a built dataset: adds the tower-cache rows (real training runs on it)
+epochs: 6                      # epochs of each tower-cache row (make reproduce trains 6)
 """
+
+
+def cache_rows(dataset_dir: str, epochs: int, tmp: Path) -> dict[str, float]:
+    """train.py preset=tiny (frozen shipped tower) on dataset_dir with the tower cache off, then on."""
+    import subprocess
+    import sys
+
+    rows: dict[str, float] = {}
+    for name, mb in (("off", 0), ("on", 4096)):
+        out = tmp / f"cache_{name}"
+        cmd = [sys.executable, "train.py", "preset=tiny", f"dataset_dir={dataset_dir}", f"output_dir={out}"]
+        cmd += [f"epochs={epochs}", f"tower_cache_mb={mb}", "wandb.enabled=false", "progress=false"]
+        cmd += ["save_steps=100000"]  # no checkpoints inside the timed loop
+        subprocess.run(cmd, check=True, capture_output=True, cwd=Path(__file__).resolve().parents[1])
+        summary = json.loads((out / "train_summary.json").read_text())
+        rows[f"train_s_cache_{name}"] = summary["train_s"]
+        rows["train_loss_cache_" + name] = summary["train_loss"]
+    rows["on_over_off"] = round(rows["train_s_cache_on"] / rows["train_s_cache_off"], 3)
+    return rows
 
 
 def step_rate(model, batch, steps: int) -> dict[str, float]:
@@ -46,7 +72,7 @@ def step_rate(model, batch, steps: int) -> dict[str, float]:
 
 def main(argv: list[str]) -> int:
     a = load_config(DEFAULTS, argv)
-    require_ints(a, ("steps", "batch"))
+    require_ints(a, ("steps", "batch", "epochs"))
     import torch
     from PIL import Image
 
@@ -86,6 +112,7 @@ def main(argv: list[str]) -> int:
         "full_over_hybrid_step_ratio_1536": round(
             rows["tiny_full_1536x768"]["step_s"] / rows["tiny_hybrid_1536x768"]["step_s"], 3
         ),
+        **({"tower_cache": cache_rows(str(a.dataset_dir), int(a.epochs), tmp)} if a.dataset_dir else {}),
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
         "gpu": "not measured: no CUDA device on this machine (the device tool lent none to this task)"
         if not torch.cuda.is_available()

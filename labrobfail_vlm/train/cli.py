@@ -107,6 +107,9 @@ def run(cfg: Any) -> dict[str, Any]:
     for key in ("weight", "rank", "lr", "pretrain_epochs"):
         if float(cfg.grounding[key]) < 0:
             raise ConfigError(f"grounding.{key}: must be >= 0, got {cfg.grounding[key]}")
+    mb = cfg.tower_cache_mb
+    if isinstance(mb, bool) or not isinstance(mb, (int, float)) or mb < 0:
+        raise ConfigError(f"tower_cache_mb: expected a number of MB >= 0 (0: off), got {mb!r}")
     from labrobfail_vlm.train.grounding import check_head
 
     check_head(str(cfg.grounding.head))  # before the model loads
@@ -203,6 +206,11 @@ def run(cfg: Any) -> dict[str, Any]:
     model = apply_tuning(model, str(cfg.tuning), dict(cfg.lora))
     freeze_zero_lr(model, dict(cfg.lr))
     counts = count_trainable(model)
+    cache = None
+    if not cfg.augment.enabled:  # an augmented grid is new every time: nothing to reuse
+        from labrobfail_vlm.train.tower_cache import cache_frozen_tower
+
+        cache = cache_frozen_tower(model, float(cfg.tower_cache_mb))
     if args.process_index == 0:
         print(json.dumps({"trainable_parameters": counts, "tuning": cfg.tuning, "preset": cfg.preset}), flush=True)
     # packing: a trajectory's records share one row and one image encoding (labrobfail_vlm/train/packing.py);
@@ -296,11 +304,13 @@ def run(cfg: Any) -> dict[str, Any]:
     summary = {
         "global_step": trainer.state.global_step,
         "train_loss": result.training_loss,
+        "train_s": round(float(result.metrics.get("train_runtime", 0.0)), 1),  # the Trainer's loop, wall clock
         "first_loss": losses[0] if losses else None,
         "last_loss": losses[-1] if losses else None,
         "trainable_parameters": counts,
         **({"grounding_pretrain": pre} if pre else {}),
         **({"tower": tower_info} if tower_info else {}),
+        **({"tower_cache": cache.stats()} if cache is not None else {}),
     }
     if args.process_index == 0:
         atomic_write_json(Path(cfg.output_dir) / "train_summary.json", summary)

@@ -1,0 +1,82 @@
+"""Encode each training grid once when the vision tower is frozen.
+
+With the tower and merger frozen (`tower=shipped`: `lr.vision=0 lr.merger=0`) the tower is a fixed function of
+the pixels, yet the Trainer runs it again on every grid in every epoch; in the tiny recipe that forward pass is
+about half of each training step (docs/EXPERIMENTS.md, 2026-11-27 "Encoding each grid once ..."). `TowerCache`
+takes the place of the tower's `forward`: each image's output (the merged tokens and any DeepStack features) is
+kept under a digest of its patches and grid size and served again on the next epoch.
+
+Why per image, and why by content:
+- A miss is encoded alone, never beside the other images of its batch, so a stored value does not depend on
+  which images happened to share a batch: a resumed run, or one with another batch size, reads the same numbers.
+- The key is the pixels themselves, so a stale value cannot be served: an augmented grid is simply a miss.
+- The tower has no dropout (Qwen3-VL's vision attention runs at p = 0), so train and eval mode give one output.
+Memory is bounded by `max_mb`; once full, further images are encoded every time as before.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Any
+
+import torch
+from torch import nn
+
+
+class TowerCache:
+    """Replaces `visual.forward` on one frozen Qwen3-VL vision tower (see the module docstring)."""
+
+    def __init__(self, visual: nn.Module, max_mb: float):
+        if any(p.requires_grad for p in visual.parameters()):
+            raise ValueError("TowerCache: the vision tower trains; its outputs change every step")
+        self.visual, self.encode = visual, visual.forward  # the bound original, decorators included
+        self.max_bytes, self.bytes = int(max_mb * 2**20), 0
+        self.store: dict[bytes, tuple[torch.Tensor, list[torch.Tensor]]] = {}
+        self.hits = self.misses = 0
+        visual.forward = self  # an instance attribute: nn.Module.__call__ (and its hooks) now call this
+
+    def stats(self) -> dict[str, float]:
+        return {"hits": self.hits, "misses": self.misses, "stored": len(self.store), "mb": round(self.bytes / 2**20, 1)}
+
+    def _one(self, pixels: torch.Tensor, thw: torch.Tensor, kwargs: dict[str, Any]):
+        h = hashlib.blake2b(digest_size=16)
+        h.update(str((pixels.dtype, tuple(pixels.shape), thw.tolist())).encode())
+        h.update(pixels.detach().contiguous().cpu().numpy().tobytes())
+        key = h.digest()
+        hit = self.store.get(key)
+        if hit is not None:
+            self.hits += 1
+            return hit
+        self.misses += 1
+        with torch.no_grad():
+            out = self.encode(pixels, grid_thw=thw[None], **kwargs)
+        value = (out.pooler_output, list(out.deepstack_features or []))
+        size = sum(t.numel() * t.element_size() for t in (value[0], *value[1]))
+        if self.bytes + size <= self.max_bytes:
+            self.store[key] = value
+            self.bytes += size
+        return value
+
+    def __call__(self, hidden_states: torch.Tensor, grid_thw: torch.Tensor, **kwargs: Any) -> Any:
+        from transformers.models.qwen3_vl.modeling_qwen3_vl import BaseModelOutputWithDeepstackFeatures
+
+        kwargs["return_dict"] = True
+        parts = [
+            self._one(px, thw, kwargs)
+            for px, thw in zip(torch.split(hidden_states, grid_thw.prod(-1).tolist()), grid_thw, strict=True)
+        ]
+        deep = [torch.cat(level) for level in zip(*(p[1] for p in parts))]
+        # last_hidden_state (the unmerged patches) is not kept: get_image_features reads only the merged tokens
+        return BaseModelOutputWithDeepstackFeatures(
+            last_hidden_state=None, pooler_output=torch.cat([p[0] for p in parts]), deepstack_features=deep
+        )
+
+
+def cache_frozen_tower(model: nn.Module, max_mb: float) -> TowerCache | None:
+    """Install a TowerCache on `model`'s vision tower when it is frozen and `max_mb` > 0; else None."""
+    from labrobfail_vlm.train.grounding import vision_module
+
+    visual = vision_module(model)
+    if max_mb <= 0 or any(p.requires_grad for p in visual.parameters()):
+        return None
+    return TowerCache(visual, max_mb)

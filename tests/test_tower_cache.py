@@ -1,0 +1,108 @@
+"""A frozen vision tower encodes each training grid once (labrobfail_vlm/train/tower_cache.py): same outputs as
+the tower itself, served again on later epochs, never for a tower that trains."""
+
+import json
+import subprocess
+
+import pytest
+import torch
+from conftest import ROOT
+from test_train import small_ds, tiny, tiny_train  # noqa: F401 - session fixtures
+
+from labrobfail_vlm.train.tower_cache import TowerCache, cache_frozen_tower
+
+
+def _frozen(tiny):  # noqa: F811
+    from labrobfail_vlm.model.loading import load_model
+
+    model = load_model(tiny).eval()
+    model.requires_grad_(False)
+    return model
+
+
+def _grids(tiny, small_ds, n):  # noqa: F811
+    """Pixels and grid sizes of the first n training trajectories' grids (one image each)."""
+    from labrobfail_vlm.model.loading import load_processor
+    from labrobfail_vlm.train.data import Collator
+    from labrobfail_vlm.train.packing import TrajectoryDataset
+
+    proc = load_processor(tiny)
+    proc.tokenizer.padding_side = "right"
+    td = TrajectoryDataset(small_ds, "train")
+    b = Collator(proc, 1024)([td[i] for i in range(n)])
+    return b["pixel_values"], b["image_grid_thw"]
+
+
+def _features(model, px, thw):
+    with torch.no_grad():
+        out = model.model.get_image_features(px, thw)
+    return torch.cat(out.pooler_output)
+
+
+def test_cached_outputs_equal_the_towers_and_do_not_depend_on_the_batch(tiny, small_ds):  # noqa: F811
+    px, thw = _grids(tiny, small_ds, 3)
+    model = _frozen(tiny)
+    want = _features(model, px, thw)
+    cache = cache_frozen_tower(model, 64)
+    assert isinstance(cache, TowerCache)
+    got = _features(model, px, thw)
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+    assert (cache.misses, cache.hits, cache.stats()["stored"]) == (3, 0, 3)
+    assert torch.equal(_features(model, px, thw), got)  # a later epoch: served, the very same numbers
+    assert (cache.misses, cache.hits) == (3, 3)
+    # the second image alone, then first and second swapped: the rows follow the images, not their positions
+    per = (thw.prod(-1) // 4).tolist()
+    rows = torch.split(got, per)
+    n0, n1 = int(thw[0].prod()), int(thw[1].prod())
+    swapped = torch.cat([px[n0 : n0 + n1], px[:n0]])
+    assert torch.equal(_features(model, swapped, thw[[1, 0]]), torch.cat([rows[1], rows[0]]))
+    # different pixels are a miss, never a stale value
+    other = _features(model, px[:n0] + 0.5, thw[:1])
+    assert cache.misses == 4 and not torch.allclose(other, rows[0])
+
+
+def test_the_memory_bound_holds_and_a_training_tower_is_never_cached(tiny, small_ds):  # noqa: F811
+    px, thw = _grids(tiny, small_ds, 2)
+    model = _frozen(tiny)
+    cache = cache_frozen_tower(model, 1e-9)  # room for nothing: every call encodes again
+    _features(model, px, thw)
+    _features(model, px, thw)
+    assert (cache.misses, cache.hits, cache.bytes) == (4, 0, 0)
+    assert cache_frozen_tower(_frozen(tiny), 0) is None
+    model = _frozen(tiny)
+    model.model.visual.merger.requires_grad_(True)
+    assert cache_frozen_tower(model, 64) is None
+    with pytest.raises(ValueError, match="trains"):
+        TowerCache(model.model.visual, 64)
+
+
+def test_a_frozen_tower_run_encodes_each_grid_once_and_trains_as_without_the_cache(tiny, small_ds, tmp_path):  # noqa: F811
+    frozen = ["lr.vision=0", "lr.merger=0", "grounding.weight=0", "grounding.pretrain_epochs=0", "epochs=2"]
+    summaries = []
+    for mb in (4096, 0):
+        out = tmp_path / f"mb{mb}"
+        r = subprocess.run(
+            tiny_train(tiny, small_ds, out, *frozen, f"tower_cache_mb={mb}"),
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert r.returncode == 0, r.stderr[-3000:]
+        summaries.append(json.loads((out / "train_summary.json").read_text()))
+    cached, plain = summaries
+    from labrobfail_vlm.train.packing import TrajectoryDataset
+
+    grids = len(TrajectoryDataset(small_ds, "train"))
+    assert cached["tower_cache"]["misses"] <= grids and cached["tower_cache"]["hits"] >= grids  # epoch 2: all hits
+    assert cached["tower_cache"]["misses"] + cached["tower_cache"]["hits"] == 2 * grids
+    assert "tower_cache" not in plain
+    assert cached["train_loss"] == pytest.approx(plain["train_loss"], rel=1e-5)
+    r = subprocess.run(
+        tiny_train(tiny, small_ds, tmp_path / "bad", *frozen, "tower_cache_mb=-1"),
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].startswith("error: tower_cache_mb:"), r.stderr
