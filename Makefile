@@ -91,7 +91,7 @@ demo-online: $(STAMP)
 # split's bench with baselines and 95 % intervals, the learning curve. At least 400 seen test trajectories and 150
 # per unseen split (seen: two generation runs of REPRO_SEEN episodes, the second's pairs numbered after the first's,
 # so a larger recipe extends the smaller one's data instead of redrawing it). Resumable: generation resumes its
-# shards; delete outputs/reproduce to start over. About 80 min on 2 cores. Then, on the same data: make
+# shards; delete outputs/reproduce to start over. About 105 min on 2 cores. Then, on the same data: make
 # reproduce-rows (the scratch-tower and front + wrist rows) and make ablate (the paper's ablation table); each
 # rewrites docs/RESULTS.md with what exists.
 R              ?= outputs/reproduce
