@@ -22,7 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from labrobfail_vlm.config import cli_main, load_config, require_ints
+from labrobfail_vlm.config import ConfigError, cli_main, load_config, require_ints
 
 DEFAULTS = """
 steps: 6                       # timed optimizer steps per row (after one warm-up step)
@@ -44,7 +44,10 @@ def cache_rows(dataset_dir: str, epochs: int, tmp: Path) -> dict[str, float]:
         cmd = [sys.executable, "train.py", "preset=tiny", f"dataset_dir={dataset_dir}", f"output_dir={out}"]
         cmd += [f"epochs={epochs}", f"tower_cache_mb={mb}", "wandb.enabled=false", "progress=false"]
         cmd += ["save_steps=100000"]  # no checkpoints inside the timed loop
-        subprocess.run(cmd, check=True, capture_output=True, cwd=Path(__file__).resolve().parents[1])
+        r = subprocess.run(cmd, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
+        if r.returncode != 0:
+            last = (r.stderr.strip().splitlines() or ["no message"])[-1]
+            raise ConfigError(f"dataset_dir: train.py failed on {dataset_dir}: {last}")
         summary = json.loads((out / "train_summary.json").read_text())
         rows[f"train_s_cache_{name}"] = summary["train_s"]
         rows["train_loss_cache_" + name] = summary["train_loss"]
@@ -73,6 +76,8 @@ def step_rate(model, batch, steps: int) -> dict[str, float]:
 def main(argv: list[str]) -> int:
     a = load_config(DEFAULTS, argv)
     require_ints(a, ("steps", "batch", "epochs"))
+    if a.dataset_dir is not None and not (Path(str(a.dataset_dir)) / "train.json").is_file():
+        raise ConfigError(f"dataset_dir: {a.dataset_dir} is not a built dataset (no train.json; build_dataset.py)")
     import torch
     from PIL import Image
 
