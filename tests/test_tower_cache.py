@@ -59,6 +59,10 @@ def test_cached_outputs_equal_the_towers_and_do_not_depend_on_the_batch(tiny, sm
     # different pixels are a miss, never a stale value
     other = _features(model, px[:n0] + 0.5, thw[:1])
     assert cache.misses == 4 and not torch.allclose(other, rows[0])
+    # a bfloat16 tower (a real Qwen3-VL's dtype) is cached too: its pixels have no numpy dtype
+    model = _frozen(tiny).to(torch.bfloat16)
+    cache = cache_frozen_tower(model, 64)
+    assert torch.equal(_features(model, px, thw), _features(model, px, thw)) and cache.hits == 3
 
 
 def test_the_memory_bound_holds_and_a_training_tower_is_never_cached(tiny, small_ds):  # noqa: F811

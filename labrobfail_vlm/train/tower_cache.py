@@ -29,7 +29,7 @@ class TowerCache:
     def __init__(self, visual: nn.Module, max_mb: float):
         if any(p.requires_grad for p in visual.parameters()):
             raise ValueError("TowerCache: the vision tower trains; its outputs change every step")
-        self.visual, self.encode = visual, visual.forward  # the bound original, decorators included
+        self.encode = visual.forward  # the bound original, decorators included
         self.max_bytes, self.bytes = int(max_mb * 2**20), 0
         self.store: dict[bytes, tuple[torch.Tensor, list[torch.Tensor]]] = {}
         self.hits = self.misses = 0
@@ -41,7 +41,8 @@ class TowerCache:
     def _one(self, pixels: torch.Tensor, thw: torch.Tensor, kwargs: dict[str, Any]):
         h = hashlib.blake2b(digest_size=16)
         h.update(str((pixels.dtype, tuple(pixels.shape), thw.tolist())).encode())
-        h.update(pixels.detach().contiguous().cpu().numpy().tobytes())
+        # the raw bytes (bfloat16 has no numpy dtype), read in place by the buffer protocol: no copy per grid
+        h.update(pixels.detach().contiguous().view(torch.uint8).cpu().numpy())
         key = h.digest()
         hit = self.store.get(key)
         if hit is not None:
