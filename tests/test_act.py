@@ -149,6 +149,61 @@ def test_keypoint_tokens_train_and_round_trip(tmp_path):
         ACTConfig(**TOY, keypoints=-1)
 
 
+def test_auxiliary_points_are_the_grasp_and_the_tilt_and_the_act_learns_them(tmp_path):
+    from sim_backends.policies.act.data import DemoDataset, action_vector, key_points, normalisation
+    from sim_backends.policies.act.modeling_act import AUX_SCALE
+    from sim_backends.types import matrix_to_quat
+
+    def tilt(a: float) -> tuple:  # about the x axis
+        c, s = np.cos(a), np.sin(a)
+        return matrix_to_quat(np.array([[1, 0, 0], [0, c, -s], [0, s, c]]))
+
+    # approach open, close at (0.5, 0.1, 0.1), carry, tilt furthest at (0.4, -0.1, 0.3), untilt
+    steps = [((0.5, 0.1, 0.3), 0.0, 0), ((0.5, 0.1, 0.1), 0.0, 0), ((0.5, 0.1, 0.1), 0.0, 1)]
+    steps += [
+        ((0.4, -0.1, 0.3), 0.0, 1),
+        ((0.4, -0.1, 0.3), 0.8, 1),
+        ((0.4, -0.1, 0.3), 1.6, 1),
+        ((0.41, -0.1, 0.3), 0.5, 1),
+    ]
+    action = np.stack([action_vector(p, tilt(a), g) for p, a, g in steps])
+    assert np.allclose(key_points(action), [[0.5, 0.1, 0.1], [0.4, -0.1, 0.3]], atol=1e-6)
+    held = action.copy()
+    held[:, 9] = 1.0  # a demonstration that starts holding (a regrasp one): its grasp is where it starts
+    assert np.allclose(key_points(held)[0], [0.5, 0.1, 0.3], atol=1e-6)
+
+    rng = np.random.default_rng(0)
+    state = rng.normal(size=(len(steps), 9)).astype(np.float32)
+    state[:, :3] = action[:, :3] + rng.normal(0, 0.005, (len(steps), 3))  # the hand near its targets
+    demos = [{"images": rng.integers(0, 255, (len(steps), 1, 32, 32, 3), np.uint8), "state": state, "action": action}]
+    cfg = ACTConfig(**TOY, aux_weight=1.0)
+    cfg.stats = normalisation(demos)
+    *_, points = DemoDataset(demos, cfg)[3]  # relative to the hand at tick 3, in AUX_SCALE metres
+    assert torch.allclose(points, torch.from_numpy((key_points(action) - state[3, :3]) / AUX_SCALE), atol=1e-5)
+
+    torch.manual_seed(0)
+    model = ACTModel(cfg)
+    batch = [torch.stack(x) for x in zip(*[DemoDataset(demos, cfg)[t] for t in range(len(steps))])]
+    opt = torch.optim.Adam(model.parameters(), 3e-3)
+    first = None
+    for _ in range(100):
+        loss, parts = model.loss(*batch)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        first = parts["aux_l1"] if first is None else first
+    assert parts["aux_l1"] < 0.5 * first  # the two extra queries learn where the points are
+    with pytest.raises(ValueError, match="auxiliary points"):
+        model.loss(*batch[:4])
+    model.eval()
+    save_checkpoint(model, cfg, tmp_path / "ck")
+    again, cfg2 = load_checkpoint(tmp_path / "ck")
+    assert cfg2.aux_weight == 1.0 and torch.equal(again.predict(batch[0], batch[1]), model.predict(batch[0], batch[1]))
+    assert model.predict(batch[0], batch[1]).shape == (len(steps), cfg.chunk_size, 10)  # actions only
+    with pytest.raises(ValueError, match="act.aux_weight"):
+        ACTConfig(**TOY, aux_weight=-1.0)
+
+
 def test_an_act_tilting_in_place_is_not_idle():
     from sim_backends.perturbations.control import so3_exp
     from sim_backends.policies.act.policy import still
@@ -194,6 +249,7 @@ def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
             "train.steps=3",
             "train.batch_size=4",
             "model.cameras=[front,wrist]",
+            "model.aux_weight=1.0",
             *toy,
             "progress=false",
             f"out_dir={out}",
@@ -214,6 +270,18 @@ def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
         assert z["images"].shape[1] == 2  # front and wrist at every tick
         front, wrist = z["images"][:, 0], z["images"][:, 1]
         assert np.abs(front.astype(int) - wrist.astype(int)).mean() > 5  # two different cameras
+    assert "aux_l1" in log["curve"][0]  # the grasp and tilt queries trained
+    # where the ACT puts its grasp, against its demonstration's (the regrasp one starts holding: not probed)
+    probe = tmp_path / "probe.json"
+    cmd = [sys.executable, "scripts/probe_act.py", f"checkpoint={out / 'final'}", f"demos={out / 'demos.npz'}"]
+    r = subprocess.run([*cmd, "ahead=[2]", f"out={probe}"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    res = json.loads(probe.read_text())
+    assert res["probed"] == 1 and res["median_error_cm"]["2"]["chunk"] >= 0 and res["median_error_cm"]["2"]["aux"] >= 0
+    r = subprocess.run([*cmd, "ahead=[4]"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        "error: ahead: a list of ticks from 1 to 3 (the chunk), not [4]"
+    ]
     sup = tmp_path / "sup"
     r = subprocess.run(
         [

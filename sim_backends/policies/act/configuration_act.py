@@ -35,6 +35,9 @@ class ACTConfig:
     latent_dim: int = 32
     dropout: float = 0.1
     kl_weight: float = 10.0
+    # > 0: two more decoder queries predict where the demonstration grasps and where it tilts (modeling_act), an
+    # auxiliary L1 of this weight; a policy that must close on a vessel is told, while it learns, where the vessel is
+    aux_weight: float = 0.0
     temporal_ensemble_coeff: float | None = 0.01  # w_i = exp(-coeff * i), i = 0 the oldest; None: run chunks open loop
     stats: dict[str, list[float]] = field(default_factory=dict)  # state/action mean and std of the demos
 
@@ -50,6 +53,8 @@ class ACTConfig:
         ):
             if int(getattr(self, k)) < 1:
                 raise ValueError(f"act.{k}: must be a positive integer, got {getattr(self, k)!r}")
+        if not float(self.aux_weight) >= 0:
+            raise ValueError(f"act.aux_weight: must be >= 0 (0: no auxiliary targets), got {self.aux_weight!r}")
         if int(self.keypoints) < 0:
             raise ValueError(f"act.keypoints: must be 0 (none) or a positive integer, got {self.keypoints!r}")
         if self.dim_model % self.n_heads:

@@ -20,6 +20,7 @@ from torch.utils.data import Dataset
 
 from labrobfail_vlm.augment import Augment, AugmentConfig
 from sim_backends.policies.act.configuration_act import ACTConfig
+from sim_backends.policies.act.modeling_act import AUX_SCALE
 from sim_backends.source import FailureSource
 from sim_backends.types import Keyframe, quat_to_matrix, rotation_angle
 
@@ -177,6 +178,18 @@ def record_demo(
     return {"images": np.stack(images), "state": np.stack(states), "action": np.stack(actions)}
 
 
+def key_points(action: np.ndarray) -> np.ndarray:
+    """(AUX_POINTS, 3): the target position where a demonstration first commands the fingers closed (its first
+    tick when it starts holding, as a regrasp demonstration does) and where its hand is turned furthest from its
+    first orientation (a pour's tilt). Read from the recorded actions, which come from the scripted plan on
+    simulator state: the ACT's auxiliary targets (modeling_act.py)."""
+    closed = np.nonzero(action[:, 9] > 0.5)[0]
+    grasp = action[closed[0] if len(closed) else 0, :3]
+    r0 = from_rot6d(action[0, 3:9])
+    turned = [float(np.arccos(np.clip((np.trace(r0.T @ from_rot6d(a[3:9])) - 1) / 2, -1.0, 1.0))) for a in action]
+    return np.stack([grasp, action[int(np.argmax(turned)), :3]]).astype(np.float32)
+
+
 def normalisation(demos: list[dict[str, np.ndarray]]) -> dict[str, list[float]]:
     st = np.concatenate([d["state"] for d in demos])
     ac = np.concatenate([d["action"] for d in demos])
@@ -190,7 +203,8 @@ def normalisation(demos: list[dict[str, np.ndarray]]) -> dict[str, list[float]]:
 
 
 class DemoDataset(Dataset):
-    """(images, state, action chunk, padding) at every step of every demonstration, normalised.
+    """(images, state, action chunk, padding, key points) at every step of every demonstration, normalised; the
+    key points (`key_points`) relative to the hand, in AUX_SCALE metres.
 
     With `augment`, every sample's views are shifted, zoomed and recoloured by a fresh draw (the project's grid
     augmentation, one affine per view): the cameras stand elsewhere in every episode of the wide world, so where a
@@ -207,6 +221,7 @@ class DemoDataset(Dataset):
         self.demos, self.k = demos, cfg.chunk_size
         self.augment, self.rng = augment, np.random.default_rng(seed)
         self.index = [(i, t) for i, d in enumerate(demos) for t in range(len(d["action"]))]
+        self.points = [key_points(np.asarray(d["action"])) for d in demos]
         s = cfg.stats
         self.sm, self.ss = np.asarray(s["state_mean"], np.float32), np.asarray(s["state_std"], np.float32)
         self.am, self.as_ = np.asarray(s["action_mean"], np.float32), np.asarray(s["action_std"], np.float32)
@@ -227,4 +242,6 @@ class DemoDataset(Dataset):
         state = torch.from_numpy((d["state"][t] - self.sm) / self.ss)
         act = torch.from_numpy((d["action"][idx] - self.am) / self.as_)
         pad = torch.from_numpy(np.arange(t, t + self.k) >= n)
-        return img, state, act, pad
+        hand = np.asarray(d["state"][t][:3], np.float32)  # proprio_vector: ee_pos first
+        points = torch.from_numpy((self.points[i] - hand) / AUX_SCALE)
+        return img, state, act, pad, points

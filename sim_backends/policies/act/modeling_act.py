@@ -13,6 +13,13 @@ Optional `keypoints` (K > 0): a spatial softmax over the backbone's second-to-la
 resolution) turns K learned feature maps into K expected image positions (Levine et al. 2016, robomimic's default
 for visuomotor BC), one extra encoder token per view. The 16 px feature tokens place an 8 px vessel only to within
 a token; the soft-argmax is continuous, so the decoder can read where a vessel is to a fraction of a token.
+
+Optional `aux_weight` > 0: two more decoder queries beside the k action queries, whose outputs a linear head reads
+as where the demonstration closes the gripper (the grasp) and where it turns the hand furthest from its first
+orientation (a pour's tilt), each relative to the hand, in units of AUX_SCALE metres. Their L1, times
+`aux_weight`, joins the loss: the action queries attend to them, and the picture has to say where the vessel stands
+(a pour ACT fitted on actions alone placed its grasp 2.0 cm from its own demonstrations' against a 3.5 cm spread of
+the grasps themselves, docs/EXPERIMENTS.md, 27 Nov). At inference they cost two decoder tokens and are not used.
 """
 
 from __future__ import annotations
@@ -26,6 +33,9 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from sim_backends.policies.act.configuration_act import ACTConfig
+
+AUX_POINTS = 2  # the grasp, the tilt (sim_backends/policies/act/data.py: key_points)
+AUX_SCALE = 0.05  # m: one unit of an auxiliary target
 
 
 def sine_table(n: int, dim: int) -> Tensor:
@@ -107,8 +117,10 @@ class ACTModel(nn.Module):
         # decoder: k queries
         layer = nn.TransformerDecoderLayer(d, cfg.n_heads, cfg.dim_feedforward, cfg.dropout, batch_first=True)
         self.decoder = nn.TransformerDecoder(layer, cfg.n_decoder_layers)
-        self.queries = nn.Parameter(torch.randn(cfg.chunk_size, d) * 0.02)
+        self.n_aux = AUX_POINTS if cfg.aux_weight > 0 else 0
+        self.queries = nn.Parameter(torch.randn(cfg.chunk_size + self.n_aux, d) * 0.02)
         self.action_head = nn.Linear(d, cfg.action_dim)
+        self.aux_head = nn.Linear(d, 3) if self.n_aux else None
 
     def encode_latent(self, state: Tensor, actions: Tensor, pad: Tensor) -> tuple[Tensor, Tensor]:
         """(mu, logvar) of q(z | state, actions); `pad` (B, k) is True past the episode's end."""
@@ -122,6 +134,10 @@ class ACTModel(nn.Module):
 
     def forward(self, images: Tensor, state: Tensor, z: Tensor) -> Tensor:
         """images (B, V, 3, H, W) in [0, 1], state (B, state_dim), z (B, latent) -> actions (B, k, action_dim)."""
+        return self.decode(images, state, z)[0]
+
+    def decode(self, images: Tensor, state: Tensor, z: Tensor) -> tuple[Tensor, Tensor | None]:
+        """The actions and, with `aux_weight`, the auxiliary points (B, AUX_POINTS, 3)."""
         b, v = images.shape[:2]
         feats, kp = self.backbone(images.flatten(0, 1))  # (B*V, d, h, w), (B*V, d) or None
         _, d, h, w = feats.shape
@@ -140,17 +156,29 @@ class ACTModel(nn.Module):
         )
         memory = self.encoder(x)
         out = self.decoder(self.queries[None].expand(b, -1, -1), memory)
-        return self.action_head(out)
+        k = self.cfg.chunk_size
+        aux = self.aux_head(out[:, k:]) if self.aux_head is not None else None
+        return self.action_head(out[:, :k]), aux
 
-    def loss(self, images: Tensor, state: Tensor, actions: Tensor, pad: Tensor) -> tuple[Tensor, dict[str, float]]:
+    def loss(
+        self, images: Tensor, state: Tensor, actions: Tensor, pad: Tensor, points: Tensor | None = None
+    ) -> tuple[Tensor, dict[str, float]]:
+        """`points` (B, AUX_POINTS, 3): the auxiliary targets, needed when `aux_weight` > 0."""
         mu, logvar = self.encode_latent(state, actions, pad)
         z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
-        pred = self(images, state, z)
+        pred, aux = self.decode(images, state, z)
         keep = (~pad).float()[..., None]
         l1 = (F.l1_loss(pred, actions, reduction="none") * keep).sum() / (keep.sum() * actions.shape[-1]).clamp(min=1)
         kl = (-0.5 * (1 + logvar - mu.pow(2) - logvar.exp())).sum(-1).mean()
         total = l1 + self.cfg.kl_weight * kl
-        return total, {"loss": float(total.detach()), "l1": float(l1.detach()), "kl": float(kl.detach())}
+        parts = {"l1": float(l1.detach()), "kl": float(kl.detach())}
+        if aux is not None:
+            if points is None:
+                raise ValueError("act: aux_weight > 0 needs the auxiliary points of every sample")
+            aux_l1 = F.l1_loss(aux, points)
+            total = total + self.cfg.aux_weight * aux_l1
+            parts["aux_l1"] = float(aux_l1.detach())
+        return total, {"loss": float(total.detach())} | parts
 
     @torch.no_grad()
     def predict(self, images: Tensor, state: Tensor) -> Tensor:

@@ -202,13 +202,13 @@ def train(cfg: DictConfig, family: Any) -> dict[str, Any]:
     model.train()
     while step < int(t.steps) and time.perf_counter() - t0 < budget:
         at_epoch = {"order": order.get_state(), "augment_rng": data.rng.bit_generator.state}
-        for batch, (images, state, actions, pad) in enumerate(loader, 1):
+        for batch, (images, state, actions, pad, points) in enumerate(loader, 1):
             if skip:
                 skip -= 1
                 if not skip:
                     torch.set_rng_state(rng_after)  # dropout and the CVAE draws go on as they would have
                 continue
-            loss, parts = model.loss(images, state, actions, pad)
+            loss, parts = model.loss(images, state, actions, pad, points)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
