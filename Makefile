@@ -161,30 +161,35 @@ reproduce-online: $(STAMP)
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 
 # The paper's recovery table in the wide world: an ACT policy trained here per task (pick and place: 120 scripted
-# demos, 8 minutes, one thread; pour: 240, about 8 + 21 min; kept when it exists), then the scripted and ACT
-# policies, 25 trials per task, without a supervisor and with $(VLM) asked at every keyframe (out:
-# $(R)/recovery/<policy>/, results.md is the table). About 60 min on 2 cores, 14 of them the trials.
+# demos, 8 minutes, one thread; pour: 480 + 120 regrasp demos, about 33 + 40 min; kept when it exists), then the
+# scripted and ACT policies, 25 trials per task, without a supervisor and with $(VLM) asked at every keyframe, except
+# the ACT pour cell (below) (out: $(R)/recovery/<policy>/, results.md is the table). About 100 min on 2 cores, 20 of
+# them the trials.
 VLM ?= $(R)/online/final
-# Per task: the ACT's training arguments and the backend options its cameras need. A pour must find the destination:
-# a hand camera, DART-style drift of every free and carrying move, keypoint tokens and a cosine schedule
-# (docs/EXPERIMENTS.md, 26 Nov: the best-fitting pour ACT, L1 0.048). Its own folder, so a pour ACT of an older recipe
-# left in $(R)/act/pour is never mistaken for it.
+# Per task: the ACT's training arguments and the supervised run's settings. A pour must find the source and the
+# destination: a hand camera, DART-style drift of every free and carrying move, keypoint tokens, a cosine schedule,
+# demonstrations that start from a corrected grasp, two auxiliary queries that learn where the demonstration grasps
+# and tilts, and the chunks run open loop (no temporal ensembling). Its supervisor is `make reproduce`'s model
+# reviewing the whole trajectory when the ACT stops (docs/EXPERIMENTS.md, 27 Nov: 1/25 -> 2/25, seeds 25-49
+# 0 -> 2; with ensembling 0 -> 0). Its own folder, so a pour ACT of an older recipe left in $(R)/act is never mistaken for it.
 ACT_pick := demos=120 train.max_minutes=8 train.threads=1
 ACT_place := $(ACT_pick)
-ACT_pour := demos=240 'model.cameras=[front,wrist]' model.image_size=96 noise=0.03 carry_noise=0.03 \
-  model.keypoints=32 train.lr=5e-4 train.lr_backbone=5e-4 train.schedule=cosine train.warmup=500 train.steps=20000 \
-  train.max_minutes=30
-ACT_SUP_pour := backend_kwargs.wrist=true
-ACT_DIR_pour := pour_kpcos
+ACT_pour := demos=480 regrasp_demos=120 miss=0.08 'model.cameras=[front,wrist]' model.image_size=96 noise=0.03 \
+  carry_noise=0.03 model.keypoints=32 model.aux_weight=1.0 model.temporal_ensemble_coeff=null train.lr=5e-4 \
+  train.lr_backbone=5e-4 train.schedule=cosine train.warmup=500 train.steps=20000 train.max_minutes=46
+ACT_SUP_pour := backend_kwargs.wrist=true loop.query_every=-1
+VLM_pour ?= $(R)/train/final
+ACT_DIR_pour := pour_aux
 act_dir = $(R)/act/$(or $(ACT_DIR_$(1)),$(1))
 recovery: $(STAMP)
 	@test -d $(VLM) || { echo "recovery: no model $(VLM) (make reproduce-online, or VLM=<model dir>)" >&2; exit 2; }
+	@test -d $(VLM_pour) || { echo "recovery: no model $(VLM_pour) (make reproduce, or VLM_pour=<model dir>)" >&2; exit 2; }
 	$(foreach t,pick place pour,test -f $(call act_dir,$(t))/final/model.safetensors || OMP_NUM_THREADS=1 \
 	  $(PY) scripts/train_act.py task=$(t) $(ACT_$(t)) progress=false out_dir=$(call act_dir,$(t)) || exit 1;)
 	$(PY) scripts/supervise.py policy=scripted supervisor=vlm vlm.model=$(VLM) task=pick,place,pour trials=25 \
 	  progress=false out_dir=$(R)/recovery/scripted
 	$(foreach t,pick place pour,$(PY) scripts/supervise.py policy=act act.checkpoint=$(call act_dir,$(t))/final \
-	  $(ACT_SUP_$(t)) supervisor=vlm vlm.model=$(VLM) task=$(t) trials=25 progress=false \
+	  $(ACT_SUP_$(t)) supervisor=vlm vlm.model=$(or $(VLM_$(t)),$(VLM)) task=$(t) trials=25 progress=false \
 	  out_dir=$(R)/recovery/act/$(t) || exit 1;)
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 

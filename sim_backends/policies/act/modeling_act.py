@@ -18,8 +18,9 @@ Optional `aux_weight` > 0: two more decoder queries beside the k action queries,
 as where the demonstration closes the gripper (the grasp) and where it turns the hand furthest from its first
 orientation (a pour's tilt), each relative to the hand, in units of AUX_SCALE metres. Their L1, times
 `aux_weight`, joins the loss: the action queries attend to them, and the picture has to say where the vessel stands
-(a pour ACT fitted on actions alone placed its grasp 2.0 cm from its own demonstrations' against a 3.5 cm spread of
-the grasps themselves, docs/EXPERIMENTS.md, 27 Nov). At inference they cost two decoder tokens and are not used.
+(a pour ACT fitted on actions alone put its grasp 1.9 cm from its own demonstrations', against a 3.9 cm spread of
+the grasps themselves; with these queries 1.3 cm: scripts/probe_act.py, docs/EXPERIMENTS.md, 27 Nov). At inference
+they cost two decoder tokens and are not used.
 """
 
 from __future__ import annotations
