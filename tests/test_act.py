@@ -200,8 +200,9 @@ def test_auxiliary_points_are_the_grasp_and_the_tilt_and_the_act_learns_them(tmp
     again, cfg2 = load_checkpoint(tmp_path / "ck")
     assert cfg2.aux_weight == 1.0 and torch.equal(again.predict(batch[0], batch[1]), model.predict(batch[0], batch[1]))
     assert model.predict(batch[0], batch[1]).shape == (len(steps), cfg.chunk_size, 10)  # actions only
-    with pytest.raises(ValueError, match="act.aux_weight"):
-        ACTConfig(**TOY, aux_weight=-1.0)
+    for bad in (-1.0, "abc", None):
+        with pytest.raises(ValueError, match="act.aux_weight: must be a number >= 0"):
+            ACTConfig(**TOY, aux_weight=bad)
 
 
 def test_an_act_tilting_in_place_is_not_idle():

@@ -53,8 +53,8 @@ class ACTConfig:
         ):
             if int(getattr(self, k)) < 1:
                 raise ValueError(f"act.{k}: must be a positive integer, got {getattr(self, k)!r}")
-        if not float(self.aux_weight) >= 0:
-            raise ValueError(f"act.aux_weight: must be >= 0 (0: no auxiliary targets), got {self.aux_weight!r}")
+        if isinstance(self.aux_weight, bool) or not isinstance(self.aux_weight, (int, float)) or self.aux_weight < 0:
+            raise ValueError(f"act.aux_weight: must be a number >= 0 (0: none), got {self.aux_weight!r}")
         if int(self.keypoints) < 0:
             raise ValueError(f"act.keypoints: must be 0 (none) or a positive integer, got {self.keypoints!r}")
         if self.dim_model % self.n_heads:
