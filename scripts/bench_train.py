@@ -76,8 +76,10 @@ def step_rate(model, batch, steps: int) -> dict[str, float]:
 def main(argv: list[str]) -> int:
     a = load_config(DEFAULTS, argv)
     require_ints(a, ("steps", "batch", "epochs"))
-    if a.dataset_dir is not None and not (Path(str(a.dataset_dir)) / "stats.json").is_file():  # train.py's own test
-        raise ConfigError(f"dataset_dir: {a.dataset_dir!r} is not a dataset built by scripts/build_dataset.py")
+    if a.dataset_dir is not None:
+        from labrobfail_vlm.train.cli import dataset_stats
+
+        dataset_stats(a.dataset_dir)  # train.py's own test, before the timed rows
     import torch
     from PIL import Image
 

@@ -34,6 +34,7 @@ def main(argv: list[str]) -> int:
     import torch
 
     from sim_backends.policies.act.checkpoint import load_checkpoint
+    from sim_backends.policies.act.data import close_tick
     from sim_backends.policies.act.modeling_act import AUX_SCALE
 
     cfg = load_config(DEFAULTS, argv)
@@ -61,16 +62,14 @@ def main(argv: list[str]) -> int:
             f"demos: recorded for {ident.get('cameras')} at {ident.get('image_size')} px, the ACT "
             f"sees {act.cameras} at {act.image_size} px"
         )
-    s = act.stats
-    sm, ss = np.asarray(s["state_mean"], np.float32), np.asarray(s["state_std"], np.float32)
-    am, as_ = np.asarray(s["action_mean"]), np.asarray(s["action_std"])
+    sm, ss, am, as_ = act.stat_arrays()
     grasps, errors = [], {a: {"chunk": [], "aux": []} for a in ahead}
     for i in range(0, len(bounds) - 1, int(cfg.every)):
         a0, a1 = int(bounds[i]), int(bounds[i + 1])
-        closed = np.nonzero(action[a0:a1, 9] > 0.5)[0]
-        if not len(closed) or closed[0] == 0:  # starts holding (a regrasp demonstration): no approach to probe
+        tick = close_tick(action[a0:a1])
+        if not tick:  # never closes, or starts holding (a regrasp demonstration): no approach to probe
             continue
-        close = a0 + int(closed[0])
+        close = a0 + tick
         grasps.append(action[close, :2])
         for a in ahead:
             t = close - a

@@ -30,12 +30,17 @@ def _world_size() -> int:
     return int(os.environ.get("WORLD_SIZE", "1"))
 
 
+def dataset_stats(dataset_dir: Any) -> Path:
+    """The stats.json of a dataset built by scripts/build_dataset.py; a ConfigError for anything else."""
+    stats = Path(dataset_dir or "") / "stats.json"
+    if dataset_dir is None or not stats.is_file():
+        raise ConfigError(f"dataset_dir: {dataset_dir!r} is not a dataset built by scripts/build_dataset.py")
+    return stats
+
+
 def _check_dataset(cfg: Any) -> dict[str, Any]:
     """The dataset's grid config, after checking it matches the run."""
-    stats = Path(cfg.dataset_dir or "") / "stats.json"
-    if cfg.dataset_dir is None or not stats.is_file():
-        raise ConfigError(f"dataset_dir: {cfg.dataset_dir!r} is not a dataset built by scripts/build_dataset.py")
-    grid = json.loads(stats.read_text()).get("grid", {})
+    grid = json.loads(dataset_stats(cfg.dataset_dir).read_text()).get("grid", {})
     drawn = grid.get("draw_index", True)
     if bool(drawn) != bool(cfg.grid_index):
         raise ConfigError(

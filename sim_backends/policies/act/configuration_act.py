@@ -60,6 +60,19 @@ class ACTConfig:
         if self.dim_model % self.n_heads:
             raise ValueError(f"act.dim_model: {self.dim_model} is not divisible by n_heads={self.n_heads}")
 
+    def stat_arrays(self) -> tuple[Any, Any, Any, Any]:
+        """(state mean, state std, action mean, action std) as arrays: a policy normalises its proprio with the
+        first two and un-normalises the model's actions with the last two."""
+        import numpy as np
+
+        s = self.stats
+        return (
+            np.asarray(s["state_mean"], np.float32),
+            np.asarray(s["state_std"], np.float32),
+            np.asarray(s["action_mean"]),
+            np.asarray(s["action_std"]),
+        )
+
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 

@@ -22,7 +22,7 @@ from labrobfail_vlm.augment import Augment, AugmentConfig
 from sim_backends.policies.act.configuration_act import ACTConfig
 from sim_backends.policies.act.modeling_act import AUX_SCALE
 from sim_backends.source import FailureSource
-from sim_backends.types import Keyframe, quat_to_matrix, rotation_angle
+from sim_backends.types import Keyframe, matrix_to_quat, quat_to_matrix, rotation_angle
 
 MISS_MIN = 0.03  # m: the smallest grasp miss of a regrasp demonstration (closer ones often still catch the vessel)
 
@@ -178,15 +178,21 @@ def record_demo(
     return {"images": np.stack(images), "state": np.stack(states), "action": np.stack(actions)}
 
 
-def key_points(action: np.ndarray) -> np.ndarray:
-    """(AUX_POINTS, 3): the target position where a demonstration first commands the fingers closed (its first
-    tick when it starts holding, as a regrasp demonstration does) and where its hand is turned furthest from its
-    first orientation (a pour's tilt). Read from the recorded actions, which come from the scripted plan on
-    simulator state: the ACT's auxiliary targets (modeling_act.py)."""
+def close_tick(action: np.ndarray) -> int | None:
+    """The first tick of a demonstration that commands the fingers closed (0 when it starts holding, as a regrasp
+    demonstration does), or None when it never closes them."""
     closed = np.nonzero(action[:, 9] > 0.5)[0]
-    grasp = action[closed[0] if len(closed) else 0, :3]
-    r0 = from_rot6d(action[0, 3:9])
-    turned = [float(np.arccos(np.clip((np.trace(r0.T @ from_rot6d(a[3:9])) - 1) / 2, -1.0, 1.0))) for a in action]
+    return int(closed[0]) if len(closed) else None
+
+
+def key_points(action: np.ndarray) -> np.ndarray:
+    """(AUX_POINTS, 3): the target position where a demonstration first commands the fingers closed (`close_tick`;
+    its first tick when it never does) and where its hand is turned furthest from its first orientation (a pour's
+    tilt). Read from the recorded actions, which come from the scripted plan on simulator state: the ACT's auxiliary
+    targets (modeling_act.py)."""
+    grasp = action[close_tick(action) or 0, :3]
+    q0 = matrix_to_quat(from_rot6d(action[0, 3:9]))
+    turned = [rotation_angle(q0, matrix_to_quat(from_rot6d(a[3:9]))) for a in action]
     return np.stack([grasp, action[int(np.argmax(turned)), :3]]).astype(np.float32)
 
 

@@ -55,9 +55,7 @@ class ACTPolicy(Policy):
             raise ConfigError(str(e)) from None
         self.torch, self.device = torch, device
         self.max_ticks, self.idle_stop, self.speed = int(max_ticks), int(idle_stop), float(speed)
-        s = self.cfg.stats
-        self.sm, self.ss = np.asarray(s["state_mean"], np.float32), np.asarray(s["state_std"], np.float32)
-        self.am, self.as_ = np.asarray(s["action_mean"]), np.asarray(s["action_std"])
+        self.sm, self.ss, self.am, self.as_ = self.cfg.stat_arrays()
         coeff = self.cfg.temporal_ensemble_coeff
         self.blend = TemporalEnsembler(self.cfg.chunk_size, coeff) if coeff is not None else None
         self.chunks = ChunkRunner(self.cfg.chunk_size)
