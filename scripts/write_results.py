@@ -302,7 +302,8 @@ def supervision(run: Path, online_stand_in: list[str] | None = None) -> list[str
             ),
             "",
         ]
-    rows, settings = [], set()
+    rows: list[str] = []
+    settings: dict[str, list[str]] = {}  # each supervisor setting and the cells it ran (a task may need its own)
     for f in _recovery_files(run):
         res = json.loads(f.read_text())
         cfg = res["config"]
@@ -310,13 +311,14 @@ def supervision(run: Path, online_stand_in: list[str] | None = None) -> list[str
         asked = {0: "at every keyframe", -1: "only when the policy stops"}.get(
             loop["query_every"], f"every {loop['query_every']} policy steps"
         )
-        settings.add(
+        setting = (
             f"{cfg['trials']} trials per cell, variant {cfg['variant']}, supervisor {sup} "
             f"(`{(cfg.get(sup) or {}).get('model', '')}`) asked {asked}"
             + (" and once more when the policy stops" if loop["final_query"] and loop["query_every"] >= 0 else "")
             + f", budget {loop['budget']}, a manual correction: {loop['on_manual']}"
         )
         for task, r in res["tasks"].items():
+            settings.setdefault(setting, []).append(f"{r['policy']} {task}")
             base, got = r.get("none"), r.get(sup)
             if base and got:
                 rows.append(
@@ -327,7 +329,11 @@ def supervision(run: Path, online_stand_in: list[str] | None = None) -> list[str
     if rows:
         lines += [
             "Recovery: the same initial states and injections with and without the supervisor; "
-            + "; ".join(sorted(settings))
+            + (
+                next(iter(settings))
+                if len(settings) == 1
+                else "; ".join(f"{', '.join(cells)}: {s}" for s, cells in settings.items())
+            )
             + ".",
             "",
             f"| task | policy | none | +VLM | diff (points) | >= +{RECOVERY_TARGET} | episodes with an intervention "

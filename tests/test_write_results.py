@@ -9,7 +9,9 @@ from pathlib import Path
 from scripts.write_results import supervision
 
 
-def _results(path: Path, policy: str, tasks: dict[str, tuple[int, int]]) -> None:
+def _results(
+    path: Path, policy: str, tasks: dict[str, tuple[int, int]], model: str = "outputs/online/final", every: int = 0
+) -> None:
     """A results.json as scripts/supervise.py writes it: per task, the baseline and the VLM's summaries."""
 
     def summary(ok: int) -> dict:
@@ -24,8 +26,8 @@ def _results(path: Path, policy: str, tasks: dict[str, tuple[int, int]]) -> None
                     "supervisor": "vlm",
                     "trials": 25,
                     "variant": "seen",
-                    "vlm": {"model": "outputs/online/final"},
-                    "loop": {"query_every": 0, "final_query": True, "budget": 2, "on_manual": "stop"},
+                    "vlm": {"model": model},
+                    "loop": {"query_every": every, "final_query": True, "budget": 2, "on_manual": "stop"},
                 },
                 "tasks": {
                     t: {"policy": policy, "none": summary(a), "vlm": summary(b), "improvement": 4.0 * (b - a)}
@@ -48,6 +50,16 @@ def test_the_recovery_table_has_a_row_per_task_and_policy(tmp_path: Path) -> Non
         "| place | scripted | 8/25 | 16/25 | +32 | yes | 3 | 1 |",
         "| pour | act | 3/25 | 2/25 | -4 | no | 3 | 1 |",
     ]
+
+
+def test_a_cell_with_its_own_supervisor_setting_is_named_with_it(tmp_path: Path) -> None:
+    """The ACT pour cell is reviewed by another model when the policy stops: the page says which cells ran how."""
+    _results(tmp_path / "recovery" / "scripted" / "results.json", "scripted", {"pick": (6, 6), "place": (8, 16)})
+    _results(tmp_path / "recovery" / "act" / "pour" / "results.json", "act", {"pour": (1, 2)}, "outputs/train/final", -1)
+    head = supervision(tmp_path)[0]
+    assert "scripted pick, scripted place: 25 trials per cell" in head
+    assert "asked at every keyframe and once more when the policy stops" in head
+    assert "act pour: 25 trials per cell, variant seen, supervisor vlm (`outputs/train/final`) asked only when" in head
 
 
 def _eval(path: Path, q2: float) -> None:

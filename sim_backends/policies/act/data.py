@@ -228,9 +228,8 @@ class DemoDataset(Dataset):
         self.augment, self.rng = augment, np.random.default_rng(seed)
         self.index = [(i, t) for i, d in enumerate(demos) for t in range(len(d["action"]))]
         self.points = [key_points(np.asarray(d["action"])) for d in demos]
-        s = cfg.stats
-        self.sm, self.ss = np.asarray(s["state_mean"], np.float32), np.asarray(s["state_std"], np.float32)
-        self.am, self.as_ = np.asarray(s["action_mean"], np.float32), np.asarray(s["action_std"], np.float32)
+        self.sm, self.ss, am, as_ = cfg.stat_arrays()
+        self.am, self.as_ = am.astype(np.float32), as_.astype(np.float32)  # float32 targets, as the model computes
 
     def __len__(self) -> int:
         return len(self.index)
