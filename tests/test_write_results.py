@@ -55,7 +55,8 @@ def test_the_recovery_table_has_a_row_per_task_and_policy(tmp_path: Path) -> Non
 def test_a_cell_with_its_own_supervisor_setting_is_named_with_it(tmp_path: Path) -> None:
     """The ACT pour cell is reviewed by another model when the policy stops: the page says which cells ran how."""
     _results(tmp_path / "recovery" / "scripted" / "results.json", "scripted", {"pick": (6, 6), "place": (8, 16)})
-    _results(tmp_path / "recovery" / "act" / "pour" / "results.json", "act", {"pour": (1, 2)}, "outputs/train/final", -1)
+    pour = tmp_path / "recovery" / "act" / "pour" / "results.json"
+    _results(pour, "act", {"pour": (1, 2)}, "outputs/train/final", -1)
     head = supervision(tmp_path)[0]
     assert "scripted pick, scripted place: 25 trials per cell" in head
     assert "asked at every keyframe and once more when the policy stops" in head
