@@ -109,6 +109,14 @@ class CorrectionExecutor:
         if unknown:
             return ExecResult(False, error=f"unknown primitive {unknown[0]!r}")
         self._start()
+        # a plan that names an omitted step that is not there cannot do what it says: refuse it before its first
+        # primitive moves the arm (a pause before an impossible return would disturb a policy that was on course)
+        for p in primitives:
+            pose_id = str(p.get("args", {}).get("pose_id", ""))
+            if p.get("op") == "move_to_pose" and pose_id.startswith("omitted:"):
+                action = pose_id.split(":", 1)[1]
+                if self._omitted_step(action) is None:
+                    return ExecResult(False, error=f"move_to_pose: no {action} step was omitted")
         res = ExecResult(True)
         for p in primitives:
             n0 = self.count
@@ -419,11 +427,15 @@ class CorrectionExecutor:
         self._carry(home + np.array([0.0, 0.0, height + 0.12]))
         self.note = "no pour in the plan: straight above the destination"
 
+    def _omitted_step(self, action: str) -> Any:
+        """The plan's first step with `action` that has not run, or None."""
+        ran = set(self.meta.executed_steps())
+        return next((s for s in self.meta.steps if s.action == action and s.index not in ran), None)
+
     def _move_to_pose(self, pose_id: str) -> None:
         if pose_id.startswith("omitted:"):
             action = pose_id.split(":", 1)[1]
-            ran = set(self.meta.executed_steps())
-            step = next((s for s in self.meta.steps if s.action == action and s.index not in ran), None)
+            step = self._omitted_step(action)
             if step is None:
                 raise PrimitiveError(f"no {action} step was omitted")
             for kf in [k for k in self.nominal if k.segment == step.index]:

@@ -177,6 +177,11 @@ def test_move_to_pose_runs_the_omitted_step(src):
     assert res.log[0]["keyframes"] == 4 and state(src)["obj.contacts"] > 0
     assert [k.name for k in src.executed_so_far()][1:] == ["s0_pre", "s0_reach", "s0_close", "s0_lift"]
     assert not CorrectionExecutor(src).run([prim("move_to_pose", pose_id="omitted:grasp")]).executed
+    # a pause before a return to a step that was not omitted is refused whole: the arm does not move
+    before, n = state(src)["ee_pos"], len(src.executed_so_far())
+    res = CorrectionExecutor(src).run([prim("hold_position"), prim("move_to_pose", pose_id="omitted:grasp")])
+    assert not res.executed and res.error == "move_to_pose: no grasp step was omitted" and res.log == []
+    assert len(src.executed_so_far()) == n and list(state(src)["ee_pos"]) == list(before)
 
 
 def first_of(src, template):
