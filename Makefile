@@ -148,8 +148,8 @@ ablate: $(STAMP)
 
 # After make reproduce, on its data: its model taught to supervise a running trajectory, as make demo-online does in
 # the demo world (a third stage on prefix grids, twins cut at the same keyframes, asked Q2, Q3, Q5 and Q6 as the
-# failure stands at the cut), then the bench on whole and prefix seen grids and unseen objects and scene. About 45 min
-# on 2 cores (8,000 seen episodes).
+# failure stands at the cut), then the bench on whole and prefix seen grids and unseen objects and scene. About 50
+# min on 2 cores (8,000 seen episodes; 28 Nov).
 ONLINE_EPOCHS ?= 3
 reproduce-online: $(STAMP)
 	@test -d $(R)/train/final || { echo "reproduce-online: run make reproduce first (no $(R)/train/final)" >&2; exit 2; }
@@ -163,8 +163,8 @@ reproduce-online: $(STAMP)
 # The paper's recovery table in the wide world: an ACT policy trained here per task (pick and place: 120 scripted
 # demos, 8 minutes, one thread; pour: 480 + 120 regrasp demos, about 33 + 40 min; kept when it exists), then the
 # scripted and ACT policies, 25 trials per task, without a supervisor and with $(VLM) asked at every keyframe, except
-# the ACT pour cell (below) (out: $(R)/recovery/<policy>/, results.md is the table). About 100 min on 2 cores, 20 of
-# them the trials.
+# the ACT pour cell (below) (out: $(R)/recovery/<policy>/, results.md is the table). About 2 h on 2 cores from
+# nothing; 87 min measured with the pour demonstrations already recorded (28 Nov), about 30 of them the trials.
 VLM ?= $(R)/online/final
 # Per task: the ACT's training arguments and the supervised run's settings. A pour must find the source and the
 # destination: a hand camera, DART-style drift of every free and carrying move, keypoint tokens, a cosine schedule,
