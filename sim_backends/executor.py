@@ -114,9 +114,10 @@ class CorrectionExecutor:
         for p in primitives:
             pose_id = str(p.get("args", {}).get("pose_id", ""))
             if p.get("op") == "move_to_pose" and pose_id.startswith("omitted:"):
-                action = pose_id.split(":", 1)[1]
-                if self._omitted_step(action) is None:
-                    return ExecResult(False, error=f"move_to_pose: no {action} step was omitted")
+                try:
+                    self._omitted_step(pose_id)
+                except PrimitiveError as e:
+                    return ExecResult(False, error=f"move_to_pose: {e}")
         res = ExecResult(True)
         for p in primitives:
             n0 = self.count
@@ -427,17 +428,18 @@ class CorrectionExecutor:
         self._carry(home + np.array([0.0, 0.0, height + 0.12]))
         self.note = "no pour in the plan: straight above the destination"
 
-    def _omitted_step(self, action: str) -> Any:
-        """The plan's first step with `action` that has not run, or None."""
+    def _omitted_step(self, pose_id: str) -> Any:
+        """The plan's first step that has not run with the action of `pose_id` ("omitted:<action>")."""
+        action = pose_id.split(":", 1)[1]
         ran = set(self.meta.executed_steps())
-        return next((s for s in self.meta.steps if s.action == action and s.index not in ran), None)
+        step = next((s for s in self.meta.steps if s.action == action and s.index not in ran), None)
+        if step is None:
+            raise PrimitiveError(f"no {action} step was omitted")
+        return step
 
     def _move_to_pose(self, pose_id: str) -> None:
         if pose_id.startswith("omitted:"):
-            action = pose_id.split(":", 1)[1]
-            step = self._omitted_step(action)
-            if step is None:
-                raise PrimitiveError(f"no {action} step was omitted")
+            step = self._omitted_step(pose_id)
             for kf in [k for k in self.nominal if k.segment == step.index]:
                 self._go(
                     kf.pos, quat_to_matrix(kf.quat), grip=kf.gripper, speed=kf.speed, settle=kf.settle_steps, kf=kf
