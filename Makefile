@@ -161,7 +161,8 @@ reproduce-online: $(STAMP)
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 
 # The paper's recovery table in the wide world: an ACT policy trained here per task (pick and place: 120 scripted
-# demos, 8 minutes, one thread; pour: 480 + 120 regrasp demos, about 33 + 40 min; kept when it exists), then the
+# demos, 5,700 steps on one thread, about 8 minutes alone; a step count, not a clock, ends it, so the same seed
+# gives the same ACT whatever else the machine runs; pour: 480 + 120 regrasp demos, about 33 + 40 min; kept when it exists), then the
 # scripted and ACT policies, 25 trials per task, without a supervisor and with $(VLM) asked at every keyframe, except
 # the ACT pour cell (below) (out: $(R)/recovery/<policy>/, results.md is the table). About 2 h on 2 cores from
 # nothing; 87 min measured with the pour demonstrations already recorded (28 Nov), about 30 of them the trials.
@@ -172,7 +173,7 @@ VLM ?= $(R)/online/final
 # and tilts, and the chunks run open loop (no temporal ensembling). Its supervisor is `make reproduce`'s model
 # reviewing the whole trajectory when the ACT stops (docs/EXPERIMENTS.md, 27 Nov: 1/25 -> 2/25, seeds 25-49
 # 0 -> 2; with ensembling 0 -> 0). Its own folder, so a pour ACT of an older recipe left in $(R)/act is never mistaken for it.
-ACT_pick := demos=120 train.max_minutes=8 train.threads=1
+ACT_pick := demos=120 train.steps=5700 train.max_minutes=30 train.threads=1
 ACT_place := $(ACT_pick)
 ACT_pour := demos=480 regrasp_demos=120 miss=0.08 'model.cameras=[front,wrist]' model.image_size=96 noise=0.03 \
   carry_noise=0.03 model.keypoints=32 model.aux_weight=1.0 model.temporal_ensemble_coeff=null train.lr=5e-4 \

@@ -254,3 +254,52 @@ def test_oracle_leaves_a_finished_success_alone(tmp_path):
     eps = {e["supervisor"]: e for e in records(out) if e["event"] == "episode"}
     assert eps["none"]["success"] and eps["none"]["labels"]["failure_type"] is None
     assert eps["oracle"]["success"] and eps["oracle"]["interventions"] == 0
+
+
+def test_a_refused_plan_is_no_intervention_and_leaves_the_policy_alone():
+    """A supervisor that cries wolf at every keyframe with a plan the executor refuses (a pause, then a return to a
+    grasp that was never omitted) must leave the run exactly as the unsupervised one: the arm never moves for it,
+    the policy is never told to re-plan, and the budget stays unspent. A plan that did move the arm (a pause) is
+    an intervention and the policy re-plans."""
+    from sim_backends.policies.scripted import ScriptedPolicy
+    from sim_backends.registry import make_backend
+    from sim_backends.supervision.base import Supervisor, Verdict
+    from sim_backends.supervision.loop import LoopConfig, TaskFamily, run_trial
+    from sim_backends.supervision.oracle import NoSupervisor
+
+    class Wolf(Supervisor):
+        name = "wolf"
+
+        def __init__(self, plan):
+            self.plan = plan
+
+        def query(self, src, final=False):
+            return Verdict(True, "step_omission", 0, "return", "L2", [dict(p) for p in self.plan])
+
+    class Counting(ScriptedPolicy):
+        def reset(self, ctx):
+            self.told = 0
+            return super().reset(ctx)
+
+        def after_correction(self, obs, executed=True, step=None):
+            self.told += 1
+            super().after_correction(obs, executed, step)
+
+    hold = {"op": "hold_position", "args": {}}
+    refused = [hold, {"op": "move_to_pose", "args": {"pose_id": "omitted:grasp"}}]
+    fam = TaskFamily("pick", ["pick_place_beaker_small"], 1, [{"kind": "held", "object": "obj"}])
+    src = make_backend("pybullet", render=False, max_distractors=0)
+    runs = {}
+    try:
+        for name, sup in (("none", NoSupervisor()), ("refused", Wolf(refused)), ("hold", Wolf([hold]))):
+            pol = Counting(inject_prob=0.0)
+            ep = run_trial(src, pol, sup, fam, "pick_place_beaker_small", 0, "seen", LoopConfig(), None, name)
+            runs[name] = (ep, pol.told, (ep["steps"], ep["keyframes"], ep["labels"]))
+    finally:
+        src.close()
+    (none, _, path0), (ref, told_ref, path_ref) = runs["none"], runs["refused"]
+    held, told_hold, path_hold = runs["hold"]
+    assert ref["queries"] >= 3 and ref["interventions"] == 0 and told_ref == 0
+    assert path_ref == path0 and ref["success"] == none["success"]  # the world went as if nobody had watched
+    assert held["interventions"] == LoopConfig().budget and told_hold == held["interventions"]
+    assert path_hold[1] > path0[1]  # each pause was a keyframe of its own

@@ -4,6 +4,8 @@
                     at each keyframe boundary (or every `query_every` steps): verdict = supervisor.query(src)
                     failure and budget left -> CorrectionExecutor(src).run(verdict.primitives),
                                                supervisor.handled(src), policy.after_correction(obs)
+                    (a plan the executor refused before it moved anything is neither an intervention nor a
+                    reason for the policy to re-plan)
     policy stops:   one more query (a failure that shows only once the policy stops); a correction that runs
                     there hands control back to the policy (corrections end "then resume the remaining
                     workflow"), which is reviewed again when it stops; then src.finish()
@@ -326,11 +328,16 @@ def _query(
         rec["outcome"] = {"executed": False, "error": "intervention budget spent"}
     elif v.failure:
         res = executor.run(v.primitives)
-        t.interventions += 1
-        sup.handled(src)
-        policy.after_correction(src.observe(), res.executed, res.step)
+        sup.handled(src)  # the report is dealt with, even when its plan was refused
         rec["outcome"] = res.to_dict()
-        t.corrected = bool(res.executed)
+        # a plan refused before its first primitive (an impossible return, an unknown primitive) left the world as
+        # it was: it is no intervention (the budget counts corrections that acted) and the policy's plan or action
+        # chunks still hold, so it is not told to re-plan. A hand-over to a person counts.
+        acted = res.keyframes > 0 or bool(res.manual)
+        if acted:
+            t.interventions += 1
+            policy.after_correction(src.observe(), res.executed, res.step)
+        t.corrected = bool(res.executed) and res.keyframes > 0
         if res.manual and cfg.on_manual == "stop":
             t.stopped, go_on = "manual correction", False
     if log is not None:
