@@ -303,3 +303,63 @@ def test_a_refused_plan_is_no_intervention_and_leaves_the_policy_alone():
     assert path_ref == path0 and ref["success"] == none["success"]  # the world went as if nobody had watched
     assert held["interventions"] == LoopConfig().budget and told_hold == held["interventions"]
     assert path_hold[1] > path0[1]  # each pause was a keyframe of its own
+
+
+def test_an_unnamed_policy_is_first_asked_once_it_has_reached_a_plan_keyframe():
+    """ACT and OpenVLA name no step: the tracker names each tick after the plan keyframe it heads for, and a
+    query is due when that name changes. Its first tick heads for the first keyframe without reaching it: asking
+    there would show the supervisor a one-cell grid of a move just begun (the wide-world model read it as an
+    omitted step), so queries wait until a plan keyframe has been reached. A named (scripted) step is a whole
+    keyframe and is asked after at once."""
+    import dataclasses
+
+    from sim_backends.policies.base import Action, Policy
+    from sim_backends.registry import make_backend
+    from sim_backends.supervision.base import Supervisor, Verdict
+    from sim_backends.supervision.loop import LoopConfig, TaskFamily, run_trial
+
+    class Replay(Policy):  # the plan's keyframes; unnamed, as a learned policy would, from a point half-way there
+        name = "replay"
+
+        def __init__(self, named):
+            self.named = named
+
+        def reset(self, ctx):
+            self.plan = [Action.from_keyframe(k) for k in ctx.nominal]
+            if not self.named:
+                self.plan = [None] + [dataclasses.replace(a, name=None) for a in self.plan]
+            return []
+
+        def act(self, obs):
+            if self.plan and self.plan[0] is None:  # half-way from where the hand starts to the first keyframe
+                first = self.plan[1]
+                mid = tuple((p + h) / 2 for p, h in zip(first.pos, obs.state["ee_pos"]))
+                self.plan[0] = dataclasses.replace(first, pos=mid)
+            return self.plan.pop(0) if self.plan else None
+
+    class Count(Supervisor):
+        name = "count"
+
+        def reset(self, ctx):
+            super().reset(ctx)
+            self.seen = []
+
+        def query(self, src, final=False):
+            self.seen.append((len(src.executed_so_far()), final))
+            return Verdict(False)
+
+    fam = TaskFamily("pick", ["pick_place_beaker_small"], 2, [{"kind": "held", "object": "obj"}])
+    src = make_backend("pybullet", render=False, max_distractors=0)
+    asked = {}
+    try:
+        for named in (True, False):
+            sup = Count()
+            run_trial(src, Replay(named), sup, fam, "pick_place_beaker_small", 0, "seen", LoopConfig(), None, "t")
+            asked[named] = sup.seen
+    finally:
+        src.close()
+    n = asked[True][-1][0]  # the plan's keyframes, all run
+    assert n >= 3 and asked[True] == [(k, False) for k in range(1, n + 1)] + [(n, True)]
+    # unnamed: the half-way tick and the first keyframe (reached, its name unchanged) are not asked after; the
+    # move on to the second keyframe is
+    assert asked[False] == [(k, False) for k in range(3, n + 2)] + [(n + 1, True)]

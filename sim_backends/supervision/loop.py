@@ -218,8 +218,10 @@ def _act(
             due = False
         elif cfg.query_every:
             due = t.steps % cfg.query_every == 0
-        else:  # a keyframe boundary
-            due = a.name is not None or kf.name != prev_name
+        else:  # a keyframe boundary: a named (plan) step ran, or the plan keyframe an unnamed policy's ticks are
+            # named after changed. Not before the tracker has seen one reached: the first tick of ACT is named after
+            # the keyframe it heads for, and a query there would show a one-cell grid of a move just begun
+            due = a.name is not None or (kf.name != prev_name and tracker.c >= 0)
         prev_name = kf.name
         if due and not _query(src, policy, supervisor, executor, cfg, log, trial, t, obs, grid_cfg, ctx):
             return
