@@ -164,8 +164,9 @@ reproduce-online: $(STAMP)
 # demos, 5,700 steps on one thread, about 8 minutes alone: a step count, not a clock, ends it, so the same seed
 # gives the same ACT whatever else the machine runs; pour: 480 + 120 regrasp demos, about 33 + 40 min; kept when
 # it exists), then the scripted and ACT policies, 25 trials per task, without a supervisor and with $(VLM) asked at
-# every keyframe, except the ACT pour cell (below) (out: $(R)/recovery/<policy>/, results.md is the table). About 2 h on 2 cores from
-# nothing; 87 min measured with the pour demonstrations already recorded (28 Nov), about 30 of them the trials.
+# every keyframe, except the ACT pour cell (below) (out: $(R)/recovery/<policy>/, results.md is the table). About
+# 2 h on 2 cores from nothing; 87 min measured with the pour demonstrations already recorded (28 Nov), about 30 of
+# them the trials.
 VLM ?= $(R)/online/final
 # Per task: the ACT's training arguments and the supervised run's settings. A pour must find the source and the
 # destination: a hand camera, DART-style drift of every free and carrying move, keypoint tokens, a cosine schedule,

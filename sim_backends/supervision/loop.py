@@ -335,11 +335,11 @@ def _query(
         # a plan refused before its first primitive (an impossible return, an unknown primitive) left the world as
         # it was: it is no intervention (the budget counts corrections that acted) and the policy's plan or action
         # chunks still hold, so it is not told to re-plan. A hand-over to a person counts.
-        acted = res.keyframes > 0 or bool(res.manual)
-        if acted:
+        moved = res.keyframes > 0
+        if moved or res.manual:
             t.interventions += 1
             policy.after_correction(src.observe(), res.executed, res.step)
-        t.corrected = bool(res.executed) and res.keyframes > 0
+        t.corrected = res.executed and moved
         if res.manual and cfg.on_manual == "stop":
             t.stopped, go_on = "manual correction", False
     if log is not None:
