@@ -171,17 +171,19 @@ VLM ?= $(R)/online/final
 # Per task: the ACT's training arguments and the supervised run's settings. A pour must find the source and the
 # destination: a hand camera, DART-style drift of every free and carrying move, keypoint tokens, a cosine schedule,
 # demonstrations that start from a corrected grasp, two auxiliary queries that learn where the demonstration grasps
-# and tilts, and the chunks run open loop (no temporal ensembling). Its supervisor is `make reproduce`'s model
-# reviewing the whole trajectory when the ACT stops (docs/EXPERIMENTS.md, 27 Nov: 1/25 -> 2/25, seeds 25-49
-# 0 -> 2; with ensembling 0 -> 0). Its own folder, so a pour ACT of an older recipe left in $(R)/act is never mistaken for it.
+# and tilts, the chunks run open loop (no temporal ensembling), and chunks past a demonstration's end taught to hold
+# its last target, so the ACT stops when done instead of undoing its pour. Its supervisor is `make reproduce`'s model
+# reviewing the whole trajectory when the ACT stops (docs/EXPERIMENTS.md, 28 Nov: 1/25 -> 1/25). Its own folder, so
+# a pour ACT of an older recipe left in $(R)/act is never mistaken for it.
 ACT_pick := demos=120 train.steps=5700 train.max_minutes=30 train.threads=1
 ACT_place := $(ACT_pick)
 ACT_pour := demos=480 regrasp_demos=120 miss=0.08 'model.cameras=[front,wrist]' model.image_size=96 noise=0.03 \
   carry_noise=0.03 model.keypoints=32 model.aux_weight=1.0 model.temporal_ensemble_coeff=null train.lr=5e-4 \
-  train.lr_backbone=5e-4 train.schedule=cosine train.warmup=500 train.steps=20000 train.max_minutes=46
+  train.lr_backbone=5e-4 train.schedule=cosine train.warmup=500 train.steps=20000 train.max_minutes=46 \
+  train.hold_end=true
 ACT_SUP_pour := backend_kwargs.wrist=true loop.query_every=-1
 VLM_pour ?= $(R)/train/final
-ACT_DIR_pour := pour_aux
+ACT_DIR_pour := pour_hold
 act_dir = $(R)/act/$(or $(ACT_DIR_$(1)),$(1))
 recovery: $(STAMP)
 	@test -d $(VLM) || { echo "recovery: no model $(VLM) (make reproduce-online, or VLM=<model dir>)" >&2; exit 2; }

@@ -121,6 +121,26 @@ def test_augmented_demonstrations_move_the_pictures_not_the_actions():
     assert not torch.equal(a[2][0], x[0])  # a fresh draw per sample
 
 
+def test_a_chunk_past_the_end_holds_the_last_target_when_asked():
+    from sim_backends.policies.act.data import DemoDataset, normalisation
+
+    rng = np.random.default_rng(0)
+    demos = [
+        {
+            "images": np.zeros((6, 1, 32, 32, 3), np.uint8),
+            "state": rng.normal(size=(6, 9)),
+            "action": rng.normal(size=(6, 10)),
+        }
+    ]
+    cfg = ACTConfig(**TOY)  # chunks of 4
+    cfg.stats = normalisation(demos)
+    _, _, act, pad, _ = DemoDataset(demos, cfg)[4]
+    assert pad.tolist() == [False, False, True, True]  # the reference: past the end is masked out
+    _, _, held, pad, _ = DemoDataset(demos, cfg, hold_end=True)[4]
+    assert not pad.any() and torch.equal(held, act)  # taught, as the last target held: the plan stands still
+    assert torch.equal(held[2], held[1]) and torch.equal(held[3], held[1])
+
+
 def test_spatial_softmax_finds_a_peak_between_feature_tokens():
     from sim_backends.policies.act.modeling_act import spatial_softmax
 
@@ -234,6 +254,25 @@ def test_bad_checkpoints_are_one_line_errors(tmp_path):
         ACTPolicy(checkpoint=None)
 
 
+def test_a_correction_gives_the_act_a_new_attempt(tmp_path):
+    # an ACT that spent its ticks (every wide-world pour does) could not resume after a final-review correction
+    from sim_backends.policies.act.policy import ACTPolicy
+    from sim_backends.source import Observation
+
+    torch.manual_seed(0)
+    stats = {"state_mean": [0.0] * 9, "state_std": [1.0] * 9, "action_mean": [0.0] * 10, "action_std": [1.0] * 10}
+    cfg = ACTConfig(**TOY, stats=stats, temporal_ensemble_coeff=None)
+    save_checkpoint(ACTModel(cfg).eval(), cfg, tmp_path / "ck")
+    policy = ACTPolicy(checkpoint=str(tmp_path / "ck"), max_ticks=3, idle_stop=0)
+    state = {"ee_pos": [0.4, 0.0, 0.3], "ee_quat": [0.0, 0.0, 0.0, 1.0], "width": 0.08, "grip_cmd": 0}
+    obs = Observation({"front": np.zeros((32, 32, 3), np.uint8)}, state, 0)
+    assert all(policy.act(obs) is not None for _ in range(3)) and policy.act(obs) is None  # the attempt is spent
+    policy.after_correction(obs)
+    assert all(policy.act(obs) is not None for _ in range(3)) and policy.act(obs) is None  # a new attempt, bounded
+    policy.reset(None)
+    assert policy.act(obs) is not None and policy.info() == {"ticks": 1}
+
+
 def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
     """A front + wrist ACT, one plain and one regrasp demonstration (each in its own cache): the wrist view is
     recorded, rendered for the policy in the supervised run (the backend's wrist option), and taken by the
@@ -306,7 +345,8 @@ def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
     )
     assert r.returncode == 0, r.stderr
     eps = [json.loads(x) for x in (sup / "log.jsonl").read_text().splitlines() if '"episode"' in x]
-    assert len(eps) == 2 and all(0 < e["steps"] <= 12 and e["policy"] == "act" for e in eps)
+    assert len(eps) == 2 and all(e["policy"] == "act" and 0 < e["ticks"] <= 12 for e in eps)
+    assert all(e["steps"] <= 12 * (1 + e["interventions"]) for e in eps)  # act.max_ticks per attempt
     # the same checkpoint behind the OpenVLA protocol
     p = subprocess.Popen(
         [sys.executable, "scripts/serve_policy.py", "policy=act", f"act.checkpoint={out / 'final'}", "port=0"],

@@ -215,7 +215,12 @@ class DemoDataset(Dataset):
     With `augment`, every sample's views are shifted, zoomed and recoloured by a fresh draw (the project's grid
     augmentation, one affine per view): the cameras stand elsewhere in every episode of the wide world, so where a
     vessel lies in the picture says where it stands only relative to the hand, and the draw keeps the policy from
-    learning absolute pixel positions of its few hundred demonstrations."""
+    learning absolute pixel positions of its few hundred demonstrations.
+
+    With `hold_end`, a chunk that runs past its demonstration's end is taught to hold the last target (the scripted
+    plan stands still there) instead of being masked out: ACT has no stop signal but standing still (`idle_stop`),
+    and a policy never shown the end of a task keeps moving after it, undoing what it did (docs/EXPERIMENTS.md,
+    28 Nov: the pour ACT set the beaker back, then pushed it 14 cm away)."""
 
     def __init__(
         self,
@@ -223,8 +228,9 @@ class DemoDataset(Dataset):
         cfg: ACTConfig,
         augment: AugmentConfig | None = None,
         seed: int = 0,
+        hold_end: bool = False,
     ):
-        self.demos, self.k = demos, cfg.chunk_size
+        self.demos, self.k, self.hold_end = demos, cfg.chunk_size, hold_end
         self.augment, self.rng = augment, np.random.default_rng(seed)
         self.index = [(i, t) for i, d in enumerate(demos) for t in range(len(d["action"]))]
         self.points = [key_points(np.asarray(d["action"])) for d in demos]
@@ -238,7 +244,7 @@ class DemoDataset(Dataset):
         i, t = self.index[j]
         d = self.demos[i]
         n = len(d["action"])
-        idx = np.minimum(np.arange(t, t + self.k), n - 1)  # past the end: repeat the last action, masked out
+        idx = np.minimum(np.arange(t, t + self.k), n - 1)  # past the end: repeat the last action (masked out, or held)
         views = d["images"][t]
         if self.augment is not None:
             aug = Augment.draw(self.augment, len(views), self.rng)
@@ -246,7 +252,7 @@ class DemoDataset(Dataset):
         img = torch.from_numpy(views).permute(0, 3, 1, 2).float() / 255.0
         state = torch.from_numpy((d["state"][t] - self.sm) / self.ss)
         act = torch.from_numpy((d["action"][idx] - self.am) / self.as_)
-        pad = torch.from_numpy(np.arange(t, t + self.k) >= n)
+        pad = torch.from_numpy((np.arange(t, t + self.k) >= n) & (not self.hold_end))
         hand = np.asarray(d["state"][t][:3], np.float32)  # proprio_vector: ee_pos first
         points = torch.from_numpy((self.points[i] - hand) / AUX_SCALE)
         return img, state, act, pad, points

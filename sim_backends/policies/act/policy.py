@@ -2,8 +2,10 @@
 
 Every step queries the model (with ensembling) or every k steps (`temporal_ensemble_coeff: null`); the
 action is the target position, its rotation (6-D, orthonormalised) and the gripper (> 0.5: closed). ACT has
-no stop signal: the policy is done when its targets stand still (position, orientation and gripper) for
-`idle_stop` steps or after `max_ticks`.
+no stop signal: an attempt is done when its targets stand still (position, orientation and gripper) for
+`idle_stop` steps or after `max_ticks`. A correction starts a new attempt with a fresh `max_ticks` (the loop's
+`max_steps` bounds the episode): a correction hands control back to the policy to resume the task, which an ACT
+that had spent its ticks could not do (every wide-world pour runs all 400 without standing still).
 """
 
 from __future__ import annotations
@@ -69,11 +71,12 @@ class ACTPolicy(Policy):
         return []
 
     def after_correction(self, obs: Observation, executed: bool = True, step: int | None = None) -> None:
-        """A correction moved the arm: chunks predicted before it no longer apply."""
+        """A correction moved the arm: chunks predicted before it no longer apply, and the policy resumes the task
+        from the corrected state in a new attempt (a fresh tick budget)."""
         if self.blend is not None:
             self.blend.reset()
         self.chunks.reset()
-        self.idle, self.last = 0, None
+        self.t, self.idle, self.last = 0, 0, None
 
     def _chunk(self, obs: Observation) -> np.ndarray:
         from sim_backends.policies.openvla_client import proprio_vector

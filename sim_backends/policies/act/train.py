@@ -177,7 +177,7 @@ def train(cfg: DictConfig, family: Any) -> dict[str, Any]:
         if t.schedule == "cosine"
         else get_constant_schedule_with_warmup(opt, warmup)
     )
-    data = DemoDataset(demos, model_cfg, augment_config(t.augment), int(t.seed))
+    data = DemoDataset(demos, model_cfg, augment_config(t.augment), int(t.seed), bool(t.hold_end))
     order = torch.Generator().manual_seed(int(t.seed))  # the loader's shuffles, one draw per epoch
     loader = DataLoader(data, batch_size=int(t.batch_size), shuffle=True, drop_last=True, generator=order)
     curve: list[dict[str, float]] = []
