@@ -5,7 +5,7 @@ action is the target position, its rotation (6-D, orthonormalised) and the gripp
 no stop signal: an attempt is done when its targets stand still (position, orientation and gripper) for
 `idle_stop` steps or after `max_ticks`. A correction starts a new attempt with a fresh `max_ticks` (the loop's
 `max_steps` bounds the episode): a correction hands control back to the policy to resume the task, which an ACT
-that had spent its ticks could not do (every wide-world pour runs all 400 without standing still).
+that had spent its ticks could not do (most wide-world pours run all 400 without standing still).
 """
 
 from __future__ import annotations
