@@ -255,7 +255,7 @@ def test_bad_checkpoints_are_one_line_errors(tmp_path):
 
 
 def test_a_correction_gives_the_act_a_new_attempt(tmp_path):
-    # an ACT that spent its ticks (every wide-world pour does) could not resume after a final-review correction
+    # an ACT that spent its ticks (most wide-world pours do) could not resume after a final-review correction
     from sim_backends.policies.act.policy import ACTPolicy
     from sim_backends.source import Observation
 

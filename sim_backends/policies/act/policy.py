@@ -72,11 +72,8 @@ class ACTPolicy(Policy):
 
     def after_correction(self, obs: Observation, executed: bool = True, step: int | None = None) -> None:
         """A correction moved the arm: chunks predicted before it no longer apply, and the policy resumes the task
-        from the corrected state in a new attempt (a fresh tick budget)."""
-        if self.blend is not None:
-            self.blend.reset()
-        self.chunks.reset()
-        self.t, self.idle, self.last = 0, 0, None
+        from the corrected state in a new attempt (a fresh tick budget): the same fresh start as an episode's."""
+        self.reset(None)
 
     def _chunk(self, obs: Observation) -> np.ndarray:
         from sim_backends.policies.openvla_client import proprio_vector
