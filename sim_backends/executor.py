@@ -18,7 +18,8 @@ Primitive semantics (frames as documented in labrobfail_vlm/actions.py):
   move_above         grasp first if not held, lift, carry the held object       gripper turns with its angle)
                      above the destination, lower to h above its surface
   align_above        the plan's pouring pose for src over dest (its last keyframe before the tilt)
-  move_to_pose       the keyframes of the omitted step (pose_id "omitted:<action>") or one named keyframe
+  move_to_pose       the keyframes of the omitted step (pose_id "omitted:<action>"; its object grasped first when
+                     the step carries it) or one named keyframe
   set_orient         level the gripper: the step's planned orientation with the current heading (yaw)
   hold_orientation / hold_gripper   keep what is there (no motion)
   rotate             turn about a world axis;  tilt_pour  roll as the plan pours, in three stages, then upright
@@ -440,7 +441,13 @@ class CorrectionExecutor:
     def _move_to_pose(self, pose_id: str) -> None:
         if pose_id.startswith("omitted:"):
             step = self._omitted_step(pose_id)
-            for kf in [k for k in self.nominal if k.segment == step.index]:
+            kfs = [k for k in self.nominal if k.segment == step.index]
+            # a step the plan enters holding its object (a pour, a place) needs it in the hand: a vessel set down
+            # unpoured is picked up again first, as move_above and align_above do
+            carried = self.meta.objects.get(step.object)
+            if kfs and kfs[0].gripper == 1 and carried is not None and carried.kind in ("vessel", "rod"):
+                self._ensure_held(step.object)
+            for kf in kfs:
                 self._go(
                     kf.pos, quat_to_matrix(kf.quat), grip=kf.gripper, speed=kf.speed, settle=kf.settle_steps, kf=kf
                 )

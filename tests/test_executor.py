@@ -189,6 +189,19 @@ def first_of(src, template):
     return next(s for s in src.scenarios() if src.scenario_info(s)["template"] == template)
 
 
+def test_an_omitted_pour_picks_the_vessel_up_again_and_pours(src):
+    """The pour was skipped and the source set back full: returning to the omitted pour grasps it first."""
+    src.reset(first_of(src, "pour"), 0, "seen")
+    src.begin()
+    for k in src.scripted_keyframes():
+        if k.segment != 1:  # grasp, then the place step straight away: lifted and set back unpoured
+            src.step(k)
+    assert state(src)["src.contacts"] == 0 and state(src)["liquid.dest"] == 0
+    res = run(src, prim("move_to_pose", pose_id="omitted:pour"))
+    assert res.log[0]["keyframes"] > 4 and state(src)["liquid.dest"] > 0
+    assert state(src)["src.contacts"] > 0  # still in the hand after the pour: the policy sets it back
+
+
 def test_align_above_and_tilt_pour_empty_the_source(src):
     start(src, first_of(src, "pour"), "s0_lift")
     labels = src.task_meta([]).labels
