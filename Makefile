@@ -173,7 +173,7 @@ VLM ?= $(R)/online/final
 # demonstrations that start from a corrected grasp, two auxiliary queries that learn where the demonstration grasps
 # and tilts, the chunks run open loop (no temporal ensembling), and chunks past a demonstration's end taught to hold
 # its last target, so the ACT stops when done instead of undoing its pour. Its supervisor is `make reproduce`'s model
-# reviewing the whole trajectory when the ACT stops (docs/EXPERIMENTS.md, 28 Nov: 1/25 -> 1/25). Its own folder, so
+# reviewing the whole trajectory when the ACT stops (docs/EXPERIMENTS.md, 28 Nov: 1/25 -> 2/25). Its own folder, so
 # a pour ACT of an older recipe left in $(R)/act is never mistaken for it.
 ACT_pick := demos=120 train.steps=5700 train.max_minutes=30 train.threads=1
 ACT_place := $(ACT_pick)
