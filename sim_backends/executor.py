@@ -48,6 +48,7 @@ MISS_POS, MISS_ROT = 0.01, 0.05  # m, rad: a move that ends further off than thi
 TURN_SETTLE = 60  # physics steps after a turn in place: the controller converges on position, not orientation
 RETREAT = 0.08  # m backed off along the approach axis before re-approaching an object
 TRANSPORT_CLEARANCE = 0.10  # m above the higher of start and goal while carrying
+MOVABLE = ("vessel", "rod")  # object kinds a gripper picks up and carries (the rest: ovens, buttons, zones)
 AXES = {"x": np.array([1.0, 0, 0]), "y": np.array([0, 1.0, 0]), "z": np.array([0, 0, 1.0])}
 
 
@@ -327,7 +328,7 @@ class CorrectionExecutor:
         if kind in ("oven", "button"):
             self._align_device(role, stage)
             return
-        if kind not in ("vessel", "rod"):
+        if kind not in MOVABLE:
             raise PrimitiveError(f"cannot centre the gripper on {target_id!r} (a {kind})")
         if self._held(role):
             self.note = "already held"
@@ -383,11 +384,11 @@ class CorrectionExecutor:
         if obj is not None:
             return self._role(obj)
         s = self._state()
-        held = [r for r, o in self.meta.objects.items() if o.kind in ("vessel", "rod") and s.get(f"{r}.contacts", 0)]
+        held = [r for r, o in self.meta.objects.items() if o.kind in MOVABLE and s.get(f"{r}.contacts", 0)]
         if held:
             return held[0]
         st = self.meta.steps[self.cur.segment]
-        if st.object in self.meta.objects and self.meta.objects[st.object].kind in ("vessel", "rod"):
+        if st.object in self.meta.objects and self.meta.objects[st.object].kind in MOVABLE:
             return st.object
         raise PrimitiveError("no object is held and none is named")
 
@@ -445,7 +446,7 @@ class CorrectionExecutor:
             # a step the plan enters holding its object (a pour, a place) needs it in the hand: a vessel set down
             # unpoured is picked up again first, as move_above and align_above do
             carried = self.meta.objects.get(step.object)
-            if kfs and kfs[0].gripper == 1 and carried is not None and carried.kind in ("vessel", "rod"):
+            if kfs and kfs[0].gripper == 1 and carried is not None and carried.kind in MOVABLE:
                 self._ensure_held(step.object)
             for kf in kfs:
                 self._go(
