@@ -370,6 +370,27 @@ def per_type(run: Path, res: dict[str, Any]) -> list[str]:
     return out
 
 
+def timing(stamps: list[list[str]]) -> list[str]:
+    """The page's wall-clock line from timeline.txt's ("<step>", "<unix seconds>") stamps: the time from the first
+    stamp to the last and each step's share; "end to end" only when the last stamp is "done"."""
+    if len(stamps) < 2:
+        return []
+    steps = [(a[0], int(b[1]) - int(a[1])) for a, b in zip(stamps, stamps[1:])]
+    total_min = (int(stamps[-1][1]) - int(stamps[0][1])) / 60
+    # A run stopped (or still running) before it wrote "done" was not timed end to end: say where its clock stops
+    # rather than pass the partial time off as the whole recipe's.
+    span = "end to end" if stamps[-1][0] == "done" else f"until its `{stamps[-1][0]}` step (the timeline ends there)"
+    line = (
+        f"`make reproduce` {span}: **{total_min:.1f} min** wall-clock. Steps: "
+        + ", ".join(f"{n} {s / 60:.1f} min" for n, s in steps)
+        + "."
+    )
+    # a rerun resumes complete shards in seconds: say so rather than pass it off as generation time
+    if dict(steps).get("generate", 60) < 60:
+        line += " Generation found its shards already complete, so their generation time is not in this figure."
+    return [line, ""]
+
+
 def main(argv: list[str]) -> int:
     from labrobfail_vlm.bench.report import PAPER_ROWS, PAPER_UNSEEN_ROWS, detection_markdown, markdown, paper_row, row
 
@@ -382,8 +403,6 @@ def main(argv: list[str]) -> int:
     progress = _load(run / "train" / "progress.json")
     evals = {s: _load(run / "train" / "final" / f"eval_{s}" / "results.json") for s in SPLIT_TITLES}
     stamps = [line.split() for line in (run / "timeline.txt").read_text().splitlines() if line.strip()]
-    steps = [(a[0], int(b[1]) - int(a[1])) for a, b in zip(stamps, stamps[1:])]
-    total_min = (int(stamps[-1][1]) - int(stamps[0][1])) / 60 if len(stamps) > 1 else None
     grid = stats["grid"]
     card = summary.get("tower")
     lines = [
@@ -397,19 +416,7 @@ def main(argv: list[str]) -> int:
         "written by `scripts/write_results.py`; nothing is edited by hand.",
         "",
     ]
-    if total_min is not None:
-        lines += [
-            f"`make reproduce` end to end: **{total_min:.1f} min** wall-clock. Steps: "
-            + ", ".join(f"{n} {s / 60:.1f} min" for n, s in steps)
-            + "."
-            # a rerun resumes complete shards in seconds: say so rather than pass it off as generation time
-            + (
-                " Generation found its shards already complete, so their generation time is not in this figure."
-                if dict(steps).get("generate", 60) < 60
-                else ""
-            ),
-            "",
-        ]
+    lines += timing(stamps)
     params = sum(v for k, v in summary["trainable_parameters"].items() if k != "frozen")
     frozen = summary["trainable_parameters"].get("frozen", 0)
     man_file = run / "shards" / "seen" / "manifest.json"

@@ -174,3 +174,17 @@ def test_a_recovery_table_alone_replaces_the_pages_and_keeps_its_online_table(tm
     assert "23/25" not in section
     assert main([f"run={run}", f"out={page}", "sections=[supervision]"]) == 0
     assert page.read_text() == text
+
+
+def test_a_timeline_without_done_is_not_called_end_to_end() -> None:
+    """The wall-clock line says "end to end" only for a run whose timeline reached "done"; a run stopped earlier
+    (its learning curve interrupted, say) names the step where its clock stops."""
+    from scripts.write_results import timing
+
+    stamps = [["generate", "0"], ["train", "600"], ["learning_curve", "900"]]
+    stopped = timing(stamps)[0]
+    assert "until its `learning_curve` step" in stopped and "end to end" not in stopped
+    assert "**15.0 min**" in stopped and "generate 10.0 min, train 5.0 min" in stopped
+    done = timing([*stamps, ["done", "960"]])[0]
+    assert "end to end: **16.0 min**" in done and "learning_curve 1.0 min" in done
+    assert timing([["generate", "0"]]) == []
