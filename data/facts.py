@@ -23,6 +23,7 @@ import numpy as np
 
 from labrobfail_vlm import questions as Q
 from sim_backends.goals import GOALS
+from sim_backends.schema import MOVABLE
 
 LIFT = 0.03  # m above the object's start height: lifted off the bench
 
@@ -54,7 +55,7 @@ def frame_facts(trace: dict[str, Any], meta: dict[str, Any], picks: list[int]) -
     labels = meta.get("labels", {})
     word = lambda role: labels.get(role, str(role).replace("_", " "))  # noqa: E731
     out: list[tuple[int, str, bool]] = []
-    movable = [o for o, info in meta["objects"].items() if info["kind"] in ("vessel", "rod") and f"{o}.pos" in trace]
+    movable = [o for o, info in meta["objects"].items() if info["kind"] in MOVABLE and f"{o}.pos" in trace]
     for frame, kf in enumerate(picks, 1):
         j = trace["kf_end"][kf]
         for o in movable:

@@ -22,6 +22,7 @@ import numpy as np
 
 from sim_backends.goals import FALLEN_TILT, GOALS, OFF_BENCH, UPRIGHT_TILT, tilt
 from sim_backends.labeler import OPEN_WIDTH, POSE_ERR, SPILL_PARTICLES, spilled
+from sim_backends.schema import MOVABLE
 from sim_backends.types import rotation_angle
 
 CELL_TARGETS: tuple[str, ...] = (
@@ -52,7 +53,7 @@ def _upto(trace: dict[str, Any], j: int) -> dict[str, Any]:
 
 
 def movables(trace: dict[str, Any], meta: dict[str, Any]) -> list[str]:
-    return [o for o, info in meta["objects"].items() if info["kind"] in ("vessel", "rod") and f"{o}.pos" in trace]
+    return [o for o, info in meta["objects"].items() if info["kind"] in MOVABLE and f"{o}.pos" in trace]
 
 
 def _cell_values(

@@ -37,7 +37,7 @@ import numpy as np
 
 from labrobfail_vlm.actions import DOOR_HANDLE, MANUAL, ORIGINAL, PRIMITIVES, TARGET_POSITION, norm
 from sim_backends.perturbations.control import so3_exp
-from sim_backends.schema import Step, TaskMeta
+from sim_backends.schema import MOVABLE, Step, TaskMeta
 from sim_backends.source import FailureSource
 from sim_backends.types import Keyframe, matrix_to_quat, quat_to_matrix, rotation_angle
 
@@ -48,7 +48,6 @@ MISS_POS, MISS_ROT = 0.01, 0.05  # m, rad: a move that ends further off than thi
 TURN_SETTLE = 60  # physics steps after a turn in place: the controller converges on position, not orientation
 RETREAT = 0.08  # m backed off along the approach axis before re-approaching an object
 TRANSPORT_CLEARANCE = 0.10  # m above the higher of start and goal while carrying
-MOVABLE = ("vessel", "rod")  # object kinds a gripper picks up and carries (the rest: ovens, buttons, zones)
 AXES = {"x": np.array([1.0, 0, 0]), "y": np.array([0, 1.0, 0]), "z": np.array([0, 0, 1.0])}
 
 

@@ -11,7 +11,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from sim_backends.schema import Trace
+from sim_backends.schema import MOVABLE, Trace
 
 Meta = dict[str, Any]
 
@@ -137,7 +137,7 @@ FALLEN_TILT = 1.0  # rad; a vessel lying on its side has fallen over
 def object_fell(trace: Trace, meta: Meta) -> bool:
     """An object ended off the bench or lying on its side (the manual-operation case of Q6)."""
     for name, o in meta["objects"].items():
-        if o["kind"] not in ("vessel", "rod") or f"{name}.pos" not in trace:
+        if o["kind"] not in MOVABLE or f"{name}.pos" not in trace:
             continue
         if trace[f"{name}.pos"][-1][2] < meta["bench_top"] + OFF_BENCH:
             return True

@@ -26,7 +26,7 @@ import numpy as np
 
 from labrobfail_vlm.taxonomy import Severity, category_of
 from sim_backends.goals import OFF_BENCH, UPRIGHT_TILT, failed_goals, rod_in_vessel, stir_samples, tilt
-from sim_backends.schema import TaskMeta, Trace, meta_dict, samples_in
+from sim_backends.schema import MOVABLE, TaskMeta, Trace, meta_dict, samples_in
 from sim_backends.types import Labels, quat_to_matrix, rotation_angle
 
 Meta = dict[str, Any]  # TaskMeta.to_dict(): what a shard stores, so labels re-derive from a shard alone
@@ -95,7 +95,7 @@ def detect_logic(trace: Trace, meta: Meta) -> Optional[Event]:
 
 def detect_grasp(trace: Trace, meta: Meta) -> Optional[Event]:
     for st in meta["steps"]:
-        if st["action"] != "grasp" or meta["objects"][st["object"]]["kind"] not in ("vessel", "rod"):
+        if st["action"] != "grasp" or meta["objects"][st["object"]]["kind"] not in MOVABLE:
             continue
         js = _kf_samples(trace, meta, {st["close_kf"]})
         if not js:
@@ -363,7 +363,7 @@ def severity(trace: Trace, meta: Meta, failure_type: str) -> Severity:
     Risk: glassware tipped over or slipping, or liquid spilled outside every vessel.
     Management incident: an oven door left open, equipment not returned.
     Dangerous: anything else (the task cannot proceed without someone stepping in)."""
-    movables = [k for k, o in meta["objects"].items() if o["kind"] in ("vessel", "rod")]
+    movables = [k for k, o in meta["objects"].items() if o["kind"] in MOVABLE]
     if any(trace[f"{m}.pos"][-1][2] < meta["bench_top"] + OFF_BENCH for m in movables) or any(
         impact_speed(trace, m) >= BREAK_SPEED for m in movables
     ):

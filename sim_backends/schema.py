@@ -22,7 +22,8 @@ from typing import Any
 # backend sampling at another rate keeps the same detection behaviour.
 Trace = dict[str, Any]
 TRACE_COLUMNS = ("t", "kf", "ee_pos", "ee_quat", "width", "grip_cmd")  # every backend records these
-OBJECT_COLUMNS = (".pos", ".quat", ".contacts")  # per movable (vessel, rod) object, prefixed with its name
+MOVABLE = ("vessel", "rod")  # object kinds a gripper picks up and carries (the rest: ovens, buttons, zones)
+OBJECT_COLUMNS = (".pos", ".quat", ".contacts")  # per MOVABLE object, prefixed with its name
 LEGACY_RATE_HZ = 40.0  # traces written before the rate was recorded were all sampled at 40 Hz (PyBullet)
 
 
@@ -64,7 +65,7 @@ def check_trace(trace: Trace, meta: "TaskMeta | None" = None) -> list[str]:
         if len(trace["kf_end"]) != len(meta.executed):
             errs.append(f"kf_end has {len(trace['kf_end'])} entries for {len(meta.executed)} executed keyframes")
         for name, o in meta.objects.items():
-            if o.kind in ("vessel", "rod"):
+            if o.kind in MOVABLE:
                 errs += [f"missing column {name + s!r}" for s in OBJECT_COLUMNS if name + s not in trace]
     return errs
 

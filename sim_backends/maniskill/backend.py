@@ -28,7 +28,7 @@ from sim_backends.maniskill.robot import Arm, Contacts, canonical_quat, wxyz_to_
 from sim_backends.perturbations.physics import PhysicsEvent
 from sim_backends.registry import register_backend, task_templates
 from sim_backends.scenario_config import ScenarioConfig
-from sim_backends.schema import NominalKeyframe, ObjectInfo, TaskMeta
+from sim_backends.schema import MOVABLE, NominalKeyframe, ObjectInfo, TaskMeta
 from sim_backends.source import FailureSource
 from sim_backends.types import Keyframe
 
@@ -36,7 +36,6 @@ ms_logger.setLevel(logging.ERROR)  # ManiSkill warns about missing CUDA on every
 TASKS_FILE = CONFIG_DIR / "tasks" / "maniskill.yaml"
 SETTLE_STEPS = 20  # control steps after the last keyframe (1 s at ManiSkill's 20 Hz)
 PRE_STEPS = 3  # control steps holding the start pose after a reset, before the plan reads the scene
-MOVABLE = ("vessel", "rod")
 SIM_BACKENDS = {"cpu": ("physx_cpu", "cpu"), "gpu": ("physx_cuda", "gpu")}
 
 

@@ -32,6 +32,7 @@ from mani_skill.utils.scene_builder.table import TableSceneBuilder
 from mani_skill.utils.structs.pose import Pose
 
 from sim_backends.maniskill import assets
+from sim_backends.schema import MOVABLE
 from sim_backends.types import WRIST
 
 ROBOT_BASE = (-0.615, 0.0, 0.0)
@@ -302,7 +303,7 @@ class LabBenchEnv(LabRobFailEnv, BaseEnv):
             obj = self._built.get(role)
             if obj is None:
                 continue
-            if sp["kind"] in ("vessel", "rod"):
+            if sp["kind"] in MOVABLE:
                 obj.set_pose(Pose.create_from_pq(p=list(sp["pos"])))
                 obj.set_linear_velocity(torch.zeros(3))
                 obj.set_angular_velocity(torch.zeros(3))

@@ -22,7 +22,7 @@ from sim_backends.pybullet.render import Renderer
 from sim_backends.pybullet.robot import DT
 from sim_backends.registry import register_backend, task_templates
 from sim_backends.scenario_config import ScenarioConfig
-from sim_backends.schema import NominalKeyframe, ObjectInfo, TaskMeta
+from sim_backends.schema import MOVABLE, NominalKeyframe, ObjectInfo, TaskMeta
 from sim_backends.source import FailureSource
 from sim_backends.types import Keyframe
 
@@ -117,7 +117,7 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         out = dict(kwargs)
         objs = out["custom_objects"] = _yaml_mapping("custom_objects", kwargs.get("custom_objects"))
         for name, spec in (objs or {}).items():
-            if not isinstance(spec, dict) or spec.get("kind") not in ("vessel", "rod"):
+            if not isinstance(spec, dict) or spec.get("kind") not in MOVABLE:
                 raise ValueError(f"custom_objects: object {name!r} needs kind: vessel or rod")
             need = ("radius", "height", "rgba") if spec["kind"] == "vessel" else ("radius", "length", "rgba")
             for k in need:
@@ -280,7 +280,7 @@ class _Trace:
         self.scene = scene
         self.cols: dict[str, list] = {"t": [], "kf": [], "ee_pos": [], "ee_quat": [], "width": [], "grip_cmd": []}
         self.kf_end: list[int] = []
-        self.movables = {k: o for k, o in scene.objects.items() if o.kind in ("vessel", "rod")}
+        self.movables = {k: o for k, o in scene.objects.items() if o.kind in MOVABLE}
         self.vessels = {k: o for k, o in scene.objects.items() if o.kind == "vessel"}
         self.all_particles = [b for ids in scene.particles.values() for b in ids]
 
