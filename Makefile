@@ -86,11 +86,12 @@ demo-online: $(STAMP)
 	$(PY) scripts/supervise.py policy=scripted supervisor=vlm vlm.model=outputs/demo_online_train/final task=place \
 	  trials=25 out_dir=outputs/demo_online_supervise progress=false $(DEMO_WORLD)
 
-# The CPU recipe at full size (docs/RESULTS.md): seen and unseen data (front, side and wrist views rendered), the
-# dataset on front + side grids, the tiny Qwen3-VL on the shipped sim-pretrained tower (preset=tiny's default), every
-# split's bench with baselines and 95 % intervals, the learning curve. At least 400 seen test trajectories and 150
-# per unseen split (seen: two generation runs of REPRO_SEEN episodes, the second's pairs numbered after the first's,
-# so a larger recipe extends the smaller one's data instead of redrawing it). Resumable: generation resumes its
+# The CPU recipe at full size (docs/RESULTS.md): seen, validation and sealed test data (front, side and wrist views
+# rendered), the dataset on front + side grids, the tiny Qwen3-VL on the shipped sim-pretrained tower (preset=tiny's
+# default), every split's bench with baselines and 95 % intervals by pair, the learning curve. At least 400 seen test
+# trajectories and 150 per held-out split (seen: two generation runs of REPRO_SEEN episodes, the second's pairs
+# numbered after the first's, so a larger recipe extends the smaller one's data instead of redrawing it). Each
+# held-out variant draws episodes of its own; the sealed test_* splits are benched once here, for the page's rows. Resumable: generation resumes its
 # shards; delete outputs/reproduce to start over. About 105 min on 2 cores. Then, on the same data: make
 # reproduce-rows (the scratch-tower and front + wrist rows) and make ablate (the paper's ablation table); each
 # rewrites docs/RESULTS.md with what exists.
@@ -100,7 +101,10 @@ REPRO_UNSEEN   ?= 150
 REPRO_EPOCHS   ?= 6
 RESULTS        ?= docs/RESULTS.md
 REPRO_GEN      := backend=pybullet seed=0 workers=2 image_size=128 render_frames=8 backend_kwargs.wrist=true progress=false
-REPRO_SHARDS   := 'shards=[$(R)/shards/seen,$(R)/shards/seen2,$(R)/shards/unseen_object,$(R)/shards/unseen_scene,$(R)/shards/unseen_both]'
+HELD_OUT       := val_object val_scene val_both test_object test_scene test_both
+comma          := ,
+space          := $(subst ,, )
+REPRO_SHARDS   := 'shards=[$(subst $(space),$(comma),$(strip $(addprefix $(R)/shards/,seen seen2 $(HELD_OUT))))]'
 REPRO_TRAIN    := preset=tiny epochs=$(REPRO_EPOCHS) save_steps=1600 save_total_limit=null progress=false
 stamp           = echo "$(1) $$(date +%s)" >> $(R)/timeline.txt
 bench          = for s in $(2); do $(PY) scripts/evaluate.py model=$(1)/final dataset_dir=$(3) split=$$s batch_size=8 \
@@ -110,14 +114,14 @@ reproduce: $(STAMP)
 	$(PY) scripts/generate.py $(REPRO_GEN) num_episodes=$(REPRO_SEEN) out_dir=$(R)/shards/seen
 	$(PY) scripts/generate.py $(REPRO_GEN) num_episodes=$(REPRO_SEEN) first_pair=$$(($(REPRO_SEEN) / 2)) \
 	  out_dir=$(R)/shards/seen2
-	for v in unseen_object unseen_scene unseen_both; do \
+	for v in $(HELD_OUT); do \
 	  $(PY) scripts/generate.py $(REPRO_GEN) num_episodes=$(REPRO_UNSEEN) variant=$$v out_dir=$(R)/shards/$$v || exit 1; done
 	$(call stamp,dataset)
 	$(PY) -m scripts.build_dataset $(REPRO_SHARDS) out_dir=$(R)/dataset $(DEMO_GRID) 'views=[front,side]' progress=false
 	$(call stamp,train)
 	$(PY) train.py $(REPRO_TRAIN) dataset_dir=$(R)/dataset output_dir=$(R)/train
 	$(call stamp,evaluate)
-	$(call bench,$(R)/train,test object scene both,$(R)/dataset)
+	$(call bench,$(R)/train,test $(HELD_OUT),$(R)/dataset)
 	$(call stamp,learning_curve)
 	$(PY) scripts/learning_curve.py run_dir=$(R)/train dataset_dir=$(R)/dataset split=val progress=false
 	$(call stamp,done)
@@ -127,10 +131,10 @@ reproduce: $(STAMP)
 reproduce-rows: $(STAMP)
 	@test -f $(R)/train/final/eval_test/results.json || { echo "reproduce-rows: run make reproduce first" >&2; exit 2; }
 	$(PY) train.py $(REPRO_TRAIN) tower=scratch dataset_dir=$(R)/dataset output_dir=$(R)/rows/scratch
-	$(call bench,$(R)/rows/scratch,test object scene both,$(R)/dataset)
+	$(call bench,$(R)/rows/scratch,test $(HELD_OUT),$(R)/dataset)
 	$(PY) -m scripts.build_dataset $(REPRO_SHARDS) out_dir=$(R)/dataset_wrist $(DEMO_GRID) 'views=[front,wrist]' progress=false
 	$(PY) train.py $(REPRO_TRAIN) dataset_dir=$(R)/dataset_wrist output_dir=$(R)/rows/wrist
-	$(call bench,$(R)/rows/wrist,test object scene both,$(R)/dataset_wrist)
+	$(call bench,$(R)/rows/wrist,test $(HELD_OUT),$(R)/dataset_wrist)
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 
 # After make reproduce, on its data: the paper's ablation table (seen split) with the shipped tower: the tower and
@@ -148,7 +152,7 @@ ablate: $(STAMP)
 
 # After make reproduce, on its data: its model taught to supervise a running trajectory, as make demo-online does in
 # the demo world (a third stage on prefix grids, twins cut at the same keyframes, asked Q2, Q3, Q5 and Q6 as the
-# failure stands at the cut), then the bench on whole and prefix seen grids and unseen objects and scene. About 50
+# failure stands at the cut), then the bench on whole and prefix seen grids and val objects and scene. About 50
 # min on 2 cores (8,000 seen episodes; 28 Nov).
 ONLINE_EPOCHS ?= 3
 reproduce-online: $(STAMP)
@@ -157,7 +161,7 @@ reproduce-online: $(STAMP)
 	  $(ONLINE_PREFIX) progress=false
 	$(PY) train.py $(REPRO_TRAIN) epochs=$(ONLINE_EPOCHS) dataset_dir=$(R)/dataset_online output_dir=$(R)/online \
 	  model.path=$(R)/train/final $(ONLINE_STAGE)
-	$(call bench,$(R)/online,test prefix both,$(R)/dataset_online)
+	$(call bench,$(R)/online,test prefix val_both,$(R)/dataset_online)
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 
 # The paper's recovery table in the wide world: an ACT policy trained here per task (pick and place: 120 scripted
@@ -199,7 +203,7 @@ recovery: $(STAMP)
 
 # The sim-pretrained vision tower shipped in labrobfail_vlm/assets/tower (its TOWER_CARD.md says what it learned and
 # how well): seen-catalogue episodes with front, side and wrist views (seed 1000, so none of make reproduce's seed-0
-# episodes), small unseen-object and unseen-scene sets for the card's held-out accuracy only, dense per-frame
+# episodes), small val-object and val-scene sets (episodes of their own) for the card's held-out accuracy only, dense per-frame
 # targets read from simulator state, then the Qwen3-VL vision tower and merger trained on them in three stages: from
 # random weights; then on a second seen run (same seed, fewer episodes) with any hue and wide brightness, contrast and
 # saturation (the glassware's colour is no cue); then on seen scenes drawn from the randomised scene family (any bench
@@ -217,12 +221,12 @@ TOWER_EXPORT ?= labrobfail_vlm/assets/tower
 TOWER_VIEWS  := backend=pybullet workers=2 image_size=128 render_frames=8 backend_kwargs.wrist=true progress=false
 TOWER_GEN    := $(TOWER_VIEWS) seed=1000
 TOWER_RAND_GEN := $(TOWER_VIEWS) seed=2000 backend_kwargs.scene_family=randomised
-TOWER_HELD   := $(T)/shards/unseen_object,$(T)/shards/unseen_scene
+TOWER_HELD   := $(T)/shards/val_object,$(T)/shards/val_scene
 tower: $(STAMP)
 	$(PY) scripts/generate.py $(TOWER_GEN) num_episodes=$(TOWER_SEEN) out_dir=$(T)/shards/seen
 	$(PY) scripts/generate.py $(TOWER_GEN) num_episodes=$(TOWER_DR_SEEN) out_dir=$(T)/shards/seen_dr
 	$(PY) scripts/generate.py $(TOWER_RAND_GEN) num_episodes=$(TOWER_RAND_SEEN) out_dir=$(T)/shards/seen_rand
-	for v in unseen_object unseen_scene; do $(PY) scripts/generate.py $(TOWER_GEN) num_episodes=$(TOWER_UNSEEN) \
+	for v in val_object val_scene; do $(PY) scripts/generate.py $(TOWER_GEN) num_episodes=$(TOWER_UNSEEN) \
 	  variant=$$v out_dir=$(T)/shards/$$v || exit 1; done
 	$(PY) -m scripts.build_tower_data 'data.shards=[$(T)/shards/seen,$(TOWER_HELD)]' data.out_dir=$(T)/data \
 	  data.progress=false
@@ -236,18 +240,23 @@ tower: $(STAMP)
 	$(PY) scripts/pretrain_tower.py data.out_dir=$(T)/data_rand out_dir=$(T)/run_rand init=$(T)/run_dr $(TOWER_DR) \
 	  export_dir=$(TOWER_EXPORT) progress=false
 
-# LabRobFail-Sim at the paper's scale: 20,000 trajectories (17,000 seen + 1,000 per unseen set), resumable
+# LabRobFail-Sim at the paper's scale: 20,000 trajectories (17,000 seen + 1,000 per sealed unseen set, test_*), and
+# SIM_VAL per validation set (val_*), resumable
 # (rerun to continue after a kill) and deterministic. On a Ray cluster: make sim20k SIM_EXEC="executor=ray
 # ray_address=auto" SIM_WORKERS=64. Measured rate and time on 2 cores: README "LabRobFail-Sim at scale".
 SIM        ?= outputs/sim20k
 SIM_SEEN   ?= 17000
 SIM_UNSEEN ?= 1000
+SIM_VAL    ?= 500
 SIM_WORKERS ?= 2
 SIM_EXEC   ?= executor=process
 sim20k: $(STAMP)
 	$(PY) scripts/generate.py seed=0 workers=$(SIM_WORKERS) $(SIM_EXEC) num_episodes=$(SIM_SEEN) out_dir=$(SIM)/seen
-	for v in unseen_object unseen_scene unseen_both; do \
+	for v in test_object test_scene test_both; do \
 	  $(PY) scripts/generate.py seed=0 workers=$(SIM_WORKERS) $(SIM_EXEC) num_episodes=$(SIM_UNSEEN) variant=$$v \
+	    out_dir=$(SIM)/$$v || exit 1; done
+	for v in val_object val_scene val_both; do \
+	  $(PY) scripts/generate.py seed=0 workers=$(SIM_WORKERS) $(SIM_EXEC) num_episodes=$(SIM_VAL) variant=$$v \
 	    out_dir=$(SIM)/$$v || exit 1; done
 
 # Lint and format check (ruff, line length 120), then every test. `make test-fast`: the quick ones only (no long

@@ -2,7 +2,7 @@
 
 Output layout (out_dir):
   images/<trajectory>.png            one keyframe grid per trajectory
-  train.json val.json test.json      ShareGPT/LLaVA records (and test_object/scene/both.json for unseen rows)
+  train.json val.json test.json      ShareGPT/LLaVA records (and val_*.json, test_*.json for held-out variants)
   dataset_info.json                  LLaMA-Factory's description of those files (sharegpt formatting)
   trajectories.json                  per-trajectory metadata (labels, split, sampled keyframes, strategy)
   stats.json                         counts, filter report (drops by reason), split sizes
@@ -33,7 +33,7 @@ from labrobfail_vlm import questions as Q
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import GridConfig
 from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
-from labrobfail_vlm.taxonomy import SCENE_VARIANTS, SEEN_SPLITS, UNSEEN_SPLITS
+from labrobfail_vlm.taxonomy import DATA_VARIANTS, RENAMED_VARIANTS, SEEN_SPLITS
 
 READ_COLUMNS = [
     "episode_id",
@@ -190,8 +190,13 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     n_total = sum(pq.ParquetFile(f).metadata.num_rows for f in files)
     for row in tqdm(_rows(files), total=n_total, desc="annotate", unit="traj", disable=not cfg.progress):
         total_rows += 1
-        if row["variant"] not in SCENE_VARIANTS:
-            raise ConfigError(f"shards: row {row['episode_id']} has unknown variant {row['variant']!r}")
+        if row["variant"] not in DATA_VARIANTS:
+            why = (
+                " (shards made before each variant drew its own episodes replay the seen run's: regenerate them)"
+                if row["variant"] in RENAMED_VARIANTS
+                else ""
+            )
+            raise ConfigError(f"shards: row {row['episode_id']} has unknown variant {row['variant']!r}{why}")
         # prefix cuts draw from their own stream: the main records are the same with or without them
         group = f"{row['variant']}-{row['pair_id']}"
         traj_key = zlib.crc32((group if pair_cuts else f"{row['variant']}-{row['episode_id']}").encode())
@@ -233,7 +238,7 @@ def build(cfg: DictConfig) -> dict[str, Any]:
         kept.append(ann)
 
     split_of = assign([(a.group, a.variant) for a in kept], int(cfg.seed), tuple(cfg.ratios))
-    splits: dict[str, list[dict[str, Any]]] = {s: [] for s in (*SEEN_SPLITS, *UNSEEN_SPLITS.values())}
+    splits: dict[str, list[dict[str, Any]]] = {s: [] for s in (*SEEN_SPLITS, *DATA_VARIANTS[1:])}
     for a in kept:
         a.meta["split"] = split_of[a.group]
         splits[split_of[a.group]].extend(a.records)

@@ -1,4 +1,4 @@
-"""Dataset splits: seen 8:1:1 train/val/test grouped by initial state; unseen variants go to their own tests.
+"""Dataset splits: seen 8:1:1 train/val/test grouped by initial state; each held-out variant is a split of its own.
 
 A group is a success/failure pair (same scenario, seed and variant, so the same initial
 state): both trajectories land in the same split, so no test grid has a training twin.
@@ -11,9 +11,9 @@ from __future__ import annotations
 import hashlib
 from typing import Iterable
 
-from labrobfail_vlm.taxonomy import SCENE_VARIANTS, SEEN_SPLITS, UNSEEN_SPLITS
+from labrobfail_vlm.taxonomy import HELD_OUT_SPLITS, REPLAY_SPLITS, SCENE_VARIANTS, SEEN_SPLITS
 
-__all__ = ["SCENE_VARIANTS", "SEEN_SPLITS", "UNSEEN_SPLITS", "assign"]
+__all__ = ["HELD_OUT_SPLITS", "SCENE_VARIANTS", "SEEN_SPLITS", "assign"]
 
 
 def _key(group: str, seed: int) -> str:
@@ -27,8 +27,8 @@ def assign(
     out: dict[str, str] = {}
     seen: list[str] = []
     for g, variant in dict.fromkeys(groups):
-        if variant in UNSEEN_SPLITS:
-            out[g] = UNSEEN_SPLITS[variant]
+        if variant in HELD_OUT_SPLITS or variant in REPLAY_SPLITS:  # named as its variant: val_*, test_*, replay_*
+            out[g] = variant
         elif variant == SCENE_VARIANTS[0]:  # "seen"
             seen.append(g)
         else:

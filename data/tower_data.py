@@ -6,7 +6,7 @@ changed definition rebuilds instead of mixing), then `index.json`: the files, th
 A row is one trajectory: the PNG bytes of the keyframes a grid of `max_frames` shows, in every rendered view
 (`images[view][frame]`), and its targets from data/frame_targets.py (cells (F, V, K) and points (F, V, C, P, 2) as
 float32 bytes). Seen pairs are split train/val by `ratios` (data/splits.py, grouped by pair, so no held-out frame
-has a training twin); unseen variants are evaluation sets only: the tower never trains on them.
+has a training twin); held-out variants are evaluation sets only: the tower never trains on them.
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
 """Build the vision tower's pretraining data: simulator shards -> frames and dense per-frame targets.
 
 Run as:
-    python -m scripts.build_tower_data 'data.shards=[outputs/tower/shards/seen,outputs/tower/shards/unseen_object]'
+    python -m scripts.build_tower_data 'data.shards=[outputs/tower/shards/seen,outputs/tower/shards/val_object]'
+    python scripts/build_tower_data.py 'data.shards=[outputs/tower/shards/seen]' data.out_dir=outputs/tower/data
 
 Defaults: configs/tower.yaml (section `data`). Resumable: a rerun skips the source shards already converted.
 Writes frames-*.parquet and index.json (targets, splits, counts) into data.out_dir (data/tower_data.py).
@@ -10,9 +11,14 @@ Writes frames-*.parquet and index.json (targets, splits, counts) into data.out_d
 from __future__ import annotations
 
 import json
+import sys
+from pathlib import Path
 
-from data.tower_data import build
-from labrobfail_vlm.config import cli_main, load_config
+# data/ is the checkout's tooling, not an installed package: `python scripts/build_tower_data.py` finds it here
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from data.tower_data import build  # noqa: E402
+from labrobfail_vlm.config import cli_main, load_config  # noqa: E402
 
 
 def main(argv: list[str]) -> int:

@@ -3,7 +3,7 @@ every setting).
 
 Run as:
     python scripts/generate.py backend=pybullet num_episodes=200 out_dir=outputs/shards seed=0 workers=2
-    python scripts/generate.py num_episodes=100 out_dir=outputs/unseen variant=unseen_both
+    python scripts/generate.py num_episodes=100 out_dir=outputs/val_both variant=val_both
     python scripts/generate.py num_episodes=1000 out_dir=outputs/big executor=ray workers=8
 
 Rerunning the same command after a kill resumes; DIR/manifest.json summarises the run.

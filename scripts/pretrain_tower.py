@@ -5,8 +5,9 @@ Run as:
     python scripts/pretrain_tower.py ... export_dir=labrobfail_vlm/assets/tower     # ship it
 
 Defaults: configs/tower.yaml. Trains on the seen training pairs of a dataset built by scripts/build_tower_data.py,
-evaluates every target on held-out seen pairs after each epoch (and on the unseen-object and unseen-scene sets at
-the end), checkpoints after each epoch (a rerun resumes from the last one), then writes out_dir/tower.safetensors,
+evaluates every target on held-out seen pairs after each epoch (and on the val-object and val-scene sets at
+the end; the sealed test sets are never the tower's), checkpoints after each epoch (a rerun resumes from the last
+one), then writes out_dir/tower.safetensors,
 tower.json (the card's data: config, targets, held-out accuracy, command, sha256), TOWER_CARD.md and metrics.json.
 """
 
@@ -24,8 +25,8 @@ from labrobfail_vlm.config import ConfigError, cli_main, load_config, require_in
 
 EVAL_SETS = {
     "seen": ({"val"}, {"seen"}),
-    "unseen_object": ((), {"unseen_object"}),
-    "unseen_scene": ((), {"unseen_scene"}),
+    "val_object": ((), {"val_object"}),
+    "val_scene": ((), {"val_scene"}),
 }
 
 
@@ -124,8 +125,8 @@ def card_markdown(card: dict[str, Any]) -> str:
         "",
         "Cell targets: balanced accuracy (mean recall of the two classes; 0.5 = chance) over the cells where "
         "the target applies, and the positive rate. Token targets: how often the cell's top-scoring token "
-        "holds the point, against chance. Seen = held-out pairs of the seen catalogue; unseen object and "
-        "unseen scene = the simulator's unseen variants, never trained on.",
+        "holds the point, against chance. Seen = held-out pairs of the seen catalogue; val object and "
+        "val scene = the simulator's validation variants (episodes of their own), never trained on.",
         "",
     ]
     for lay, sets in card["heldout"].items():

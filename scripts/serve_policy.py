@@ -118,12 +118,12 @@ class PolicyService:
         return self.src
 
     def _default_episode(self, d: Any) -> dict[str, Any]:
-        from labrobfail_vlm.taxonomy import SCENE_VARIANTS
+        from labrobfail_vlm.taxonomy import check_variant
 
-        if d.variant not in SCENE_VARIANTS:
-            raise ConfigError(
-                f"default_episode.variant: expected one of {', '.join(SCENE_VARIANTS)}, got {d.variant!r}"
-            )
+        try:
+            check_variant(d.variant)
+        except ValueError as e:
+            raise ConfigError(f"default_episode.{e}") from None
         if not isinstance(d.seed, int):
             raise ConfigError(f"default_episode.seed: must be an integer, got {d.seed!r}")
         if d.scenario is not None and str(d.scenario) not in self._backend().scenarios():

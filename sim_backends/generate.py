@@ -1,8 +1,10 @@
 """Generation of LabRobFail-Sim episodes into Parquet shards (resumable, seeded, parallel).
 
 Episode i belongs to pair i // 2 (role nominal for even i, injected for odd i);
-pair j runs scenario order[j] with episode seed derived from (seed, j), so the
-same seed gives the same data whatever the number of workers. `first_pair` shifts
+pair j runs scenario order[j] with episode seed derived from (seed, variant, j), so the
+same seed gives the same data whatever the number of workers, and no two variants
+share an episode (a held-out split never replays a training pair in new colours;
+`replay_seen=true` does that on purpose, under the replay_<variant> name). `first_pair` shifts
 the pair numbers (ids and seeds) of a run, so a second run can add episodes to a
 dataset without reusing an id or an initial state. Shard k holds
 episodes [k*E, (k+1)*E); a finished shard is a complete file, so a rerun of
@@ -22,7 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 from labrobfail_vlm.config import CONFIG_DIR, ConfigError, is_int, require_ints
 from labrobfail_vlm.config import load_config as _load_config
 from labrobfail_vlm.io import atomic_write_json
-from labrobfail_vlm.taxonomy import SCENE_VARIANTS
+from labrobfail_vlm.taxonomy import REPLAY_PREFIX, SCENE_VARIANTS, check_variant
 from sim_backends.shards import episode_row, manifest, read_labels, write_shard
 
 DEFAULTS = CONFIG_DIR / "generate.yaml"
@@ -39,6 +41,7 @@ IDENTITY_KEYS = (
     "backend_kwargs",
     "render_frames",
     "first_pair",
+    "replay_seen",
 )
 
 
@@ -65,8 +68,14 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
         raise ConfigError("episodes_per_shard: must be even (a shard holds whole success/failure pairs)")
     if cfg.executor not in ("process", "ray"):
         raise ConfigError(f"executor: must be 'process' or 'ray', got {cfg.executor!r}")
-    if cfg.variant not in SCENE_VARIANTS:
-        raise ConfigError(f"variant: unknown variant {cfg.variant!r}; expected one of {', '.join(SCENE_VARIANTS)}")
+    try:
+        check_variant(cfg.variant)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    if cfg.replay_seen not in (True, False):
+        raise ConfigError(f"replay_seen: must be true or false, got {cfg.replay_seen!r}")
+    if cfg.replay_seen and cfg.variant == "seen":
+        raise ConfigError("replay_seen: replays the seen episodes under a held-out variant's appearance; give one")
     spec = backend_spec(cfg.backend)
     own = backend_options(cfg.backend, _own_section(cfg))
     out = Path(cfg.out_dir)
@@ -127,13 +136,24 @@ def _upgrade_identity(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any
         "backend_kwargs": {**_default_backend_kwargs(), **(old["backend_kwargs"] or {})},
         "backend_files": old.get("backend_files", new["backend_files"]),
         "first_pair": old.get("first_pair", 0),
+        "replay_seen": old.get("replay_seen", False),
     }
 
 
-def scenario_order(scenarios: list[str], seed: int, pairs: int, repeats: dict[str, int] | None = None) -> list[str]:
+def _variant_word(variant: str) -> list[int]:
+    """The variant's word in a seed: none for seen (its seeds are those of runs made before variants had their
+    own), the variant's index otherwise. SeedSequence pads its entropy with zeros to four words, so a trailing
+    non-zero word after three always differs from every seen seed."""
+    i = SCENE_VARIANTS.index(variant)
+    return [i] if i else []
+
+
+def scenario_order(
+    scenarios: list[str], seed: int, pairs: int, repeats: dict[str, int] | None = None, variant: str = "seen"
+) -> list[str]:
     """Round-robin over a seeded permutation per cycle: every scenario appears (`repeats[s]` times, to
-    oversample longer tasks) before the next cycle starts."""
-    rng = np.random.default_rng([seed, 0x5CE7])
+    oversample longer tasks) before the next cycle starts. Each variant has its own order."""
+    rng = np.random.default_rng([seed, 0x5CE7, 0] + _variant_word(variant))
     cycle = [s for s in scenarios for _ in range((repeats or {}).get(s, 1))]
     out: list[str] = []
     while len(out) < pairs:
@@ -141,26 +161,32 @@ def scenario_order(scenarios: list[str], seed: int, pairs: int, repeats: dict[st
     return out[:pairs]
 
 
-def pair_seed(seed: int, pair: int, draw: int = 0) -> int:
-    """Seed of pair `pair`'s initial state; `draw` > 0 is a redraw after a nominal plan failed."""
-    return int(np.random.SeedSequence([seed, pair] + ([draw] if draw else [])).generate_state(1)[0])
+def pair_seed(seed: int, pair: int, draw: int = 0, variant: str = "seen") -> int:
+    """Seed of pair `pair`'s initial state in `variant`; `draw` > 0 is a redraw after a nominal plan failed.
+    The variant is part of the seed, so the same (seed, pair) gives every variant its own initial state and
+    perturbation (the injection's stream, failure_generator.perturbation_rng, follows from this seed)."""
+    word = _variant_word(variant)
+    return int(np.random.SeedSequence([seed, pair] + ([draw] if draw or word else []) + word).generate_state(1)[0])
 
 
 MAX_DRAWS = 8  # initial states (and perturbations per state) tried for one pair before it is given up
 
 
-def labelable_pair(src, scenario: str, seed: int, j: int, variant: str) -> tuple[Any, Any, list[dict[str, Any]]]:
+def labelable_pair(
+    src, scenario: str, seed: int, j: int, variant: str, stream: str | None = None
+) -> tuple[Any, Any, list[dict[str, Any]]]:
     """A (nominal, injected) pair whose nominal plan succeeds and whose failure, if any, a detector explains.
 
     A nominal plan that fails is redrawn from a new initial state; an injected failure no detector explains
     is left out and the perturbation redrawn. Both are returned as records for the manifest. Deterministic:
-    the draws follow from (seed, pair). Returns (None, None, records) if no draw works.
+    the draws follow from (seed, pair, stream), where `stream` is the variant whose episodes are drawn (the
+    variant itself unless a replay names another). Returns (None, None, records) if no draw works.
     """
     from sim_backends.failure_generator import run_injected, run_nominal
 
     records: list[dict[str, Any]] = []
     for a in range(MAX_DRAWS):
-        s = pair_seed(seed, j, a)
+        s = pair_seed(seed, j, a, stream or variant)
         nominal = run_nominal(src, scenario, s, variant)
         if not nominal.labels.success:
             records.append(
@@ -196,7 +222,7 @@ def labelable_pair(src, scenario: str, seed: int, j: int, variant: str) -> tuple
 
 def shard_jobs(cfg: DictConfig, scenarios: list[str], repeats: dict[str, int] | None = None) -> list[dict[str, Any]]:
     n, per, first = int(cfg.num_episodes), int(cfg.episodes_per_shard), int(cfg.first_pair)
-    order = scenario_order(scenarios, int(cfg.seed), math.ceil(n / 2), repeats)
+    order = scenario_order(scenarios, int(cfg.seed), math.ceil(n / 2), repeats, _stream(cfg))
     jobs = []
     for k in range(math.ceil(n / per)):
         lo, hi = k * per, min(n, (k + 1) * per)
@@ -210,9 +236,15 @@ def shard_jobs(cfg: DictConfig, scenarios: list[str], repeats: dict[str, int] | 
                 "pairs": pairs,
                 "seed": int(cfg.seed),
                 "render_frames": cfg.get("render_frames"),
+                "stream": _stream(cfg),
             }
         )
     return jobs
+
+
+def _stream(cfg: DictConfig) -> str:
+    """The variant whose episodes a run draws: its own, or seen's for a replay."""
+    return "seen" if cfg.get("replay_seen") else cfg.variant
 
 
 def run_shard(job: dict[str, Any], backend: str, kwargs: dict[str, Any], variant: str, out_dir: str) -> int:
@@ -221,7 +253,8 @@ def run_shard(job: dict[str, Any], backend: str, kwargs: dict[str, Any], variant
     src.render_frames = job.get("render_frames")
     rows, records = [], []
     for j, scenario in job["pairs"]:
-        nominal, injected, recs = labelable_pair(src, scenario, job["seed"], j, variant)
+        stream = job.get("stream", variant)
+        nominal, injected, recs = labelable_pair(src, scenario, job["seed"], j, variant, stream)
         records.extend(recs)
         if nominal is None:
             continue
@@ -230,6 +263,8 @@ def run_shard(job: dict[str, Any], backend: str, kwargs: dict[str, Any], variant
             if not job["lo"] <= i < job["hi"]:
                 continue
             ep.episode_id, ep.pair_id, ep.role = f"ep{i:07d}", f"pair{j:07d}", ("nominal", "injected")[role_i]
+            if stream != variant:  # seen episodes in a held-out appearance: never called val or test
+                ep.variant = REPLAY_PREFIX + variant
             rows.append(episode_row(ep))
     # The shard's redraw/left-out records first: a shard file on disk always has its records beside it.
     atomic_write_json(Path(out_dir) / f"shard-{job['shard']:05d}.rejects.json", records)
@@ -342,7 +377,8 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
         rows,
         {
             "backend": cfg.backend,
-            "variant": cfg.variant,
+            "variant": REPLAY_PREFIX + cfg.variant if cfg.replay_seen else cfg.variant,
+            "replay_seen": bool(cfg.replay_seen),
             "seed": int(cfg.seed),
             "shards": [s.name for s in shards],
             "scenarios": scenarios,
@@ -371,7 +407,7 @@ labrobfail-generate).
 
 Run as:
     python scripts/generate.py backend=pybullet num_episodes=200 out_dir=outputs/shards seed=0 workers=2
-    python scripts/generate.py --num-episodes 100 --out-dir outputs/unseen --variant unseen_both
+    python scripts/generate.py --num-episodes 100 --out-dir outputs/val_both --variant val_both
     labrobfail-generate num_episodes=1000 out_dir=outputs/big executor=ray workers=8
 
 Rerunning the same command after a kill resumes; DIR/manifest.json summarises the run. Defaults:

@@ -31,7 +31,7 @@ import numpy as np
 from PIL import Image
 
 from labrobfail_vlm.grid import sample_keyframes
-from labrobfail_vlm.taxonomy import SCENE_VARIANTS, horizon_of
+from labrobfail_vlm.taxonomy import check_variant, horizon_of
 from sim_backends.labeler import derive_labels
 from sim_backends.perturbations.physics import PhysicsEvent
 from sim_backends.schema import TaskMeta, Trace
@@ -170,8 +170,7 @@ class FailureSource(ABC):
 
     # ---- the stepping contract ---------------------------------------------------------------------
     def reset(self, scenario: str, seed: int, variant: str = "seen") -> None:
-        if variant not in SCENE_VARIANTS:
-            raise ValueError(f"variant: unknown variant {variant!r}; expected one of {', '.join(SCENE_VARIANTS)}")
+        check_variant(variant)
         self._run = None
         self._reset(scenario, seed, variant)
         self._fresh = True

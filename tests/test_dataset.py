@@ -30,16 +30,16 @@ def build(shards, out, *extra):
 
 
 @pytest.fixture(scope="module")
-def unseen2(tmp_path_factory):
+def held2(tmp_path_factory):
     out = tmp_path_factory.mktemp("gen") / "u"
-    gen(out, "num_episodes=2", "seed=5", "variant=unseen_both")
+    gen(out, "num_episodes=2", "seed=5", "variant=val_both")
     return out
 
 
 @pytest.fixture(scope="module")
-def ds(run6, unseen2, tmp_path_factory):
+def ds(run6, held2, tmp_path_factory):
     out = tmp_path_factory.mktemp("ds") / "d"
-    r = build(f"[{run6},{unseen2}]", out)
+    r = build(f"[{run6},{held2}]", out)
     assert r.returncode == 0, r.stderr
     return out
 
@@ -85,7 +85,7 @@ def test_keyframe_sampling_keeps_action_transitions():
 # ---- dataset ------------------------------------------------------------------------------------------------
 def test_every_trajectory_has_six_dimensions_and_pairs_do_not_straddle(ds):
     traj = load(ds, "trajectories")
-    recs = [r for s in ("train", "val", "test", "test_both") for r in load(ds, s)]
+    recs = [r for s in ("train", "val", "test", "val_both") for r in load(ds, s)]
     by_traj = {}
     for r in recs:
         t, dim = r["id"].rsplit("_", 1)
@@ -94,7 +94,7 @@ def test_every_trajectory_has_six_dimensions_and_pairs_do_not_straddle(ds):
     assert len(by_traj) == len(traj) == 8
     assert all(d == set(Q.DIMENSIONS) for d in by_traj.values())
     split = {t["trajectory"]: t["split"] for t in traj}
-    assert {split[t] for t in split if t.startswith("unseen_both")} == {"test_both"}
+    assert {split[t] for t in split if t.startswith("val_both")} == {"val_both"}
     pairs = {}
     for t in traj:
         pairs.setdefault(t["trajectory"].rsplit("-", 1)[0] + str(int(t["trajectory"][-7:]) // 2), set()).add(t["split"])
@@ -103,7 +103,7 @@ def test_every_trajectory_has_six_dimensions_and_pairs_do_not_straddle(ds):
 
 def test_answers_follow_the_labels(ds):
     traj = {t["trajectory"]: t for t in load(ds, "trajectories")}
-    recs = [r for s in ("train", "val", "test", "test_both") for r in load(ds, s)]
+    recs = [r for s in ("train", "val", "test", "val_both") for r in load(ds, s)]
     for r in recs:
         t, dim = r["id"].rsplit("_", 1)
         info, q, a = traj[t], r["conversations"][0]["value"], r["conversations"][1]["value"]
@@ -153,11 +153,13 @@ def test_filter_rejects_bad_records(ds):
 
 
 def test_split_groups_are_exact_and_deterministic():
-    groups = [(f"seen-pair{i:07d}", "seen") for i in range(50)] + [("unseen_scene-pair0000000", "unseen_scene")]
+    held = [(f"{v}-pair0000000", v) for v in ("val_scene", "test_scene", "replay_test_scene")]
+    groups = [(f"seen-pair{i:07d}", "seen") for i in range(50)] + held
     a = assign(groups, seed=1)
     assert a == assign(list(reversed(groups)), seed=1)
-    counts = {s: list(a.values()).count(s) for s in ("train", "val", "test", "test_scene")}
-    assert counts == {"train": 40, "val": 5, "test": 5, "test_scene": 1}
+    counts = {s: list(a.values()).count(s) for s in ("train", "val", "test", "val_scene", "test_scene")}
+    assert counts == {"train": 40, "val": 5, "test": 5, "val_scene": 1, "test_scene": 1}
+    assert a["replay_test_scene-pair0000000"] == "replay_test_scene"  # a replay is never a val or test split
     with pytest.raises(ValueError, match="unknown variant"):
         assign([("x", "bogus")])
 

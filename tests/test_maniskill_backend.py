@@ -83,8 +83,14 @@ def test_physics_perturbation_is_undone_and_seeds_repeat(src):
     assert again.state_trace == ref.state_trace and again.images == ref.images and again.labels == ref.labels
 
 
+def test_the_sealed_splits_are_refused_in_one_line(src):
+    """Only the PyBullet backend defines the sealed catalogue and scene family."""
+    with pytest.raises(ValueError, match="variant: test_both needs the sealed catalogue, which only the pybullet"):
+        src.reset("push_cube", 11, "test_both")
+
+
 def test_pair_from_one_initial_state(src):
-    nominal, injected = run_pair(src, "push_cube", 11, "unseen_both")
+    nominal, injected = run_pair(src, "push_cube", 11, "val_both")
     assert nominal.state_trace["obj.pos"][0] == injected.state_trace["obj.pos"][0]
     assert nominal.labels.success and not injected.labels.success
     assert injected.perturbation["level"] == "control"

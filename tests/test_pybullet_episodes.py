@@ -102,7 +102,7 @@ def test_a_pick_that_ends_holding_is_watched_to_the_end(src):
 
 def test_randomised_scene_family_widens_seen_benches_only():
     """The tower's domain randomisation (scene_family=randomised) draws seen benches of any brightness with textures
-    no split uses; an unseen-scene episode keeps the unseen family, and the same seed gives the same bench."""
+    no split uses; a held-out-scene episode keeps its own family, and the same seed gives the same bench."""
     from sim_backends.pybullet import scene
 
     seen = [scene.draw_appearance("seen", np.random.default_rng(i), "randomised") for i in range(200)]
@@ -110,14 +110,17 @@ def test_randomised_scene_family_widens_seen_benches_only():
     lo, hi = scene.SCENE_FAMILIES["seen"]["bench_value"]
     assert min(value) < lo and max(value) > hi  # beyond the seen family's range on both sides
     kinds = {a["texture"] for a in seen}
-    assert {"stripes", "blotches"} <= kinds and not kinds & set(scene.SCENE_FAMILIES["unseen"]["textures"])
-    unseen = scene.draw_appearance("unseen_both", np.random.default_rng(0), "randomised")
-    assert unseen == scene.draw_appearance("unseen_both", np.random.default_rng(0))
+    assert {"stripes", "blotches"} <= kinds and not kinds & set(scene.SCENE_FAMILIES["val"]["textures"])
+    for held in ("val_both", "test_scene"):
+        assert scene.draw_appearance(held, np.random.default_rng(0), "randomised") == scene.draw_appearance(
+            held, np.random.default_rng(0)
+        )
     assert seen[3] == scene.draw_appearance("seen", np.random.default_rng(3), "randomised")
     with pytest.raises(ValueError, match="scene_family: unknown family 'moon'"):
         scene.scene_family("seen", "moon")
-    with pytest.raises(ValueError, match="scene_family: unseen is the unseen splits' own family"):
-        scene.scene_family("seen", "unseen")  # never the held-out benches under a seen label
+    for held in ("val", "sealed"):  # never the held-out benches under a seen label
+        with pytest.raises(ValueError, match=f"scene_family: {held} is the {held} splits' own family"):
+            scene.scene_family("seen", held)
     src = make_backend("pybullet", image_size=32, cameras=["front"], max_distractors=0, scene_family="randomised")
     try:
         src.reset("press_button_red", 4)

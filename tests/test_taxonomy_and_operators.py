@@ -8,13 +8,15 @@ import pytest
 from labrobfail_vlm.taxonomy import (
     ATOMIC_ACTIONS,
     FAILURE_TYPES,
+    HELD_OUT_SPLITS,
     SCENE_VARIANTS,
-    UNSEEN_SPLITS,
+    SEALED_SPLITS,
     Category,
     Severity,
+    check_variant,
     horizon_of,
-    unseen_objects,
-    unseen_scene,
+    object_set,
+    scene_set,
 )
 from sim_backends.perturbations import control, physics, semantic
 from sim_backends.types import Keyframe, matrix_to_quat, quat_to_matrix, rotation_angle
@@ -39,15 +41,22 @@ def test_taxonomy_matches_paper():
 
 
 def test_each_variant_holds_out_what_its_name_says():
-    # the paper's four generalisation settings: seen, unseen objects, unseen scene, both held out
-    held = {v: (unseen_objects(v), unseen_scene(v)) for v in SCENE_VARIANTS}
+    # the paper's four generalisation settings (seen, objects, scene, both held out), each held-out one twice: a
+    # validation set from the val catalogue and family, a sealed test set from the sealed ones
+    held = {v: (object_set(v), scene_set(v)) for v in SCENE_VARIANTS}
     assert held == {
-        "seen": (False, False),
-        "unseen_object": (True, False),
-        "unseen_scene": (False, True),
-        "unseen_both": (True, True),
+        "seen": ("seen", "seen"),
+        "val_object": ("val", "seen"),
+        "val_scene": ("seen", "val"),
+        "val_both": ("val", "val"),
+        "test_object": ("sealed", "seen"),
+        "test_scene": ("seen", "sealed"),
+        "test_both": ("sealed", "sealed"),
     }
-    assert set(UNSEEN_SPLITS) == {v for v, h in held.items() if any(h)}
+    assert set(HELD_OUT_SPLITS) == {v for v, h in held.items() if h != ("seen", "seen")}
+    assert set(SEALED_SPLITS) == {v for v, h in held.items() if "sealed" in h}
+    with pytest.raises(ValueError, match="variant: 'unseen_both' was renamed; use val_both"):
+        check_variant("unseen_both")
 
 
 def _kfs():

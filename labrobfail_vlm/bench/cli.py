@@ -3,7 +3,7 @@ behind scripts/evaluate.py and the `labrobfail-evaluate` console script.
 
 Run as:
     python scripts/evaluate.py model=outputs/demo_train/final dataset_dir=outputs/demo_dataset split=test
-    python scripts/evaluate.py predictions=preds.jsonl dataset_dir=outputs/dataset split=object
+    python scripts/evaluate.py predictions=preds.jsonl dataset_dir=outputs/dataset split=val_object
     python scripts/evaluate.py model=DIR dataset_dir=DIR external.enabled=true external.model=gpt-4o
     python scripts/evaluate.py endpoint=http://127.0.0.1:8000/v1 dataset_dir=outputs/dataset split=test
     python scripts/evaluate.py model=DIR dataset_dir=DIR batch_size=16      # grids decoded together
@@ -33,11 +33,11 @@ def main(argv: list[str]) -> int:
     from labrobfail_vlm.bench.detection import reliability_png
     from labrobfail_vlm.bench.report import (
         PAPER_ROWS,
-        PAPER_UNSEEN_ROWS,
         confusion_png,
         detection_markdown,
         markdown,
         paper_row,
+        paper_unseen_row,
         row,
     )
     from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
@@ -169,11 +169,10 @@ def main(argv: list[str]) -> int:
     main_res = results[name]
     fo = main_res["failure_only"]
     rows = {k: paper_row(v) for k, v in results.items()}
-    if cfg.reference_rows and cfg.split in ("test", *PAPER_UNSEEN_ROWS):
+    unseen_row = paper_unseen_row(cfg.split)
+    if cfg.reference_rows and (cfg.split == "test" or unseen_row):
         # the paper's rows for the same setting (its unseen table has LabRobFail-VLM only)
-        rows.update(
-            {"LabRobFail-VLM (paper)": PAPER_UNSEEN_ROWS[cfg.split]} if cfg.split in PAPER_UNSEEN_ROWS else PAPER_ROWS
-        )
+        rows.update({"LabRobFail-VLM (paper)": unseen_row} if unseen_row else PAPER_ROWS)
     md = markdown(
         rows,
         f"LabRobFail-Bench, split {cfg.split}: paper-comparable (Q1, Q2 over all "
@@ -204,6 +203,7 @@ def main(argv: list[str]) -> int:
         )
     atomic_write_json(out / "results.json", payload)
     atomic_write_bytes(out / "results.md", md.encode())
+    ev.count_sealed_run(cfg.dataset_dir, cfg.split, str(cfg.model or cfg.predictions or cfg.endpoint), main_res)
     atomic_write_bytes(out / "unparseable.log", "\n".join(log_lines).encode())
     curves = {k: v["detection"] for k, v in results.items() if v.get("detection")}
     if curves:

@@ -22,17 +22,50 @@ from typing import Any, Callable
 from PIL import Image
 
 from labrobfail_vlm import questions as Q
-from labrobfail_vlm.bench.metrics import accuracy, bleu, bootstrap_mean, rouge_l_values, wilson, within_one
+from labrobfail_vlm.bench.metrics import accuracy, bleu, pair_bootstrap, rouge_l_values, within_one
 from labrobfail_vlm.bench.parse import parse
 from labrobfail_vlm.config import ConfigError
-from labrobfail_vlm.taxonomy import SEEN_SPLITS, UNSEEN_SPLITS
+from labrobfail_vlm.taxonomy import HELD_OUT_SPLITS, REPLAY_SPLITS, SEALED_SPLITS, SEEN_SPLITS
 
-# CLI split name -> file stem: the seen splits by name, each unseen variant by its suffix ("object" -> test_object).
-SPLITS = {
-    **{s: s for s in reversed(SEEN_SPLITS)},
-    **{v.removeprefix("unseen_"): s for v, s in UNSEEN_SPLITS.items()},
-    "prefix": "test_prefix",
-}  # prefix grids of the seen test split (dataset built with prefix.cuts > 0)
+# CLI split name -> file stem: every split by its file's name, its prefix grids (a dataset built with
+# prefix.cuts > 0) as <split>_prefix, and "prefix" for the seen test split's.
+_STEMS = (*reversed(SEEN_SPLITS), *HELD_OUT_SPLITS, *REPLAY_SPLITS)
+SPLITS = {**{s: s for s in _STEMS}, **{f"{s}_prefix": f"{s}_prefix" for s in _STEMS if s != "train"}}
+SPLITS["prefix"] = "test_prefix"
+
+
+SEALED_LEDGER = "sealed_runs.jsonl"  # in the dataset folder: one line per bench run on a sealed split
+
+
+def count_sealed_run(dataset_dir: str | Path, split: str, source: str, res: dict[str, Any]) -> None:
+    """A sealed split runs only for reported rows, and every run is counted: append this one (date, source,
+    headline figures) to the dataset's ledger, which docs/RESULTS.md lists. Other splits are not recorded."""
+    if split not in SEALED_SPLITS:
+        return
+    from datetime import datetime, timezone
+
+    from labrobfail_vlm.io import atomic_write_bytes
+
+    fo = res.get("failure_only") or {}
+    entry = {
+        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "split": split,
+        "source": source,
+        "q2": res.get("q2"),
+        "q3_failures": fo.get("q3"),
+        "q4_failures": fo.get("q4"),
+        "q5_failures": fo.get("q5"),
+        "rougeL_failures": (fo.get("q6") or {}).get("rougeL"),
+    }
+    ledger = Path(dataset_dir) / SEALED_LEDGER
+    old = ledger.read_bytes() if ledger.is_file() else b""
+    atomic_write_bytes(ledger, old + (json.dumps(entry) + "\n").encode())
+
+
+def sealed_runs(dataset_dir: str | Path) -> list[dict[str, Any]]:
+    """The ledger's entries, oldest first (none when no sealed split was ever run on this dataset)."""
+    ledger = Path(dataset_dir) / SEALED_LEDGER
+    return [json.loads(line) for line in ledger.read_text().splitlines() if line.strip()] if ledger.is_file() else []
 
 
 def q2_as_asked(question: str, failed: bool) -> str:
@@ -231,10 +264,12 @@ def _score(
     recs: list[dict], preds: dict[str, str], traj: dict[str, dict], log: Callable[[str], None] | None = None
 ) -> dict[str, Any]:
     pairs: dict[str, list[tuple[str | None, str]]] = defaultdict(list)
+    pair_of: dict[str, list[str]] = defaultdict(list)  # per dimension, each record's pair (for the intervals)
     q6_ref, q6_hyp = [], []
     unparseable: Counter[str] = Counter()
     groups: dict[str, dict[str, list[bool]]] = defaultdict(lambda: defaultdict(list))
     confusion: dict[str, Counter] = {"Q2": Counter(), "Q4": Counter(), "Q5": Counter()}
+    type_pairs: dict[str, list[tuple[bool, str]]] = defaultdict(list)  # Q2 per failure type: (right, pair)
     for r in recs:
         d, ref = Q.dim_of(r["id"]), r["conversations"][1]["value"]
         reply = preds.get(r["id"])
@@ -243,6 +278,8 @@ def _score(
             unparseable[d] += 1
             if log:
                 log(f"unparseable {r['id']}: {reply!r}")
+        info = traj.get(Q.traj_of(r["id"]), {})
+        pair_of[d].append(str(info.get("group") or Q.traj_of(r["id"])))  # no pair known: the trajectory alone
         if d == "Q6":
             q6_ref.append(ref)
             q6_hyp.append(p or "")
@@ -250,12 +287,12 @@ def _score(
         pairs[d].append((p, ref))
         if d in confusion:
             confusion[d][(ref, p or "?")] += 1
-        info = traj.get(Q.traj_of(r["id"]), {})
         cat = str(info.get("category")) if not info.get("success", True) else "success"
         groups[f"category:{cat}"][d].append(p == ref)
         groups[f"task:{info.get('scenario', '?')}"][d].append(p == ref)
         # per failure type (Q2 here is the recall of that type), so a type the model cannot see shows up
         groups[f"type:{info.get('failure_type') or 'success'}"][d].append(p == ref)
+        type_pairs[info.get("failure_type") or "success"].append((p == ref, pair_of[d][-1]))
     # A dimension with no records in the split (e.g. a Q2-only probe) is null, not a misleading 0.
     res: dict[str, Any] = {
         d.lower(): round(100 * accuracy(pairs[d]), 2) if pairs[d] else None for d in ("Q1", "Q2", "Q3", "Q4", "Q5")
@@ -267,20 +304,31 @@ def _score(
         if q6_ref
         else dict.fromkeys(("bleu1", "bleu2", "bleu3", "bleu4", "rougeL"))
     )
-    # 95 % intervals: Wilson for the accuracies (in %), a seeded bootstrap for ROUGE-L's mean
+    # 95 % intervals: a seeded bootstrap over pairs (both twins of a pair drawn together: they share an initial
+    # state, so counting them as independent samples would make the intervals too narrow)
     res["ci95"] = {
         d.lower(): [round(100 * x, 2) for x in ci]
         for d in ("Q1", "Q2", "Q3", "Q4", "Q5")
-        if (ci := wilson(sum(p == r for p, r in pairs[d]), len(pairs[d])))
+        if (ci := pair_bootstrap([float(p == r) for p, r in pairs[d]], pair_of[d]))
     }
-    if (ci := bootstrap_mean(rl)) is not None:
+    if (ci := pair_bootstrap(rl, pair_of["Q6"])) is not None:
         res["ci95"]["rougeL"] = [round(x, 4) for x in ci]
+    res["ci_method"] = "percentile bootstrap over pairs, 1000 resamples, seed 0"
     res["records"] = len(recs)
     res["unparseable"] = dict(unparseable)
     res["breakdown"] = {
         g: {d: round(100 * sum(v) / len(v), 2) for d, v in dims.items()} for g, dims in sorted(groups.items())
     }
     res["confusion"] = {d: [[ref, pred, n] for (ref, pred), n in sorted(c.items())] for d, c in confusion.items()}
+    # Q2 per failure type (the recall of that type; "success": the specificity) with its pair-bootstrap interval
+    res["q2_by_type"] = {
+        t: {
+            "q2": round(100 * sum(ok for ok, _ in v) / len(v), 2),
+            "n": len(v),
+            "ci95": [round(100 * x, 2) for x in pair_bootstrap([float(ok) for ok, _ in v], [g for _, g in v])],
+        }
+        for t, v in sorted(type_pairs.items())
+    }
     return res
 
 

@@ -63,6 +63,25 @@ def bootstrap_mean(values: Sequence[float], resamples: int = 1000, seed: int = 0
     return float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))
 
 
+def pair_bootstrap(
+    values: Sequence[float], groups: Sequence[str], resamples: int = 1000, seed: int = 0
+) -> tuple[float, float] | None:
+    """95 % percentile bootstrap interval of a mean whose samples come in groups (a success/failure pair's two
+    twins share an initial state, so they are not independent): whole groups are drawn with replacement and the
+    statistic is the mean over the values of the groups drawn. Seeded: the same scores give the same interval.
+    With one value per group it is the ordinary bootstrap of the mean."""
+    if not values:
+        return None
+    if len(values) != len(groups):
+        raise ValueError(f"pair_bootstrap: {len(values)} values but {len(groups)} groups")
+    names, idx = np.unique(np.asarray(groups, dtype=object).astype(str), return_inverse=True)
+    sums = np.bincount(idx, weights=np.asarray(values, float), minlength=len(names))
+    counts = np.bincount(idx, minlength=len(names)).astype(float)
+    draw = np.random.default_rng(seed).integers(0, len(names), (resamples, len(names)))
+    stats = sums[draw].sum(1) / counts[draw].sum(1)
+    return float(np.percentile(stats, 2.5)), float(np.percentile(stats, 97.5))
+
+
 def accuracy(pairs: Sequence[tuple[str | None, str]]) -> float:
     return float(sum(p == r for p, r in pairs) / len(pairs)) if pairs else 0.0
 

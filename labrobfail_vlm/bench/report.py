@@ -27,6 +27,14 @@ PAPER_UNSEEN_ROWS: dict[str, list[float]] = {
     "scene": [93.42, 85.56, 74.39, 63.51, 72.63, 0.6793, 0.6276, 0.5805, 0.5229, 0.6604],
     "both": [89.09, 71.02, 41.41, 46.02, 48.72, 0.3981, 0.3875, 0.3735, 0.3269, 0.3894],
 }
+
+
+def paper_unseen_row(split: str) -> list[float] | None:
+    """The paper's unseen row for a held-out split (val_object and test_object both sit beside "object"), or None."""
+    held, _, setting = split.partition("_")
+    return PAPER_UNSEEN_ROWS.get(setting) if held in ("val", "test") else None
+
+
 # Paper, ablation table (seen split): Q2, Q3, Q5 accuracy %, Q6 ROUGE-L.
 PAPER_ABLATION: dict[str, list[float]] = {
     "Full fine-tuning (paper)": [85.24, 72.24, 70.24, 0.7142],

@@ -16,7 +16,7 @@ import numpy as np
 from mani_skill import logger as ms_logger
 
 from labrobfail_vlm.config import CONFIG_DIR
-from labrobfail_vlm.taxonomy import unseen_objects, unseen_scene
+from labrobfail_vlm.taxonomy import object_set, scene_set
 from sim_backends.maniskill import (
     assets,
     envs,
@@ -149,15 +149,18 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
 
     def _scene_spec(self, sc: dict[str, Any], variant: str, rng: np.random.Generator) -> dict[str, Any]:
         """Appearance, colours and (for the lab bench) the layout of an episode, drawn from its seed."""
-        pool = self.cfg["scenes"]["unseen" if unseen_scene(variant) else "seen"]
+        scenes, objects = scene_set(variant), object_set(variant)
+        if "sealed" in (scenes, objects):  # a ValueError here is the one-line refusal the generator prints
+            raise ValueError(f"variant: {variant} needs the sealed catalogue, which only the pybullet backend defines")
+        pool = self.cfg["scenes"][scenes]
         spec: dict[str, Any] = {"appearance": dict(pool[int(rng.integers(len(pool)))])}
-        unseen_obj = unseen_objects(variant)
-        if unseen_obj and "unseen_colors" in sc:  # a stock task's objects recoloured, and named by colour
-            spec["colors"] = dict(sc["unseen_colors"])
-            spec["labels"] = dict(sc.get("unseen_labels", {}))
+        held_obj = objects == "val"
+        if held_obj and "val_colors" in sc:  # a stock task's objects recoloured, and named by colour
+            spec["colors"] = dict(sc["val_colors"])
+            spec["labels"] = dict(sc.get("val_labels", {}))
         if "layout" not in sc:
             return spec
-        catalogue = self.cfg["objects"]["unseen" if unseen_obj else "seen"]
+        catalogue = self.cfg["objects"][objects]
         base = np.asarray(envs.ROBOT_BASE, float)
         layout: dict[str, Any] = {}
         labels: dict[str, str] = {}

@@ -1,7 +1,7 @@
 """Builds one scenario's bench: robot, glassware, rack, oven, button, zones and liquid.
 
-Object kinds come from a catalogue (seen objects) or, for the unseen sets, from
-a held-out catalogue or a user's definition file; the scene's appearance
+Object kinds come from a catalogue (seen objects) or, for the held-out sets, from
+the validation or the sealed catalogue, or from a user's definition file; the scene's appearance
 (bench and floor colours, texture, light) likewise. Everything random is drawn
 from the episode's seed, so (scenario, seed, variant) fixes the initial state.
 """
@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pybullet as p
 
-from labrobfail_vlm.taxonomy import unseen_objects, unseen_scene
+from labrobfail_vlm.taxonomy import object_set, scene_set
 from sim_backends.pybullet import assets
 from sim_backends.pybullet.robot import Panda
 
@@ -36,8 +36,9 @@ SEEN_OBJECTS: dict[str, dict[str, Any]] = {
     "test_tube": {"kind": "rod", "length": 0.12, "radius": 0.009, "rgba": [0.80, 0.93, 0.98, 1]},
 }
 
-# Held-out objects for the unseen-object set: shapes, colours and sizes absent from the seen catalogue.
-UNSEEN_OBJECTS: dict[str, dict[str, Any]] = {
+# Held-out objects of the validation sets (val_object, val_both): shapes, colours and sizes absent from the seen
+# catalogue. The tower's any-hue augmentation and its randomised stage were chosen on them: they are no test.
+VAL_OBJECTS: dict[str, dict[str, Any]] = {
     "beaker_small": {"kind": "vessel", "radius": 0.025, "height": 0.075, "sides": 6, "rgba": [0.95, 0.75, 0.35, 1]},
     "beaker_large": {"kind": "vessel", "radius": 0.037, "height": 0.09, "sides": 10, "rgba": [0.90, 0.55, 0.70, 1]},
     "flask": {
@@ -53,8 +54,33 @@ UNSEEN_OBJECTS: dict[str, dict[str, Any]] = {
     "test_tube": {"kind": "rod", "length": 0.11, "radius": 0.010, "rgba": [0.85, 0.55, 0.95, 1]},
 }
 
-# Scene appearance families. Seen and unseen never overlap: their bench brightness ranges are disjoint and they
-# use different texture kinds, so an unseen-scene episode never shows a bench the model was trained on.
+# The sealed objects (test_object, test_both): cross-sections (sides), sizes and saturated colours that neither
+# the seen nor the validation catalogue has. Whole-image colour augmentation (any hue, saturation and brightness
+# scaled) can bring a trained colour near any of these, so what no training draw makes is the shape and size.
+SEALED_OBJECTS: dict[str, dict[str, Any]] = {
+    "beaker_small": {"kind": "vessel", "radius": 0.022, "height": 0.08, "sides": 5, "rgba": [0.80, 0.12, 0.14, 1]},
+    "beaker_large": {"kind": "vessel", "radius": 0.031, "height": 0.095, "sides": 12, "rgba": [0.12, 0.22, 0.78, 1]},
+    "flask": {
+        "kind": "vessel",
+        "radius": 0.032,
+        "height": 0.105,
+        "sides": 5,  # a flask's compound has 2 x sides + 1 parts; PyBullet takes 16 at most
+        "neck_radius": 0.017,
+        "rgba": [0.10, 0.62, 0.60, 1],
+    },
+    "bottle": {"kind": "vessel", "radius": 0.028, "height": 0.095, "sides": 9, "rgba": [0.55, 0.08, 0.45, 1]},
+    "glass_rod": {"kind": "rod", "length": 0.18, "radius": 0.008, "rgba": [0.85, 0.85, 0.10, 1]},
+    "test_tube": {"kind": "rod", "length": 0.13, "radius": 0.008, "rgba": [0.95, 0.35, 0.05, 1]},
+}
+OBJECT_CATALOGUES: dict[str, dict[str, dict[str, Any]]] = {
+    "seen": SEEN_OBJECTS,
+    "val": VAL_OBJECTS,
+    "sealed": SEALED_OBJECTS,
+}
+
+# Scene appearance families. Seen, val and sealed never overlap: disjoint bench (and floor) colour ranges and
+# texture kinds of their own, so a held-out episode never shows a bench the model was trained on. The sealed family
+# is also outside the randomised family that the tower pretrains on (tests/test_splits_sealed.py samples them all).
 SCENE_FAMILIES: dict[str, dict[str, Any]] = {
     "seen": {
         "bench_value": (0.68, 0.92),
@@ -62,17 +88,26 @@ SCENE_FAMILIES: dict[str, dict[str, Any]] = {
         "floor_value": (0.22, 0.42),
         "textures": ("plain", "grain", "speckle"),
     },
-    "unseen": {
+    "val": {
         "bench_value": (0.22, 0.50),
         "bench_sat": (0.25, 0.60),
         "floor_value": (0.55, 0.80),
         "textures": ("checker", "tiles"),
     },
+    # Sealed: benches more saturated than any other family draws (bench_sat above 0.7), floors with colour (every
+    # other family's floor is near grey, floor_sat below 0.3), and texture kinds no other family has.
+    "sealed": {
+        "bench_value": (0.35, 0.80),
+        "bench_sat": (0.75, 0.95),
+        "floor_value": (0.45, 0.75),
+        "floor_sat": (0.45, 0.75),
+        "textures": ("dots", "rings"),
+    },
     # Domain randomisation for the vision tower's pretraining data only (backend_kwargs.scene_family=randomised on
     # seen episodes; never in a VQA split): any bench and floor colour, and texture kinds that no split uses, so the
-    # tower learns to read the task's objects over backgrounds it must ignore. Its colour range covers the unseen
-    # family's, as the tower's any-hue augmentation covers the unseen glassware's; its textures never include the
-    # unseen family's checker or tiles, so an unseen bench is still one the tower never saw.
+    # tower learns to read the task's objects over backgrounds it must ignore. Its colour range covers the val
+    # family's (chosen on val, as the tower's any-hue augmentation on the val glassware); its textures never include
+    # the val family's checker or tiles, and neither its colours nor its textures reach the sealed family's.
     "randomised": {
         "bench_value": (0.15, 0.95),
         "bench_sat": (0.0, 0.7),
@@ -80,6 +115,7 @@ SCENE_FAMILIES: dict[str, dict[str, Any]] = {
         "textures": ("plain", "grain", "speckle", "stripes", "blotches"),
     },
 }
+FLOOR_SAT = (0.0, 0.3)  # a family's floor saturation unless it names its own
 PLACEMENT_JITTER = 0.035  # m: objects and zones move by up to this much in x and y (times their `jitter`)
 MAX_DISTRACTORS = 3  # glassware on the bench that is not part of the task
 DISTRACTOR_CLEARANCE = 0.11  # m from every task object and zone (and 0.08 from the lines between them)
@@ -97,15 +133,16 @@ def _rgb(rng: np.random.Generator, value: tuple[float, float], sat: tuple[float,
 
 
 def scene_family(variant: str, override: str | None = None) -> str:
-    """The appearance family of an episode. `override` replaces the seen family only: an unseen-scene episode keeps
-    the unseen family, so one generation setting serves a tower run's seen and held-out shards alike."""
+    """The appearance family of an episode. `override` replaces the seen family only: a held-out-scene episode keeps
+    its own family, so one generation setting serves a tower run's seen and held-out shards alike."""
     if override is not None and override not in SCENE_FAMILIES:
         raise ValueError(f"scene_family: unknown family {override!r}; expected one of {', '.join(SCENE_FAMILIES)}")
-    if override == "unseen":  # seen-variant episodes on unseen benches would carry the held-out scenes into training
-        raise ValueError("scene_family: unseen is the unseen splits' own family; use variant=unseen_scene instead")
-    if unseen_scene(variant):
-        return "unseen"
-    return override or "seen"
+    if override in ("val", "sealed"):  # seen-variant episodes on held-out benches would carry them into training
+        raise ValueError(
+            f"scene_family: {override} is the {override} splits' own family; use variant=val_scene or test_scene"
+        )
+    held = scene_set(variant)
+    return held if held != "seen" else override or "seen"
 
 
 def draw_appearance(variant: str, rng: np.random.Generator, family: str | None = None) -> dict[str, Any]:
@@ -114,7 +151,7 @@ def draw_appearance(variant: str, rng: np.random.Generator, family: str | None =
     az, el = rng.uniform(0, 2 * math.pi), rng.uniform(math.radians(35), math.radians(80))
     return {
         "bench": _rgb(rng, fam["bench_value"], fam["bench_sat"]),
-        "floor": _rgb(rng, fam["floor_value"], (0.0, 0.3)),
+        "floor": _rgb(rng, fam["floor_value"], fam.get("floor_sat", FLOOR_SAT)),
         "texture": str(fam["textures"][int(rng.integers(len(fam["textures"])))]),
         "light": [
             round(2 * math.cos(el) * math.cos(az), 3),
@@ -193,8 +230,15 @@ def _texture(cid: int, kind: str, rgba: list[float], seed: int) -> int | None:
     elif kind == "blotches":  # smooth low-frequency patches (the randomised family only)
         coarse = Image.fromarray((rng.random((8, 8)) * 255).astype(np.uint8)).resize((128, 128), Image.BICUBIC)
         mask = np.asarray(coarse, float) / 255.0
+    elif kind == "dots":  # round spots on a square lattice of random pitch (the sealed family only)
+        pitch = int(rng.integers(10, 22))
+        c = pitch / 2
+        mask = 1.0 - (((yy % pitch - c) ** 2 + (xx % pitch - c) ** 2) < (0.3 * pitch) ** 2)
+    elif kind == "rings":  # concentric rings about a random centre (the sealed family only)
+        cy, cx, period = rng.uniform(0, 128), rng.uniform(0, 128), rng.uniform(8, 18)
+        mask = (np.sin(np.hypot(yy - cy, xx - cx) * 2 * math.pi / period) > 0).astype(float)
     else:
-        kinds = "plain, grain, speckle, stripes, blotches, checker or tiles"
+        kinds = "plain, grain, speckle, stripes, blotches, checker, tiles, dots or rings"
         raise ValueError(f"custom_scene: unknown texture {kind!r}; expected {kinds}")
     img = (mask[..., None] * base + (1 - mask[..., None]) * alt).astype(np.uint8)
     fd, path = tempfile.mkstemp(suffix=".png")
@@ -229,7 +273,7 @@ def place_distractors(
     Without the sweep, all 11 nominal failures in 432 runs were the forearm, wrist or hand hitting a distractor.
     """
     low = sweep[sweep[:, 2] < SWEEP_HEIGHT, :2] if sweep is not None and len(sweep) else np.zeros((0, 2))
-    table = UNSEEN_OBJECTS if unseen_objects(variant) else SEEN_OBJECTS
+    table = OBJECT_CATALOGUES[object_set(variant)]
     kinds = sorted(k for k, v in table.items() if v["kind"] == "vessel")
     items = [np.asarray(o.home[:2]) for o in objects.values()] + [np.asarray(z[:2]) for z in zones.values()]
     segs = [(a, b) for i, a in enumerate(items) for b in items[i + 1 :]]
@@ -285,7 +329,7 @@ KIND_LABELS = {"oven": "drying oven", "button": "button", "rack": "test tube rac
 def resolve_object(kind_name: str, variant: str, custom: dict[str, dict[str, Any]] | None) -> dict[str, Any]:
     if custom and kind_name in custom:
         return custom[kind_name]
-    table = UNSEEN_OBJECTS if unseen_objects(variant) else SEEN_OBJECTS
+    table = OBJECT_CATALOGUES[object_set(variant)]
     if kind_name not in table:
         raise ValueError(f"scenario: unknown object {kind_name!r}; known: {', '.join(sorted(table))}")
     return table[kind_name]

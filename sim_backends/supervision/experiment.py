@@ -19,7 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from labrobfail_vlm.config import ConfigError, is_int
-from labrobfail_vlm.taxonomy import SCENE_VARIANTS
+from labrobfail_vlm.taxonomy import check_variant
 from sim_backends.policies.base import POLICIES, Policy, make_policy
 from sim_backends.supervision.base import SUPERVISORS, Supervisor, make_supervisor
 from sim_backends.supervision.loop import LoopConfig, RunLog, TaskFamily, run_trial
@@ -105,8 +105,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
     if cfg.backend not in available_backends():
         raise ConfigError(f"backend: unknown backend {cfg.backend!r}; available: {', '.join(available_backends())}")
-    if cfg.variant not in SCENE_VARIANTS:
-        raise ConfigError(f"variant: unknown variant {cfg.variant!r}; expected one of {', '.join(SCENE_VARIANTS)}")
+    try:
+        check_variant(cfg.variant)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
     if not is_int(cfg.trials, 1):
         raise ConfigError(f"trials: must be a positive integer, got {cfg.trials!r}")
     try:

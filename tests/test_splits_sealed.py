@@ -1,0 +1,177 @@
+"""Splits that cannot leak: every variant draws its own episodes, the sealed catalogue and scene family lie outside
+every family that training, tower pretraining or augmentation draws from, intervals resample whole pairs, and every
+bench run on a sealed split is counted."""
+
+from __future__ import annotations
+
+import colorsys
+import json
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from labrobfail_vlm.taxonomy import SCENE_VARIANTS, SEALED_SPLITS
+
+# Two short scenarios, one tiny view: the episodes are real PyBullet runs, only small.
+GEN = ["image_size=32", "cameras=[front]", "render_frames=4", "scenarios=[press_button_red,pick_place_beaker_small]"]
+
+
+def _generate(out: Path, *extra: str) -> list[dict]:
+    from sim_backends.generate import generate, load_config
+
+    generate(load_config([f"out_dir={out}", "num_episodes=4", "seed=3", "progress=false", *GEN, *extra]))
+    cols = ["variant", "role", "scenario", "seed", "task_meta", "perturbation"]
+    return [r for f in sorted(out.glob("shard-*.parquet")) for r in pq.read_table(f, columns=cols).to_pylist()]
+
+
+def _initial_state(row: dict) -> str:
+    """Where every object and place of the task stood when the episode began (the task metadata's homes)."""
+    meta = json.loads(row["task_meta"])
+    return json.dumps([{k: o["home"] for k, o in sorted(meta["objects"].items())}, meta["places"]], sort_keys=True)
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> dict[str, list[dict]]:
+    root = tmp_path_factory.mktemp("variants")
+    out = {v: _generate(root / v, f"variant={v}") for v in SCENE_VARIANTS}
+    out["replay_val_object"] = _generate(root / "replay", "variant=val_object", "replay_seen=true")
+    return out
+
+
+def test_no_two_variants_share_a_seed_an_initial_state_or_an_injection(runs):
+    """The same seed and pair numbers in every variant: each draws episodes of its own (the bug this replaces:
+    unseen pair j was seen pair j in new colours)."""
+    own = {v: rows for v, rows in runs.items() if v in SCENE_VARIANTS}
+    assert all(len(rows) == 4 for rows in own.values())
+    for key in ("seed", "initial state", "injection"):
+        owners: dict[str, str] = {}
+        for v, rows in own.items():
+            for r in rows:
+                if key == "injection" and r["role"] != "injected":
+                    continue
+                value = {"seed": r["seed"], "initial state": _initial_state(r), "injection": r["perturbation"]}[key]
+                assert owners.setdefault(str(value), v) == v, f"{key} of {v} is also {owners[str(value)]}'s"
+
+
+def test_a_replay_is_the_seen_episodes_under_its_own_name(runs):
+    """`replay_seen=true` is the one way to see a seen episode in held-out colours, and it is never called val."""
+    seen, replay = runs["seen"], runs["replay_val_object"]
+    assert {r["variant"] for r in replay} == {"replay_val_object"}
+    assert [(r["scenario"], r["seed"], r["perturbation"]) for r in replay] == [
+        (r["scenario"], r["seed"], r["perturbation"]) for r in seen
+    ]
+
+
+def test_pair_seeds_differ_across_variants_and_seen_keeps_its_seeds():
+    from sim_backends.generate import pair_seed, scenario_order
+
+    seeds = {v: {pair_seed(0, j, d, v) for j in range(2000) for d in (0, 1)} for v in SCENE_VARIANTS}
+    assert all(len(s) == 4000 for s in seeds.values())
+    for i, a in enumerate(SCENE_VARIANTS):
+        for b in SCENE_VARIANTS[i + 1 :]:
+            assert not seeds[a] & seeds[b], (a, b)
+    # seen's seeds and order are those of runs made before variants had their own: the same seed, the same data
+    legacy = np.random.SeedSequence([0, 7]).generate_state(1)[0], np.random.SeedSequence([0, 7, 2]).generate_state(1)[0]
+    assert (pair_seed(0, 7), pair_seed(0, 7, 2)) == tuple(int(x) for x in legacy)
+    names = [f"s{i}" for i in range(12)]
+    assert scenario_order(names, 0, 24) != scenario_order(names, 0, 24, variant="val_both")
+
+
+def test_replay_and_renamed_variants_are_refused_in_one_line(tmp_path):
+    from labrobfail_vlm.config import ConfigError
+    from sim_backends.generate import generate, load_config
+
+    for extra, msg in (
+        (["variant=unseen_both"], "variant: 'unseen_both' was renamed; use val_both"),
+        (["replay_seen=true"], "replay_seen: replays the seen episodes under a held-out variant's appearance"),
+    ):
+        with pytest.raises(ConfigError, match=msg):
+            generate(load_config([f"out_dir={tmp_path / 'x'}", "num_episodes=2", *extra]))
+
+
+def _hsv(rgba) -> tuple[float, float, float]:
+    return colorsys.rgb_to_hsv(*rgba[:3])
+
+
+def test_the_sealed_scene_family_is_outside_every_other_family():
+    """Sampled, not read from the table: the sealed benches are more saturated and the sealed floors more coloured
+    than anything the seen, val or randomised (tower pretraining) family draws, with texture kinds of their own."""
+    from sim_backends.pybullet import scene
+
+    def draws(variant: str, family: str | None = None) -> list[dict]:
+        return [scene.draw_appearance(variant, np.random.default_rng(i), family) for i in range(1500)]
+
+    others = {"seen": draws("seen"), "val": draws("val_scene"), "randomised": draws("seen", "randomised")}
+    sealed = draws("test_scene")
+    assert draws("test_both")[:50] == sealed[:50] and draws("test_object")[:50] == others["seen"][:50]
+    for part in ("bench", "floor"):
+        low = min(_hsv(a[part])[1] for a in sealed)
+        for name, app in others.items():
+            assert max(_hsv(a[part])[1] for a in app) < low, f"{part} saturation of {name} reaches the sealed range"
+    kinds = {a["texture"] for a in sealed}
+    assert kinds == {"dots", "rings"}
+    for name, app in others.items():
+        assert not kinds & {a["texture"] for a in app}, name
+
+
+def test_the_sealed_catalogue_has_shapes_sizes_and_colours_of_its_own():
+    from sim_backends.pybullet.scene import SEALED_OBJECTS, SEEN_OBJECTS, VAL_OBJECTS
+
+    def shape(o: dict) -> tuple:
+        return (o["kind"], o.get("sides"), o.get("neck_radius", 0) > 0)
+
+    def size(o: dict) -> tuple:
+        return (o["radius"], o["height"]) if o["kind"] == "vessel" else (o["length"], o["radius"])
+
+    trained = list(SEEN_OBJECTS.values()) + list(VAL_OBJECTS.values())
+    assert set(SEALED_OBJECTS) == set(SEEN_OBJECTS)  # the same tasks, other glassware
+    for name, o in SEALED_OBJECTS.items():
+        if o["kind"] == "vessel":
+            assert shape(o) not in {shape(t) for t in trained}, name
+        assert size(o) not in {size(t) for t in trained}, name
+        nearest = min(float(np.linalg.norm(np.subtract(o["rgba"][:3], t["rgba"][:3]))) for t in trained)
+        assert nearest > 0.2, f"{name}'s colour is {nearest:.2f} from a trained object's"
+
+
+def test_sealed_glassware_stands_on_a_sealed_bench_and_the_nominal_plan_succeeds():
+    from sim_backends.registry import make_backend
+
+    src = make_backend("pybullet", image_size=32, cameras=["front"], max_distractors=3)
+    try:
+        src.reset("pick_place_beaker_small", 5, "test_both")
+        assert src.scene.appearance["texture"] in ("dots", "rings")
+        assert src.execute(src.scripted_keyframes()).labels.success
+    finally:
+        src.close()
+
+
+def test_pair_bootstrap_draws_twins_together():
+    from labrobfail_vlm.bench.metrics import pair_bootstrap
+
+    rng = np.random.default_rng(0)
+    right = rng.random(200) < 0.7
+    alone = pair_bootstrap(right.astype(float).tolist(), [str(i) for i in range(200)])
+    twins = pair_bootstrap(np.repeat(right, 2).astype(float).tolist(), [str(i // 2) for i in range(400)])
+    counted_apart = pair_bootstrap(np.repeat(right, 2).astype(float).tolist(), [str(i) for i in range(400)])
+    assert alone == twins  # a pair of twins that always agree carries one sample's information, not two
+    assert (counted_apart[1] - counted_apart[0]) < 0.8 * (twins[1] - twins[0])  # what counting twins apart hides
+    assert twins[0] < 0.7 < twins[1]
+    assert pair_bootstrap([], []) is None
+    with pytest.raises(ValueError, match="3 values but 2 groups"):
+        pair_bootstrap([1.0, 0.0, 1.0], ["a", "b"])
+
+
+def test_every_bench_run_on_a_sealed_split_is_counted(tmp_path):
+    from labrobfail_vlm.bench.evaluate import count_sealed_run, sealed_runs
+
+    res = {"q2": 71.5, "failure_only": {"q3": 40.0, "q4": 50.0, "q5": 45.0, "q6": {"rougeL": 0.4}}}
+    count_sealed_run(tmp_path, "val_both", "m", res)  # validation runs are free
+    assert sealed_runs(tmp_path) == []
+    for split in SEALED_SPLITS:
+        count_sealed_run(tmp_path, split, "outputs/r/train/final", res)
+    count_sealed_run(tmp_path, "test_both", "other", res)
+    runs = sealed_runs(tmp_path)
+    assert [r["split"] for r in runs] == [*SEALED_SPLITS, "test_both"]
+    assert runs[-1]["source"] == "other" and runs[0]["q2"] == 71.5 and runs[0]["rougeL_failures"] == 0.4
