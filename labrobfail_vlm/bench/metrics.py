@@ -3,11 +3,11 @@
 BLEU: nltk's corpus_bleu with cumulative uniform weights up to n and SmoothingFunction().method1
 (fixed), on lower-cased word/punctuation tokens. ROUGE-L: rouge-score's RougeScorer with the
 Porter stemmer, mean F-measure. Both are the reference implementations, called as they are.
+95 % intervals: a percentile bootstrap over pairs (`pair_bootstrap`: a pair's twins are drawn together).
 """
 
 from __future__ import annotations
 
-import math
 import re
 from typing import Sequence
 
@@ -42,25 +42,6 @@ def rouge_l_values(refs: Sequence[str], hyps: Sequence[str]) -> list[float]:
 def rouge_l(refs: Sequence[str], hyps: Sequence[str]) -> float:
     vals = rouge_l_values(refs, hyps)
     return float(sum(vals) / len(vals)) if vals else 0.0
-
-
-def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float] | None:
-    """95 % Wilson score interval of a proportion k / n (None for n = 0): unlike the normal approximation it
-    stays inside [0, 1] and is honest near 0 % and 100 %, which a 120-grid split reaches."""
-    if n == 0:
-        return None
-    p, z2 = k / n, z * z
-    mid, half = (p + z2 / (2 * n)) / (1 + z2 / n), z * math.sqrt(p * (1 - p) / n + z2 / (4 * n * n)) / (1 + z2 / n)
-    return max(0.0, mid - half), min(1.0, mid + half)
-
-
-def bootstrap_mean(values: Sequence[float], resamples: int = 1000, seed: int = 0) -> tuple[float, float] | None:
-    """95 % percentile bootstrap interval of a mean (seeded: the same scores give the same interval)."""
-    if not values:
-        return None
-    v = np.asarray(values, float)
-    means = v[np.random.default_rng(seed).integers(0, len(v), (resamples, len(v)))].mean(1)
-    return float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))
 
 
 def pair_bootstrap(
