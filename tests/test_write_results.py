@@ -188,3 +188,32 @@ def test_a_timeline_without_done_is_not_called_end_to_end() -> None:
     done = timing([*stamps, ["done", "960"]])[0]
     assert "end to end: **16.0 min**" in done and "learning_curve 1.0 min" in done
     assert timing([["generate", "0"]]) == []
+
+
+def _scores(q2: float, q3: float, q4: float, q5: float, rouge: float) -> dict:
+    """The parts of a bench results.json that the targets table reads."""
+    fo = {"q3": q3, "q4": q4, "q5": q5, "q6": {"rougeL": rouge}, "ci95": {}}
+    return {"q2": q2, "ci95": {}, "failure_only": fo}
+
+
+def test_the_targets_table_needs_the_margin_over_both_baselines_and_says_what_was_not_run() -> None:
+    from scripts.write_results import targets
+
+    test = {
+        **_scores(92.0, 80.0, 85.0, 75.0, 0.76),
+        "baselines": {
+            "majority class": _scores(64.0, 60.0, 74.0, 30.0, 0.43),
+            "blind": _scores(64.0, 71.0, 74.0, 30.0, 0.43),
+        },
+        "q2_by_type": {"object_slippage": {"q2": 75.0, "n": 20, "ci95": [60, 88]}, "success": {"q2": 99, "n": 400}},
+    }
+    val = {
+        **_scores(80.0, 50.0, 70.0, 50.0, 0.5),
+        "baselines": {"majority class": _scores(60.0, 40.0, 76.0, 30.0, 0.4)},
+    }
+    rows = {line.split(" | ")[0].strip("| "): line for line in targets({"test": test, "val_both": val})}
+    assert "| yes |" in rows["seen Q2"] and "| yes |" in rows["seen failure-only Q4"]
+    assert "| no |" in rows["seen failure-only Q3"]  # 80 is 9 points over the blind model's 71: under the margin
+    assert "not run" in rows["sealed unseen objects and scene Q2"] and "| no |" in rows["sealed unseen scene Q2"]
+    assert "not on val_both" in rows["failure-only Q4 above the majority class on every split"]  # 70 <= 76
+    assert "object_slippage 75" in rows["seen Q2 recall >= 80 % for each failure type with >= 20 test failures"]
