@@ -33,7 +33,7 @@ from labrobfail_vlm import questions as Q
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import GridConfig
 from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
-from labrobfail_vlm.taxonomy import DATA_VARIANTS, RENAMED_VARIANTS, SEEN_SPLITS
+from labrobfail_vlm.taxonomy import DATA_VARIANTS, HELD_OUT_SPLITS, RENAMED_VARIANTS, REPLAY_SPLITS, SEEN_SPLITS
 
 READ_COLUMNS = [
     "episode_id",
@@ -238,7 +238,7 @@ def build(cfg: DictConfig) -> dict[str, Any]:
         kept.append(ann)
 
     split_of = assign([(a.group, a.variant) for a in kept], int(cfg.seed), tuple(cfg.ratios))
-    splits: dict[str, list[dict[str, Any]]] = {s: [] for s in (*SEEN_SPLITS, *DATA_VARIANTS[1:])}
+    splits: dict[str, list[dict[str, Any]]] = {s: [] for s in (*SEEN_SPLITS, *HELD_OUT_SPLITS, *REPLAY_SPLITS)}
     for a in kept:
         a.meta["split"] = split_of[a.group]
         splits[split_of[a.group]].extend(a.records)

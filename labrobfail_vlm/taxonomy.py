@@ -194,7 +194,6 @@ SCENE_VARIANTS: tuple[str, ...] = (
 )
 SEEN_SPLITS: tuple[str, ...] = ("train", "val", "test")  # the seen variant is cut 8:1:1 into these
 HELD_OUT_SPLITS: tuple[str, ...] = SCENE_VARIANTS[1:]  # each held-out variant is a split of its own, named alike
-VAL_SPLITS: tuple[str, ...] = ("val", "val_object", "val_scene", "val_both")  # where choices are made
 SEALED_SPLITS: tuple[str, ...] = ("test_object", "test_scene", "test_both")  # reported rows only
 REPLAY_PREFIX = "replay_"
 REPLAY_SPLITS: tuple[str, ...] = tuple(REPLAY_PREFIX + v for v in HELD_OUT_SPLITS)
@@ -206,13 +205,16 @@ RENAMED_VARIANTS: dict[str, str] = {
 }
 
 
-def check_variant(variant: str) -> str:
-    """The variant, or ValueError "variant: ..." naming the valid ones (and the new name of a renamed one)."""
+def check_variant(variant: str, field: str = "variant") -> str:
+    """The variant, or a ConfigError (a ValueError) "<field>: ..." naming the valid ones (and the new name of a
+    renamed one): the one check behind the generator, the supervisor, the policy server and a backend's reset."""
+    from labrobfail_vlm.config import ConfigError
+
     if variant in SCENE_VARIANTS:
         return variant
     if variant in RENAMED_VARIANTS:
-        raise ValueError(f"variant: {variant!r} was renamed; use {RENAMED_VARIANTS[variant]}")
-    raise ValueError(f"variant: unknown variant {variant!r}; expected one of {', '.join(SCENE_VARIANTS)}")
+        raise ConfigError(f"{field}: {variant!r} was renamed; use {RENAMED_VARIANTS[variant]}")
+    raise ConfigError(f"{field}: unknown variant {variant!r}; expected one of {', '.join(SCENE_VARIANTS)}")
 
 
 def _held_out_set(variant: str, held: str) -> str:

@@ -120,10 +120,7 @@ class PolicyService:
     def _default_episode(self, d: Any) -> dict[str, Any]:
         from labrobfail_vlm.taxonomy import check_variant
 
-        try:
-            check_variant(d.variant)
-        except ValueError as e:
-            raise ConfigError(f"default_episode.{e}") from None
+        check_variant(d.variant, "default_episode.variant")
         if not isinstance(d.seed, int):
             raise ConfigError(f"default_episode.seed: must be an integer, got {d.seed!r}")
         if d.scenario is not None and str(d.scenario) not in self._backend().scenarios():

@@ -68,10 +68,7 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
         raise ConfigError("episodes_per_shard: must be even (a shard holds whole success/failure pairs)")
     if cfg.executor not in ("process", "ray"):
         raise ConfigError(f"executor: must be 'process' or 'ray', got {cfg.executor!r}")
-    try:
-        check_variant(cfg.variant)
-    except ValueError as e:
-        raise ConfigError(str(e)) from None
+    check_variant(cfg.variant)
     if cfg.replay_seen not in (True, False):
         raise ConfigError(f"replay_seen: must be true or false, got {cfg.replay_seen!r}")
     if cfg.replay_seen and cfg.variant == "seen":
@@ -253,7 +250,7 @@ def run_shard(job: dict[str, Any], backend: str, kwargs: dict[str, Any], variant
     src.render_frames = job.get("render_frames")
     rows, records = [], []
     for j, scenario in job["pairs"]:
-        stream = job.get("stream", variant)
+        stream = job["stream"]
         nominal, injected, recs = labelable_pair(src, scenario, job["seed"], j, variant, stream)
         records.extend(recs)
         if nominal is None:

@@ -154,8 +154,7 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
             raise ValueError(f"variant: {variant} needs the sealed catalogue, which only the pybullet backend defines")
         pool = self.cfg["scenes"][scenes]
         spec: dict[str, Any] = {"appearance": dict(pool[int(rng.integers(len(pool)))])}
-        held_obj = objects == "val"
-        if held_obj and "val_colors" in sc:  # a stock task's objects recoloured, and named by colour
+        if objects == "val" and "val_colors" in sc:  # a stock task's objects recoloured, and named by colour
             spec["colors"] = dict(sc["val_colors"])
             spec["labels"] = dict(sc.get("val_labels", {}))
         if "layout" not in sc:

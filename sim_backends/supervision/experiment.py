@@ -105,10 +105,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
     if cfg.backend not in available_backends():
         raise ConfigError(f"backend: unknown backend {cfg.backend!r}; available: {', '.join(available_backends())}")
-    try:
-        check_variant(cfg.variant)
-    except ValueError as e:
-        raise ConfigError(str(e)) from None
+    check_variant(cfg.variant)
     if not is_int(cfg.trials, 1):
         raise ConfigError(f"trials: must be a positive integer, got {cfg.trials!r}")
     try:
