@@ -243,7 +243,7 @@ tower: $(STAMP)
 # LabRobFail-Sim at the paper's scale: 20,000 trajectories (17,000 seen + 1,000 per sealed unseen set, test_*), and
 # SIM_VAL per validation set (val_*), resumable
 # (rerun to continue after a kill) and deterministic. On a Ray cluster: make sim20k SIM_EXEC="executor=ray
-# ray_address=auto" SIM_WORKERS=64. Measured rate and time on 2 cores: README "LabRobFail-Sim at scale".
+# ray_address=auto" SIM_WORKERS=64. Usage: docs/GUIDE.md, "LabRobFail-Sim at scale".
 SIM        ?= outputs/sim20k
 SIM_SEEN   ?= 17000
 SIM_UNSEEN ?= 1000

@@ -6,7 +6,7 @@ Run as:
     python infer.py --frames DIR --task "press the red button"      # DIR/<view>/<frame>.png -> grid
     python infer.py --grid frames.png --six-prompts                  # no shared-prefix KV cache
     python infer.py --grid frames.png --task "..." --q6-mode template --objects "small beaker,target area"
-    python infer.py --grid frames.png --task "..." --endpoint http://127.0.0.1:8000/v1   # a vLLM server (README)
+    python infer.py --grid frames.png --task "..." --endpoint http://127.0.0.1:8000/v1   # a vLLM server (docs/GUIDE.md)
     labrobfail-infer grid=frames.png task="press the red button"
 
 Without a model it uses the checkpoint `make demo` trains (outputs/demo_train/final). With an endpoint the

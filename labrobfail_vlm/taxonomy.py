@@ -78,7 +78,7 @@ SEVERITY_TITLES: dict[Severity, str] = {
 # main text (Minor, Recoverable, Critical, Catastrophic, "four hierarchical risk levels"). It never pairs them, so
 # the project pairs them by position, option 1 with the first level named, and says so wherever a severity is
 # shown to a person. The definitions differ in places (the main text's Catastrophic is about safety violations or
-# equipment damage, the appendix's option 4 about non-compliant operations): README, "Fidelity to the paper".
+# equipment damage, the appendix's option 4 about non-compliant operations): docs/GUIDE.md, "Fidelity to the paper".
 SEVERITY_MAIN_TEXT: dict[Severity, str] = {
     Severity.RISK: "Minor",
     Severity.DANGEROUS: "Recoverable",

@@ -1,3 +1,4 @@
 """Repository tooling: entry points run from the checkout (see README, "Layout"). The dataset builders import
-the uninstalled data/ package, so they run from the repository root as modules: python -m scripts.build_dataset.
+the uninstalled data/ package: they put the checkout on sys.path, so `python scripts/build_dataset.py` and
+`python -m scripts.build_dataset` both work from the repository root.
 """

@@ -3,7 +3,7 @@ setting).
 
 Run as:
     python scripts/evaluate.py model=outputs/demo_train/final dataset_dir=outputs/demo_dataset split=test
-    python scripts/evaluate.py predictions=preds.jsonl dataset_dir=outputs/dataset split=object
+    python scripts/evaluate.py predictions=preds.jsonl dataset_dir=outputs/dataset split=val_object
     python scripts/evaluate.py model=DIR dataset_dir=DIR executable.enabled=true executable.shards=SHARDS_DIR
 """
 

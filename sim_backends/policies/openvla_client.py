@@ -2,7 +2,7 @@
 
 Request (json-numpy, the real `json_numpy` package behind sim_backends/policies/wire.py): `{"image": uint8 HxWx3,
 "instruction": str, "unnorm_key"?}`, as OpenVLA's own client sends it, or the `{"encoded": "<json-numpy
-string>"}` form (`encoded: true`; note that OpenVLA's deploy.py fails on it, see README). The plain form also
+string>"}` form (`encoded: true`; note that OpenVLA's deploy.py fails on it, see docs/GUIDE.md). The plain form also
 carries the project's extras, which OpenVLA's server ignores and scripts/serve_policy.py uses: `images` (every
 view), `proprio` (ee_pos, ee_quat, width, grip_cmd) and `episode` (scenario, seed, variant and a fresh id per
 episode: a new episode resets the served policy).
