@@ -609,9 +609,14 @@ def main(argv: list[str]) -> int:
     stamps = [line.split() for line in (run / "timeline.txt").read_text().splitlines() if line.strip()]
     lines = _header(run, stats, stamps)
     lines += ["## Targets of the principal issue (main row: front + side)", "", *targets(evals), ""]
+    absent = []
     for name, body in (("rows", rows_table(run)), ("ablation", ablation_table(run)), ("supervision", supervision(run))):
         if body:
             lines += _section(name, body)
+        else:
+            absent.append(f"{SECTIONS[name][0].removeprefix('## ')} (`{'`, `'.join(SECTIONS[name][2])}`)")
+    if absent:  # say what this page lacks rather than leave a reader to notice a missing section
+        lines += ["Not run for this page: " + "; ".join(absent) + ".", ""]
     lines += sealed_section(run)
     lines += paper_tables(evals)
     lines += detection_section(run, out, evals)
