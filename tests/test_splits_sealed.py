@@ -175,3 +175,26 @@ def test_every_bench_run_on_a_sealed_split_is_counted(tmp_path):
     runs = sealed_runs(tmp_path)
     assert [r["split"] for r in runs] == [*SEALED_SPLITS, "test_both"]
     assert runs[-1]["source"] == "other" and runs[0]["q2"] == 71.5 and runs[0]["rougeL_failures"] == 0.4
+
+
+def test_per_type_recall_counts_q2_records_only_and_draws_pairs():
+    """q2_by_type is Q2's recall per failure type over Q2 records alone: other questions of the same trajectory
+    do not count, and its interval resamples pairs."""
+    from labrobfail_vlm import questions as Q
+    from labrobfail_vlm.bench.evaluate import score
+
+    recs, preds, traj = [], {}, {}
+    for i in range(10):  # 10 pairs: a success and a slip each; the model misses the slip in pairs 0-3
+        for role, failed in (("n", False), ("i", True)):
+            t = f"seen-ep{i}{role}"
+            traj[t] = {"group": f"seen-pair{i}", "success": not failed, "failure_type": "object_slippage" * failed}
+            q = Q.question_text("Q2", 0, "pick up the small beaker")
+            recs.append({"id": f"{t}_Q2", "conversations": [{"value": q}, {"value": Q.q2_answer(0, not failed)}]})
+            preds[f"{t}_Q2"] = Q.q2_answer(0, not failed or i < 4)
+            recs.append({"id": f"{t}_Q1", "conversations": [{"value": "q"}, {"value": "grasp, place"}]})
+            preds[f"{t}_Q1"] = "grasp, place"
+    by_type = score(recs, preds, traj)["q2_by_type"]
+    assert by_type["object_slippage"]["q2"] == 60.0 and by_type["object_slippage"]["n"] == 10
+    assert by_type["success"] == {"q2": 100.0, "n": 10, "ci95": [100.0, 100.0]}
+    lo, hi = by_type["object_slippage"]["ci95"]
+    assert lo < 60.0 < hi
