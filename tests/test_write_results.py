@@ -203,7 +203,7 @@ def test_the_targets_table_needs_the_margin_over_both_baselines_and_says_what_wa
         **_scores(92.0, 80.0, 85.0, 75.0, 0.76),
         "baselines": {
             "majority class": _scores(64.0, 60.0, 74.0, 30.0, 0.43),
-            "blind": _scores(64.0, 71.0, 74.0, 30.0, 0.43),
+            "blind (grey grid)": _scores(64.0, 71.0, 74.0, 30.0, 0.43),
         },
         "q2_by_type": {"object_slippage": {"q2": 75.0, "n": 20, "ci95": [60, 88]}, "success": {"q2": 99, "n": 400}},
     }

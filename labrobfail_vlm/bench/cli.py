@@ -130,7 +130,7 @@ def main(argv: list[str]) -> int:
             train_dir = cfg.majority_train or cfg.dataset_dir
             try:
                 train, _ = ev.load_split(train_dir, "train")
-                results["majority class"] = ev.score(
+                results[ev.MAJORITY] = ev.score(
                     recs,
                     ev.majority_predictions(train, recs),
                     traj,
@@ -143,7 +143,7 @@ def main(argv: list[str]) -> int:
         elif b == "blind":
             if analyzer is None:
                 continue  # needs a model to blindfold
-            results["blind (grey grid)"] = ev.score(
+            results[ev.BLIND] = ev.score(
                 recs,
                 ev.model_predictions(
                     analyzer, cfg.dataset_dir, recs, traj, blind=True, progress=cfg.progress, batch_size=cfg.batch_size
