@@ -1,6 +1,7 @@
 # All set-up lives here: a fresh machine needs only python3 (3.11) and make.
 VENV  ?= .venv
 PY    := $(VENV)/bin/python
+BIN   := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
 .PHONY: install browser vulkan demo demo-online reproduce reproduce-rows ablate reproduce-online recovery tower sim20k lint test test-fast bench clean
@@ -59,12 +60,12 @@ DEMO_GRID     := grid.width=512 grid.height=512 grid.max_frames=8 grid.columns=4
 DEMO_WORLD    := backend_kwargs.custom_scene=configs/scenes/demo_bench.yaml backend_kwargs.camera_jitter=false \
   backend_kwargs.max_distractors=0 'families.place.scenarios=[pick_place_beaker_large,pick_place_right_beaker_large]'
 demo: $(STAMP)
-	$(PY) scripts/generate.py preset=demo num_episodes=$(DEMO_EPISODES) out_dir=outputs/demo_shards seed=0 workers=2 image_size=128 render_frames=8
+	$(BIN)/labrobfail-generate preset=demo num_episodes=$(DEMO_EPISODES) out_dir=outputs/demo_shards seed=0 workers=2 image_size=128 render_frames=8
 	$(PY) scripts/render_strips.py shards=outputs/demo_shards out=outputs/demo_strips
-	$(PY) -m scripts.build_dataset shards=outputs/demo_shards out_dir=outputs/demo_dataset $(DEMO_GRID)
+	$(BIN)/labrobfail-build-dataset shards=outputs/demo_shards out_dir=outputs/demo_dataset $(DEMO_GRID)
 	$(PY) train.py preset=tiny dataset_dir=outputs/demo_dataset output_dir=outputs/demo_train epochs=$(DEMO_EPOCHS)
-	$(PY) scripts/evaluate.py model=outputs/demo_train/final dataset_dir=outputs/demo_dataset split=test
-	$(PY) scripts/supervise.py policy=scripted supervisor=vlm vlm.model=outputs/demo_train/final task=place \
+	$(BIN)/labrobfail-evaluate model=outputs/demo_train/final dataset_dir=outputs/demo_dataset split=test
+	$(BIN)/labrobfail-supervise policy=scripted supervisor=vlm vlm.model=outputs/demo_train/final task=place \
 	  trials=25 loop.query_every=-1 out_dir=outputs/demo_supervise progress=false $(DEMO_WORLD)
 	$(PY) scripts/demo_diagnosis.py dataset=outputs/demo_dataset model=outputs/demo_train/final
 
@@ -77,13 +78,13 @@ ONLINE_PREFIX := prefix.cuts=1 prefix.pair_cuts=true 'prefix.questions=[Q2,Q3,Q5
 ONLINE_STAGE  := grounding.pretrain_epochs=0 curriculum.detect_first=0 curriculum.polarity_warmup=0
 demo-online: $(STAMP)
 	@test -d outputs/demo_train/final || { echo "demo-online: run make demo first (no outputs/demo_train/final)" >&2; exit 2; }
-	$(PY) -m scripts.build_dataset shards=outputs/demo_shards out_dir=outputs/demo_online_dataset $(DEMO_GRID) \
+	$(BIN)/labrobfail-build-dataset shards=outputs/demo_shards out_dir=outputs/demo_online_dataset $(DEMO_GRID) \
 	  $(ONLINE_PREFIX) progress=false
 	$(PY) train.py preset=tiny dataset_dir=outputs/demo_online_dataset output_dir=outputs/demo_online_train epochs=8 \
 	  model.path=outputs/demo_train/final $(ONLINE_STAGE)
-	for s in test prefix; do $(PY) scripts/evaluate.py model=outputs/demo_online_train/final \
+	for s in test prefix; do $(BIN)/labrobfail-evaluate model=outputs/demo_online_train/final \
 	  dataset_dir=outputs/demo_online_dataset split=$$s progress=false || exit 1; done
-	$(PY) scripts/supervise.py policy=scripted supervisor=vlm vlm.model=outputs/demo_online_train/final task=place \
+	$(BIN)/labrobfail-supervise policy=scripted supervisor=vlm vlm.model=outputs/demo_online_train/final task=place \
 	  trials=25 out_dir=outputs/demo_online_supervise progress=false $(DEMO_WORLD)
 
 # The CPU recipe at full size (docs/RESULTS.md): seen, validation and sealed test data (front, side and wrist views
@@ -107,17 +108,17 @@ space          := $(subst ,, )
 REPRO_SHARDS   := 'shards=[$(subst $(space),$(comma),$(strip $(addprefix $(R)/shards/,seen seen2 $(HELD_OUT))))]'
 REPRO_TRAIN    := preset=tiny epochs=$(REPRO_EPOCHS) save_steps=1600 save_total_limit=null progress=false
 stamp           = echo "$(1) $$(date +%s)" >> $(R)/timeline.txt
-bench          = for s in $(2); do $(PY) scripts/evaluate.py model=$(1)/final dataset_dir=$(3) split=$$s batch_size=8 \
+bench          = for s in $(2); do $(BIN)/labrobfail-evaluate model=$(1)/final dataset_dir=$(3) split=$$s batch_size=8 \
   progress=false || exit 1; done
 reproduce: $(STAMP)
 	mkdir -p $(R) && rm -f $(R)/timeline.txt && $(call stamp,generate)
-	$(PY) scripts/generate.py $(REPRO_GEN) num_episodes=$(REPRO_SEEN) out_dir=$(R)/shards/seen
-	$(PY) scripts/generate.py $(REPRO_GEN) num_episodes=$(REPRO_SEEN) first_pair=$$(($(REPRO_SEEN) / 2)) \
+	$(BIN)/labrobfail-generate $(REPRO_GEN) num_episodes=$(REPRO_SEEN) out_dir=$(R)/shards/seen
+	$(BIN)/labrobfail-generate $(REPRO_GEN) num_episodes=$(REPRO_SEEN) first_pair=$$(($(REPRO_SEEN) / 2)) \
 	  out_dir=$(R)/shards/seen2
 	for v in $(HELD_OUT); do \
-	  $(PY) scripts/generate.py $(REPRO_GEN) num_episodes=$(REPRO_UNSEEN) variant=$$v out_dir=$(R)/shards/$$v || exit 1; done
+	  $(BIN)/labrobfail-generate $(REPRO_GEN) num_episodes=$(REPRO_UNSEEN) variant=$$v out_dir=$(R)/shards/$$v || exit 1; done
 	$(call stamp,dataset)
-	$(PY) -m scripts.build_dataset $(REPRO_SHARDS) out_dir=$(R)/dataset $(DEMO_GRID) 'views=[front,side]' progress=false
+	$(BIN)/labrobfail-build-dataset $(REPRO_SHARDS) out_dir=$(R)/dataset $(DEMO_GRID) 'views=[front,side]' progress=false
 	$(call stamp,train)
 	$(PY) train.py $(REPRO_TRAIN) dataset_dir=$(R)/dataset output_dir=$(R)/train
 	$(call stamp,evaluate)
@@ -132,7 +133,7 @@ reproduce-rows: $(STAMP)
 	@test -f $(R)/train/final/eval_test/results.json || { echo "reproduce-rows: run make reproduce first" >&2; exit 2; }
 	$(PY) train.py $(REPRO_TRAIN) tower=scratch dataset_dir=$(R)/dataset output_dir=$(R)/rows/scratch
 	$(call bench,$(R)/rows/scratch,test $(HELD_OUT),$(R)/dataset)
-	$(PY) -m scripts.build_dataset $(REPRO_SHARDS) out_dir=$(R)/dataset_wrist $(DEMO_GRID) 'views=[front,wrist]' progress=false
+	$(BIN)/labrobfail-build-dataset $(REPRO_SHARDS) out_dir=$(R)/dataset_wrist $(DEMO_GRID) 'views=[front,wrist]' progress=false
 	$(PY) train.py $(REPRO_TRAIN) dataset_dir=$(R)/dataset_wrist output_dir=$(R)/rows/wrist
 	$(call bench,$(R)/rows/wrist,test $(HELD_OUT),$(R)/dataset_wrist)
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
@@ -144,7 +145,7 @@ ablate: $(STAMP)
 	mkdir -p $(R)/ablate && ln -sfn ../train $(R)/ablate/frozen
 	$(PY) train.py $(REPRO_TRAIN) lr.vision=3e-5 lr.merger=3e-5 dataset_dir=$(R)/dataset output_dir=$(R)/ablate/tuned
 	$(call bench,$(R)/ablate/tuned,test,$(R)/dataset)
-	$(PY) -m scripts.build_dataset $(REPRO_SHARDS) out_dir=$(R)/dataset_noindex $(DEMO_GRID) 'views=[front,side]' \
+	$(BIN)/labrobfail-build-dataset $(REPRO_SHARDS) out_dir=$(R)/dataset_noindex $(DEMO_GRID) 'views=[front,side]' \
 	  grid.draw_index=false progress=false
 	$(PY) train.py $(REPRO_TRAIN) grid_index=false dataset_dir=$(R)/dataset_noindex output_dir=$(R)/ablate/no_index
 	$(call bench,$(R)/ablate/no_index,test,$(R)/dataset_noindex)
@@ -157,7 +158,7 @@ ablate: $(STAMP)
 ONLINE_EPOCHS ?= 3
 reproduce-online: $(STAMP)
 	@test -d $(R)/train/final || { echo "reproduce-online: run make reproduce first (no $(R)/train/final)" >&2; exit 2; }
-	$(PY) -m scripts.build_dataset $(REPRO_SHARDS) out_dir=$(R)/dataset_online $(DEMO_GRID) 'views=[front,side]' \
+	$(BIN)/labrobfail-build-dataset $(REPRO_SHARDS) out_dir=$(R)/dataset_online $(DEMO_GRID) 'views=[front,side]' \
 	  $(ONLINE_PREFIX) progress=false
 	$(PY) train.py $(REPRO_TRAIN) epochs=$(ONLINE_EPOCHS) dataset_dir=$(R)/dataset_online output_dir=$(R)/online \
 	  model.path=$(R)/train/final $(ONLINE_STAGE)
@@ -194,9 +195,9 @@ recovery: $(STAMP)
 	@test -d $(VLM_pour) || { echo "recovery: no model $(VLM_pour) (make reproduce, or VLM_pour=<model dir>)" >&2; exit 2; }
 	$(foreach t,pick place pour,test -f $(call act_dir,$(t))/final/model.safetensors || OMP_NUM_THREADS=1 \
 	  $(PY) scripts/train_act.py task=$(t) $(ACT_$(t)) progress=false out_dir=$(call act_dir,$(t)) || exit 1;)
-	$(PY) scripts/supervise.py policy=scripted supervisor=vlm vlm.model=$(VLM) task=pick,place,pour trials=25 \
+	$(BIN)/labrobfail-supervise policy=scripted supervisor=vlm vlm.model=$(VLM) task=pick,place,pour trials=25 \
 	  progress=false out_dir=$(R)/recovery/scripted
-	$(foreach t,pick place pour,$(PY) scripts/supervise.py policy=act act.checkpoint=$(call act_dir,$(t))/final \
+	$(foreach t,pick place pour,$(BIN)/labrobfail-supervise policy=act act.checkpoint=$(call act_dir,$(t))/final \
 	  $(ACT_SUP_$(t)) supervisor=vlm vlm.model=$(or $(VLM_$(t)),$(VLM)) task=$(t) trials=25 progress=false \
 	  out_dir=$(R)/recovery/act/$(t) || exit 1;)
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
@@ -223,21 +224,21 @@ TOWER_GEN    := $(TOWER_VIEWS) seed=1000
 TOWER_RAND_GEN := $(TOWER_VIEWS) seed=2000 backend_kwargs.scene_family=randomised
 TOWER_HELD   := $(T)/shards/val_object,$(T)/shards/val_scene
 tower: $(STAMP)
-	$(PY) scripts/generate.py $(TOWER_GEN) num_episodes=$(TOWER_SEEN) out_dir=$(T)/shards/seen
-	$(PY) scripts/generate.py $(TOWER_GEN) num_episodes=$(TOWER_DR_SEEN) out_dir=$(T)/shards/seen_dr
-	$(PY) scripts/generate.py $(TOWER_RAND_GEN) num_episodes=$(TOWER_RAND_SEEN) out_dir=$(T)/shards/seen_rand
-	for v in val_object val_scene; do $(PY) scripts/generate.py $(TOWER_GEN) num_episodes=$(TOWER_UNSEEN) \
+	$(BIN)/labrobfail-generate $(TOWER_GEN) num_episodes=$(TOWER_SEEN) out_dir=$(T)/shards/seen
+	$(BIN)/labrobfail-generate $(TOWER_GEN) num_episodes=$(TOWER_DR_SEEN) out_dir=$(T)/shards/seen_dr
+	$(BIN)/labrobfail-generate $(TOWER_RAND_GEN) num_episodes=$(TOWER_RAND_SEEN) out_dir=$(T)/shards/seen_rand
+	for v in val_object val_scene; do $(BIN)/labrobfail-generate $(TOWER_GEN) num_episodes=$(TOWER_UNSEEN) \
 	  variant=$$v out_dir=$(T)/shards/$$v || exit 1; done
-	$(PY) -m scripts.build_tower_data 'data.shards=[$(T)/shards/seen,$(TOWER_HELD)]' data.out_dir=$(T)/data \
+	$(BIN)/labrobfail-build-tower-data 'data.shards=[$(T)/shards/seen,$(TOWER_HELD)]' data.out_dir=$(T)/data \
 	  data.progress=false
-	$(PY) -m scripts.build_tower_data 'data.shards=[$(T)/shards/seen_dr,$(TOWER_HELD)]' data.out_dir=$(T)/data_dr \
+	$(BIN)/labrobfail-build-tower-data 'data.shards=[$(T)/shards/seen_dr,$(TOWER_HELD)]' data.out_dir=$(T)/data_dr \
 	  data.progress=false
-	$(PY) -m scripts.build_tower_data 'data.shards=[$(T)/shards/seen_rand,$(TOWER_HELD)]' \
+	$(BIN)/labrobfail-build-tower-data 'data.shards=[$(T)/shards/seen_rand,$(TOWER_HELD)]' \
 	  data.out_dir=$(T)/data_rand data.progress=false
-	$(PY) scripts/pretrain_tower.py data.out_dir=$(T)/data out_dir=$(T)/run epochs=$(TOWER_EPOCHS) progress=false
-	$(PY) scripts/pretrain_tower.py data.out_dir=$(T)/data_dr out_dir=$(T)/run_dr init=$(T)/run $(TOWER_DR) \
+	$(BIN)/labrobfail-pretrain-tower data.out_dir=$(T)/data out_dir=$(T)/run epochs=$(TOWER_EPOCHS) progress=false
+	$(BIN)/labrobfail-pretrain-tower data.out_dir=$(T)/data_dr out_dir=$(T)/run_dr init=$(T)/run $(TOWER_DR) \
 	  progress=false
-	$(PY) scripts/pretrain_tower.py data.out_dir=$(T)/data_rand out_dir=$(T)/run_rand init=$(T)/run_dr $(TOWER_DR) \
+	$(BIN)/labrobfail-pretrain-tower data.out_dir=$(T)/data_rand out_dir=$(T)/run_rand init=$(T)/run_dr $(TOWER_DR) \
 	  export_dir=$(TOWER_EXPORT) progress=false
 
 # LabRobFail-Sim at the paper's scale: 20,000 trajectories (17,000 seen + 1,000 per sealed unseen set, test_*), and
@@ -251,12 +252,12 @@ SIM_VAL    ?= 500
 SIM_WORKERS ?= 2
 SIM_EXEC   ?= executor=process
 sim20k: $(STAMP)
-	$(PY) scripts/generate.py seed=0 workers=$(SIM_WORKERS) $(SIM_EXEC) num_episodes=$(SIM_SEEN) out_dir=$(SIM)/seen
+	$(BIN)/labrobfail-generate seed=0 workers=$(SIM_WORKERS) $(SIM_EXEC) num_episodes=$(SIM_SEEN) out_dir=$(SIM)/seen
 	for v in test_object test_scene test_both; do \
-	  $(PY) scripts/generate.py seed=0 workers=$(SIM_WORKERS) $(SIM_EXEC) num_episodes=$(SIM_UNSEEN) variant=$$v \
+	  $(BIN)/labrobfail-generate seed=0 workers=$(SIM_WORKERS) $(SIM_EXEC) num_episodes=$(SIM_UNSEEN) variant=$$v \
 	    out_dir=$(SIM)/$$v || exit 1; done
 	for v in val_object val_scene val_both; do \
-	  $(PY) scripts/generate.py seed=0 workers=$(SIM_WORKERS) $(SIM_EXEC) num_episodes=$(SIM_VAL) variant=$$v \
+	  $(BIN)/labrobfail-generate seed=0 workers=$(SIM_WORKERS) $(SIM_EXEC) num_episodes=$(SIM_VAL) variant=$$v \
 	    out_dir=$(SIM)/$$v || exit 1; done
 
 # Lint and format check (ruff, line length 120), then every test. `make test-fast`: the quick ones only (no long

@@ -27,7 +27,7 @@ from PIL import Image
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.actions import to_primitives
 from labrobfail_vlm.corrections import STRATEGIES, candidates
-from labrobfail_vlm.grid import GridConfig, build_grid, sample_keyframes
+from labrobfail_vlm.grid import GridConfig, build_grid, fit_grid, sample_keyframes
 from labrobfail_vlm.model.processor import common_prefix_len
 from labrobfail_vlm.taxonomy import Category, Severity
 
@@ -154,6 +154,20 @@ class DiagnosisRequest:
     objects: Sequence[str] = ()
 
 
+def batch_settings(
+    n: int,
+    tasks: Sequence[str],
+    frames: Sequence[int | None] | None,
+    objects: Sequence[Sequence[str]] | None,
+    dims: Sequence[Collection[str]] | None,
+) -> tuple[list[int | None], list[Sequence[str]], list[Collection[str]]]:
+    """`answers_batch`'s per-grid settings with their defaults (shared by the local and the endpoint analyzer)."""
+    fr, ob, di = list(frames or [None] * n), list(objects or [()] * n), list(dims or [Q.DIMENSIONS] * n)
+    if not len(tasks) == len(fr) == len(ob) == len(di) == n:
+        raise ValueError("answers_batch: images, tasks, frames, objects and dims differ in length")
+    return fr, ob, di
+
+
 def check_threshold(value: Any) -> float:
     """An operating point on P(failure): a number in (0, 1)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < float(value) < 1.0:
@@ -168,8 +182,16 @@ class FailureAnalyzer:
     `threshold`: Q2 answers "Yes" (a failure, and Q3-Q6 are asked as one) when P(failure) >= threshold; 0.5 is
     the decoder's argmax, a lower value makes a supervisor intervene earlier."""
 
+    fit_grid = False  # subclasses that answer over HTTP (EndpointAnalyzer) take the grid as given
+
     def __init__(
-        self, model: Any, processor: Any, grid: GridConfig = GridConfig(), q6_mode: str = "free", threshold: float = 0.5
+        self,
+        model: Any,
+        processor: Any,
+        grid: GridConfig = GridConfig(),
+        q6_mode: str = "free",
+        threshold: float = 0.5,
+        fit: bool = False,
     ):
         from labrobfail_vlm.decoding import Decoder
 
@@ -181,6 +203,9 @@ class FailureAnalyzer:
         self.processor.tokenizer.padding_side = "left"
         self.decoder = Decoder(self.model, processor)
         self.grid = grid  # the layout the model was trained on: --frames grids and the Q3 range follow it
+        # fit: a grid image of another size is brought to `grid` (same aspect) or refused (grid.fit_grid); on when
+        # the checkpoint names the grid it was trained on
+        self.fit_grid = fit
         self.num_frames, self.time_axis, self.index = grid.max_frames, grid.time_axis, grid.draw_index
         self._ids_checked = False
 
@@ -208,6 +233,7 @@ class FailureAnalyzer:
         dev = device or ("cuda" if torch.cuda.is_available() else "cpu")
         if "grid" not in kwargs and (grid := trained_grid(path)) is not None:
             kwargs["grid"] = grid
+            kwargs.setdefault("fit", True)
         return cls(model.to(dev), load_processor(path), **kwargs)
 
     # ---- prompts -----------------------------------------------------------------------------------------
@@ -298,11 +324,7 @@ class FailureAnalyzer:
         """`answers` (one pass) for many grids: grids of one size are decoded together, `max_batch` at a time, with
         the same replies as one at a time. Per-grid `frames`, `objects` and `dims` as in `answers`."""
         n = len(images)
-        frames = list(frames or [None] * n)
-        objects = list(objects or [()] * n)
-        dims = list(dims or [Q.DIMENSIONS] * n)
-        if not len(tasks) == len(frames) == len(objects) == len(dims) == n:
-            raise ValueError("answers_batch: images, tasks, frames, objects and dims differ in length")
+        frames, objects, dims = batch_settings(n, tasks, frames, objects, dims)
         groups: dict[tuple[int, int], list[int]] = {}
         for i, img in enumerate(images):  # one size, one token count: rows without padding to each other
             groups.setdefault(img.size, []).append(i)
@@ -383,10 +405,21 @@ class FailureAnalyzer:
         """(RGB grid, task text, keyframes shown) from a grid image or per-view keyframe lists."""
         if isinstance(grid_or_frames, (Image.Image, np.ndarray)):
             img = grid_or_frames if isinstance(grid_or_frames, Image.Image) else Image.fromarray(grid_or_frames)
+            img = fit_grid(img, self.grid) if self.fit_grid else img
         else:
             frames = frames or min(len(grid_or_frames[0]), self.num_frames)
             img = frames_to_grid(grid_or_frames, self.grid)
         return img.convert("RGB"), task or "a laboratory manipulation task", frames
+
+    def analyze_video(
+        self, videos: Sequence[str | Path], task: str = "", keyframes: str = "uniform", **kwargs: Any
+    ) -> Diagnosis:
+        """One video per camera view, in the order of the grid's view bands (the views the model was trained on,
+        e.g. front then side): the keyframes picked by labrobfail_vlm.video (`uniform` in time or by `motion`),
+        then `analyze` on the grid they make."""
+        from labrobfail_vlm.video import read_keyframes
+
+        return self.analyze(read_keyframes(videos, self.num_frames, keyframes), task, **kwargs)
 
     def analyze_batch(
         self, requests: Sequence[DiagnosisRequest | Image.Image], one_pass: bool = True, max_batch: int | None = None

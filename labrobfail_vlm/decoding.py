@@ -136,23 +136,8 @@ class Decoder:
         `parents[i][j]`: the chunk index token j follows (-1: the prefix); None means a plain run (j - 1). A token
         attends to the row's real prefix slots and its own ancestors; shorter rows are padded with tokens that
         nothing attends to."""
-        b, m = len(chunks), max(len(c) for c in chunks)
-        tok = np.full((b, m), self.pad, np.int64)
-        tree = np.zeros((b, m, m), bool)
-        depth = np.zeros((b, m), np.int64)
-        for i, c in enumerate(chunks):
-            k = len(c)
-            tok[i, :k] = c
-            if parents is None:
-                tree[i, :k, :k] = np.tril(np.ones((k, k), bool))
-                depth[i, :k] = np.arange(k)
-            else:
-                for j, p in enumerate(parents[i]):
-                    if p >= 0:
-                        tree[i, j] = tree[i, p]
-                        depth[i, j] = depth[i, p] + 1
-                    tree[i, j, j] = True
-            tree[i, range(k, m), range(k, m)] = True  # padding attends to itself only (no empty softmax row)
+        tok, tree, depth = _tree_inputs(chunks, parents, self.pad)
+        b, m = tok.shape
         allowed = torch.cat(
             [pre.mask[:, None, :].expand(b, m, pre.length), torch.from_numpy(tree).to(self.device)], dim=2
         )[:, None]
@@ -216,25 +201,7 @@ class Decoder:
     def score_rows(self, pre: Prefix, seqs: Sequence[Sequence[Sequence[int]]]) -> list[list[float]]:
         """log p of each (non-empty) sequence `seqs[i][k]` after row i, in one forward call: the proper prefixes
         of a row's sequences form a trie fed as one tree (a shared prefix is fed once)."""
-        chunks: list[list[int]] = []
-        parents: list[list[int]] = []
-        asks: list[tuple[int, int, int, int]] = []  # (row, sequence, trie node or -1 for the prefix, next token)
-        for i, row in enumerate(seqs):
-            nodes: dict[tuple[int, int], int] = {}
-            toks: list[int] = []
-            par: list[int] = []
-            for k, s in enumerate(row):
-                at = -1
-                for t in s[:-1]:
-                    asks.append((i, k, at, t))
-                    if (at, t) not in nodes:
-                        nodes[(at, t)] = len(toks)
-                        toks.append(t)
-                        par.append(at)
-                    at = nodes[(at, t)]
-                asks.append((i, k, at, s[-1]))
-            chunks.append(toks)
-            parents.append(par)
+        chunks, parents, asks = _trie(seqs)
         out = [[0.0] * len(row) for row in seqs]
         first = torch.log_softmax(pre.last, -1)
         deep: list[tuple[int, int, int, int]] = []
@@ -349,11 +316,9 @@ class Decoder:
                 o = out[i]
                 if not o and barred[i]:
                     logits[i, barred[i]] = float("-inf")
-                if n and len(o) >= n - 1:
-                    tail = o[len(o) - n + 1 :]
-                    seen = [o[j + n - 1] for j in range(len(o) - n + 1) if o[j : j + n - 1] == tail]
-                    if seen:
-                        logits[i, seen] = float("-inf")
+                seen = _ngram_repeats(o, n)
+                if seen:
+                    logits[i, seen] = float("-inf")
                 t = int(logits[i].argmax())
                 if t == self.eos:
                     going[i] = False
@@ -378,3 +343,67 @@ class Decoder:
     def free_text(self, pre: Prefix, avoid: Sequence[str] = ()) -> str:
         """Greedy text until the end of turn (see `free_tokens`)."""
         return self.text(self.free_tokens(pre, avoid))
+
+
+def _tree_inputs(
+    chunks: Sequence[Sequence[int]], parents: Sequence[Sequence[int]] | None, pad: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The arrays `Decoder._forward` feeds for one chunk per row: token ids (B, m) padded with `pad`, the tree
+    mask (B, m, m: token j attends to token j') and each token's depth below the prefix (B, m).
+
+    `parents[i][j]`: the chunk index token j follows (-1: the prefix); None means a plain run (j - 1)."""
+    b, m = len(chunks), max(len(c) for c in chunks)
+    tok = np.full((b, m), pad, np.int64)
+    tree = np.zeros((b, m, m), bool)
+    depth = np.zeros((b, m), np.int64)
+    for i, c in enumerate(chunks):
+        k = len(c)
+        tok[i, :k] = c
+        if parents is None:
+            tree[i, :k, :k] = np.tril(np.ones((k, k), bool))
+            depth[i, :k] = np.arange(k)
+        else:
+            for j, p in enumerate(parents[i]):
+                if p >= 0:
+                    tree[i, j] = tree[i, p]
+                    depth[i, j] = depth[i, p] + 1
+                tree[i, j, j] = True
+        tree[i, range(k, m), range(k, m)] = True  # padding attends to itself only (no empty softmax row)
+    return tok, tree, depth
+
+
+def _trie(
+    seqs: Sequence[Sequence[Sequence[int]]],
+) -> tuple[list[list[int]], list[list[int]], list[tuple[int, int, int, int]]]:
+    """Per row, the trie of the proper prefixes of its sequences (`seqs[i][k]`) as one chunk of tokens and their
+    parents (`Decoder._forward`'s tree; a shared prefix is one node), and every token whose log p is asked:
+    (row, sequence, trie node or -1 for the prefix, next token)."""
+    chunks: list[list[int]] = []
+    parents: list[list[int]] = []
+    asks: list[tuple[int, int, int, int]] = []  # (row, sequence, trie node or -1 for the prefix, next token)
+    for i, row in enumerate(seqs):
+        nodes: dict[tuple[int, int], int] = {}
+        toks: list[int] = []
+        par: list[int] = []
+        for k, s in enumerate(row):
+            at = -1
+            for t in s[:-1]:
+                asks.append((i, k, at, t))
+                if (at, t) not in nodes:
+                    nodes[(at, t)] = len(toks)
+                    toks.append(t)
+                    par.append(at)
+                at = nodes[(at, t)]
+            asks.append((i, k, at, s[-1]))
+        chunks.append(toks)
+        parents.append(par)
+    return chunks, parents, asks
+
+
+def _ngram_repeats(o: Sequence[int], n: int) -> list[int]:
+    """The tokens that would follow the last n - 1 tokens of `o` as they were followed before (a repeated n-gram);
+    none when n is 0 or `o` is shorter than n - 1."""
+    if not (n and len(o) >= n - 1):
+        return []
+    tail = o[len(o) - n + 1 :]
+    return [o[j + n - 1] for j in range(len(o) - n + 1) if o[j : j + n - 1] == tail]

@@ -21,7 +21,7 @@ from typing import Any, Collection, Sequence
 from PIL import Image
 
 from labrobfail_vlm import questions as Q
-from labrobfail_vlm.analyzer import Q6_MODES, Ask, FailureAnalyzer, asked_dims, plan_reply
+from labrobfail_vlm.analyzer import Q6_MODES, Ask, FailureAnalyzer, asked_dims, batch_settings, plan_reply
 from labrobfail_vlm.bench.parse import parse
 from labrobfail_vlm.grid import GridConfig
 from labrobfail_vlm.llm_client import ChatClient, image_data_url
@@ -131,8 +131,7 @@ class EndpointAnalyzer(FailureAnalyzer):
     ) -> list[dict[str, str]]:
         """`answers` for many grids, `concurrency` (or `max_batch`) grids in flight at once."""
         n = len(images)
-        frames, objects = list(frames or [None] * n), list(objects or [()] * n)
-        dims = list(dims or [Q.DIMENSIONS] * n)
+        frames, objects, dims = batch_settings(n, tasks, frames, objects, dims)
         with ThreadPoolExecutor(max(1, min(n, max_batch or self.concurrency))) as pool:
             jobs = [
                 pool.submit(self.answers, images[i], tasks[i], True, frames[i], objects[i], dims[i]) for i in range(n)

@@ -25,6 +25,8 @@ import cv2
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
+from labrobfail_vlm.config import ConfigError
+
 BLANK = (24, 24, 24)  # grey, so the canvas is one memset
 
 
@@ -164,3 +166,20 @@ def build_grid(
                 th, tw = min(tag.shape[0], ch), min(tag.shape[1], cw)
                 canvas[y : y + th, x : x + tw] = tag[:th, :tw]
     return Image.fromarray(canvas)
+
+
+def fit_grid(img: Image.Image, cfg: GridConfig) -> Image.Image:
+    """A grid image brought to the size the model was trained on. Only its shape can be read off the pixels: one of
+    the same aspect ratio (within 1 %: the same rows and columns of cells, larger or smaller) is resized, since the
+    model has seen cells of one size only and a 3x larger grid costs 9x the visual tokens; any other shape is
+    another layout (more keyframes, other views) and is refused in one line rather than read wrongly."""
+    w, h = img.size
+    if (w, h) == (cfg.width, cfg.height):
+        return img
+    if abs(w * cfg.height - h * cfg.width) > 0.01 * h * cfg.width:
+        raise ConfigError(
+            f"grid: a {w}x{h} image is not the {cfg.width}x{cfg.height} layout the model was trained on "
+            f"({cfg.max_frames} keyframes in {cfg.columns} columns, time along {cfg.time_axis}); send that grid, "
+            "or the keyframes or videos per view and let it be composed"
+        )
+    return img.resize((cfg.width, cfg.height), Image.Resampling.BICUBIC)

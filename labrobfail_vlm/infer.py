@@ -4,6 +4,8 @@
 Run as:
     python infer.py --grid frames.png [--task "pick up the beaker ..."] [--model DIR] [--json OUT]
     python infer.py --frames DIR --task "press the red button"      # DIR/<view>/<frame>.png -> grid
+    labrobfail-infer --video front.mp4 --video side.mp4 --task "pick up the small beaker"   # one video per view
+    labrobfail-infer --video front.mp4 --video side.mp4 --keyframes motion
     python infer.py --grid frames.png --six-prompts                  # no shared-prefix KV cache
     python infer.py --grid frames.png --task "..." --q6-mode template --objects "small beaker,target area"
     python infer.py --grid frames.png --task "..." --endpoint http://127.0.0.1:8000/v1   # a vLLM server (docs/GUIDE.md)
@@ -57,13 +59,35 @@ def write_output(out: Path, text: str) -> None:
         raise ConfigError(f"json: cannot write {out} ({e.strerror or type(e).__name__})") from None
 
 
+def split_videos(argv: list[str]) -> tuple[list[str], list[str]]:
+    """`--video a.mp4 --video b.mp4` (or video=a.mp4 ...; one per camera view, in the grid's view order): the other
+    arguments and the videos, which a key=value setting could hold only once."""
+    rest, videos, i = [], [], 0
+    while i < len(argv):
+        arg = argv[i]
+        if arg == "--video" and i + 1 < len(argv):
+            videos.append(argv[i + 1])
+            i += 2
+            continue
+        for flag in ("--video=", "video="):
+            if arg.startswith(flag):
+                videos.append(arg[len(flag) :])
+                break
+        else:
+            rest.append(arg)
+        i += 1
+    return rest, videos
+
+
 def _check(a) -> None:
-    """Every setting's type and the grid/frames choice, before anything is read or loaded."""
+    """Every setting's type and the grid/frames/video choice, before anything is read or loaded."""
     for key in ("grid", "frames", "model", "endpoint", "endpoint_model", "json"):
         if a[key] is not None and not isinstance(a[key], str):
             raise ConfigError(f"{key}: expected a path or text, got {a[key]!r}")
-    if (a.grid is None) == (a.frames is None):
-        raise ConfigError("grid/frames: give one of them (grid=IMAGE or frames=FOLDER)")
+    if sum(x is not None for x in (a.grid, a.frames, a.video)) != 1:
+        raise ConfigError("grid/frames/video: give one of them (grid=IMAGE, frames=FOLDER or --video FILE per view)")
+    if a.keyframes not in ("uniform", "motion"):
+        raise ConfigError(f"keyframes: expected uniform or motion, got {a.keyframes!r}")
     if a.num_frames is not None and not is_int(a.num_frames, 1):
         raise ConfigError(f"num_frames: expected a positive integer, got {a.num_frames!r}")
     if a.q6_mode not in ("free", "template"):
@@ -75,10 +99,13 @@ def _check(a) -> None:
 
 
 def main(argv: list[str]) -> int:
+    argv, videos = split_videos(argv)
     a = load_config("infer.yaml", argv)
+    a.video = videos or None
     _check(a)
 
     from labrobfail_vlm.images import load_frames, load_image
+    from labrobfail_vlm.video import keyframes, scan
 
     if a.endpoint and a.model:
         raise ConfigError("model/endpoint: give one of them, not both")
@@ -95,6 +122,7 @@ def main(argv: list[str]) -> int:
         validate_checkpoint(model, "model", a.max_model_gb)  # before any tensor is built
     image = load_image(a.grid) if a.grid else None
     frames = load_frames(a.frames)[1] if a.frames else None
+    clips = [scan(v, "video") for v in videos]  # every frame checked before the model loads
 
     if a.endpoint:
         from labrobfail_vlm.endpoint import EndpointAnalyzer
@@ -104,6 +132,8 @@ def main(argv: list[str]) -> int:
         from labrobfail_vlm.analyzer import FailureAnalyzer
 
         fa = FailureAnalyzer.from_pretrained(model, q6_mode=a.q6_mode, max_model_gb=a.max_model_gb)
+    if clips:  # the grid the model was trained on: its number of keyframes (or num_frames)
+        frames = keyframes(clips, a.num_frames or getattr(fa, "num_frames", 8), a.keyframes)
     diag = fa.analyze(
         image if image is not None else frames,
         task=a.task,

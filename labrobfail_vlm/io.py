@@ -57,3 +57,12 @@ def save_figure(fig: Any, path: Path, dpi: int = 110) -> None:
     fig.savefig(tmp, dpi=dpi)
     plt.close(fig)
     tmp.replace(path)
+
+
+def write_report(path: str | Path, obj: Any) -> int:
+    """A benchmark's result written atomically as JSON (its folder made) and printed; 0, the exit code."""
+    out = Path(str(path))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out, obj)
+    print(json.dumps(obj, indent=1))
+    return 0

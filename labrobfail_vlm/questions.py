@@ -33,7 +33,8 @@ DIMENSION_NAMES = {
     "Q6": "Correction Strategy",
 }
 
-# Auxiliary training records (data/facts.py: per-frame state facts) end in _A<i>; the benchmark never asks them.
+# Auxiliary training records (labrobfail_data/facts.py: per-frame state facts) end in _A<i>; the benchmark never
+# asks them.
 AUX_PREFIX = "A"
 
 NO_FAILURE = "None"

@@ -1,4 +1,4 @@
-"""Repository tooling: entry points run from the checkout (see README, "Layout"). The dataset builders import
-the uninstalled data/ package: they put the checkout on sys.path, so `python scripts/build_dataset.py` and
-`python -m scripts.build_dataset` both work from the repository root.
+"""Repository tooling beside the installed pipeline: benchmarks (bench_*.py), the results page (write_results.py),
+the learning curve, strips, ACT training and probing, merging adapters. Each runs as `python scripts/<name>.py`
+from the checkout root; every pipeline step is a console script instead (labrobfail-*, pyproject.toml).
 """

@@ -10,7 +10,6 @@ Target (issue 3): a 1536x768 grid in at most 10 ms.
 
 from __future__ import annotations
 
-import json
 import platform
 import time
 from pathlib import Path
@@ -19,7 +18,7 @@ import numpy as np
 
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
 from labrobfail_vlm.grid import GridConfig, build_grid
-from labrobfail_vlm.io import atomic_write_json
+from labrobfail_vlm.io import write_report
 
 DEFAULTS = """
 repeats: 200                  # timed builds per row (after one warm-up build)
@@ -59,10 +58,7 @@ def main(argv: list[str]) -> int:
         "meets_target": rows["with_index"]["p95_ms"] <= 10.0,
         "machine": platform.processor() or platform.machine(),
     }
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out, res)
-    print(json.dumps(res))
-    return 0
+    return write_report(out, res)
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ Run as:
 
 Tiny model on CPU by default (built on the fly if model is not given); the same script on a GPU
 machine measures whatever checkpoint it is pointed at. Target (issue 5): one pass >= 4x faster.
-With dataset, the bench's model predictions for a split (what scripts/evaluate.py runs) are timed with
+With dataset, the bench's model predictions for a split (what labrobfail-evaluate runs) are timed with
 batch_size 1 and `batch`, and must be equal.
 The two modes alternate repeat by repeat, so a burst of load from other processes on a shared machine
 hits both alike; wall and CPU seconds are both reported, with the load average before and after.
@@ -16,7 +16,6 @@ scripts/profile_infer.py shows where the one-pass time goes.
 
 from __future__ import annotations
 
-import json
 import os
 import tempfile
 import time
@@ -45,7 +44,7 @@ def stats(ts: list[float]) -> dict[str, float]:
 
 
 def evaluate_rows(fa: object, dataset: str, split: str, batch: int) -> dict[str, object]:
-    """scripts/evaluate.py's model predictions for one split, one trajectory at a time and `batch` at a time."""
+    """labrobfail-evaluate's model predictions for one split, one trajectory at a time and `batch` at a time."""
     from labrobfail_vlm.bench import evaluate as ev
 
     recs, traj = ev.load_split(dataset, split)
@@ -79,7 +78,7 @@ def main(argv: list[str]) -> int:
     from PIL import Image
 
     from labrobfail_vlm.analyzer import DiagnosisRequest, FailureAnalyzer
-    from labrobfail_vlm.io import atomic_write_json
+    from labrobfail_vlm.io import write_report
 
     load_start = os.getloadavg()[0]
     model = a.model
@@ -134,11 +133,7 @@ def main(argv: list[str]) -> int:
     if a.dataset:
         res["evaluate"] = evaluate_rows(fa, a.dataset, str(a.split), a.batch)
         res["load_average"][1] = round(os.getloadavg()[0], 2)
-    out = Path(str(a.out))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out, res)
-    print(json.dumps(res))
-    return 0
+    return write_report(a.out, res)
 
 
 if __name__ == "__main__":

@@ -5,10 +5,10 @@ Run as:
                                   [load_clients=16] [malformed=0.1] [out=outputs/bench_serve.json]
     python scripts/bench_serve.py --seconds 2 --load-requests 0
 
-Starts scripts/serve.py as its own process (the tiny random model, built on the fly, unless model is given)
+Starts labrobfail-serve as its own process (the tiny random model, built on the fly, unless model is given)
 and measures, with real HTTP clients in threads:
   - single-request latency p50/p95 (one client, sequential);
-  - throughput (diagnoses/s) at 1, 4 and 16 concurrent clients, for a fixed time each, with batching
+  - throughput (diagnoses/s) at 1, 8 and 16 concurrent clients, for a fixed time each, with batching
     (max_batch=8) and without (max_batch=1; a second server);
   - the server's peak RSS (VmHWM) under each;
   - a bounded load run (a third server, Q6 in template mode): load_requests requests from load_clients
@@ -36,13 +36,14 @@ import numpy as np
 from labrobfail_vlm.config import ConfigError, cli_main, load_config, size_setting
 from labrobfail_vlm.serve.client import DiagnosisClient, Part
 
-SCRIPTS = Path(__file__).resolve().parent  # serve.py runs from here, with the repository root as its cwd
+ROOT = Path(__file__).resolve().parents[1]  # labrobfail-serve runs with the repository root as its cwd
+SERVE = Path(sys.executable).with_name("labrobfail-serve")  # the console script of this venv
 
 DEFAULTS = """
 model: null                    # model folder to serve; null = a tiny random model, built on the fly
 grid: 512x512                  # uploaded grid size WxH (512x512: 256 visual tokens)
 seconds: 8.0                   # seconds per throughput level
-clients: "1,4,16"              # concurrent clients of the throughput levels, comma-separated
+clients: "1,8,16"              # concurrent clients of the throughput levels, comma-separated
 max_batch: 8                   # the batched server's max_batch (the unbatched one runs max_batch=1)
 max_wait_ms: 10.0              # every server's max_wait_ms
 load_requests: 2000            # requests in the load run (0 = no load run)
@@ -63,8 +64,8 @@ class ServerProcess:
         env = {k: v for k, v in os.environ.items() if k != "LABROBFAIL_API_TOKEN"}
         self.log = log
         self.proc = subprocess.Popen(
-            [sys.executable, str(SCRIPTS / "serve.py"), f"model={model}", "port=0", "log_level=warning", *args],
-            cwd=SCRIPTS.parent,
+            [str(SERVE), f"model={model}", "port=0", "log_level=warning", *args],
+            cwd=ROOT,
             env=env,
             stdout=open(log, "w"),
             stderr=subprocess.STDOUT,
@@ -274,7 +275,7 @@ def main(argv: list[str]) -> int:
     (w, h), levels = check(a)
     import torch
 
-    from labrobfail_vlm.io import atomic_write_json
+    from labrobfail_vlm.io import write_report
 
     model = a.model
     tmp = Path(tempfile.mkdtemp())
@@ -318,11 +319,7 @@ def main(argv: list[str]) -> int:
     )
     res["load_average_end"] = os.getloadavg()[0]
     res["total_s"] = round(time.perf_counter() - t0, 1)
-    out = Path(str(a.out))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out, res)
-    print(json.dumps(res))
-    return 0
+    return write_report(a.out, res)
 
 
 if __name__ == "__main__":

@@ -15,14 +15,13 @@ defaults) with 1 worker and with 2 workers (speed-up = ratio). Peak memory of th
 
 from __future__ import annotations
 
-import json
 import resource
 import tempfile
 import time
 from pathlib import Path
 
 from labrobfail_vlm.config import ConfigError, cli_main, load_config, require_ints
-from labrobfail_vlm.io import atomic_write_json
+from labrobfail_vlm.io import write_report
 from sim_backends.generate import generate, labelable_pair, scenario_order
 from sim_backends.generate import load_config as generate_config
 from sim_backends.registry import available_backends, backend_spec, make_backend
@@ -111,10 +110,7 @@ def main(argv: list[str]) -> int:
             "peak_rss_mb_worker": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1),
         }
     )
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out, res, indent=2)
-    print(json.dumps(res, indent=2))
-    return 0
+    return write_report(out, res)
 
 
 if __name__ == "__main__":

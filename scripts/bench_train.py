@@ -83,7 +83,7 @@ def main(argv: list[str]) -> int:
     import torch
     from PIL import Image
 
-    from labrobfail_vlm.io import atomic_write_json
+    from labrobfail_vlm.io import write_report
     from labrobfail_vlm.model.hybrid import apply_tuning
     from labrobfail_vlm.model.loading import load_model, load_processor
     from labrobfail_vlm.model.tiny import build_tiny
@@ -125,11 +125,7 @@ def main(argv: list[str]) -> int:
         if not torch.cuda.is_available()
         else "see gpu_rows",
     }
-    out = Path(str(a.out))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out, res)
-    print(json.dumps(res))
-    return 0
+    return write_report(a.out, res)
 
 
 if __name__ == "__main__":

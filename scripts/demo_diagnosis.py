@@ -16,7 +16,7 @@ from pathlib import Path
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
 
 DEFAULTS = """
-dataset: outputs/demo_dataset      # a dataset built by scripts/build_dataset.py (its test split)
+dataset: outputs/demo_dataset      # a dataset built by labrobfail-build-dataset (its test split)
 model: outputs/demo_train/final    # the checkpoint that diagnoses
 """
 
@@ -26,7 +26,7 @@ def main(argv: list[str]) -> int:
     ds, model = Path(str(cfg.dataset)), Path(str(cfg.model))
     meta = ds / "trajectories.json"
     if not meta.is_file():
-        raise ConfigError(f"dataset: {meta} not found (build it with scripts/build_dataset.py)")
+        raise ConfigError(f"dataset: {meta} not found (build it with labrobfail-build-dataset)")
     traj = [t for t in json.loads(meta.read_text()) if t.get("split") == "test" and "prefix_of" not in t]
     fail = next((t for t in traj if not t["success"]), None)
     if fail is None:

@@ -12,7 +12,6 @@ pass, in six-prompt mode and per grid of a batch (`answers_batch` of `batch` gri
 
 from __future__ import annotations
 
-import json
 import os
 import tempfile
 import time
@@ -104,7 +103,7 @@ def main(argv: list[str]) -> int:
     import torch
 
     from labrobfail_vlm.analyzer import FailureAnalyzer
-    from labrobfail_vlm.io import atomic_write_json
+    from labrobfail_vlm.io import write_report
 
     model = a.model
     if model is None:
@@ -146,11 +145,7 @@ def main(argv: list[str]) -> int:
             "sections_ms": per,
             "q2": [x["Q2"] for x in ans],
         }
-    out = Path(str(a.out))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out, res)
-    print(json.dumps(res, indent=1))
-    return 0
+    return write_report(a.out, res)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ from labrobfail_vlm.config import ConfigError, cli_main, load_config
 from labrobfail_vlm.taxonomy import FAILURE_TYPE_NAMES
 
 DEFAULTS = """
-shards: outputs/demo_shards   # a shard folder from scripts/generate.py
+shards: outputs/demo_shards   # a shard folder from labrobfail-generate
 out: outputs/demo_strips      # where the strips go
 """
 

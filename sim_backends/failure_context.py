@@ -1,6 +1,6 @@
 """The failure as a correction needs it: which step failed, on what, towards where (the Context that fills the
 placeholders of the paper's correction-strategy table, labrobfail_vlm/corrections.py), read from an episode's
-task metadata and state trace. The dataset's Q6 answers (data/annotate.py) and the oracle supervisor
+task metadata and state trace. The dataset's Q6 answers (labrobfail_data/annotate.py) and the oracle supervisor
 (sim_backends/supervision/oracle.py) both use it.
 """
 

@@ -393,18 +393,18 @@ def main(argv: list[str]) -> int:
 
 
 def cli() -> None:
-    """The `labrobfail-generate` console script (and scripts/generate.py)."""
+    """The `labrobfail-generate` console script (and labrobfail-generate)."""
     from labrobfail_vlm.config import cli_main
 
     cli_main(main, GENERATE_DOC)
 
 
-GENERATE_DOC = """Generate labeled failure/success episode pairs into Parquet shards (scripts/generate.py,
+GENERATE_DOC = """Generate labeled failure/success episode pairs into Parquet shards (labrobfail-generate,
 labrobfail-generate).
 
 Run as:
-    python scripts/generate.py backend=pybullet num_episodes=200 out_dir=outputs/shards seed=0 workers=2
-    python scripts/generate.py --num-episodes 100 --out-dir outputs/val_both --variant val_both
+    labrobfail-generate backend=pybullet num_episodes=200 out_dir=outputs/shards seed=0 workers=2
+    labrobfail-generate --num-episodes 100 --out-dir outputs/val_both --variant val_both
     labrobfail-generate num_episodes=1000 out_dir=outputs/big executor=ray workers=8
 
 Rerunning the same command after a kill resumes; DIR/manifest.json summarises the run. Defaults:

@@ -9,7 +9,8 @@ as in a real robot log. Decision, in order:
 1. success = every task goal holds on the settled final state;
 2. otherwise each detector scans the trace for its state signature and
    reports the sample where it first shows; the earliest wins (ties broken by
-   the order below), giving the failure type and the first failure keyframe;
+   the order below), giving the failure type and its onset: the first failure keyframe (the keyframe that
+   sample falls in) and the sample's sim time (`Labels.onset_s`);
 3. severity from the trace and final state (the rule table in `severity` and docs/ARCHITECTURE.md).
 
 A failure no detector explains gets no type (`Labels.explained` is False): it is never given a
@@ -399,4 +400,5 @@ def derive_labels(trace: Trace, meta: Union[TaskMeta, Meta]) -> Labels:
         severity=int(severity(trace, meta, ftype)),
         failure_keyframe=kf,
         evidence=f"{why}; failed goals: {failed}",
+        onset_s=round(float(trace["t"][j]) - float(trace["t"][0]), 4),
     )

@@ -34,6 +34,7 @@ SCHEMA = pa.schema(
         ("category", pa.int8()),
         ("severity", pa.int8()),
         ("failure_keyframe", pa.int32()),
+        ("onset_s", pa.float32()),  # the failure's onset in sim time (Labels.onset_s); shards before 29 Nov lack it
         ("evidence", pa.string()),
         ("actions", pa.list_(pa.string())),
         ("horizon", pa.string()),
@@ -81,6 +82,7 @@ def episode_row(ep: Episode) -> dict[str, Any]:
         "category": lab.category,
         "severity": lab.severity,
         "failure_keyframe": lab.failure_keyframe,
+        "onset_s": lab.onset_s,
         "evidence": lab.evidence,
         "actions": ep.actions,
         "horizon": ep.horizon,

@@ -97,8 +97,11 @@ class Labels:
     failure_type: str | None = None
     category: int | None = None  # taxonomy.Category value
     severity: int | None = None  # taxonomy.Severity value
-    failure_keyframe: int | None = None  # 0-based index into the executed keyframes
+    failure_keyframe: int | None = None  # 0-based index into the executed keyframes: the onset keyframe
     evidence: str = ""  # the state signal that decided the label, for auditing
+    # the onset in sim time: the first trace sample where the labeled failure's state signature shows (seconds
+    # since the trace began); the onset keyframe is `failure_keyframe`, the one that sample falls in
+    onset_s: float | None = None
 
     @property
     def explained(self) -> bool:

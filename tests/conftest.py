@@ -7,25 +7,74 @@ import pyarrow.parquet as pq
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]  # the tests run their subprocesses from the checkout root
+BIN = Path(sys.executable).parent  # the venv's console scripts (labrobfail-*), as a user runs them
+
+
+def cli(name: str) -> str:
+    """The console script labrobfail-<name> of this venv."""
+    return str(BIN / f"labrobfail-{name}")
+
+
+def program(script: str) -> list[str]:
+    """A console script (labrobfail-*) of this venv, or a checkout file (train.py, infer.py) run by this Python."""
+    return [str(BIN / script)] if script.startswith("labrobfail-") else [sys.executable, script]
+
+
+def run(argv: list, timeout: float = 600, **kw) -> subprocess.CompletedProcess:
+    """Run a command to its end from the checkout root (unless cwd= says otherwise), its output captured as text."""
+    kw.setdefault("cwd", ROOT)
+    return subprocess.run(argv, capture_output=True, text=True, timeout=timeout, **kw)
+
+
+def background(argv: list) -> subprocess.Popen:
+    """Start a command from the checkout root, its output thrown away (a run a test kills part-way)."""
+    return subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def evaluate(source: str, dataset, *extra: str, timeout: float = 600) -> subprocess.CompletedProcess:
+    """labrobfail-evaluate of `source` (model=... or predictions=...) on the dataset folder `dataset`."""
+    return run([cli("evaluate"), source, f"dataset_dir={dataset}", *extra], timeout)
+
+
+def supervise_front(out, policy: list[str], task: str, trials: int, image_size: int, *extra: str, timeout: float = 600):
+    """labrobfail-supervise: `trials` trials of `task` driven by `policy` (its settings), on the front camera at
+    `image_size` px, written to `out`; `extra` settings go after the camera."""
+    argv = [
+        cli("supervise"),
+        *policy,
+        f"task={task}",
+        f"trials={trials}",
+        f"image_size={image_size}",
+        "cameras=[front]",
+    ]
+    return run([*argv, *extra, "progress=false", f"out_dir={out}"], timeout)
+
+
+def serve_policy(*args: str, **kw) -> subprocess.Popen:
+    """labrobfail-serve-policy started from the checkout root, its stdout and stderr piped as text."""
+    return subprocess.Popen(
+        [cli("serve-policy"), *args], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw
+    )
+
+
+def scripted_server(*extra: str):
+    """For a fixture: labrobfail-serve-policy serving the scripted policy on a free loopback port; yields its URL
+    and process once, then stops it."""
+    p = serve_policy("policy=scripted", "port=0", *extra)
+    line = p.stdout.readline()
+    assert line.startswith("serving scripted on http://127.0.0.1:"), line + p.stderr.read()
+    yield line.split()[-1], p
+    p.terminate()
+    p.wait(timeout=10)
+
 
 # render_frames=null: every keyframe rendered, so the data tests can build grids of any size from the same run.
-SMALL = [
-    "scenarios=[press_button_red,open_oven_center,pick_place_bottle]",
-    "image_size=48",
-    "episodes_per_shard=2",
-    "render_frames=null",
-    "progress=false",
-]
+SMALL_IMAGES = ["image_size=48", "episodes_per_shard=2", "render_frames=null", "progress=false"]
+SMALL = ["scenarios=[press_button_red,open_oven_center,pick_place_bottle]", *SMALL_IMAGES]
 
 
 def gen(out, *extra, check=True):
-    r = subprocess.run(
-        [sys.executable, "scripts/generate.py", f"out_dir={out}", *SMALL, *extra],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    r = run([cli("generate"), f"out_dir={out}", *SMALL, *extra])
     if check:
         assert r.returncode == 0, r.stderr
     return r

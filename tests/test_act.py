@@ -2,13 +2,12 @@
 and the train_act.py -> policy=act path on real PyBullet demonstrations."""
 
 import json
-import subprocess
 import sys
 
 import numpy as np
 import pytest
 import torch
-from conftest import ROOT
+from conftest import background, run, serve_policy, supervise_front
 
 from labrobfail_vlm.config import ConfigError
 from sim_backends.policies.act.checkpoint import load_checkpoint, save_checkpoint
@@ -279,7 +278,7 @@ def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
     policy server."""
     out = tmp_path / "act"
     toy = [f"model.{k}={json.dumps(v).replace(' ', '')}" for k, v in TOY.items() if k != "cameras"]
-    r = subprocess.run(
+    r = run(
         [
             sys.executable,
             "scripts/train_act.py",
@@ -293,11 +292,7 @@ def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
             *toy,
             "progress=false",
             f"out_dir={out}",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
+        ]
     )
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout.strip().splitlines()[-1])
@@ -314,47 +309,23 @@ def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
     # where the ACT puts its grasp, against its demonstration's (the regrasp one starts holding: not probed)
     probe = tmp_path / "probe.json"
     cmd = [sys.executable, "scripts/probe_act.py", f"checkpoint={out / 'final'}", f"demos={out / 'demos.npz'}"]
-    r = subprocess.run([*cmd, "ahead=[2]", f"out={probe}"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    r = run([*cmd, "ahead=[2]", f"out={probe}"], 300)
     assert r.returncode == 0, r.stderr
     res = json.loads(probe.read_text())
     assert res["probed"] == 1 and res["median_error_cm"]["2"]["chunk"] >= 0 and res["median_error_cm"]["2"]["aux"] >= 0
-    r = subprocess.run([*cmd, "ahead=[4]"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    r = run([*cmd, "ahead=[4]"], 300)
     assert r.returncode == 2 and r.stderr.strip().splitlines() == [
         "error: ahead: a list of ticks from 1 to 3 (the chunk), not [4]"
     ]
     sup = tmp_path / "sup"
-    r = subprocess.run(
-        [
-            sys.executable,
-            "scripts/supervise.py",
-            "policy=act",
-            f"act.checkpoint={out / 'final'}",
-            "act.max_ticks=12",
-            "task=pick_place_bottle",
-            "trials=1",
-            "image_size=48",
-            "cameras=[front]",
-            "backend_kwargs.wrist=true",
-            "progress=false",
-            f"out_dir={sup}",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    act = ["policy=act", f"act.checkpoint={out / 'final'}", "act.max_ticks=12"]
+    r = supervise_front(sup, act, "pick_place_bottle", 1, 48, "backend_kwargs.wrist=true")
     assert r.returncode == 0, r.stderr
     eps = [json.loads(x) for x in (sup / "log.jsonl").read_text().splitlines() if '"episode"' in x]
     assert len(eps) == 2 and all(e["policy"] == "act" and 0 < e["ticks"] <= 12 for e in eps)
     assert all(e["steps"] <= 12 * (1 + e["interventions"]) for e in eps)  # act.max_ticks per attempt
     # the same checkpoint behind the OpenVLA protocol
-    p = subprocess.Popen(
-        [sys.executable, "scripts/serve_policy.py", "policy=act", f"act.checkpoint={out / 'final'}", "port=0"],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    p = serve_policy("policy=act", f"act.checkpoint={out / 'final'}", "port=0")
     try:
         url = p.stdout.readline().split()[-1]
         from sim_backends.policies.openvla_client import OpenVLAClient
@@ -417,7 +388,7 @@ def test_a_killed_act_training_resumes_and_ends_as_an_uninterrupted_one(tmp_path
         return [sys.executable, "scripts/train_act.py", *args, f"out_dir={out}", *extra]
 
     full, cut = tmp_path / "full", tmp_path / "cut"
-    r = subprocess.run(cmd(full), cwd=ROOT, capture_output=True, text=True, timeout=600)
+    r = run(cmd(full))
     assert r.returncode == 0, r.stderr
     assert "resumed_at_step" not in json.loads(r.stdout.strip().splitlines()[-1])
     steps = sorted(full.glob("checkpoints/step-*"), key=lambda d: int(d.name.split("-")[1]))
@@ -425,7 +396,7 @@ def test_a_killed_act_training_resumes_and_ends_as_an_uninterrupted_one(tmp_path
     assert all((d / "model.safetensors").is_file() and not (d / OPTIM).exists() for d in steps[:-1])
     cut.mkdir()
     shutil.copy(full / "demos.npz", cut / "demos.npz")  # the same demonstration, not recorded again
-    p = subprocess.Popen(cmd(cut), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    p = background(cmd(cut))
 
     def reached() -> int:
         last = last_progress(cut / "checkpoints")
@@ -440,7 +411,7 @@ def test_a_killed_act_training_resumes_and_ends_as_an_uninterrupted_one(tmp_path
     at = last_progress(cut / "checkpoints")
     assert at is not None and not (cut / "final").exists()
     assert json.loads((at / TRAIN_STATE).read_text())["batch"] < reached(), "killed in the first epoch"
-    r = subprocess.run(cmd(cut, "resume=true"), cwd=ROOT, capture_output=True, text=True, timeout=600)
+    r = run(cmd(cut, "resume=true"))
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout.strip().splitlines()[-1])
     assert summary["steps"] == 300 and summary["resumed_at_step"] >= int(at.name.split("-")[1])
@@ -450,7 +421,7 @@ def test_a_killed_act_training_resumes_and_ends_as_an_uninterrupted_one(tmp_path
     for extra, what in ((["train.lr=0.5"], "other settings"), ([f"out_dir={tmp_path / 'none'}"], "no complete")):
         if "out_dir" in extra[0]:
             shutil.copytree(cut, tmp_path / "none", ignore=shutil.ignore_patterns("checkpoints"))
-        r = subprocess.run([*cmd(cut, "resume=true"), *extra], cwd=ROOT, capture_output=True, text=True, timeout=600)
+        r = run([*cmd(cut, "resume=true"), *extra])
         assert r.returncode == 2 and "Traceback" not in r.stderr
         assert r.stderr.strip().splitlines()[-1].startswith("error: resume:") and what in r.stderr
 
@@ -513,13 +484,7 @@ def test_regrasp_demonstrations_start_from_a_corrected_grasp_and_lift():
     ],
 )
 def test_bad_drift_or_schedule_is_a_one_line_error(arg, tmp_path):
-    r = subprocess.run(
-        [sys.executable, "scripts/train_act.py", *arg.split(), f"out_dir={tmp_path / 'act'}"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    r = run([sys.executable, "scripts/train_act.py", *arg.split(), f"out_dir={tmp_path / 'act'}"], 120)
     assert r.returncode != 0 and "Traceback" not in r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith(f"error: {arg.split('=')[0]}:"), r.stderr
     assert not (tmp_path / "act").exists()

@@ -1,6 +1,6 @@
 """Checkpoint validation before any tensor is built (issue 33): bad config.json, oversized configs, truncated or
 mismatched safetensors and bad fine-tuned checkpoints are one-line errors with exit code 2 from infer.py and
-scripts/serve.py, and ConfigErrors from FailureAnalyzer.from_pretrained (the VLM supervisor's loader).
+labrobfail-serve, and ConfigErrors from FailureAnalyzer.from_pretrained (the VLM supervisor's loader).
 
 A `{}` config makes transformers build the default Qwen3-VL (~50 GB in float32): every case that could build a
 model runs in a subprocess whose address space is capped (MEMORY_GUARD), so a regression fails the test with a
@@ -9,11 +9,9 @@ MemoryError instead of taking the machine down."""
 import json
 import resource
 import shutil
-import subprocess
-import sys
 
 import pytest
-from conftest import ROOT
+from conftest import program, run
 from PIL import Image
 from test_train import tiny  # noqa: F401  (session fixture)
 
@@ -30,15 +28,7 @@ def guarded(args, env_extra=None, timeout=300):
 
     env = {k: v for k, v in os.environ.items() if k != BUDGET_ENV}
     env.update(env_extra or {})
-    return subprocess.run(
-        [sys.executable, *args],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        preexec_fn=_cap_memory,
-        env=env,
-    )
+    return run([*program(args[0]), *args[1:]], timeout, preexec_fn=_cap_memory, env=env)
 
 
 def _clone(src, dst, config=None, raw=None):
@@ -140,7 +130,7 @@ def test_infer_refuses_bad_checkpoints_in_one_line(bad_models, tmp_path):
 
 def test_serve_refuses_bad_checkpoints_at_start(bad_models):
     for what, model, env, needle in bad_models:
-        r = guarded(["scripts/serve.py", "--model", str(model), "--port", "0"], env, timeout=120)
+        r = guarded(["labrobfail-serve", "--model", str(model), "--port", "0"], env, timeout=120)
         _one_line_error(r, needle, what)
         assert "serving" not in r.stdout, what
 
@@ -152,7 +142,7 @@ def test_budget_argument_and_good_checkpoints(tiny, bad_models, tmp_path):  # no
     _one_line_error(r, "over the 1.0 MB model memory budget", "argument")
     r = guarded(["infer.py", "--grid", str(tmp_path / "g.png"), "--model", str(tiny), "--max-model-gb", "-1"])
     assert r.returncode == 2 and "max_model_gb: expected a positive number" in r.stderr, r.stderr[-500:]
-    r = guarded(["scripts/serve.py", "--model", str(tiny), "--max-model-gb", "0.001"], timeout=120)
+    r = guarded(["labrobfail-serve", "--model", str(tiny), "--max-model-gb", "0.001"], timeout=120)
     _one_line_error(r, "over the 1.0 MB model memory budget", "serve argument")
     hybrid = next(m for what, m, *_ in bad_models if m.name == "hybrid_over_empty").parent / "hybrid_ok"
     for model in (tiny, hybrid):

@@ -3,30 +3,22 @@
 import copy
 import json
 import os
-import subprocess
-import sys
 import threading
 from http.server import BaseHTTPRequestHandler, HTTPServer
 
 import numpy as np
 import pytest
-from conftest import ROOT, gen
+from conftest import cli, gen, run
 from PIL import Image
 
-from data.annotate import check_record
-from data.splits import assign
+from labrobfail_data.annotate import check_record
+from labrobfail_data.splits import assign
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.grid import BLANK, GridConfig, build_grid, frame_for_keyframe, sample_keyframes
 
 
-def build(shards, out, *extra):
-    return subprocess.run(
-        [sys.executable, "-m", "scripts.build_dataset", f"shards={shards}", f"out_dir={out}", "progress=false", *extra],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+def build(shards, out, *extra, timeout: float = 600, **kw):
+    return run([cli("build-dataset"), f"shards={shards}", f"out_dir={out}", "progress=false", *extra], timeout, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -93,6 +85,12 @@ def test_every_trajectory_has_six_dimensions_and_pairs_do_not_straddle(ds):
         assert (ds / r["image"]).is_file()
     assert len(by_traj) == len(traj) == 8
     assert all(d == set(Q.DIMENSIONS) for d in by_traj.values())
+    # every failure carries its onset (keyframe and sim time, from the trace); a success none
+    for t in traj:
+        if t["success"]:
+            assert t["onset_keyframe"] is None and t["onset_s"] is None
+        else:
+            assert t["onset_keyframe"] == t["failure_keyframe"] and t["onset_s"] > 0, t
     split = {t["trajectory"]: t["split"] for t in traj}
     assert {split[t] for t in split if t.startswith("val_both")} == {"val_both"}
     pairs = {}
@@ -175,20 +173,8 @@ def test_bad_inputs_are_one_line_errors(run6, tmp_path):
         (["prefix.cuts=1", "prefix.questions=Q6"], "prefix.questions"),
         ([f"shards=[{run6},{run6}]"], "first_pair"),  # the same trajectories twice
     ]:
-        r = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "scripts.build_dataset",
-                f"out_dir={tmp_path}/o",
-                *([f"shards={run6}"] if not args[0].startswith("shards") else []),
-                *args,
-            ],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+        shards = [f"shards={run6}"] if not args[0].startswith("shards") else []
+        r = run([cli("build-dataset"), f"out_dir={tmp_path}/o", *shards, *args], 120)
         assert r.returncode == 2 and "Traceback" not in r.stderr and field in r.stderr, r.stderr
         assert len(r.stderr.strip().splitlines()) == 1
 
@@ -236,24 +222,9 @@ def test_paraphrase_through_openai_compatible_endpoint(run6, tmp_path, mode):
     _FakeLLM.mode, _FakeLLM.seen_auth = mode, []
     env = {**os.environ, "LRF_TEST_KEY": "sk-secret-123"}
     out = tmp_path / "p"
-    r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "scripts.build_dataset",
-            f"shards={run6}",
-            f"out_dir={out}",
-            "progress=false",
-            "paraphrase.enabled=true",
-            f"paraphrase.base_url=http://127.0.0.1:{srv.server_port}/v1",
-            "paraphrase.api_key_env=LRF_TEST_KEY",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=300,
-    )
+    url = f"http://127.0.0.1:{srv.server_port}/v1"
+    paraphrase = ["paraphrase.enabled=true", f"paraphrase.base_url={url}", "paraphrase.api_key_env=LRF_TEST_KEY"]
+    r = build(run6, out, *paraphrase, timeout=300, env=env)
     srv.shutdown()
     assert r.returncode == 0, r.stderr
     assert _FakeLLM.seen_auth and set(_FakeLLM.seen_auth) == {"Bearer sk-secret-123"}
@@ -317,7 +288,7 @@ def test_trace_until_is_the_state_when_a_keyframe_ended():
 
 
 def test_prefix_records_follow_the_failure_frame(run6, ds, tmp_path):
-    from data.annotate import prefix_cut_points
+    from labrobfail_data.annotate import prefix_cut_points
     from labrobfail_vlm.analyzer import nearest_strategy
 
     out = tmp_path / "p"

@@ -266,6 +266,25 @@ def test_keyframe_of_a_failure_is_where_it_shows():
     assert derive_labels(tr, meta).failure_keyframe == meta.executed.index("s0_lift") + 1
 
 
+def test_onset_is_the_first_sample_the_failure_shows_in_sim_time():
+    """A spill that starts at a chosen sample: the onset time is that sample's, inside the onset keyframe; a
+    success has none."""
+    from sim_backends.labeler import SPILL_PARTICLES
+
+    tr, meta = _case("protocol_violation")
+    tr["liquid.bystander"] = [0] * len(tr["t"])
+    j = meta.executed.index("s1_carry")
+    start = tr["kf_end"][j] - 3  # three samples before the carry keyframe ends
+    tr["liquid.outside"] = [0 if k < start else SPILL_PARTICLES + 1 for k in range(len(tr["t"]))]
+    lab = derive_labels(tr, meta)
+    assert lab.failure_keyframe == j and lab.onset_s == pytest.approx(tr["t"][start] - tr["t"][0])
+    assert tr["t"][tr["kf_end"][j - 1]] < tr["t"][0] + lab.onset_s <= tr["t"][tr["kf_end"][j]]
+    tr["liquid.outside"] = [0 if k < start + 2 else SPILL_PARTICLES + 1 for k in range(len(tr["t"]))]
+    assert derive_labels(tr, meta).onset_s == pytest.approx(tr["t"][start + 2] - tr["t"][0])  # it moves with it
+    tr, meta = _case("success")
+    assert derive_labels(tr, meta).onset_s is None
+
+
 def test_a_failure_no_detector_explains_is_not_given_a_type():
     """The object stands where the plan put it, but the goal asks for another spot: no state signature
     explains the failed goal, so the label says so instead of guessing a type."""

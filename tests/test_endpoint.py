@@ -1,14 +1,12 @@
-"""The vLLM path: infer.py --endpoint and scripts/evaluate.py endpoint= against a loopback OpenAI-compatible
+"""The vLLM path: infer.py --endpoint and labrobfail-evaluate endpoint= against a loopback OpenAI-compatible
 server (tests/fake_openai.py, backed by the same tiny model) give FailureAnalyzer's answers; requests carry the
 image first, the same image for every question of a grid, and closed sets as structured-output choices."""
 
 import json
 import os
-import subprocess
-import sys
 
 import pytest
-from conftest import ROOT
+from conftest import program, run
 from fake_openai import FakeOpenAI
 from serve_fixtures import TASKS, grids, mixed_model  # noqa: F401  (fixtures)
 from test_train import small_ds  # noqa: F401  (session fixture)
@@ -82,14 +80,7 @@ def test_endpoint_template_mode_uses_choices(fake, local, grids):  # noqa: F811
 
 
 def _run(*args, env=None):
-    return subprocess.run(
-        [sys.executable, *args],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-        env={**os.environ, **(env or {})},
-    )
+    return run([*program(args[0]), *args[1:]], env={**os.environ, **(env or {})})
 
 
 def test_infer_through_the_endpoint(fake, local, grids, tmp_path):  # noqa: F811
@@ -136,7 +127,7 @@ def test_infer_through_the_endpoint(fake, local, grids, tmp_path):  # noqa: F811
 def test_evaluate_through_the_endpoint_matches_the_local_model(fake, mixed_model, small_ds, tmp_path):  # noqa: F811
     common = [f"dataset_dir={small_ds}", "split=test", "progress=false", "baselines=[]", "q6_template=false"]
     r = _run(
-        "scripts/evaluate.py",
+        "labrobfail-evaluate",
         f"endpoint={fake.url}",
         "endpoint_key_env=_FAKE_KEY",
         f"out_dir={tmp_path / 'e'}",
@@ -144,7 +135,7 @@ def test_evaluate_through_the_endpoint_matches_the_local_model(fake, mixed_model
         *common,
     )
     assert r.returncode == 0, r.stderr[-2000:]
-    r = _run("scripts/evaluate.py", f"model={mixed_model}", f"out_dir={tmp_path / 'm'}", "batch_size=4", *common)
+    r = _run("labrobfail-evaluate", f"model={mixed_model}", f"out_dir={tmp_path / 'm'}", "batch_size=4", *common)
     assert r.returncode == 0, r.stderr[-2000:]
     preds = [
         dict(
@@ -159,7 +150,7 @@ def test_evaluate_through_the_endpoint_matches_the_local_model(fake, mixed_model
     }
     res = json.loads((tmp_path / "e" / "results.json").read_text())
     assert res["method"] == f"LabRobFail-VLM endpoint ({fake.name})"
-    r = _run("scripts/evaluate.py", f"endpoint={fake.url}", f"model={mixed_model}", f"dataset_dir={small_ds}")
+    r = _run("labrobfail-evaluate", f"endpoint={fake.url}", f"model={mixed_model}", f"dataset_dir={small_ds}")
     assert r.returncode == 2 and "exactly one" in r.stderr
 
 
@@ -167,7 +158,7 @@ def test_evaluate_batch_size_gives_the_same_predictions(mixed_model, small_ds, t
     common = [f"model={mixed_model}", f"dataset_dir={small_ds}", "split=test", "progress=false", "baselines=[blind]"]
     outs, probs = [], []
     for b in (1, 5):
-        r = _run("scripts/evaluate.py", f"out_dir={tmp_path / str(b)}", f"batch_size={b}", *common)
+        r = _run("labrobfail-evaluate", f"out_dir={tmp_path / str(b)}", f"batch_size={b}", *common)
         assert r.returncode == 0, r.stderr[-2000:]
         lines = [json.loads(x) for x in (tmp_path / str(b) / "predictions.jsonl").read_text().splitlines()]
         probs.append([x.pop("p_failure", None) for x in lines])  # float sums over padded rows: equal to rounding
@@ -177,5 +168,5 @@ def test_evaluate_batch_size_gives_the_same_predictions(mixed_model, small_ds, t
     assert outs[0] == outs[2] and outs[1] == outs[3]
     assert [p is None for p in probs[0]] == [p is None for p in probs[1]] and any(p is not None for p in probs[0])
     assert [p or 0 for p in probs[0]] == pytest.approx([p or 0 for p in probs[1]], abs=1e-4)
-    r = _run("scripts/evaluate.py", "batch_size=0", *common)
+    r = _run("labrobfail-evaluate", "batch_size=0", *common)
     assert r.returncode == 2 and "batch_size" in r.stderr

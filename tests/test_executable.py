@@ -1,10 +1,8 @@
-"""Executable correction accuracy: scripts/evaluate.py replays each failure, runs the correction, finishes."""
+"""Executable correction accuracy: labrobfail-evaluate replays each failure, runs the correction, finishes."""
 
 import json
-import subprocess
-import sys
 
-from conftest import ROOT
+from conftest import evaluate
 from test_train import small_ds  # noqa: F401  (session fixture: a dataset built from conftest's run6 shards)
 
 
@@ -26,23 +24,15 @@ def test_gold_and_predicted_corrections_are_run_in_the_simulator(run6, small_ds,
             x["prediction"] = "Wipe the bench with a cloth."
     preds.write_text("".join(json.dumps(x) + "\n" for x in lines))
     out = tmp_path / "ev"
-    r = subprocess.run(
-        [
-            sys.executable,
-            "scripts/evaluate.py",
-            f"predictions={preds}",
-            f"dataset_dir={small_ds}",
-            f"split={split}",
-            "executable.enabled=true",
-            f"executable.shards={run6}",
-            "progress=false",
-            "baselines=[]",
-            f"out_dir={out}",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
+    r = evaluate(
+        f"predictions={preds}",
+        small_ds,
+        f"split={split}",
+        "executable.enabled=true",
+        f"executable.shards={run6}",
+        "progress=false",
+        "baselines=[]",
+        f"out_dir={out}",
     )
     assert r.returncode == 0, r.stderr
     res = json.loads((out / "results.json").read_text())
@@ -56,19 +46,6 @@ def test_gold_and_predicted_corrections_are_run_in_the_simulator(run6, small_ds,
 def test_executable_needs_the_shards(small_ds, tmp_path):  # noqa: F811
     preds = tmp_path / "p.jsonl"
     preds.write_text("")
-    r = subprocess.run(
-        [
-            sys.executable,
-            "scripts/evaluate.py",
-            f"predictions={preds}",
-            f"dataset_dir={small_ds}",
-            "executable.enabled=true",
-            "progress=false",
-            f"out_dir={tmp_path / 'o'}",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    extra = ("executable.enabled=true", "progress=false", f"out_dir={tmp_path / 'o'}")
+    r = evaluate(f"predictions={preds}", small_ds, *extra, timeout=300)
     assert r.returncode == 2 and "executable.shards: name the shard folder" in r.stderr

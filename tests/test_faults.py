@@ -7,13 +7,11 @@ import json
 import os
 import shutil
 import signal
-import subprocess
-import sys
 import threading
 import time
 
 import pytest
-from conftest import ROOT, free_port
+from conftest import ROOT, background, evaluate, free_port, run
 from serve_fixtures import grids, mixed_model  # noqa: F401  (fixtures)
 from test_serve import Server
 from test_train import small_ds, tiny, tiny_train  # noqa: F401  (session fixtures)
@@ -37,7 +35,7 @@ def test_training_killed_mid_run_resumes_to_the_final_step_and_evaluates(tiny, s
         out,
         *("grounding.pretrain_epochs=0", "save_steps=2", "save_total_limit=null", "logging_steps=1", "max_steps=8"),
     )
-    proc = subprocess.Popen(common, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = background(common)
     try:
         _wait_for(out / "checkpoint-2" / "trainer_state.json", proc)
         time.sleep(0.2)
@@ -50,39 +48,18 @@ def test_training_killed_mid_run_resumes_to_the_final_step_and_evaluates(tiny, s
     partial = out / f"checkpoint-{done[-1] + 2}"
     shutil.copytree(out / f"checkpoint-{done[-1]}", partial)
     (partial / "trainer_state.json").write_text('{"global_step": ')
-    r = subprocess.run([*common, "resume=true"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    r = run([*common, "resume=true"])
     assert r.returncode == 0, r.stderr[-3000:]
     assert f"skipping {partial}" in r.stderr
     assert json.loads((out / "train_summary.json").read_text())["global_step"] == 8
     steps = [row["step"] for row in json.loads((out / "progress.json").read_text())]
     assert steps == sorted(set(steps)) and steps[-1] == 8  # the learning curve has no duplicated or lost rows
-    r = subprocess.run(
-        [
-            sys.executable,
-            "scripts/evaluate.py",
-            f"model={out / 'final'}",
-            f"dataset_dir={small_ds}",
-            "split=test",
-            "baselines=[]",
-            "q6_template=false",
-            f"out_dir={tmp_path / 'eval'}",
-            "progress=false",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    no_baselines = ("split=test", "baselines=[]", "q6_template=false", f"out_dir={tmp_path / 'eval'}", "progress=false")
+    r = evaluate(f"model={out / 'final'}", small_ds, *no_baselines)
     assert r.returncode == 0, r.stderr[-3000:]
     assert json.loads((tmp_path / "eval" / "results.json").read_text())["detection"]["trajectories"] > 0
     # nothing to resume from is one line
-    r = subprocess.run(
-        [*common[:-3], f"output_dir={tmp_path / 'empty'}", "resume=true", "progress=false"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    r = run([*common[:-3], f"output_dir={tmp_path / 'empty'}", "resume=true", "progress=false"], 300)
     assert r.returncode == 2 and "no complete checkpoint" in r.stderr.strip().splitlines()[-1], r.stderr
 
 

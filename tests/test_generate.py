@@ -2,12 +2,10 @@
 
 import json
 import signal
-import subprocess
-import sys
 import time
 
 import pytest
-from conftest import ROOT, SMALL, gen, rows  # noqa: E402
+from conftest import ROOT, SMALL, SMALL_IMAGES, background, cli, gen, rows, run  # noqa: E402
 
 from sim_backends.labeler import derive_labels
 from sim_backends.types import Labels
@@ -64,12 +62,7 @@ def test_loads_with_hf_datasets(run6):
 
 def test_resume_after_sigkill_gives_identical_data(run6, tmp_path):
     out = tmp_path / "b"
-    proc = subprocess.Popen(
-        [sys.executable, "scripts/generate.py", f"out_dir={out}", "num_episodes=6", "seed=5", *SMALL],
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
+    proc = background([cli("generate"), f"out_dir={out}", "num_episodes=6", "seed=5", *SMALL])
     deadline = time.time() + 300
     while time.time() < deadline and not list(out.glob("shard-*.parquet")):
         time.sleep(0.2)
@@ -192,27 +185,17 @@ def test_render_frames_takes_only_the_images_its_grid_shows(tmp_path):
         for va, vb in zip(a["images"], b["images"]):
             assert [i for i, x in enumerate(vb) if x] == picks and all(vb[i] == va[i] for i in picks)
     build = [
-        sys.executable,
-        "-m",
-        "scripts.build_dataset",
+        cli("build-dataset"),
         f"shards={part}",
         "grid.width=256",
         "grid.height=128",
         "grid.columns=4",
         "progress=false",
     ]
-    r = subprocess.run(
-        [*build, f"out_dir={tmp_path}/o8", "grid.max_frames=8"], cwd=ROOT, capture_output=True, text=True, timeout=300
-    )
+    r = run([*build, f"out_dir={tmp_path}/o8", "grid.max_frames=8"], 300)
     assert r.returncode == 2 and "render_frames=4" in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "o8").exists()
-    r = subprocess.run(
-        [*build, f"out_dir={tmp_path}/o4", "grid.max_frames=4", "grid.columns=2"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    r = run([*build, f"out_dir={tmp_path}/o4", "grid.max_frames=4", "grid.columns=2"], 300)
     assert r.returncode == 0, r.stderr
 
 
@@ -225,23 +208,7 @@ def test_demo_preset_is_one_fixed_scene(tmp_path):
     from PIL import Image
 
     def first_frames(out, *extra):
-        r = subprocess.run(
-            [
-                sys.executable,
-                "scripts/generate.py",
-                f"out_dir={out}",
-                "num_episodes=4",
-                "image_size=48",
-                "episodes_per_shard=2",
-                "render_frames=null",
-                "progress=false",
-                *extra,
-            ],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=600,
-        )
+        r = run([cli("generate"), f"out_dir={out}", "num_episodes=4", *SMALL_IMAGES, *extra])
         assert r.returncode == 0, r.stderr
         rs = [x for x in rows(out) if x["role"] == "nominal"]
         assert len(rs) == 2, [x["role"] for x in rows(out)]
@@ -250,19 +217,8 @@ def test_demo_preset_is_one_fixed_scene(tmp_path):
         ]
 
     man, (a, b) = first_frames(tmp_path / "demo", "preset=demo")  # run in the repository: the bench file's path
-    elsewhere = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "scripts/generate.py"),
-            f"out_dir={tmp_path}/o",
-            "preset=demo",
-            "num_episodes=0",
-            "progress=false",
-        ],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=300,
+    elsewhere = run(
+        [cli("generate"), f"out_dir={tmp_path}/o", "preset=demo", "num_episodes=0", "progress=false"], 300, cwd=tmp_path
     )
     assert elsewhere.returncode == 0, elsewhere.stderr  # ... resolves from another directory too
     assert man["scenarios"] == ["pick_place_beaker_large", "pick_place_right_beaker_large"]

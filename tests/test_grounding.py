@@ -1,13 +1,11 @@
 """Frame grounding (labrobfail_vlm/train/grounding.py): targets, the token-to-cell map, the head, a real run."""
 
 import json
-import subprocess
-import sys
 
 import pytest
 import torch
-from conftest import ROOT
-from test_train import small_ds, tiny, tiny_train  # noqa: F401  (session fixtures)
+from conftest import background, run
+from test_train import scratch_train, small_ds, tiny, tiny_train  # noqa: F401  (session fixtures)
 
 
 def test_frame_targets_follow_the_failure_frame_and_the_shown_cells():
@@ -73,9 +71,7 @@ def test_head_reads_each_time_step_from_its_own_cells(kind):
 def test_training_with_grounding_logs_saves_and_resumes(tiny, small_ds, tmp_path):  # noqa: F811
     out = tmp_path / "g"
     common = tiny_train(tiny, small_ds, out, "grounding.weight=1.0", "save_steps=2", "logging_steps=1")
-    r = subprocess.run(
-        [*common, "max_steps=2", "grounding.pretrain_epochs=1"], cwd=ROOT, capture_output=True, text=True, timeout=600
-    )
+    r = run([*common, "max_steps=2", "grounding.pretrain_epochs=1"])
     assert r.returncode == 0, r.stderr[-3000:]
     assert "grounding_loss" in r.stdout + r.stderr
     # stage A ran before the VQA steps, and the learning curve's clocks count it
@@ -86,7 +82,7 @@ def test_training_with_grounding_logs_saves_and_resumes(tiny, small_ds, tmp_path
 
     saved = load_file(str(out / "checkpoint-2" / "grounding_head.safetensors"))
     assert saved and all(torch.isfinite(t).all() for t in saved.values())
-    r = subprocess.run([*common, "max_steps=3", "resume=true"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    r = run([*common, "max_steps=3", "resume=true"])
     assert r.returncode == 0, r.stderr[-3000:]
     summary = json.loads((out / "train_summary.json").read_text())
     assert summary["global_step"] == 3 and "grounding_pretrain" not in summary  # the checkpoint holds stage A
@@ -99,20 +95,8 @@ def test_training_with_grounding_logs_saves_and_resumes(tiny, small_ds, tmp_path
             (old / f.name).symlink_to(f)
     (old / "images").symlink_to(small_ds / "images")
     (old / "trajectories.json").write_text(json.dumps([{k: v for k, v in t.items() if k != "views"} for t in traj]))
-    r = subprocess.run(
-        [
-            *common[:4],
-            f"dataset_dir={old}",
-            f"output_dir={tmp_path}/o",
-            "max_steps=1",
-            "grounding.weight=1",
-            "wandb.enabled=false",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    on_old = [f"dataset_dir={old}", f"output_dir={tmp_path}/o", "max_steps=1", "grounding.weight=1"]
+    r = run([*common[:4], *on_old, "wandb.enabled=false"])
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert "grounding" in r.stderr.strip().splitlines()[-1]
 
@@ -122,28 +106,9 @@ def test_a_run_from_a_checkpoint_repeats_exactly(tiny, small_ds, tmp_path):  # n
     initialised after train.py seeds, not from torch's start-up seed."""
     got = []
     for name in ("a", "b"):
-        r = subprocess.run(
-            [
-                sys.executable,
-                "train.py",
-                "preset=tiny",
-                "tower=scratch",
-                f"model.path={tiny}",
-                f"dataset_dir={small_ds}",
-                f"output_dir={tmp_path / name}",
-                "global_batch=2",
-                "per_device_batch=2",
-                "max_steps=2",
-                "grounding.weight=1.0",
-                "grounding.pretrain_epochs=0",
-                "wandb.enabled=false",
-                "progress=false",
-            ],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=600,
-        )
+        argv = scratch_train(tiny, small_ds, tmp_path / name)
+        steps = ["global_batch=2", "per_device_batch=2", "max_steps=2", "grounding.weight=1.0"]
+        r = run([*argv, *steps, "grounding.pretrain_epochs=0", "wandb.enabled=false", "progress=false"])
         assert r.returncode == 0, r.stderr[-3000:]
         s = json.loads((tmp_path / name / "train_summary.json").read_text())
         got.append((s["first_loss"], s["last_loss"]))
@@ -162,50 +127,17 @@ def test_a_run_from_a_checkpoint_repeats_exactly(tiny, small_ds, tmp_path):  # n
     ],
 )
 def test_bad_grounding_config_is_one_line(tiny, small_ds, tmp_path, bad, field):  # noqa: F811
-    r = subprocess.run(
-        [
-            sys.executable,
-            "train.py",
-            "preset=tiny",
-            "tower=scratch",
-            f"model.path={tiny}",
-            f"dataset_dir={small_ds}",
-            f"output_dir={tmp_path}/o",
-            bad,
-            "wandb.enabled=false",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    r = run([*scratch_train(tiny, small_ds, f"{tmp_path}/o"), bad, "wandb.enabled=false"], 300)
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith(f"error: {field}:")
 
 
 def test_resuming_a_run_made_without_grounding_is_one_line(tiny, small_ds, tmp_path):  # noqa: F811
     """On a scratch tower the tiny preset grounds by default; a run without the head cannot resume with one."""
-    common = [
-        sys.executable,
-        "train.py",
-        "preset=tiny",
-        "tower=scratch",
-        f"model.path={tiny}",
-        f"dataset_dir={small_ds}",
-        f"output_dir={tmp_path}/o",
-        "save_steps=1",
-        "wandb.enabled=false",
-        "progress=false",
-    ]
-    r = subprocess.run(
-        [*common, "max_steps=1", "grounding.weight=0", "grounding.pretrain_epochs=0"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    common = [*scratch_train(tiny, small_ds, f"{tmp_path}/o"), "save_steps=1", "wandb.enabled=false", "progress=false"]
+    r = run([*common, "max_steps=1", "grounding.weight=0", "grounding.pretrain_epochs=0"])
     assert r.returncode == 0, r.stderr[-2000:]
-    r = subprocess.run([*common, "max_steps=2", "resume=true"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    r = run([*common, "max_steps=2", "resume=true"])
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith("error: resume:") and "grounding.weight=0" in r.stderr
 
@@ -230,14 +162,14 @@ def test_a_run_killed_in_stage_a_resumes_and_ends_as_an_uninterrupted_one(tiny, 
             *extra,
         )
 
-    r = subprocess.run(cmd(tmp_path / "full"), cwd=ROOT, capture_output=True, text=True, timeout=600)
+    r = run(cmd(tmp_path / "full"))
     assert r.returncode == 0, r.stderr[-3000:]
     full = json.loads((tmp_path / "full" / "train_summary.json").read_text())
     assert "resumed_at_epoch" not in full["grounding_pretrain"]
     assert [d.name for d in (tmp_path / "full" / "stage_a").iterdir()] == ["epoch-6"]  # older epochs removed
     # the same run, killed once stage A has saved an epoch
     out = tmp_path / "killed"
-    p = subprocess.Popen(cmd(out), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    p = background(cmd(out))
     try:
         while stage_a_state(out) is None and p.poll() is None:
             time.sleep(0.05)
@@ -248,7 +180,7 @@ def test_a_run_killed_in_stage_a_resumes_and_ends_as_an_uninterrupted_one(tiny, 
     assert at is not None and not (out / "train_summary.json").exists()
     done = int(at.name.split("-")[1])
     assert 1 <= done < 6
-    r = subprocess.run(cmd(out, "resume=true"), cwd=ROOT, capture_output=True, text=True, timeout=600)
+    r = run(cmd(out, "resume=true"))
     assert r.returncode == 0, r.stderr[-3000:]
     again = json.loads((out / "train_summary.json").read_text())
     assert again["grounding_pretrain"]["resumed_at_epoch"] >= done
@@ -260,12 +192,6 @@ def test_a_run_killed_in_stage_a_resumes_and_ends_as_an_uninterrupted_one(tiny, 
     # a stage A of another length is not resumed silently
     other = tmp_path / "other"
     shutil.copytree(tmp_path / "full" / "stage_a", other / "stage_a")
-    r = subprocess.run(
-        [*cmd(other, "resume=true"), "grounding.pretrain_epochs=3"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    r = run([*cmd(other, "resume=true"), "grounding.pretrain_epochs=3"])
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith("error: resume:") and "6 epochs" in r.stderr

@@ -1,13 +1,12 @@
 """infer.py, the structured decoder (one pass == six prompts), bad inputs, and the bench evaluator."""
 
 import json
-import subprocess
 import sys
 
 import numpy as np
 import pytest
 import torch
-from conftest import ROOT
+from conftest import evaluate, run
 from PIL import Image
 from test_train import small_ds, tiny  # noqa: F401  (session fixtures)
 
@@ -30,7 +29,7 @@ KEYS = {
 
 
 def infer(*args):
-    return subprocess.run([sys.executable, "infer.py", *args], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    return run([sys.executable, "infer.py", *args], 300)
 
 
 @pytest.fixture(scope="module")
@@ -175,26 +174,17 @@ def test_bleu_and_rouge_equal_the_reference_libraries():
     assert bleu(refs, refs)["bleu4"] == pytest.approx(1.0) and rouge_l(refs, refs) == pytest.approx(1.0)
 
 
-@pytest.mark.parametrize(
-    "dim,reply,want",
-    [
-        ("Q2", "Yes, the beaker slipped.", "Yes"),
-        ("Q2", "No.", "No"),
-        ("Q2", "Not at all, it went fine", "No"),
-        ("Q3", "The failure occurs at frame 7.", "7"),
-        ("Q3", "None", "None"),
-        ("Q3", "¯\\_(ツ)_/¯", None),
-        ("Q4", "(2) Dangerous Level", "2"),
-        ("Q4", "Dangerous", "2"),
-        ("Q4", "Management Incident", "4"),
-        ("Q5", "Grasping Failure", "2"),
-        ("Q5", "4", "4"),
-        ("Q5", "It is a motion failure.", "3"),
-        ("Q5", "", None),
-        ("Q1", "Grasping, then placing.", "grasp, place"),
-        ("Q1", "open, grasp, place, close", "open, grasp, place, close"),
-    ],
+# free-form replies and what the parser reads from them, by dimension (in the order the cases run)
+REPLIES = (
+    ("Q2", [("Yes, the beaker slipped.", "Yes"), ("No.", "No"), ("Not at all, it went fine", "No")]),
+    ("Q3", [("The failure occurs at frame 7.", "7"), ("None", "None"), ("¯\\_(ツ)_/¯", None)]),
+    ("Q4", [("(2) Dangerous Level", "2"), ("Dangerous", "2"), ("Management Incident", "4")]),
+    ("Q5", [("Grasping Failure", "2"), ("4", "4"), ("It is a motion failure.", "3"), ("", None)]),
+    ("Q1", [("Grasping, then placing.", "grasp, place"), ("open, grasp, place, close", "open, grasp, place, close")]),
 )
+
+
+@pytest.mark.parametrize("dim,reply,want", [(dim, reply, want) for dim, cases in REPLIES for reply, want in cases])
 def test_parse_free_form_replies(dim, reply, want):
     from labrobfail_vlm.bench.parse import parse
 
@@ -202,21 +192,7 @@ def test_parse_free_form_replies(dim, reply, want):
 
 
 def test_evaluate_model_and_predictions_file(tiny, small_ds, tmp_path):  # noqa: F811
-    r = subprocess.run(
-        [
-            sys.executable,
-            "scripts/evaluate.py",
-            f"model={tiny}",
-            f"dataset_dir={small_ds}",
-            "split=test",
-            f"out_dir={tmp_path / 'e'}",
-            "progress=false",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    r = evaluate(f"model={tiny}", small_ds, "split=test", f"out_dir={tmp_path / 'e'}", "progress=false")
     assert r.returncode == 0, r.stderr[-2000:]
     res = json.loads((tmp_path / "e" / "results.json").read_text())
     for k in ("q1", "q2", "q3", "q4", "q5", "q3_within1"):
@@ -231,42 +207,18 @@ def test_evaluate_model_and_predictions_file(tiny, small_ds, tmp_path):  # noqa:
     assert det["score"] == "probability" and det["auroc"] is not None and 0 <= det["ece"] <= 1
     assert res["baselines"]["majority class"]["detection"]["auroc"] == 0.5  # a constant score ranks nothing
     # the same predictions, scored from the file they were saved to, give the same numbers
-    r = subprocess.run(
-        [
-            sys.executable,
-            "scripts/evaluate.py",
-            f"predictions={tmp_path / 'e' / 'predictions.jsonl'}",
-            f"dataset_dir={small_ds}",
-            f"out_dir={tmp_path / 'p'}",
-            "baselines=[majority]",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    saved = f"predictions={tmp_path / 'e' / 'predictions.jsonl'}"
+    r = evaluate(saved, small_ds, f"out_dir={tmp_path / 'p'}", "baselines=[majority]", timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     res2 = json.loads((tmp_path / "p" / "results.json").read_text())
     keys = ("q1", "q2", "q3", "q4", "q5", "q6", "failure_only")
     assert {k: res2[k] for k in keys} == {k: res[k] for k in keys}
     assert res2["detection"]["auroc"] == res["detection"]["auroc"]  # P(failure) travels in the predictions file
     (tmp_path / "bad.jsonl").write_text("{not json}\n")
-    r = subprocess.run(
-        [sys.executable, "scripts/evaluate.py", f"predictions={tmp_path / 'bad.jsonl'}", f"dataset_dir={small_ds}"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    r = evaluate(f"predictions={tmp_path / 'bad.jsonl'}", small_ds, timeout=120)
     assert r.returncode == 2 and "line 1" in r.stderr and "Traceback" not in r.stderr
     # a missing model is refused before anything is written (no empty eval_<split> folder beside it)
-    r = subprocess.run(
-        [sys.executable, "scripts/evaluate.py", f"model={tmp_path / 'gone' / 'final'}", f"dataset_dir={small_ds}"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    r = evaluate(f"model={tmp_path / 'gone' / 'final'}", small_ds, timeout=120)
     assert r.returncode == 2 and "no such directory" in r.stderr and not (tmp_path / "gone").exists()
 
 
@@ -363,21 +315,8 @@ def test_evaluate_reports_types_template_row_and_skips_majority_without_train(ti
     ds = tmp_path / "unseen_only"
     shutil.copytree(small_ds, ds)
     (ds / "train.json").unlink()
-    r = subprocess.run(
-        [
-            sys.executable,
-            "scripts/evaluate.py",
-            f"model={tiny}",
-            f"dataset_dir={ds}",
-            "split=test",
-            f"out_dir={tmp_path / 'e'}",
-            "progress=false",
-            "baselines=[majority]",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
+    r = evaluate(
+        f"model={tiny}", ds, "split=test", f"out_dir={tmp_path / 'e'}", "progress=false", "baselines=[majority]"
     )
     assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr[-2000:]
     assert "majority baseline skipped" in r.stderr
@@ -402,18 +341,11 @@ def test_failure_only_scores_a_none_for_every_failure_as_wrong(small_ds, tmp_pat
             d = Q.dim_of(r["id"])
             ans = r["conversations"][1]["value"] if d in ("Q1", "Q2") else Q.NO_CORRECTION if d == "Q6" else "None"
             f.write(json.dumps({"id": r["id"], "prediction": ans}) + "\n")
-    r = subprocess.run(
-        [
-            sys.executable,
-            "scripts/evaluate.py",
-            f"predictions={tmp_path / 'p.jsonl'}",
-            f"dataset_dir={small_ds}",
-            f"out_dir={tmp_path / 'e'}",
-            "baselines=[majority]",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
+    r = evaluate(
+        f"predictions={tmp_path / 'p.jsonl'}",
+        small_ds,
+        f"out_dir={tmp_path / 'e'}",
+        "baselines=[majority]",
         timeout=300,
     )
     assert r.returncode == 0, r.stderr[-2000:]
@@ -459,13 +391,7 @@ def test_evaluate_refuses_a_predictions_folder_or_unreadable_file_before_writing
         (_unreadable(tmp_path), "cannot read"),
         (tmp_path / "missing.jsonl", "cannot read"),
     ):
-        r = subprocess.run(
-            [sys.executable, "scripts/evaluate.py", f"predictions={pred}", f"dataset_dir={tmp_path / 'ds'}"],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+        r = evaluate(f"predictions={pred}", tmp_path / "ds", timeout=120)
         lines = r.stderr.strip().splitlines()
         assert r.returncode == 2 and len(lines) == 1 and "Traceback" not in r.stderr, (pred, r.stderr[-500:])
         assert lines[0].startswith("error: predictions: ") and str(pred) in lines[0] and needle in lines[0], lines

@@ -1,6 +1,6 @@
 """The OpenVLA REST client and server against real loopback peers, on the real json-numpy package: the project's
-client against scripts/serve_policy.py and against a FastAPI stand-in of OpenVLA's deploy server; a client
-written as OpenVLA's README writes one against scripts/serve_policy.py; faulty servers."""
+client against labrobfail-serve-policy and against a FastAPI stand-in of OpenVLA's deploy server; a client
+written as OpenVLA's README writes one against labrobfail-serve-policy; faulty servers."""
 
 import contextlib
 import json
@@ -14,7 +14,7 @@ import json_numpy
 import numpy as np
 import pytest
 import requests
-from conftest import ROOT, free_port
+from conftest import free_port, scripted_server, supervise_front
 
 from labrobfail_vlm.config import ConfigError
 from sim_backends.policies import wire
@@ -34,43 +34,16 @@ from sim_backends.types import matrix_to_quat, quat_to_matrix, rotation_angle
 
 @pytest.fixture(scope="module")
 def served():
-    """scripts/serve_policy.py serving the scripted policy on a free loopback port."""
-    p = subprocess.Popen(
-        [sys.executable, "scripts/serve_policy.py", "policy=scripted", "port=0"],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    line = p.stdout.readline()
-    assert line.startswith("serving scripted on http://127.0.0.1:"), line + p.stderr.read()
-    yield line.split()[-1], p
-    p.terminate()
-    p.wait(timeout=10)
+    """labrobfail-serve-policy serving the scripted policy on a free loopback port."""
+    yield from scripted_server()
 
 
 @pytest.fixture(scope="module")
 def served_default():
-    """scripts/serve_policy.py serving the scripted plan of a default episode: what OpenVLA's own client needs
+    """labrobfail-serve-policy serving the scripted plan of a default episode: what OpenVLA's own client needs
     (it sends no `episode` and no `proprio`)."""
-    p = subprocess.Popen(
-        [
-            sys.executable,
-            "scripts/serve_policy.py",
-            "policy=scripted",
-            "port=0",
-            f"default_episode.scenario={SCENARIO}",
-        ],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    line = p.stdout.readline()
-    assert line.startswith("serving scripted on http://127.0.0.1:"), line + p.stderr.read()
-    yield line.split()[-1]
-    p.terminate()
-    p.wait(timeout=10)
+    for url, _ in scripted_server(f"default_episode.scenario={SCENARIO}"):
+        yield url
 
 
 # A stand-in of OpenVLA's vla-scripts/deploy.py: its FastAPI route, json_numpy.patch(), request handling and replies,
@@ -291,24 +264,7 @@ def test_refused_connection():
 def test_supervised_run_through_the_served_policy(served, tmp_path):
     url, _ = served
     out = tmp_path / "ov"
-    r = subprocess.run(
-        [
-            sys.executable,
-            "scripts/supervise.py",
-            "policy=openvla",
-            f"openvla.url={url}",
-            "task=open_oven_center",
-            "trials=1",
-            "image_size=48",
-            "cameras=[front]",
-            "progress=false",
-            f"out_dir={out}",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    r = supervise_front(out, ["policy=openvla", f"openvla.url={url}"], "open_oven_center", 1, 48)
     assert r.returncode == 0, r.stderr
     res = json.loads((out / "results.json").read_text())["tasks"]["open_oven_center"]
     assert res["none"]["success"] == 1 and res["oracle"]["success"] == 1  # the served nominal plan opens it
@@ -317,25 +273,7 @@ def test_supervised_run_through_the_served_policy(served, tmp_path):
 def test_a_failing_server_ends_trials_not_the_run(tmp_path):
     srv, url = fake_server(b"<html>oops</html>")
     out = tmp_path / "bad"
-    r = subprocess.run(
-        [
-            sys.executable,
-            "scripts/supervise.py",
-            "policy=openvla",
-            f"openvla.url={url}",
-            "supervisor=none",
-            "task=pick_place_bottle",
-            "trials=2",
-            "image_size=32",
-            "cameras=[front]",
-            "progress=false",
-            f"out_dir={out}",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    r = supervise_front(out, ["policy=openvla", f"openvla.url={url}", "supervisor=none"], "pick_place_bottle", 2, 32)
     srv.shutdown()
     assert r.returncode == 0, r.stderr
     eps = [json.loads(x) for x in (out / "log.jsonl").read_text().splitlines() if '"episode"' in x]

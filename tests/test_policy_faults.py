@@ -9,15 +9,13 @@ import http.client
 import json
 import socket
 import socketserver
-import subprocess
-import sys
 import threading
 import time
 
 import json_numpy
 import numpy as np
 import pytest
-from conftest import ROOT
+from conftest import cli, run, scripted_server, serve_policy, supervise_front
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -268,26 +266,8 @@ def test_a_run_of_bad_replies_writes_its_results(tmp_path):
     server = RawPolicyServer([r for r, _ in BAD])
     out = tmp_path / "bad"
     try:
-        r = subprocess.run(
-            [
-                sys.executable,
-                "scripts/supervise.py",
-                "policy=openvla",
-                f"openvla.url={server.url}",
-                "openvla.timeout_s=5",
-                "supervisor=none",
-                f"task={SCENARIO}",
-                f"trials={len(BAD)}",
-                "image_size=32",
-                "cameras=[front]",
-                "progress=false",
-                f"out_dir={out}",
-            ],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=600,
-        )
+        policy = ["policy=openvla", f"openvla.url={server.url}", "openvla.timeout_s=5", "supervisor=none"]
+        r = supervise_front(out, policy, SCENARIO, len(BAD), 32)
     finally:
         server.shutdown()
         server.server_close()
@@ -314,20 +294,16 @@ def test_a_run_of_bad_replies_writes_its_results(tmp_path):
     ],
 )
 def test_bad_client_settings_are_one_line_errors(tmp_path, args, msg):
-    r = subprocess.run(
+    r = run(
         [
-            sys.executable,
-            "scripts/supervise.py",
+            cli("supervise"),
             "policy=openvla",
             "openvla.url=http://127.0.0.1:9/act",
             *args,
             "progress=false",
             f"out_dir={tmp_path / 'x'}",
         ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
+        120,
     )
     assert r.returncode == 2 and msg in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
 
@@ -353,27 +329,9 @@ def test_client_settings_from_the_command_line_reach_the_client(tmp_path):
     threading.Thread(target=srv.serve_forever, daemon=True).start()
     out = tmp_path / "slow"
     try:
-        r = subprocess.run(
-            [
-                sys.executable,
-                "scripts/supervise.py",
-                "policy=openvla",
-                f"openvla.url=http://127.0.0.1:{srv.server_address[1]}/act",
-                "openvla.encoded=true",
-                "openvla.timeout_s=0.5",
-                "supervisor=none",
-                f"task={SCENARIO}",
-                "trials=1",
-                "image_size=32",
-                "cameras=[front]",
-                "progress=false",
-                f"out_dir={out}",
-            ],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=300,
-        )
+        url = f"http://127.0.0.1:{srv.server_address[1]}/act"
+        policy = ["policy=openvla", f"openvla.url={url}", "openvla.encoded=true", "openvla.timeout_s=0.5"]
+        r = supervise_front(out, [*policy, "supervisor=none"], SCENARIO, 1, 32, timeout=300)
     finally:
         srv.shutdown()
         srv.server_close()
@@ -413,28 +371,11 @@ def test_a_reply_dripped_a_byte_at_a_time_is_cut_off_at_the_timeout():
     assert time.monotonic() - t < 1.5
 
 
-# ---- hostile uploads to scripts/serve_policy.py ------------------------------------------------------------------
+# ---- hostile uploads to labrobfail-serve-policy ------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def server():
-    p = subprocess.Popen(
-        [
-            sys.executable,
-            "scripts/serve_policy.py",
-            "policy=scripted",
-            "port=0",
-            "max_body_mb=1",
-            "request_timeout_s=1",
-        ],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    line = p.stdout.readline()
-    assert line.startswith("serving scripted on http://127.0.0.1:"), line + p.stderr.read()
-    yield int(line.split(":")[-1].split("/")[0]), p
-    p.terminate()
-    p.wait(timeout=10)
+    for url, p in scripted_server("max_body_mb=1", "request_timeout_s=1"):
+        yield int(url.split(":")[-1].split("/")[0]), p
 
 
 def post(port: int, body: bytes, headers: dict[str, str] | None = None, path: str = "/act") -> tuple[int, bytes]:
@@ -475,8 +416,8 @@ def image_doc(dtype: str) -> bytes:
         (b"[" * 100_000 + b"]" * 100_000, None, 400, b"nested too deeply"),
         (image_doc("|O"), None, 400, b"object arrays are refused"),
         (b"[1, 2, 3]", None, 422, b"JSON object"),
-        (b"{}", {"Content-Length": "-5"}, 400, b"bad Content-Length"),
-        (b"", {"Content-Length": str(2 << 20)}, 413, b"request over"),
+        (b"{}", {"Content-Length": "-5"}, 400, b"Invalid HTTP request"),  # uvicorn's own answer
+        (b"", {"Content-Length": str(2 << 20)}, 413, b"over the 1,048,576 byte limit"),  # refused before reading
         (good_request(), None, 200, b'{"__numpy__"'),
         (good_request(proprio=[0.0] * 8), None, 200, b'"error"'),  # proprio must be 9 numbers
         (good_request(proprio=["0"] * 9), None, 200, b'"error"'),
@@ -498,15 +439,61 @@ def test_hostile_uploads_get_clean_answers_and_the_server_keeps_serving(server, 
     assert post(port, good_request())[0] == 200 and proc.poll() is None
 
 
-def test_server_refuses_a_request_without_length_and_survives_a_stalled_upload(server):
+def test_server_bounds_a_chunked_upload_and_survives_a_stalled_upload(server):
     port, proc = server
-    reply = raw_exchange(port, b"POST /act HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\n")
-    assert reply.startswith(b"HTTP/1.0 411")
+    chunk = b"x" * 65536
+    chunked = b"".join(b"%x\r\n%s\r\n" % (len(chunk), chunk) for _ in range(20)) + b"0\r\n\r\n"  # 1.25 MiB
+    head = b"POST /act HTTP/1.1\r\nHost: x\r\nConnection: close\r\nTransfer-Encoding: chunked\r\n\r\n"
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
+        s.sendall(head + chunked)
+        reply = b""
+        while part := s.recv(65536):
+            reply += part
+    assert reply.startswith(b"HTTP/1.1 413") and b"request over 1048576 bytes" in reply, reply[:200]
     with socket.create_connection(("127.0.0.1", port), timeout=10) as stalled:
         stalled.sendall(b'POST /act HTTP/1.1\r\nHost: x\r\nContent-Length: 1000\r\n\r\n{"image"')
         t = time.monotonic()
         assert post(port, good_request())[0] == 200  # served at once beside the stalled upload
         assert time.monotonic() - t < 1.0
-        assert stalled.recv(100) == b""  # dropped after request_timeout_s=1
+        answer = b""
+        while part := stalled.recv(4096):  # a 408 after request_timeout_s=1, then the connection closes
+            answer += part
+        assert answer.startswith(b"HTTP/1.1 408") and b"not received within 1 s" in answer, answer[:200]
         assert time.monotonic() - t < 5.0
     assert post(port, good_request())[0] == 200 and proc.poll() is None
+
+
+def test_a_token_guards_every_path_but_health_and_sigterm_stops_cleanly(monkeypatch):
+    """The diagnosis server's token and shutdown on the policy server: without the bearer token a request is 401
+    (and the token is never echoed), the project's client sends it from the environment, /health stays open, and
+    SIGTERM ends the server with exit code 0."""
+    import os
+    import signal
+
+    token = "s3cret-policy-token"
+    p = serve_policy(
+        "policy=scripted",
+        "port=0",
+        f"default_episode.scenario={SCENARIO}",
+        env={**os.environ, "LABROBFAIL_POLICY_TOKEN": token},
+    )
+    try:
+        url = p.stdout.readline().split()[-1]
+        port = int(url.split(":")[-1].split("/")[0])
+        code, reply = post(port, good_request())
+        assert code == 401 and b"bearer token" in reply and token.encode() not in reply, (code, reply)
+        c = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+        c.request("GET", "/health")
+        health = c.getresponse()
+        assert health.status == 200 and json.loads(health.read())["policy"] == "scripted"
+        c.close()
+        monkeypatch.setenv("LABROBFAIL_POLICY_TOKEN", token)
+        action = OpenVLAClient(url, timeout_s=30).request(PAYLOAD)
+        assert action.shape == (7,) and np.all(np.isfinite(action))
+        monkeypatch.setenv("LABROBFAIL_POLICY_TOKEN", "wrong")
+        with pytest.raises(PolicyError, match="answered HTTP 401"):
+            OpenVLAClient(url, timeout_s=30).request(PAYLOAD)
+    finally:
+        p.send_signal(signal.SIGTERM)
+        out, err = p.communicate(timeout=30)
+    assert p.returncode == 0 and "stopped" in out and token not in out + err, (p.returncode, out, err[-500:])

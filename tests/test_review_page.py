@@ -6,8 +6,8 @@ import shutil
 
 import pytest
 
-from data.annotate import Annotated
-from data.review import write_review_page
+from labrobfail_data.annotate import Annotated
+from labrobfail_data.review import write_review_page
 
 pytestmark = pytest.mark.browser
 

@@ -6,12 +6,11 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import threading
 import time
 
 import pytest
-from conftest import ROOT
+from conftest import ROOT, cli, run
 from PIL import Image
 from serve_fixtures import TASKS, frame_lists, grids, mixed_model  # noqa: F401  (fixtures)
 
@@ -27,7 +26,7 @@ class Server:
         )
         self.log = log
         self.proc = subprocess.Popen(
-            [sys.executable, "scripts/serve.py", "--model", str(model), "--port", "0", *args],
+            [cli("serve"), "--model", str(model), "--port", "0", *args],
             cwd=ROOT,
             env=env,
             stdout=open(log, "w"),
@@ -62,16 +61,8 @@ class Server:
 
 @pytest.fixture(scope="module")
 def server(mixed_model, tmp_path_factory):  # noqa: F811
-    s = Server(
-        mixed_model,
-        tmp_path_factory.mktemp("srv") / "server.log",
-        "--max-batch",
-        "4",
-        "--max-wait-ms",
-        "300",
-        "--max-upload-mb",
-        "2",
-    )
+    flags = ["--max-batch", "4", "--max-wait-ms", "300", "--max-upload-mb", "2"]
+    s = Server(mixed_model, tmp_path_factory.mktemp("srv") / "server.log", *flags)
     yield s
     assert s.stop() == 0
     assert TOKEN not in s.log.read_text()  # the token is never logged
@@ -125,7 +116,7 @@ def _bad_requests(tmp):
         ([f("grid", ok), ("prefix", "17")], 400, "from 1 to 16"),
         ([("grid", "not a file")], 400, "expected an uploaded image file"),
         ([f("grid", ok), f("grid", ok)], 400, "more than once"),
-        ([f("grid", ok), f("frames.front", ok)], 400, "one or the other"),
+        ([f("grid", ok), f("frames.front", ok)], 400, "send exactly one of"),
         ([f("frames.front", ok), f("frames.front", ok), f("frames.side", ok)], 400, "unequal numbers"),
         ([f("frames.front", ok), ("prefix", "2")], 400, "from 1 to 1"),
         ([f("grid", ok), ("task", "x" * 3000)], 400, "longer than"),
@@ -223,7 +214,31 @@ def test_bad_arguments_are_one_line_errors(tmp_path):
         (["--model", str(tmp_path), "--port", "70000"], "port:"),
         (["--model", str(tmp_path), "--max-batch", "0"], "max_batch:"),
     ):
-        r = subprocess.run(
-            [sys.executable, "scripts/serve.py", *args], cwd=ROOT, capture_output=True, text=True, timeout=120
-        )
+        r = run([cli("serve"), *args], 120)
         assert r.returncode == 2 and needle in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_videos_are_diagnosed_as_the_analyzer_does_and_bad_ones_refused(server, fa, tmp_path):  # noqa: F811
+    """video.<view> fields: the server picks the keyframes as FailureAnalyzer.analyze_video does."""
+    import cv2
+
+    paths = {}
+    for view, frames in zip(("front", "side"), frame_lists(5, frames=30, side=64)):
+        paths[view] = tmp_path / f"{view}.mp4"
+        w = cv2.VideoWriter(str(paths[view]), cv2.VideoWriter_fourcc(*"mp4v"), 10, (64, 64))
+        for f in frames:
+            w.write(f)
+        w.release()
+    c = server.client()
+    for mode in ("uniform", "motion"):
+        got = c.diagnose(videos=paths, task="stir the solution", keyframes=mode)
+        want = fa.analyze_video(list(paths.values()), "stir the solution", keyframes=mode)
+        assert got == json.loads(want.to_json())
+    for videos, needle in [
+        ({"front": b"not a video at all"}, "video.front: 'front.mp4' is not a video"),
+        ({"front": paths["front"].read_bytes()[:3000]}, "header is truncated"),
+    ]:
+        code, body = c.post_form([(f"video.{v}", (f"{v}.mp4", d, "video/mp4")) for v, d in videos.items()])
+        assert code == 400 and needle in body["error"] and "\n" not in body["error"], (code, body)
+    code, body = c.post_form([("video.front", ("f.mp4", b"x", "video/mp4")), ("keyframes", "random")])
+    assert code == 400 and "keyframes: expected uniform or motion" in body["error"], body

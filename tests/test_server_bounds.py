@@ -8,15 +8,13 @@ import json
 import select
 import socket
 import struct
-import subprocess
-import sys
 import threading
 import time
 import zlib
 
 import numpy as np
 import pytest
-from conftest import ROOT
+from conftest import cli, run
 from PIL import Image
 from test_serve import Server, png
 from test_train import tiny  # noqa: F401  (session fixture)
@@ -27,21 +25,9 @@ BUDGET_MB, REQUEST_MB, BODY_TIMEOUT_S = 4, 2, 2
 
 @pytest.fixture(scope="module")
 def server(tiny, tmp_path_factory):  # noqa: F811
-    s = Server(
-        tiny,
-        tmp_path_factory.mktemp("bounds") / "server.log",
-        "--max-decode-mb",
-        str(BUDGET_MB),
-        "--max-request-decode-mb",
-        str(REQUEST_MB),
-        "--body-timeout-s",
-        str(BODY_TIMEOUT_S),
-        "--max-batch",
-        "4",
-        "--max-wait-ms",
-        "50",
-        token=None,
-    )
+    budgets = ["--max-decode-mb", str(BUDGET_MB), "--max-request-decode-mb", str(REQUEST_MB)]
+    batching = ["--body-timeout-s", str(BODY_TIMEOUT_S), "--max-batch", "4", "--max-wait-ms", "50"]
+    s = Server(tiny, tmp_path_factory.mktemp("bounds") / "server.log", *budgets, *batching, token=None)
     yield s
     assert s.stop() == 0
     log = s.log.read_text()
@@ -222,7 +208,7 @@ def test_decode_budget_waits_shrinks_and_refuses():
     from labrobfail_vlm.serve.batcher import Busy
     from labrobfail_vlm.serve.budget import DecodeBudget
 
-    async def run():
+    async def exercise():
         b = DecodeBudget(4)
         first = await b.reserve(3, 1)
         with pytest.raises(Busy, match="retry later"):
@@ -237,7 +223,7 @@ def test_decode_budget_waits_shrinks_and_refuses():
         await second.release()
         assert b.used == 0
 
-    asyncio.run(run())
+    asyncio.run(exercise())
 
 
 def test_bound_flags_are_checked(tiny):  # noqa: F811
@@ -247,13 +233,7 @@ def test_bound_flags_are_checked(tiny):  # noqa: F811
         (["--max-decode-mb", "nan"], "max_decode_mb:"),
         (["--max-connections", "0"], "max_connections:"),
     ):
-        r = subprocess.run(
-            [sys.executable, "scripts/serve.py", "--model", str(tiny), *args],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+        r = run([cli("serve"), "--model", str(tiny), *args], 120)
         assert r.returncode == 2 and needle in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
 
 

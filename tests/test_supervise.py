@@ -1,13 +1,11 @@
-"""The supervised loop and scripts/supervise.py on real PyBullet episodes."""
+"""The supervised loop and labrobfail-supervise on real PyBullet episodes."""
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import ROOT
+from conftest import ROOT, cli, run
 from test_train import tiny  # noqa: F401  (session fixture: a tiny Qwen3-VL checkpoint)
 
 from labrobfail_vlm.actions import PRIMITIVES
@@ -16,9 +14,7 @@ FAST = ["image_size=48", "progress=false", "cameras=[front]"]
 
 
 def supervise(*args, check=True):
-    r = subprocess.run(
-        [sys.executable, "scripts/supervise.py", *FAST, *args], cwd=ROOT, capture_output=True, text=True, timeout=600
-    )
+    r = run([cli("supervise"), *FAST, *args])
     if check:
         assert r.returncode == 0, r.stderr
     return r

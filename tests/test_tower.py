@@ -2,12 +2,11 @@
 exports, the tower loaded into the tiny Qwen3-VL (and the scratch path), the shipped tower's card, bad input."""
 
 import json
-import subprocess
 import sys
 
 import numpy as np
 import pytest
-from conftest import ROOT, gen
+from conftest import cli, gen, run
 
 # 4 keyframes x 2 views of 64 px in square 64 px cells (2 x 2 merged tokens each)
 TOWER_GRID = ["grid.width=128", "grid.height=256", "grid.max_frames=4", "grid.columns=2"]
@@ -24,52 +23,22 @@ def tower_shards(tmp_path_factory):
 @pytest.fixture(scope="module")
 def tower_data(tower_shards, tmp_path_factory):
     out = tmp_path_factory.mktemp("tower") / "data"
-    r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "scripts.build_tower_data",
-            f"data.shards={tower_shards}",
-            f"data.out_dir={out}",
-            "data.max_frames=4",
-            "data.image_size=64",
-            "data.ratios=[0.6,0.4]",
-            "data.progress=false",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    frames = ["data.max_frames=4", "data.image_size=64", "data.ratios=[0.6,0.4]", "data.progress=false"]
+    r = run([cli("build-tower-data"), f"data.shards={tower_shards}", f"data.out_dir={out}", *frames], 300)
     assert r.returncode == 0, r.stderr
     return out
 
 
 def _pretrain(data, out, *extra):
-    return subprocess.run(
-        [
-            sys.executable,
-            "scripts/pretrain_tower.py",
-            f"data.out_dir={data}",
-            f"out_dir={out}",
-            *TOWER_GRID,
-            *TINY_TOWER,
-            "batch_size=2",
-            "progress=false",
-            *extra,
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    tower = [*TOWER_GRID, *TINY_TOWER, "batch_size=2", "progress=false"]
+    return run([cli("pretrain-tower"), f"data.out_dir={data}", f"out_dir={out}", *tower, *extra])
 
 
 def test_targets_come_from_simulator_state(tower_shards):
     import pyarrow.parquet as pq
 
-    from data.annotate import grid_failure_frame, grid_picks
-    from data.frame_targets import CELL_TARGETS, row_targets
+    from labrobfail_data.annotate import grid_failure_frame, grid_picks
+    from labrobfail_data.frame_targets import CELL_TARGETS, row_targets
 
     rows = [r for f in sorted(tower_shards.glob("shard-*.parquet")) for r in pq.read_table(f).to_pylist()]
     assert {r["success"] for r in rows} == {True, False}
@@ -144,29 +113,12 @@ def test_pretraining_resumes_exports_and_the_tiny_model_takes_the_tower(tower_da
 
 
 def test_train_takes_a_tower_or_scratch(tower_shards, tower_data, tmp_path):
-    run = tmp_path / "run"
-    r = _pretrain(tower_data, run, "epochs=1", "layouts=[[front,side]]")
+    pretrained = tmp_path / "run"
+    r = _pretrain(tower_data, pretrained, "epochs=1", "layouts=[[front,side]]")
     assert r.returncode == 0, r.stderr[-3000:]
     ds = tmp_path / "ds"
-    r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "scripts.build_dataset",
-            f"shards={tower_shards}",
-            f"out_dir={ds}",
-            "views=[front,side]",
-            "grid.width=128",
-            "grid.height=256",
-            "grid.max_frames=4",
-            "grid.columns=2",
-            "progress=false",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    two_views = ["views=[front,side]", *TOWER_GRID, "progress=false"]
+    r = run([cli("build-dataset"), f"shards={tower_shards}", f"out_dir={ds}", *two_views], 300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert json.loads((ds / "stats.json").read_text())["views"] == ["front", "side"]
     common = [
@@ -182,21 +134,13 @@ def test_train_takes_a_tower_or_scratch(tower_shards, tower_data, tmp_path):
         "progress=false",
         "augment.enabled=true",
     ]
-    for tower in (str(run), "scratch"):
+    for tower in (str(pretrained), "scratch"):
         out = tmp_path / f"t-{tower == 'scratch'}"
-        r = subprocess.run(
-            [*common, f"output_dir={out}", f"tower={tower}"], cwd=ROOT, capture_output=True, text=True, timeout=600
-        )
+        r = run([*common, f"output_dir={out}", f"tower={tower}"])
         assert r.returncode == 0, r.stderr[-3000:]
         cfg = json.loads((out / "tiny_base" / "config.json").read_text())["vision_config"]
         assert (cfg["depth"], cfg["hidden_size"]) == ((1, 32) if tower != "scratch" else (2, 64))
-    r = subprocess.run(
-        [*common, f"output_dir={tmp_path / 'bad'}", f"tower={tmp_path / 'none'}"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    r = run([*common, f"output_dir={tmp_path / 'bad'}", f"tower={tmp_path / 'none'}"], 300)
     assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].startswith("error: tower:"), r.stderr
 
 

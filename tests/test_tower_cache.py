@@ -2,11 +2,10 @@
 the tower itself, served again on later epochs, never for a tower that trains."""
 
 import json
-import subprocess
 
 import pytest
 import torch
-from conftest import ROOT
+from conftest import run
 from test_train import small_ds, tiny, tiny_train  # noqa: F401 - session fixtures
 
 from labrobfail_vlm.train.tower_cache import TowerCache, cache_frozen_tower
@@ -85,13 +84,7 @@ def test_a_frozen_tower_run_encodes_each_grid_once_and_trains_as_without_the_cac
     summaries = []
     for mb in (4096, 0):
         out = tmp_path / f"mb{mb}"
-        r = subprocess.run(
-            tiny_train(tiny, small_ds, out, *frozen, f"tower_cache_mb={mb}"),
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=600,
-        )
+        r = run(tiny_train(tiny, small_ds, out, *frozen, f"tower_cache_mb={mb}"))
         assert r.returncode == 0, r.stderr[-3000:]
         summaries.append(json.loads((out / "train_summary.json").read_text()))
     cached, plain = summaries
@@ -102,11 +95,5 @@ def test_a_frozen_tower_run_encodes_each_grid_once_and_trains_as_without_the_cac
     assert cached["tower_cache"]["misses"] + cached["tower_cache"]["hits"] == 2 * grids
     assert "tower_cache" not in plain
     assert cached["train_loss"] == pytest.approx(plain["train_loss"], rel=1e-5)
-    r = subprocess.run(
-        tiny_train(tiny, small_ds, tmp_path / "bad", *frozen, "tower_cache_mb=-1"),
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    r = run(tiny_train(tiny, small_ds, tmp_path / "bad", *frozen, "tower_cache_mb=-1"), 300)
     assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].startswith("error: tower_cache_mb:"), r.stderr

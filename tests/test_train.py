@@ -3,33 +3,26 @@
 import json
 import os
 import shutil
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 import torch
-from conftest import ROOT, free_port
+from conftest import cli, free_port, run
 
 SMALL_GRID = ["grid.width=256", "grid.height=128", "grid.max_frames=8", "grid.columns=4"]
 
 
+def scratch_train(tiny, ds, out) -> list[str]:
+    """train.py on the tiny preset and model from a scratch tower, on the dataset folder `ds`, written to `out`."""
+    model = ["preset=tiny", "tower=scratch", f"model.path={tiny}"]
+    return [sys.executable, "train.py", *model, f"dataset_dir={ds}", f"output_dir={out}"]
+
+
 def tiny_train(tiny, ds, out, *extra: str) -> list[str]:
     """train.py on the tiny model from a scratch tower, batches of 2, no wandb or progress bars; `extra` wins."""
-    return [
-        sys.executable,
-        "train.py",
-        "preset=tiny",
-        "tower=scratch",
-        f"model.path={tiny}",
-        f"dataset_dir={ds}",
-        f"output_dir={out}",
-        "global_batch=2",
-        "per_device_batch=2",
-        "wandb.enabled=false",
-        "progress=false",
-        *extra,
-    ]
+    quiet = ["global_batch=2", "per_device_batch=2", "wandb.enabled=false", "progress=false"]
+    return [*scratch_train(tiny, ds, out), *quiet, *extra]
 
 
 @pytest.fixture(scope="session")
@@ -42,21 +35,7 @@ def tiny(tmp_path_factory):
 @pytest.fixture(scope="session")
 def small_ds(run6, tmp_path_factory):
     out = tmp_path_factory.mktemp("ds") / "small"
-    r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "scripts.build_dataset",
-            f"shards={run6}",
-            f"out_dir={out}",
-            "progress=false",
-            *SMALL_GRID,
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    r = run([cli("build-dataset"), f"shards={run6}", f"out_dir={out}", "progress=false", *SMALL_GRID], 300)
     assert r.returncode == 0, r.stderr
     return out
 
@@ -179,13 +158,7 @@ def test_save_reload_identical_logits_and_merge(tiny, small_ds, tmp_path):
     base = load_model(tiny).eval()
     with torch.no_grad():
         assert not torch.allclose(base(**b).logits, ref)  # training changed the model
-    r = subprocess.run(
-        [sys.executable, "scripts/merge.py", f"src={tmp_path / 'ck'}", f"out={tmp_path / 'merged'}"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    r = run([sys.executable, "scripts/merge.py", f"src={tmp_path / 'ck'}", f"out={tmp_path / 'merged'}"], 300)
     assert r.returncode == 0, r.stderr
     merged = Qwen3VLForConditionalGeneration.from_pretrained(tmp_path / "merged").eval()
     with torch.no_grad():
@@ -210,13 +183,7 @@ def test_bad_train_config_is_one_line(small_ds, tmp_path):
         (["curriculum.detect_first=1.5", f"dataset_dir={small_ds}"], "curriculum.detect_first"),
         (["curriculum.detect_first=0.5", "loss.mode=token", f"dataset_dir={small_ds}"], "curriculum.detect_first"),
     ]:
-        r = subprocess.run(
-            [sys.executable, "train.py", f"output_dir={tmp_path}/o", *args],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+        r = run([sys.executable, "train.py", f"output_dir={tmp_path}/o", *args], 120)
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
         assert field in r.stderr.strip().splitlines()[-1]
 
@@ -248,7 +215,7 @@ def test_deepspeed_two_cpu_ranks_train_save_resume(tiny, small_ds, tmp_path):
         "progress=false",
     ]
     launch = [ds_bin, "--num_gpus", "2", "--master_port", str(free_port())]
-    r = subprocess.run([*launch, *common, "max_steps=2"], cwd=ROOT, capture_output=True, text=True, timeout=900)
+    r = run([*launch, *common, "max_steps=2"], 900)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     # DeepSpeed's CPU all-reduce segments (one per rank, named after the port) are gone from RAM-backed /dev/shm
     assert not list(Path("/dev/shm").glob(f"deepspeed_allreduce_buffer_*_{launch[-1]}_*"))
@@ -260,9 +227,7 @@ def test_deepspeed_two_cpu_ranks_train_save_resume(tiny, small_ds, tmp_path):
     assert any("merger" in k for k in vision) and all(t.numel() > 0 for t in vision.values())
     assert any(float(t.abs().sum()) > 0 for k, t in adapter.items() if "lora_B" in k)  # it trained
     launch[-1] = str(free_port())  # the first run's port may linger in TIME_WAIT
-    r = subprocess.run(
-        [*launch, *common, "max_steps=3", "resume=true"], cwd=ROOT, capture_output=True, text=True, timeout=900
-    )
+    r = run([*launch, *common, "max_steps=3", "resume=true"], 900)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert not list(Path("/dev/shm").glob(f"deepspeed_allreduce_buffer_*_{launch[-1]}_*"))
     summary = json.loads((out / "train_summary.json").read_text())

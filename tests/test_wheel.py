@@ -3,12 +3,11 @@ only project-named packages and diagnoses a real PyBullet episode with a tiny ch
 
 import json
 import os
-import subprocess
 import sys
 import zipfile
 
 import pytest
-from conftest import ROOT
+from conftest import ROOT, run
 
 pytestmark = pytest.mark.slow
 
@@ -37,56 +36,24 @@ print(json.dumps({"scenario": ep.scenario, "diagnosis": json.loads(d.to_json())}
 
 
 def test_wheel_installs_outside_the_checkout_and_diagnoses_an_episode(tmp_path):
-    r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "pip",
-            "wheel",
-            "-q",
-            "--no-deps",
-            "--no-build-isolation",
-            "-w",
-            str(tmp_path / "whl"),
-            str(ROOT),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
+    pip = [sys.executable, "-m", "pip"]
+    r = run(
+        [*pip, "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", str(tmp_path / "whl"), str(ROOT)], cwd=None
     )
     assert r.returncode == 0, r.stderr[-2000:]
     wheel = next((tmp_path / "whl").glob("labrobfail-*.whl"))
     tops = {n.split("/")[0] for n in zipfile.ZipFile(wheel).namelist() if not n.split("/")[0].endswith(".dist-info")}
-    assert tops == {"labrobfail_vlm", "sim_backends"}, tops  # nothing named data, policies, supervision, ...
+    assert tops == {"labrobfail_vlm", "sim_backends", "labrobfail_data"}, tops  # nothing named data, scripts, ...
     site = tmp_path / "site"
-    r = subprocess.run(
-        [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", str(site), str(wheel)],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    r = run([*pip, "install", "-q", "--no-deps", "--target", str(site), str(wheel)], cwd=None)
     assert r.returncode == 0, r.stderr[-2000:]
     work = tmp_path / "elsewhere"
     work.mkdir()
     env = {**os.environ, "PYTHONPATH": str(site)}  # the installed copy first; the dependencies from this venv
-    r = subprocess.run(
-        [sys.executable, "-c", OUTSIDE, str(site), str(work)],
-        cwd=work,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    r = run([sys.executable, "-c", OUTSIDE, str(site), str(work)], cwd=work, env=env)
     assert r.returncode == 0, r.stderr[-3000:]
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert isinstance(out["diagnosis"]["failure"], bool) and 0 <= out["diagnosis"]["p_failure"] <= 1
     # the console scripts run from the installed copy too, with the shared command line
-    r = subprocess.run(
-        [str(site / "bin" / "labrobfail-infer"), "--help"],
-        cwd=work,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    r = run([str(site / "bin" / "labrobfail-infer"), "--help"], 300, cwd=work, env=env)
     assert r.returncode == 0 and "grid:" in r.stdout and "max_model_gb:" in r.stdout, r.stderr[-2000:]

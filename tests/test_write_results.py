@@ -12,7 +12,7 @@ from scripts.write_results import supervision
 def _results(
     path: Path, policy: str, tasks: dict[str, tuple[int, int]], model: str = "outputs/online/final", every: int = 0
 ) -> None:
-    """A results.json as scripts/supervise.py writes it: per task, the baseline and the VLM's summaries."""
+    """A results.json as labrobfail-supervise writes it: per task, the baseline and the VLM's summaries."""
 
     def summary(ok: int) -> dict:
         return {"success": ok, "trials": 25, "rate": 4.0 * ok, "episodes_with_intervention": 3, "stopped": 1}

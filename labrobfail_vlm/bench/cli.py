@@ -1,13 +1,13 @@
 """Score a model (or a predictions file) on LabRobFail-Bench and write results.json, results.md and PNGs. The code
-behind scripts/evaluate.py and the `labrobfail-evaluate` console script.
+behind labrobfail-evaluate and the `labrobfail-evaluate` console script.
 
 Run as:
-    python scripts/evaluate.py model=outputs/demo_train/final dataset_dir=outputs/demo_dataset split=test
-    python scripts/evaluate.py predictions=preds.jsonl dataset_dir=outputs/dataset split=val_object
-    python scripts/evaluate.py model=DIR dataset_dir=DIR external.enabled=true external.model=gpt-4o
-    python scripts/evaluate.py endpoint=http://127.0.0.1:8000/v1 dataset_dir=outputs/dataset split=test
-    python scripts/evaluate.py model=DIR dataset_dir=DIR batch_size=16      # grids decoded together
-    python scripts/evaluate.py model=DIR dataset_dir=DIR executable.enabled=true executable.shards=SHARDS_DIR
+    labrobfail-evaluate model=outputs/demo_train/final dataset_dir=outputs/demo_dataset split=test
+    labrobfail-evaluate predictions=preds.jsonl dataset_dir=outputs/dataset split=val_object
+    labrobfail-evaluate model=DIR dataset_dir=DIR external.enabled=true external.model=gpt-4o
+    labrobfail-evaluate endpoint=http://127.0.0.1:8000/v1 dataset_dir=outputs/dataset split=test
+    labrobfail-evaluate model=DIR dataset_dir=DIR batch_size=16      # grids decoded together
+    labrobfail-evaluate model=DIR dataset_dir=DIR executable.enabled=true executable.shards=SHARDS_DIR
 
 results.json: q1..q5 (top-1 %, Q1 exact ordered list, Q3 exact frame), q3_within1, q6 {bleu1..bleu4
 (nltk corpus_bleu, smoothing method1), rougeL (rouge-score, stemmer)} over ALL trajectories, breakdowns per
@@ -23,26 +23,13 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
 
 
-def main(argv: list[str]) -> int:
-    from labrobfail_vlm import questions as Q
-    from labrobfail_vlm.bench import evaluate as ev
-    from labrobfail_vlm.bench.detection import reliability_png
-    from labrobfail_vlm.bench.report import (
-        PAPER_ROWS,
-        confusion_png,
-        detection_markdown,
-        markdown,
-        paper_row,
-        paper_unseen_row,
-        row,
-    )
-    from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
-
-    cfg = load_config("evaluate.yaml", argv)
+def _check_args(cfg: Any) -> None:
+    """Refuse a bad command line before anything is read or written."""
     if sum(x is not None for x in (cfg.model, cfg.predictions, cfg.endpoint)) != 1:
         raise ConfigError("model/predictions/endpoint: give exactly one of model=DIR, predictions=FILE or endpoint=URL")
     if cfg.dataset_dir is None:
@@ -59,52 +46,72 @@ def main(argv: list[str]) -> int:
             raise ConfigError(
                 f"predictions: cannot read {cfg.predictions} ({e.strerror or type(e).__name__})"
             ) from None
-    recs, traj = ev.load_split(cfg.dataset_dir, cfg.split)
+
+
+def _out_dir(cfg: Any) -> Path:
+    """The output folder (made): out_dir, or eval_<split> beside the model or predictions file."""
     if cfg.endpoint is not None:
         out = Path(cfg.out_dir or Path("outputs") / f"eval_endpoint_{cfg.split}")
     else:
         src = Path(cfg.model or cfg.predictions)
         out = Path(cfg.out_dir or (src if src.is_dir() else src.parent) / f"eval_{cfg.split}")
     out.mkdir(parents=True, exist_ok=True)
-    log_lines: list[str] = []
-    results: dict[str, dict] = {}
-    analyzer = None
-    tmpl: dict[str, str] = {}  # Q6 in template mode (model and endpoint runs)
-    if cfg.model is not None or cfg.endpoint is not None:
-        if cfg.endpoint is not None:
-            from labrobfail_vlm.endpoint import EndpointAnalyzer
+    return out
 
-            analyzer = EndpointAnalyzer(
-                str(cfg.endpoint),
-                cfg.endpoint_model,
-                cfg.endpoint_key_env,
-                cfg.endpoint_timeout_s,
-                concurrency=cfg.batch_size,
-            )
-            name = f"LabRobFail-VLM endpoint ({analyzer.client.model})"
-        else:
-            from labrobfail_vlm.analyzer import FailureAnalyzer
 
-            analyzer = FailureAnalyzer.from_pretrained(cfg.model)
-            name = "LabRobFail-VLM (" + Path(cfg.model).name + ")"
-        preds = ev.model_predictions(
-            analyzer, cfg.dataset_dir, recs, traj, progress=cfg.progress, batch_size=cfg.batch_size
+def _load_analyzer(cfg: Any) -> tuple[Any, str]:
+    """The endpoint or local model that answers, and its row name."""
+    if cfg.endpoint is not None:
+        from labrobfail_vlm.endpoint import EndpointAnalyzer
+
+        analyzer = EndpointAnalyzer(
+            str(cfg.endpoint),
+            cfg.endpoint_model,
+            cfg.endpoint_key_env,
+            cfg.endpoint_timeout_s,
+            concurrency=cfg.batch_size,
         )
-        q6 = [r for r in recs if r["id"].endswith("_Q6")]
-        if cfg.q6_template and q6:
-            # the same model, Q6 chosen among the correction-strategy table's filled templates; the other
-            # answers do not depend on the Q6 mode, so only Q6 (and the Q2 verdict it follows) is asked again
-            analyzer.q6_mode = "template"
-            tmpl = ev.model_predictions(
-                analyzer, cfg.dataset_dir, q6, traj, progress=cfg.progress, batch_size=cfg.batch_size
-            )
-            results[name + ", Q6 template"] = ev.score(
-                recs, ev.Predictions({**preds, **tmpl}, p_failure=preds.p_failure), traj
-            )
-            analyzer.q6_mode = "free"
-    else:
-        preds = ev.read_predictions(cfg.predictions)
-        name = Path(cfg.predictions).stem
+        return analyzer, f"LabRobFail-VLM endpoint ({analyzer.client.model})"
+    from labrobfail_vlm.analyzer import FailureAnalyzer
+
+    analyzer = FailureAnalyzer.from_pretrained(cfg.model)
+    return analyzer, "LabRobFail-VLM (" + Path(cfg.model).name + ")"
+
+
+def _predict(
+    cfg: Any, recs: list[dict], traj: dict[str, dict], results: dict[str, dict]
+) -> tuple[Any, str, Any, dict[str, str]]:
+    """Run the model or endpoint, or read the predictions file: (analyzer or None, row name, predictions, Q6
+    template predictions). A template run's scores go into `results` under "<name>, Q6 template"."""
+    from labrobfail_vlm.bench import evaluate as ev
+
+    tmpl: dict[str, str] = {}  # Q6 in template mode (model and endpoint runs)
+    if cfg.model is None and cfg.endpoint is None:
+        return None, Path(cfg.predictions).stem, ev.read_predictions(cfg.predictions), tmpl
+    analyzer, name = _load_analyzer(cfg)
+    preds = ev.model_predictions(
+        analyzer, cfg.dataset_dir, recs, traj, progress=cfg.progress, batch_size=cfg.batch_size
+    )
+    q6 = [r for r in recs if r["id"].endswith("_Q6")]
+    if cfg.q6_template and q6:
+        # the same model, Q6 chosen among the correction-strategy table's filled templates; the other
+        # answers do not depend on the Q6 mode, so only Q6 (and the Q2 verdict it follows) is asked again
+        analyzer.q6_mode = "template"
+        tmpl = ev.model_predictions(
+            analyzer, cfg.dataset_dir, q6, traj, progress=cfg.progress, batch_size=cfg.batch_size
+        )
+        results[name + ", Q6 template"] = ev.score(
+            recs, ev.Predictions({**preds, **tmpl}, p_failure=preds.p_failure), traj
+        )
+        analyzer.q6_mode = "free"
+    return analyzer, name, preds, tmpl
+
+
+def _write_predictions(out: Path, preds: Any) -> None:
+    """predictions.jsonl: every answer, with P(failure) on each Q2 line whose trajectory has one."""
+    from labrobfail_vlm import questions as Q
+    from labrobfail_vlm.io import atomic_write_bytes
+
     p_fail = getattr(preds, "p_failure", {})
     atomic_write_bytes(
         out / "predictions.jsonl",
@@ -124,7 +131,14 @@ def main(argv: list[str]) -> int:
             for k, v in preds.items()
         ).encode(),
     )
-    results = {name: ev.score(recs, preds, traj, log_lines.append), **results}
+
+
+def _score_baselines(
+    cfg: Any, recs: list[dict], traj: dict[str, dict], analyzer: Any, results: dict[str, dict], log_lines: list[str]
+) -> None:
+    """Score the configured baselines (majority, blind) into `results`."""
+    from labrobfail_vlm.bench import evaluate as ev
+
     for b in cfg.baselines:
         if b == "majority":  # needs training answers: this dataset's train split, or majority_train=DIR's
             train_dir = cfg.majority_train or cfg.dataset_dir
@@ -152,22 +166,28 @@ def main(argv: list[str]) -> int:
             )
         else:
             raise ConfigError(f"baselines: unknown baseline {b!r}; known: majority, blind")
+
+
+def _score_external(
+    cfg: Any, recs: list[dict], traj: dict[str, dict], results: dict[str, dict], log_lines: list[str]
+) -> None:
+    """Score the external endpoint's answers into `results` when external.enabled."""
+    from labrobfail_vlm.bench import evaluate as ev
+
     if cfg.external.enabled:
         from labrobfail_vlm.llm_client import ChatClient
 
         client = ChatClient(cfg.external.base_url, cfg.external.model, cfg.external.api_key_env, cfg.external.timeout_s)
         ext = ev.external_predictions(client, cfg.dataset_dir, recs, cfg.progress, log_lines.append)
         results[str(cfg.external.name)] = ev.score(recs, ext, traj, log_lines.append)
-    executable_rows = {}
-    if cfg.executable.enabled:
-        executable_rows = q6_executable(
-            cfg, recs, traj, {name: preds, **({name + ", Q6 template": tmpl} if tmpl else {})}
-        )
-        for k, v in executable_rows.items():
-            if k in results:
-                results[k]["q6_executable"] = v
-    main_res = results[name]
-    fo = main_res["failure_only"]
+
+
+def _results_markdown(cfg: Any, recs: list[dict], results: dict[str, dict], name: str) -> str:
+    """results.md's tables: paper-comparable rows (with the paper's own), all-trajectory rows and detection."""
+    from labrobfail_vlm import questions as Q
+    from labrobfail_vlm.bench.report import PAPER_ROWS, detection_markdown, markdown, paper_row, paper_unseen_row, row
+
+    fo = results[name]["failure_only"]
     rows = {k: paper_row(v) for k, v in results.items()}
     unseen_row = paper_unseen_row(cfg.split)
     if cfg.reference_rows and (cfg.split == "test" or unseen_row):
@@ -185,29 +205,30 @@ def main(argv: list[str]) -> int:
         f"comparable with the paper), {len(recs)} records",
     )
     md += "\n" + detection_markdown(results, "Failure detection as a score: P(failure) for Q2")
-    payload = {
-        **main_res,
-        "split": cfg.split,
-        "method": name,
-        "baselines": {k: v for k, v in results.items() if k != name},
-    }
-    if executable_rows:
-        payload["q6_executable_gold"] = executable_rows["gold corrections"]
-        md += (
-            "\nExecutable correction accuracy (simulated: replay to the failure, run the correction, finish)\n\n"
-            "| Corrections | Fixed | Failures | Accuracy (%) | Mapped (%) |\n|---|---|---|---|---|\n"
-            + "".join(
-                f"| {k} | {v['success']} | {v['failures']} | {v['accuracy']} | {v['mapped']} |\n"
-                for k, v in executable_rows.items()
-            )
+    return md
+
+
+def _executable_markdown(executable_rows: dict[str, dict]) -> str:
+    """results.md's table of executable correction accuracy."""
+    return (
+        "\nExecutable correction accuracy (simulated: replay to the failure, run the correction, finish)\n\n"
+        "| Corrections | Fixed | Failures | Accuracy (%) | Mapped (%) |\n|---|---|---|---|---|\n"
+        + "".join(
+            f"| {k} | {v['success']} | {v['failures']} | {v['accuracy']} | {v['mapped']} |\n"
+            for k, v in executable_rows.items()
         )
-    atomic_write_json(out / "results.json", payload)
-    atomic_write_bytes(out / "results.md", md.encode())
-    ev.count_sealed_run(cfg.dataset_dir, cfg.split, str(cfg.model or cfg.predictions or cfg.endpoint), main_res)
-    atomic_write_bytes(out / "unparseable.log", "\n".join(log_lines).encode())
+    )
+
+
+def _write_pngs(out: Path, split: str, results: dict[str, dict], name: str) -> None:
+    """reliability_q2.png (every row with detection scores) and the main row's Q2, Q4, Q5 confusion matrices."""
+    from labrobfail_vlm.bench.detection import reliability_png
+    from labrobfail_vlm.bench.report import confusion_png
+
+    main_res = results[name]
     curves = {k: v["detection"] for k, v in results.items() if v.get("detection")}
     if curves:
-        reliability_png(curves, f"Q2 reliability, split {cfg.split}", out / "reliability_q2.png")
+        reliability_png(curves, f"Q2 reliability, split {split}", out / "reliability_q2.png")
     from labrobfail_vlm.taxonomy import Severity
 
     sev_names = {str(s.value): f"{s.value} {s.title.removesuffix(' Level')} / {s.main_text}" for s in Severity}
@@ -219,6 +240,47 @@ def main(argv: list[str]) -> int:
                 out / f"confusion_{d.lower()}.png",
                 sev_names if d == "Q4" else None,
             )
+
+
+def main(argv: list[str]) -> int:
+    from labrobfail_vlm.bench import evaluate as ev
+    from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
+
+    cfg = load_config("evaluate.yaml", argv)
+    _check_args(cfg)
+    recs, traj = ev.load_split(cfg.dataset_dir, cfg.split)
+    out = _out_dir(cfg)
+    log_lines: list[str] = []
+    results: dict[str, dict] = {}
+    analyzer, name, preds, tmpl = _predict(cfg, recs, traj, results)
+    _write_predictions(out, preds)
+    results = {name: ev.score(recs, preds, traj, log_lines.append), **results}
+    _score_baselines(cfg, recs, traj, analyzer, results, log_lines)
+    _score_external(cfg, recs, traj, results, log_lines)
+    executable_rows = {}
+    if cfg.executable.enabled:
+        executable_rows = q6_executable(
+            cfg, recs, traj, {name: preds, **({name + ", Q6 template": tmpl} if tmpl else {})}
+        )
+        for k, v in executable_rows.items():
+            if k in results:
+                results[k]["q6_executable"] = v
+    main_res = results[name]
+    md = _results_markdown(cfg, recs, results, name)
+    payload = {
+        **main_res,
+        "split": cfg.split,
+        "method": name,
+        "baselines": {k: v for k, v in results.items() if k != name},
+    }
+    if executable_rows:
+        payload["q6_executable_gold"] = executable_rows["gold corrections"]
+        md += _executable_markdown(executable_rows)
+    atomic_write_json(out / "results.json", payload)
+    atomic_write_bytes(out / "results.md", md.encode())
+    ev.count_sealed_run(cfg.dataset_dir, cfg.split, str(cfg.model or cfg.predictions or cfg.endpoint), main_res)
+    atomic_write_bytes(out / "unparseable.log", "\n".join(log_lines).encode())
+    _write_pngs(out, cfg.split, results, name)
     print(md)
     return 0
 

@@ -11,7 +11,7 @@ files must be complete (file length = header + the header's tensor offsets) and 
 and shapes the config implies. Fine-tuned checkpoints (labrobfail.json + adapter) are checked by
 `labrobfail_vlm.train.checkpoint.validate_checkpoint`, which uses these functions on their base.
 
-The memory budget: the `max_gb` argument (`max_model_gb` of infer.py / scripts/serve.py), else
+The memory budget: the `max_gb` argument (`max_model_gb` of infer.py / labrobfail-serve), else
 $LABROBFAIL_MAX_MODEL_GB, else half of this machine's memory (its cgroup limit when that is lower).
 """
 

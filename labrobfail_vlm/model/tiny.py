@@ -95,7 +95,7 @@ def corpus(texts: Iterable[str] = ()) -> list[str]:
 
 
 def dataset_texts(dataset_dir: str | Path, split: str = "train") -> list[str]:
-    """The human and gpt turns of one split of a dataset built by scripts/build_dataset.py (the training split by
+    """The human and gpt turns of one split of a dataset built by labrobfail-build-dataset (the training split by
     default: test-only words, such as unseen objects' names, stay out of the vocabulary, as they would for a
     real checkpoint's tokenizer; byte-level BPE still encodes them)."""
     recs = json.loads((Path(dataset_dir) / f"{split}.json").read_text())

@@ -1,6 +1,6 @@
 """The sim-pretrained vision tower shipped with the project, and how the tiny Qwen3-VL takes it.
 
-`make tower` (scripts/pretrain_tower.py, labrobfail_vlm/train/tower.py) writes `tower.safetensors` (the vision
+`make tower` (labrobfail-pretrain-tower, labrobfail_vlm/train/tower.py) writes `tower.safetensors` (the vision
 tower and merger of a Qwen3-VL, keys as in `model.visual`) and `tower.json` (its vision config, data, held-out
 accuracy, command and sha256); `labrobfail_vlm/assets/tower/` ships one. `train.py preset=tiny` builds its random
 model with that tower in place (`tower=shipped`, the preset's default), `tower=scratch` keeps the random tower,

@@ -6,6 +6,6 @@
     form.py     request validation: multipart fields -> a DiagnosisRequest, or a 4xx with one line
     client.py   a standard-library client (robot stacks, tests, scripts/bench_serve.py)
 
-The entry point is scripts/serve.py. FastAPI and uvicorn are imported only here, so the library itself does not
+The entry point is labrobfail-serve. FastAPI and uvicorn are imported only here, so the library itself does not
 need them.
 """

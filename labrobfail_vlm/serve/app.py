@@ -38,7 +38,7 @@ from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.images import ImageTooLarge
 from labrobfail_vlm.serve.batcher import Batcher, Busy
 from labrobfail_vlm.serve.budget import DecodeBudget, Reservation, mb
-from labrobfail_vlm.serve.form import MAX_REQUEST_DECODE_BYTES, Upload, build, plan
+from labrobfail_vlm.serve.form import FIELDS, MAX_REQUEST_DECODE_BYTES, Upload, build, plan
 
 log = logging.getLogger("labrobfail.serve")
 Scope = MutableMapping[str, Any]
@@ -88,8 +88,11 @@ class Guard:
     fully arrived `body_timeout_s` after the app started reading it with BodyTimeout. A client that goes away
     before its body is complete is logged here, in one line (the app then drops the request quietly)."""
 
-    def __init__(self, app: Any, token: str | None, max_bytes: int, body_timeout_s: float = 30.0):
+    def __init__(
+        self, app: Any, token: str | None, max_bytes: int, body_timeout_s: float = 30.0, error_key: str = "error"
+    ):
         self.app, self.max_bytes, self.body_timeout_s = app, max_bytes, body_timeout_s
+        self.error_key = error_key  # the JSON field of an error reply: "error" here, "detail" on OpenVLA's wire
         self._expected = f"Bearer {token}".encode() if token else None
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
@@ -101,13 +104,16 @@ class Guard:
             if not hmac.compare_digest(given, self._expected):
                 return await _reply(
                     send,
+                    self.error_key,
                     401,
                     "missing or wrong bearer token (Authorization: Bearer <token>)",
                     [(b"www-authenticate", b"Bearer")],
                 )
         length = headers.get(b"content-length", b"")
         if length.isdigit() and int(length) > self.max_bytes:
-            return await _reply(send, 413, f"upload of {int(length):,} bytes is over the {self.max_bytes:,} byte limit")
+            return await _reply(
+                send, self.error_key, 413, f"upload of {int(length):,} bytes is over the {self.max_bytes:,} byte limit"
+            )
         seen, done, deadline = 0, False, 0.0
         loop = asyncio.get_running_loop()
 
@@ -139,8 +145,10 @@ class Guard:
         await self.app(scope, counted, send)
 
 
-async def _reply(send: Send, status: int, message: str, extra: list[tuple[bytes, bytes]] | None = None) -> None:
-    body = json.dumps({"error": message}).encode()
+async def _reply(
+    send: Send, key: str, status: int, message: str, extra: list[tuple[bytes, bytes]] | None = None
+) -> None:
+    body = json.dumps({key: message}).encode()
     await send(
         {
             "type": "http.response.start",
@@ -166,33 +174,13 @@ def version() -> str:
         return "unknown"
 
 
-def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
-    """The app for one loaded FailureAnalyzer (the model is loaded once, by the caller)."""
-    __version__ = version()
+def error(status: int, message: str) -> JSONResponse:
+    return JSONResponse({"error": message}, status_code=status)
 
-    def run(batch: list[Any]) -> list[str]:
-        return [d.to_json() for d in analyzer.analyze_batch(batch, max_batch=cfg.max_batch)]
 
-    batcher: Batcher[Any, str] = Batcher(run, cfg.max_batch, cfg.max_wait_ms / 1000, cfg.max_queue)
-    budget = DecodeBudget(cfg.max_decode_bytes)
-
-    @asynccontextmanager
-    async def lifespan(_: Any):  # type: ignore[no-untyped-def]
-        await batcher.start()
-        yield
-        await batcher.stop()  # after uvicorn has let in-flight requests finish: drain what is queued
-
-    app = FastAPI(
-        title="LabRobFail-VLM diagnosis",
-        version=__version__,
-        lifespan=lifespan,
-        docs_url=None,
-        redoc_url=None,
-        openapi_url=None,
-    )
-
-    def error(status: int, message: str) -> JSONResponse:
-        return JSONResponse({"error": message}, status_code=status)
+def add_error_handlers(app: FastAPI, cfg: ServeConfig) -> None:
+    """Every failure as one JSON line {"error": ...}: HTTP errors, validation, the Guard's size and time limits, a
+    client gone mid-upload, and anything the model raises (500, logged in one line, never a traceback)."""
 
     @app.exception_handler(HTTPException)
     async def http_error(_: Request, exc: HTTPException) -> JSONResponse:
@@ -227,6 +215,46 @@ def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
         log.error("internal error: %s: %s", type(exc).__name__, str(exc).splitlines()[0][:200] if str(exc) else "")
         return error(500, f"internal error ({type(exc).__name__})")
 
+
+async def read_form(request: Request, max_files: int) -> list[tuple[str, str | Upload]]:
+    """The multipart form's fields, files read into memory (the Guard bounds the whole body)."""
+    form = await request.form(max_files=max_files, max_fields=16, max_part_size=64 * 1024)
+    try:
+        return [
+            (k, Upload(v.filename or "", await v.read()) if isinstance(v, UploadFile) else v)
+            for k, v in form.multi_items()
+        ]
+    finally:
+        await form.close()
+
+
+def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
+    """The app for one loaded FailureAnalyzer (the model is loaded once, by the caller)."""
+    __version__ = version()
+
+    def run(batch: list[Any]) -> list[str]:
+        return [d.to_json() for d in analyzer.analyze_batch(batch, max_batch=cfg.max_batch)]
+
+    batcher: Batcher[Any, str] = Batcher(run, cfg.max_batch, cfg.max_wait_ms / 1000, cfg.max_queue)
+    budget = DecodeBudget(cfg.max_decode_bytes)
+
+    @asynccontextmanager
+    async def lifespan(_: Any):  # type: ignore[no-untyped-def]
+        await batcher.start()
+        yield
+        await batcher.stop()  # after uvicorn has let in-flight requests finish: drain what is queued
+
+    app = FastAPI(
+        title="LabRobFail-VLM diagnosis",
+        version=__version__,
+        lifespan=lifespan,
+        docs_url=None,
+        redoc_url=None,
+        openapi_url=None,
+    )
+
+    add_error_handlers(app, cfg)
+
     @app.get("/health")
     async def health() -> dict[str, Any]:
         s = batcher.stats
@@ -253,18 +281,16 @@ def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
             "device": str(p.device),
             "dtype": str(p.dtype).removeprefix("torch."),
             "serve": cfg.public(),
-            "fields": "grid or frames.<view> files, task, prefix, objects",
+            "fields": FIELDS,
         }
 
     @app.post("/diagnose")
     async def diagnose(request: Request) -> Response:
         ctype = request.headers.get("content-type", "")
         if not ctype.startswith("multipart/form-data"):
-            return error(
-                415, "expected a multipart/form-data upload (grid or frames.<view> files, task, prefix, objects)"
-            )
+            return error(415, f"expected a multipart/form-data upload ({FIELDS})")
         try:
-            req, held = await prepare(await read_form(request))
+            req, held = await prepare(await read_form(request, cfg.max_files))
         except ImageTooLarge as e:
             return error(413, str(e))
         except ConfigError as e:
@@ -278,16 +304,6 @@ def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
         finally:  # the decoded grid waited in the queue until now: its memory counted until the reply
             await held.release()
         return Response(body, media_type="application/json")
-
-    async def read_form(request: Request) -> list[tuple[str, str | Upload]]:
-        form = await request.form(max_files=cfg.max_files, max_fields=16, max_part_size=64 * 1024)
-        try:
-            return [
-                (k, Upload(v.filename or "", await v.read()) if isinstance(v, UploadFile) else v)
-                for k, v in form.multi_items()
-            ]
-        finally:
-            await form.close()
 
     async def prepare(items: list[tuple[str, str | Upload]]) -> tuple[DiagnosisRequest, Reservation]:
         """Fields checked and images priced from their headers, memory reserved, then decoded (off the event

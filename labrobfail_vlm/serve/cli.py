@@ -1,9 +1,9 @@
 """Serve LabRobFail-VLM over HTTP: POST /diagnose (grid or per-view keyframes -> Diagnosis JSON), GET /health,
-/info. The code behind scripts/serve.py and the `labrobfail-serve` console script.
+/info. The code behind labrobfail-serve and the `labrobfail-serve` console script.
 
 Run as:
-    python scripts/serve.py --model outputs/demo_train/final [--host 127.0.0.1] [--port 8100]
-    LABROBFAIL_API_TOKEN=... python scripts/serve.py --model DIR --max-batch 16 --max-wait-ms 20
+    labrobfail-serve --model outputs/demo_train/final [--host 127.0.0.1] [--port 8100]
+    LABROBFAIL_API_TOKEN=... labrobfail-serve --model DIR --max-batch 16 --max-wait-ms 20
     curl -F grid=@grid.png -F task="pick up the small beaker" http://127.0.0.1:8100/diagnose
 
 Loopback only unless host says otherwise. With $LABROBFAIL_API_TOKEN set (or the variable token_env names),
@@ -21,24 +21,12 @@ Defaults: configs/serve.yaml.
 
 from __future__ import annotations
 
-import ipaddress
-import logging
 import math
-import os
-import signal
-import socket
-import sys
 from pathlib import Path
 from typing import Any
 
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
-
-
-def _loopback(host: str) -> bool:
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return host == "localhost"
+from labrobfail_vlm.serve.http import app_log, bearer_token, listen, serve
 
 
 def _num(a: Any, key: str, integer: bool = False, low: float = 0.0, strict: bool = True) -> None:
@@ -70,16 +58,6 @@ def check_bounds(a: Any) -> None:
         raise ConfigError(f"log_level: expected critical, error, warning, info or debug, got {a.log_level!r}")
 
 
-def app_log(level: str) -> None:
-    """The app's own lines (a client gone mid-upload, an internal error) in uvicorn's format, one line each."""
-    handler = logging.StreamHandler()
-    handler.setFormatter(logging.Formatter("%(levelname)s:  %(message)s"))
-    lg = logging.getLogger("labrobfail.serve")
-    lg.addHandler(handler)
-    lg.setLevel(level.upper())
-    lg.propagate = False
-
-
 def main(argv: list[str]) -> int:
     a = load_config("serve.yaml", argv)
     if not isinstance(a.model, str):
@@ -91,17 +69,8 @@ def main(argv: list[str]) -> int:
     if not Path(a.model).is_dir():
         raise ConfigError(f"model: no such model directory {a.model!r}")
     validate_checkpoint(a.model, "model", a.max_model_gb)  # before any tensor is built: fail at start
-    token = os.environ.get(a.token_env, "")
-    if not _loopback(a.host) and not token:
-        print(f"warning: serving on {a.host} without a token; set {a.token_env} to require one", file=sys.stderr)
-    try:  # bind before loading the model: a taken port fails fast
-        sock = socket.socket(socket.AF_INET6 if ":" in a.host else socket.AF_INET)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.bind((a.host, a.port))
-    except OSError as e:
-        raise ConfigError(f"host/port: cannot listen on {a.host}:{a.port} ({e.strerror or e})") from None
-
-    import uvicorn
+    token = bearer_token(a.token_env, a.host)
+    sock = listen(a.host, a.port)  # bind before loading the model: a taken port fails fast
 
     from labrobfail_vlm.analyzer import FailureAnalyzer
     from labrobfail_vlm.serve.app import ServeConfig, create_app
@@ -113,27 +82,19 @@ def main(argv: list[str]) -> int:
         max_wait_ms=a.max_wait_ms,
         max_queue=a.max_queue,
         max_upload_bytes=int(a.max_upload_mb * 1024 * 1024),
-        token=token or None,
+        token=token,
         max_decode_bytes=int(a.max_decode_mb * 1024 * 1024),
         max_request_decode_bytes=int(a.max_request_decode_mb * 1024 * 1024),
         body_timeout_s=a.body_timeout_s,
     )
-    app_log(a.log_level)
-    server = uvicorn.Server(
-        uvicorn.Config(create_app(fa, cfg), log_level=a.log_level, lifespan="on", limit_concurrency=a.max_connections)
-    )
+    app_log("labrobfail.serve", a.log_level)
     port = sock.getsockname()[1]
     print(
         f"serving {cfg.model_name} on http://{a.host}:{port} (max batch {a.max_batch}, "
         f"token {'required' if token else 'off'})",
         flush=True,
     )
-    # uvicorn finishes the requests in flight on SIGINT/SIGTERM, then raises the signal again: handled here, so a
-    # graceful stop exits 0
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: None)
-    server.run(sockets=[sock])
-    print("stopped: requests in flight finished", flush=True)
+    serve(create_app(fa, cfg), sock, a.log_level, a.max_connections)
     return 0
 
 

@@ -4,6 +4,7 @@
     c = DiagnosisClient("http://127.0.0.1:8100")          # token from $LABROBFAIL_API_TOKEN, if set
     diagnosis = c.diagnose(grid="grid.png", task="pick up the small beaker")
     diagnosis = c.diagnose(frames={"front": [f0, f1, ...], "side": [...]}, task="...", prefix=3)
+    diagnosis = c.diagnose(videos={"front": "front.mp4", "side": "side.mp4"}, task="...", keyframes="motion")
 
 One client holds one keep-alive connection: use one per thread. A reply other than 200 raises ServiceError
 with the server's one-line message. `retries=N` sends a request again, up to N times `retry_wait_s` apart, when
@@ -126,12 +127,22 @@ class DiagnosisClient:
         task: str = "",
         prefix: int | None = None,
         objects: Sequence[str] = (),
+        videos: Mapping[str, str | Path | bytes] | None = None,
+        keyframes: str | None = None,
     ) -> dict[str, Any]:
+        """One of `grid`, `frames` (view -> keyframes) or `videos` (view -> a video file or its bytes; the server
+        picks `keyframes`: uniform or motion)."""
         parts: list[Part] = []
         if grid is not None:
             parts.append(image_part("grid", grid))
         for view, imgs in (frames or {}).items():
             parts.extend(image_part(f"frames.{view}", im, f"{view}-{i}.png") for i, im in enumerate(imgs))
+        for view, video in (videos or {}).items():
+            data = video if isinstance(video, bytes) else Path(video).read_bytes()
+            name = f"{view}.mp4" if isinstance(video, bytes) else Path(video).name
+            parts.append((f"video.{view}", (name, data, "video/mp4")))
+        if keyframes:
+            parts.append(("keyframes", keyframes))
         if task:
             parts.append(("task", task))
         if prefix is not None:

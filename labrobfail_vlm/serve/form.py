@@ -4,6 +4,9 @@ Fields (multipart/form-data):
     grid            one keyframe-grid image (PNG/JPEG/...), as built by labrobfail_vlm.grid
     frames.<view>   or per-view keyframe images, repeated in temporal order (e.g. frames.front, frames.side);
                     the server composes the grid in the layout the model was trained on
+    video.<view>    or one video per view (e.g. video.front, video.side, in the grid's view order): the server
+                    picks the keyframes (labrobfail_vlm/video.py) and composes the grid
+    keyframes       how video keyframes are picked: uniform (in time, the default) or motion (optional)
     task            the task in words (optional)
     prefix          k: a partial trajectory, only its first k keyframes shown (optional); Q3 answers 1..k
     objects         comma-separated object/place names of the scene (Q6 template mode; optional)
@@ -17,10 +20,14 @@ Two steps, so the server can reserve memory in between: `plan` checks the fields
 from __future__ import annotations
 
 import io
+import os
 import re
+import tempfile
 import warnings
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
-from typing import Sequence
+from pathlib import Path
+from typing import Iterator, Sequence
 
 from PIL import Image, UnidentifiedImageError
 
@@ -30,8 +37,8 @@ from labrobfail_vlm.grid import GridConfig
 from labrobfail_vlm.images import ImageTooLarge, decode_image
 from labrobfail_vlm.serve.budget import mb
 
-FIELDS = "grid or frames.<view> files, task, prefix, objects"
-TEXT_FIELDS = ("task", "prefix", "objects")
+FIELDS = "grid, frames.<view> or video.<view> files, task, prefix, objects, keyframes"
+TEXT_FIELDS = ("task", "prefix", "objects", "keyframes")
 MAX_TEXT = 2000  # characters of a text field
 MAX_VIEWS = 8
 MAX_REQUEST_DECODE_BYTES = 256 << 20  # the default per-request limit (ServeConfig.max_request_decode_bytes)
@@ -41,6 +48,7 @@ RGB_BYTES = 4  # PIL keeps an RGB image at 4 bytes per pixel (padded)
 # ~10 per pixel for a 15 MP grid)
 KEPT_BYTES = 4 + 4 + 12
 _VIEW = re.compile(r"^frames\.([A-Za-z0-9_-]{1,32})$")
+_VIDEO = re.compile(r"^video\.([A-Za-z0-9_-]{1,32})$")
 _PREFIX = re.compile(r"[0-9]{1,6}")  # ASCII digits only: str.isdigit() also accepts "²", which int() refuses
 _CONTROL = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f]")  # control characters other than tab and newlines
 
@@ -64,6 +72,7 @@ class Plan:
     prefix: int | None
     cost: int
     kept: int
+    videos: dict[str, Upload] | None = None
 
 
 @dataclass(frozen=True)
@@ -111,9 +120,18 @@ def plan(
     text: dict[str, str] = {}
     image: Upload | None = None
     views: dict[str, list[Upload]] = {}
+    videos: dict[str, Upload] = {}
     for name, value in items:
         view = _VIEW.match(name)
-        if name == "grid" or view:
+        if (video := _VIDEO.match(name)) is not None:
+            if not isinstance(value, Upload):
+                raise ConfigError(f"{name}: expected an uploaded video file, got a text value")
+            if video.group(1) in videos:
+                raise ConfigError(f"{name}: given more than once (one video per camera view)")
+            if len(videos) == MAX_VIEWS:
+                raise ConfigError(f"{name}: at most {MAX_VIEWS} camera views")
+            videos[video.group(1)] = value
+        elif name == "grid" or view:
             if not isinstance(value, Upload):
                 raise ConfigError(f"{name}: expected an uploaded image file, got a text value")
             if name == "grid":
@@ -128,10 +146,13 @@ def plan(
             text[name] = _text(name, value, text)
         else:
             raise ConfigError(f"unknown field {name[:64]!r}; expected {FIELDS}")
-    if image is None and not views:
-        raise ConfigError(f"missing image: send a grid file or frames.<view> files ({FIELDS})")
-    if image is not None and views:
-        raise ConfigError("grid and frames.<view> given together: send one or the other")
+    if sum(map(bool, (image is not None, views, videos))) != 1:
+        what = "missing image: send" if image is None and not views and not videos else "send exactly"
+        raise ConfigError(f"{what} one of a grid file, frames.<view> files or video.<view> files ({FIELDS})")
+    if text.get("keyframes", "uniform") not in ("uniform", "motion"):
+        raise ConfigError(f"keyframes: expected uniform or motion, got {text['keyframes'][:32]!r}")
+    if videos:
+        return _plan_videos(text, videos, grid, max_bytes)
     if image is not None:
         hd = read_header(image, "grid")
         kept = hd.width * hd.height * KEPT_BYTES
@@ -162,10 +183,55 @@ def plan(
     return Plan(text, None, views, k, cost, kept)
 
 
+def _plan_videos(text: dict[str, str], videos: dict[str, Upload], grid: GridConfig, max_bytes: int) -> Plan:
+    """Videos priced from their headers: the keyframes kept per view, a frame being decoded, the grid composed."""
+    from labrobfail_vlm.video import header
+
+    px = grid.width * grid.height
+    kept, cost, shown = px * KEPT_BYTES, 2 * px * RGB_BYTES, grid.max_frames
+    for v, u in videos.items():
+        with _spooled(u) as path:
+            w, h, n = header(path, f"video.{v}", _name(u))
+        shown = min(shown, n) if n > 0 else shown
+        cost += (grid.max_frames + 2) * w * h * RGB_BYTES
+        if max(cost, kept) > max_bytes:
+            raise ImageTooLarge(
+                f"video.{v}: the keyframes of {_name(u)} ({w}x{h} px) and the grid take ~{mb(cost)} decoded, over "
+                f"the {mb(max_bytes)} per-request limit (send smaller videos)"
+            )
+    return Plan(text, None, {}, _prefix(text.get("prefix"), shown), max(cost, kept), kept, videos)
+
+
+@contextmanager
+def _spooled(u: Upload) -> Iterator[str]:
+    """An uploaded video as a temporary file (OpenCV reads files, not memory), removed afterwards."""
+    suffix = Path(u.filename).suffix[:8] if u.filename else ".mp4"
+    fd, path = tempfile.mkstemp(prefix="labrobfail-video-", suffix=suffix if suffix.isascii() else ".mp4")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(u.data)
+        yield path
+    finally:
+        os.unlink(path)
+
+
+def _video_frames(p: Plan, grid: GridConfig) -> list[list[Image.Image]]:
+    from labrobfail_vlm.video import keyframes, scan
+
+    assert p.videos is not None
+    with ExitStack() as stack:
+        clips = [scan(stack.enter_context(_spooled(u)), f"video.{v}", _name(u)) for v, u in p.videos.items()]
+        return keyframes(clips, grid.max_frames, p.text.get("keyframes") or "uniform")
+
+
 def build(p: Plan, grid: GridConfig) -> DiagnosisRequest:
     """Decode the planned images (fully, with images.py's checks) and compose the request."""
     objects = [o.strip() for o in p.text.get("objects", "").split(",") if o.strip()]
     task = p.text.get("task", "")
+    if p.videos:
+        frames = _video_frames(p, grid)
+        shown = min(len(frames[0]), grid.max_frames)
+        return DiagnosisRequest(frames_to_grid(frames, grid, visible=p.prefix), task, p.prefix or shown, objects)
     if p.image is not None:
         return DiagnosisRequest(_decode(p.image, "grid"), task, p.prefix, objects)
     frames = [[_decode(u, f"frames.{v}") for u in fs] for v, fs in p.views.items()]

@@ -8,7 +8,7 @@ Layout of a checkpoint directory:
   processor files                                  tokenizer, chat template, image processor
 `load_finetuned` rebuilds the model from the base directory; scripts/merge.py writes a standalone model.
 `validate_checkpoint` checks any model directory (base, merged or fine-tuned) before a tensor is built: the one
-check infer.py, scripts/serve.py and FailureAnalyzer.from_pretrained (the VLM supervisor) go through.
+check infer.py, labrobfail-serve and FailureAnalyzer.from_pretrained (the VLM supervisor) go through.
 """
 
 from __future__ import annotations

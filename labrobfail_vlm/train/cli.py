@@ -31,10 +31,10 @@ def _world_size() -> int:
 
 
 def dataset_stats(dataset_dir: Any) -> Path:
-    """The stats.json of a dataset built by scripts/build_dataset.py; a ConfigError for anything else."""
+    """The stats.json of a dataset built by labrobfail-build-dataset; a ConfigError for anything else."""
     stats = Path(dataset_dir or "") / "stats.json"
     if dataset_dir is None or not stats.is_file():
-        raise ConfigError(f"dataset_dir: {dataset_dir!r} is not a dataset built by scripts/build_dataset.py")
+        raise ConfigError(f"dataset_dir: {dataset_dir!r} is not a dataset built by labrobfail-build-dataset")
     return stats
 
 
@@ -86,29 +86,19 @@ def _grounding(cfg: Any, model: Any, grid: dict[str, Any]) -> tuple[dict[str, An
     return {"head": head, "weight": float(g.weight), "rank": float(g.rank), "lr": float(g.lr)}, targets
 
 
-def run(cfg: Any) -> dict[str, Any]:
-    import torch
-    from transformers import TrainingArguments, set_seed
-
-    from labrobfail_vlm.model.hybrid import apply_tuning, count_trainable, freeze_zero_lr
-    from labrobfail_vlm.model.loading import load_model, load_processor
-    from labrobfail_vlm.train.checkpoint import last_complete_checkpoint
-    from labrobfail_vlm.train.curriculum import DetectFirst, PolarityWarmup, Rewording
-    from labrobfail_vlm.train.data import Collator, VQADataset
-    from labrobfail_vlm.train.packing import TrajectoryDataset
-    from labrobfail_vlm.train.trainer import HybridTrainer, ProgressLog, check_loss_mode
-
-    # Seed before anything random is made: the grounding head is initialised before the Trainer seeds, and a
-    # run that starts from a checkpoint (model.path) builds nothing that would seed it (torch's start-up seed
-    # differs from process to process here).
-    set_seed(int(cfg.seed))
-    grid = _check_dataset(cfg)
-    check_loss_mode(str(cfg.loss.mode))  # before the model loads
+def _curriculum(cfg: Any) -> tuple[bool, float, float]:
+    """The curriculum's (pairs, polarity_warmup, detect_first), after checking the fractions are in [0, 1]."""
     pairs, warm = bool(cfg.curriculum.pairs), float(cfg.curriculum.polarity_warmup)
     detect = float(cfg.curriculum.detect_first)
     for key, v in (("polarity_warmup", warm), ("detect_first", detect)):
         if not 0.0 <= v <= 1.0:
             raise ConfigError(f"curriculum.{key}: a fraction of the steps in [0, 1], got {v}")
+    return pairs, warm, detect
+
+
+def _check_settings(cfg: Any, detect: float) -> int:
+    """Check the grounding, tower cache, loss and model settings before anything is built (a bad value fails
+    in seconds, not after the model loads); returns grounding.pretrain_epochs (stage A's epochs, 0: none)."""
     for key in ("weight", "rank", "lr", "pretrain_epochs"):
         if float(cfg.grounding[key]) < 0:
             raise ConfigError(f"grounding.{key}: must be >= 0, got {cfg.grounding[key]}")
@@ -131,6 +121,12 @@ def run(cfg: Any) -> dict[str, Any]:
         raise ConfigError("curriculum.detect_first: needs loss.mode=record (it sets per-record loss weights)")
     if cfg.model.path is None:
         raise ConfigError("model.path: give a local Qwen3-VL directory (or use preset=tiny)")
+    return pre_epochs
+
+
+def _prepare_model_dir(cfg: Any) -> dict[str, Any]:
+    """Build preset=tiny's model at model.path when it is not there yet (with the `tower` it names); returns the
+    tower's provenance for the summary ({} when none was put in)."""
     from labrobfail_vlm.model.tower import read_card, resolve
 
     tower_dir = resolve(cfg.tower)
@@ -155,14 +151,33 @@ def run(cfg: Any) -> dict[str, Any]:
             text=OmegaConf.to_container(cfg.tiny_arch.text),  # type: ignore[arg-type]
             tower=tower_dir,
         )
+    return tower_info
+
+
+def _dtype(cfg: Any) -> Any:
+    """model.dtype as a torch dtype; a ConfigError for anything but bfloat16 or float32."""
+    import torch
+
     dtype = {"bfloat16": torch.bfloat16, "float32": torch.float32}.get(cfg.model.dtype)
     if dtype is None:
         raise ConfigError(f"model.dtype: expected bfloat16 or float32, got {cfg.model.dtype!r}")
+    return dtype
+
+
+def _batch_split(cfg: Any) -> tuple[int, int]:
+    """(per_device_batch, ranks), after checking global_batch divides evenly over them."""
     per_dev, world = int(cfg.per_device_batch), _world_size()
     if per_dev < 1 or int(cfg.global_batch) % (per_dev * world):
         raise ConfigError(
             f"global_batch: {cfg.global_batch} is not a multiple of per_device_batch x ranks ({per_dev} x {world})"
         )
+    return per_dev, world
+
+
+def _start_services(cfg: Any) -> None:
+    """wandb's environment and DeepSpeed's process group, both needed before TrainingArguments is made."""
+    import torch
+
     if cfg.wandb.enabled:
         os.environ.setdefault("WANDB_MODE", str(cfg.wandb.mode))
         os.environ.setdefault("WANDB_PROJECT", str(cfg.wandb.project))
@@ -174,6 +189,13 @@ def run(cfg: Any) -> dict[str, Any]:
         import deepspeed  # DeepSpeed's own process group: its config reads the world size from it
 
         deepspeed.init_distributed(dist_backend="nccl" if torch.cuda.is_available() else "gloo")
+
+
+def _training_arguments(cfg: Any, dtype: Any, per_dev: int, world: int) -> Any:
+    """The Trainer's TrainingArguments from the run's config, checked against the ranks actually up."""
+    import torch
+    from transformers import TrainingArguments
+
     args = TrainingArguments(
         output_dir=str(cfg.output_dir),
         per_device_train_batch_size=per_dev,
@@ -204,6 +226,15 @@ def run(cfg: Any) -> dict[str, Any]:
     # (reading world_size initialises it), before the model is built.
     if args.world_size != world:
         raise ConfigError(f"deepspeed: {args.world_size} ranks are up but WORLD_SIZE says {world}")
+    return args
+
+
+def _load_tuned_model(cfg: Any, dtype: Any) -> tuple[Any, Any, Any, Any]:
+    """(processor, model, trainable counts, tower cache or None): the model loaded, set up for tuning (full
+    vision + LoRA decoder per `tuning`), its zero-lr groups frozen, and its frozen tower cached when it can be."""
+    from labrobfail_vlm.model.hybrid import apply_tuning, count_trainable, freeze_zero_lr
+    from labrobfail_vlm.model.loading import load_model, load_processor
+
     processor = load_processor(cfg.model.path)
     processor.tokenizer.padding_side = "right"
     model = load_model(cfg.model.path, dtype)
@@ -216,8 +247,25 @@ def run(cfg: Any) -> dict[str, Any]:
         from labrobfail_vlm.train.tower_cache import cache_frozen_tower
 
         cache = cache_frozen_tower(model, float(cfg.tower_cache_mb))
-    if args.process_index == 0:
-        print(json.dumps({"trainable_parameters": counts, "tuning": cfg.tuning, "preset": cfg.preset}), flush=True)
+    return processor, model, counts, cache
+
+
+def _build_trainer(
+    cfg: Any,
+    args: Any,
+    model: Any,
+    processor: Any,
+    grid: dict[str, Any],
+    curriculum: tuple[bool, float, float],
+) -> tuple[Any, Any, dict[str, Any] | None]:
+    """(trainer, progress log, grounding or None): the training set, its collator and curriculum callbacks, and
+    the HybridTrainer that runs them."""
+    from labrobfail_vlm.train.curriculum import DetectFirst, PolarityWarmup, Rewording
+    from labrobfail_vlm.train.data import Collator, VQADataset
+    from labrobfail_vlm.train.packing import TrajectoryDataset
+    from labrobfail_vlm.train.trainer import HybridTrainer, ProgressLog
+
+    pairs, warm, detect = curriculum
     # packing: a trajectory's records share one row and one image encoding (labrobfail_vlm/train/packing.py);
     # per_device_batch and global_batch then count trajectories
     train = TrajectoryDataset(cfg.dataset_dir, "train") if cfg.packing else VQADataset(cfg.dataset_dir, "train")
@@ -253,6 +301,13 @@ def run(cfg: Any) -> dict[str, Any]:
         grounding=grounding,
         callbacks=callbacks,
     )
+    return trainer, progress_log, grounding
+
+
+def _resume_point(cfg: Any, pre_epochs: int) -> tuple[str | None, bool]:
+    """(checkpoint to resume from or None, whether to resume stage A) for resume=true, a checkpoint path, or off."""
+    from labrobfail_vlm.train.checkpoint import last_complete_checkpoint
+
     resume = None
     resume_stage_a = False
     if cfg.resume is True:
@@ -271,6 +326,11 @@ def run(cfg: Any) -> dict[str, Any]:
         if not Path(cfg.resume).is_dir():
             raise ConfigError(f"resume: no such checkpoint {cfg.resume!r}")
         resume = cfg.resume
+    return resume, resume_stage_a
+
+
+def _load_resumed_head(resume: str | None, grounding: dict[str, Any] | None) -> None:
+    """Load the grounding head saved with the checkpoint being resumed; a ConfigError when it has none."""
     if resume is not None and grounding is not None:
         from labrobfail_vlm.train.grounding import load_head
 
@@ -279,34 +339,55 @@ def run(cfg: Any) -> dict[str, Any]:
                 f"resume: {resume} was trained without frame grounding; resume it with "
                 f"grounding.weight=0 grounding.pretrain_epochs=0"
             )
-    pre: dict[str, float] = {}
-    if pre_epochs and resume is None:  # stage A; a resumed run's checkpoint already holds the grounded tower
-        from labrobfail_vlm.train.grounding import pretrain
 
-        wall, cpu = time.perf_counter(), time.process_time()
-        pre = pretrain(
-            model,
-            grounding["head"],
-            trainer.get_train_dataloader(),
-            pre_epochs,  # type: ignore[index]
-            float(cfg.grounding.lr),
-            float(cfg.grounding.rank),
-            bool(cfg.progress),
-            state_dir=Path(cfg.output_dir),
-            resume=resume_stage_a,
-            augment_rng=getattr(getattr(trainer.data_collator, "augment", None), "rng", None),
-        )
-        pre |= {
-            "epochs": pre_epochs,
-            "wall_s": round(time.perf_counter() - wall, 1),
-            "cpu_s": round(time.process_time() - cpu, 1),
-        }
-        progress_log.start_after(pre["wall_s"], pre["cpu_s"])  # the learning curve's clocks include stage A
-        print(json.dumps({"grounding_pretrain": pre}), flush=True)
-    result = trainer.train(resume_from_checkpoint=resume)
-    trainer.save_model(str(Path(cfg.output_dir) / "final"))
+
+def _stage_a(
+    cfg: Any,
+    model: Any,
+    trainer: Any,
+    grounding: Any,
+    pre_epochs: int,
+    resume_stage_a: bool,
+    progress_log: Any,
+) -> dict[str, float]:
+    """Stage A: pre-train the vision tower with the grounding head alone; returns its metrics and clocks."""
+    from labrobfail_vlm.train.grounding import pretrain
+
+    wall, cpu = time.perf_counter(), time.process_time()
+    pre = pretrain(
+        model,
+        grounding["head"],
+        trainer.get_train_dataloader(),
+        pre_epochs,  # type: ignore[index]
+        float(cfg.grounding.lr),
+        float(cfg.grounding.rank),
+        bool(cfg.progress),
+        state_dir=Path(cfg.output_dir),
+        resume=resume_stage_a,
+        augment_rng=getattr(getattr(trainer.data_collator, "augment", None), "rng", None),
+    )
+    pre |= {
+        "epochs": pre_epochs,
+        "wall_s": round(time.perf_counter() - wall, 1),
+        "cpu_s": round(time.process_time() - cpu, 1),
+    }
+    progress_log.start_after(pre["wall_s"], pre["cpu_s"])  # the learning curve's clocks include stage A
+    print(json.dumps({"grounding_pretrain": pre}), flush=True)
+    return pre
+
+
+def _summary(
+    trainer: Any,
+    result: Any,
+    counts: Any,
+    pre: dict[str, float],
+    tower_info: dict[str, Any],
+    cache: Any,
+) -> dict[str, Any]:
+    """train_summary.json's content: steps, losses, clocks, trainable parameters and what stage A and the tower
+    cache report."""
     losses = [h["loss"] for h in trainer.state.log_history if "loss" in h]
-    summary = {
+    return {
         "global_step": trainer.state.global_step,
         "train_loss": result.training_loss,
         "train_s": round(float(result.metrics.get("train_runtime", 0.0)), 1),  # the Trainer's loop, wall clock
@@ -317,6 +398,40 @@ def run(cfg: Any) -> dict[str, Any]:
         **({"tower": tower_info} if tower_info else {}),
         **({"tower_cache": cache.stats()} if cache is not None else {}),
     }
+
+
+def run(cfg: Any) -> dict[str, Any]:
+    """Train one run from its resolved config: check it, build the model and Trainer, run stage A (grounding
+    pre-training) when asked, then the Trainer; writes final/ and train_summary.json and returns the summary."""
+    from transformers import set_seed
+
+    from labrobfail_vlm.train.trainer import check_loss_mode
+
+    # Seed before anything random is made: the grounding head is initialised before the Trainer seeds, and a
+    # run that starts from a checkpoint (model.path) builds nothing that would seed it (torch's start-up seed
+    # differs from process to process here).
+    set_seed(int(cfg.seed))
+    grid = _check_dataset(cfg)
+    check_loss_mode(str(cfg.loss.mode))  # before the model loads
+    curriculum = _curriculum(cfg)
+    pre_epochs = _check_settings(cfg, curriculum[2])
+    tower_info = _prepare_model_dir(cfg)
+    dtype = _dtype(cfg)
+    per_dev, world = _batch_split(cfg)
+    _start_services(cfg)
+    args = _training_arguments(cfg, dtype, per_dev, world)
+    processor, model, counts, cache = _load_tuned_model(cfg, dtype)
+    if args.process_index == 0:
+        print(json.dumps({"trainable_parameters": counts, "tuning": cfg.tuning, "preset": cfg.preset}), flush=True)
+    trainer, progress_log, grounding = _build_trainer(cfg, args, model, processor, grid, curriculum)
+    resume, resume_stage_a = _resume_point(cfg, pre_epochs)
+    _load_resumed_head(resume, grounding)
+    pre: dict[str, float] = {}
+    if pre_epochs and resume is None:  # stage A; a resumed run's checkpoint already holds the grounded tower
+        pre = _stage_a(cfg, model, trainer, grounding, pre_epochs, resume_stage_a, progress_log)
+    result = trainer.train(resume_from_checkpoint=resume)
+    trainer.save_model(str(Path(cfg.output_dir) / "final"))
+    summary = _summary(trainer, result, counts, pre, tower_info, cache)
     if args.process_index == 0:
         atomic_write_json(Path(cfg.output_dir) / "train_summary.json", summary)
         print(json.dumps(summary), flush=True)

@@ -54,13 +54,13 @@ def messages(question: str, answer: str | None = None) -> list[dict[str, Any]]:
 
 
 class VQADataset(Dataset):
-    """One split of a dataset built by scripts/build_dataset.py."""
+    """One split of a dataset built by labrobfail-build-dataset."""
 
     def __init__(self, dataset_dir: str | Path, split: str = "train"):
         self.root = Path(dataset_dir)
         path = self.root / f"{split}.json"
         if not path.is_file():
-            raise ConfigError(f"dataset_dir: {path} not found (build it with scripts/build_dataset.py)")
+            raise ConfigError(f"dataset_dir: {path} not found (build it with labrobfail-build-dataset)")
         try:
             self.records = json.loads(path.read_text())
         except ValueError as e:
@@ -132,7 +132,7 @@ class Collator:
         self.max_length = int(max_length)
         self.image_token = processor.image_token
         self.weights: dict[str, float] | None = None
-        if question_weights is not None:  # "aux": each auxiliary fact record (data/facts.py)
+        if question_weights is not None:  # "aux": each auxiliary fact record (labrobfail_data/facts.py)
             self.weights = {d: 1.0 for d in (*Q.DIMENSIONS, "aux")} | {
                 str(k): float(v) for k, v in question_weights.items()
             }

@@ -59,7 +59,7 @@ def dataset_targets(trajectories: list[dict[str, Any]], grid: GridConfig) -> tup
     if len(views) != 1 or None in views:
         raise ConfigError(
             "grounding: the dataset's trajectories.json lacks one common 'views' count (built before "
-            "grounding existed); rebuild it with scripts/build_dataset.py"
+            "grounding existed); rebuild it with labrobfail-build-dataset"
         )
     return {t["trajectory"]: frame_targets(t, grid.max_frames) for t in trajectories}, int(views.pop())
 

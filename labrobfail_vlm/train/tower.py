@@ -3,10 +3,10 @@
 A from-scratch tower given one Yes/No per grid memorises the wide world (docs/EXPERIMENTS.md). The simulator
 gives far more for free: for every frame of every view, the state (an object held, lifted, tipped, at its place,
 the door open, liquid in its vessel, the hand moving, every goal holding, a failure so far) and where the gripper,
-the task objects and their places are in the picture (data/frame_targets.py, from simulator state only). Here the
-tower sees the same 512 x 512 keyframe grids the VQA model sees (16 cells of 128 px = 4 x 4 merged tokens each),
-augmented per view (labrobfail_vlm/augment.py), and a training-only head reads every target from the merged tokens
-the decoder will receive:
+the task objects and their places are in the picture (labrobfail_data/frame_targets.py, from simulator state only).
+Here the tower sees the same 512 x 512 keyframe grids the VQA model sees (16 cells of 128 px = 4 x 4 merged tokens
+each), augmented per view (labrobfail_vlm/augment.py), and a training-only head reads every target from the merged
+tokens the decoder will receive:
 
     cell targets   each token -> MLP -> K scores; a cell's K logits = the mean over its 16 tokens + a bias
     token targets  each token -> MLP -> C scores: is the gripper / a task object / a goal place in this token?
@@ -50,8 +50,8 @@ class Sample:
 
 
 class TowerData:
-    """The trajectories of a tower dataset (data/tower_data.py) in the chosen splits and variants, in memory as
-    PNG bytes plus targets; `sample` composes one grid in a layout (view names), augmented or not."""
+    """The trajectories of a tower dataset (labrobfail_data/tower_data.py) in the chosen splits and variants, in memory
+    as PNG bytes plus targets; `sample` composes one grid in a layout (view names), augmented or not."""
 
     def __init__(
         self,
@@ -67,7 +67,7 @@ class TowerData:
             index = json.loads((d / "index.json").read_text())
         except (OSError, ValueError):
             raise ConfigError(
-                f"data: {d} has no readable index.json (build it with scripts/build_tower_data.py)"
+                f"data: {d} has no readable index.json (build it with labrobfail-build-tower-data)"
             ) from None
         self.cell_names, self.token_names = list(index["cell_targets"]), list(index["token_targets"])
         self.image_size, p = int(index["image_size"]), int(index["max_points"])

@@ -29,11 +29,7 @@ POLICIES = Registry(
         "openvla": "sim_backends.policies.openvla_client",
     },
 )
-register_policy = POLICIES.register
-
-
-def make_policy(name: str, **kwargs: Any) -> "Policy":
-    return POLICIES.make(name, **kwargs)
+register_policy, make_policy = POLICIES.register, POLICIES.make  # lazy: imported on first use
 
 
 class PolicyError(RuntimeError):

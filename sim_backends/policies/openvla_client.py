@@ -3,7 +3,7 @@
 Request (json-numpy, the real `json_numpy` package behind sim_backends/policies/wire.py): `{"image": uint8 HxWx3,
 "instruction": str, "unnorm_key"?}`, as OpenVLA's own client sends it, or the `{"encoded": "<json-numpy
 string>"}` form (`encoded: true`; note that OpenVLA's deploy.py fails on it, see docs/GUIDE.md). The plain form also
-carries the project's extras, which OpenVLA's server ignores and scripts/serve_policy.py uses: `images` (every
+carries the project's extras, which OpenVLA's server ignores and labrobfail-serve-policy uses: `images` (every
 view), `proprio` (ee_pos, ee_quat, width, grip_cmd) and `episode` (scenario, seed, variant and a fresh id per
 episode: a new episode resets the served policy).
 
@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import http.client
 import math
+import os
 import socket
 import time
 import urllib.error
@@ -116,6 +117,7 @@ class OpenVLAClient(Policy):
         max_step_m: float = 1.0,
         max_reply_bytes: int = MAX_REPLY_BYTES,
         check: bool = True,
+        token_env: str | None = "LABROBFAIL_POLICY_TOKEN",
     ):
         check_options(
             {
@@ -126,6 +128,7 @@ class OpenVLAClient(Policy):
                 "max_reply_bytes": max_reply_bytes,
                 "view": view,
                 "unnorm_key": unnorm_key,
+                "token_env": token_env,
             }
         )
         if check:
@@ -133,6 +136,9 @@ class OpenVLAClient(Policy):
         self.url, self.timeout, self.unnorm_key, self.view = url, float(timeout_s), unnorm_key, view
         self.encoded, self.idle_stop, self.max_step = bool(encoded), int(idle_stop), float(max_step_m)
         self.max_reply = int(max_reply_bytes)
+        # a bearer token for a server that asks for one (labrobfail-serve-policy with its token set); never logged
+        token = os.environ.get(token_env, "") if token_env else ""
+        self.headers = {"Content-Type": "application/json"} | ({"Authorization": f"Bearer {token}"} if token else {})
         self.ctx: EpisodeContext | None = None
         self.idle = 0
 
@@ -148,7 +154,7 @@ class OpenVLAClient(Policy):
 
     def _post(self, body: bytes) -> bytes:
         """The reply body (at most max_reply + 1 bytes are read); PolicyError for any transport failure."""
-        req = urllib.request.Request(self.url, body, {"Content-Type": "application/json"})
+        req = urllib.request.Request(self.url, body, self.headers)
         deadline = time.monotonic() + self.timeout
         try:
             with _OPENER.open(req, timeout=self.timeout) as r:
@@ -229,6 +235,7 @@ def check_options(opts: dict[str, Any]) -> None:
         "encoded": (lambda v: isinstance(v, bool), "true or false"),
         "view": (lambda v: isinstance(v, str) and v != "", "a camera view name"),
         "unnorm_key": (lambda v: v is None or isinstance(v, str), "null or a string"),
+        "token_env": (lambda v: v is None or isinstance(v, str), "null or an environment variable's name"),
     }
     for key, (ok, what) in checks.items():
         if not ok(opts[key]):

@@ -336,18 +336,10 @@ def resolve_object(kind_name: str, variant: str, custom: dict[str, dict[str, Any
     return table[kind_name]
 
 
-def build(
-    cid: int,
-    layout: dict[str, Any],
-    variant: str,
-    rng: np.random.Generator,
-    custom_objects: dict[str, dict[str, Any]] | None = None,
-    custom_scene: dict[str, Any] | None = None,
-    grip_force: float = 60.0,
-    lowpoly: bool = True,
-    family: str | None = None,
-) -> Scene:
-    """Create the scene described by a scenario's `layout` (role -> {object, xy, ...})."""
+def _appearance(
+    variant: str, rng: np.random.Generator, custom_scene: dict[str, Any] | None, family: str | None
+) -> dict[str, Any]:
+    """The episode's appearance: drawn from its family, or a user's scene file with its `vary` factors drawn."""
     if custom_scene is not None:  # a user's scene file: fixed colours and light; texture optional
         appearance = {
             "texture": "checker" if custom_scene.get("checker") else "plain",
@@ -360,86 +352,121 @@ def build(
             appearance.update({k: drawn[k] for k in vary_keys(custom_scene["vary"])})
     else:
         appearance = draw_appearance(variant, rng, family)
+    return appearance
+
+
+def _role_label(role: str, spec: dict[str, Any], variant: str, custom: dict[str, dict[str, Any]] | None) -> str:
+    """The words for a layout role in task text and corrections: the spec's, the object's, or the catalogue's."""
+    if "object" in spec:
+        od0 = resolve_object(spec["object"], variant, custom)
+        return str(
+            spec.get("label")
+            or od0.get("label")
+            or OBJECT_LABELS.get(spec["object"])
+            or spec["object"].replace("_", " ")
+        )
+    return str(spec.get("label") or KIND_LABELS.get(spec.get("kind", ""), role.replace("_", " ")))
+
+
+@dataclass
+class _Parts:
+    """What `build` collects while it places a layout's roles."""
+
+    objects: dict[str, SceneObject] = field(default_factory=dict)
+    zones: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    parts: dict[str, list[int]] = field(default_factory=dict)
+    labels: dict[str, str] = field(default_factory=dict)
+
+
+def _place_fixture(cid: int, role: str, kind: str, spec: dict[str, Any], xy: np.ndarray, out: _Parts) -> bool:
+    """Place a zone, oven, button or rack at `xy`; False if `kind` is none of them (glassware)."""
+    pos = (float(xy[0]), float(xy[1]), assets.BENCH_TOP)
+    if kind == "zone":
+        assets.zone(cid, pos, radius=spec.get("radius", 0.05), rgba=spec.get("rgba", (0.2, 0.8, 0.3, 1)))
+        out.zones[role] = pos
+    elif kind == "oven":
+        body, _ = assets.oven(cid, pos, open_angle=float(spec.get("open_angle", 0.0)))
+        out.objects[role] = SceneObject(role, "oven", body, pos, {"width": 0.24, "depth": 0.22, "height": 0.18})
+    elif kind == "button":
+        body, _ = assets.button(cid, pos, rgba=spec.get("rgba", (0.85, 0.1, 0.1, 1)))
+        out.objects[role] = SceneObject(role, "button", body, pos, {"travel": 0.012, "top": 0.05})
+    elif kind == "rack":
+        body = assets.rack(cid, pos)
+        out.objects[role] = SceneObject(role, "rack", body, pos, {"height": assets.RACK_HEIGHT})
+        for i, h in enumerate(assets.hole_positions(pos)):
+            out.zones[f"{role}_hole{i}"] = (h[0], h[1], assets.BENCH_TOP)
+            out.labels[f"{role}_hole{i}"] = f"hole {i + 1} of the {out.labels[role]}"
+    else:
+        return False
+    return True
+
+
+def _place_glassware(
+    cid: int, role: str, spec: dict[str, Any], od: dict[str, Any], xy: np.ndarray, out: _Parts
+) -> None:
+    """Place a vessel (with its liquid, if any) or a rod (on the bench or standing in a rack hole)."""
+    z0 = float(spec.get("z", 0.0)) + assets.BENCH_TOP
+    if od["kind"] == "vessel":
+        vs = assets.VesselSpec(
+            radius=od["radius"],
+            height=od["height"],
+            sides=int(od.get("sides", 8)),
+            neck_radius=float(od.get("neck_radius", 0.0)),
+            rgba=tuple(od["rgba"]),
+            mass=float(od.get("mass", 0.12)),
+        )
+        pos = (float(xy[0]), float(xy[1]), z0)
+        body = assets.vessel(cid, vs, pos)
+        out.objects[role] = SceneObject(
+            role, "vessel", body, pos, {"radius": vs.radius, "height": vs.height, "neck": vs.neck_radius}
+        )
+        n = int(spec.get("liquid", 0))
+        if n:
+            out.parts[role] = assets.particles(cid, (pos[0], pos[1], z0 + 0.006), n)
+    elif od["kind"] == "rod":
+        ln = float(od["length"])
+        if "in" in spec:  # standing in a rack hole
+            hx, hy, _ = out.zones[spec["in"]]
+            pos = (hx, hy, z0 + 0.006 + ln / 2)
+        else:
+            pos = (float(xy[0]), float(xy[1]), z0 + ln / 2)
+        body = assets.rod(cid, pos, length=ln, radius=float(od["radius"]), rgba=tuple(od["rgba"]))
+        out.objects[role] = SceneObject(role, "rod", body, pos, {"length": ln, "radius": float(od["radius"])})
+    else:
+        raise ValueError(f"scenario: object {spec['object']!r} has unknown kind {od['kind']!r}")
+
+
+def build(
+    cid: int,
+    layout: dict[str, Any],
+    variant: str,
+    rng: np.random.Generator,
+    custom_objects: dict[str, dict[str, Any]] | None = None,
+    custom_scene: dict[str, Any] | None = None,
+    grip_force: float = 60.0,
+    lowpoly: bool = True,
+    family: str | None = None,
+) -> Scene:
+    """Create the scene described by a scenario's `layout` (role -> {object, xy, ...})."""
+    appearance = _appearance(variant, rng, custom_scene, family)
     bench_id, floor_id = assets.bench(cid, rgba=appearance["bench"], floor_rgba=appearance["floor"])
     tex = _texture(cid, appearance["texture"], appearance["bench"], int(rng.integers(1 << 30)))
     if tex is not None:
         p.changeVisualShape(bench_id, -1, textureUniqueId=tex, physicsClientId=cid)
     robot = Panda(cid, grip_force=grip_force, lowpoly=lowpoly)
-    objects: dict[str, SceneObject] = {}
-    zones: dict[str, tuple[float, float, float]] = {}
-    parts: dict[str, list[int]] = {}
-    labels: dict[str, str] = {}
+    out = _Parts()
     jitter = float(layout.get("_jitter", PLACEMENT_JITTER))
     for role, spec in layout.items():
         if role.startswith("_"):
             continue
-        if "object" in spec:
-            od0 = resolve_object(spec["object"], variant, custom_objects)
-            labels[role] = str(
-                spec.get("label")
-                or od0.get("label")
-                or OBJECT_LABELS.get(spec["object"])
-                or spec["object"].replace("_", " ")
-            )
-        else:
-            labels[role] = str(spec.get("label") or KIND_LABELS.get(spec.get("kind", ""), role.replace("_", " ")))
+        out.labels[role] = _role_label(role, spec, variant, custom_objects)
         xy = np.asarray(spec["xy"], float) + rng.uniform(-jitter, jitter, 2) * float(spec.get("jitter", 1.0))
         kind = spec.get("kind") or resolve_object(spec["object"], variant, custom_objects)["kind"]
-        if kind == "zone":
-            pos = (float(xy[0]), float(xy[1]), assets.BENCH_TOP)
-            assets.zone(cid, pos, radius=spec.get("radius", 0.05), rgba=spec.get("rgba", (0.2, 0.8, 0.3, 1)))
-            zones[role] = pos
+        if _place_fixture(cid, role, kind, spec, xy, out):
             continue
-        if kind == "oven":
-            pos = (float(xy[0]), float(xy[1]), assets.BENCH_TOP)
-            body, _ = assets.oven(cid, pos, open_angle=float(spec.get("open_angle", 0.0)))
-            objects[role] = SceneObject(role, "oven", body, pos, {"width": 0.24, "depth": 0.22, "height": 0.18})
-            continue
-        if kind == "button":
-            pos = (float(xy[0]), float(xy[1]), assets.BENCH_TOP)
-            body, _ = assets.button(cid, pos, rgba=spec.get("rgba", (0.85, 0.1, 0.1, 1)))
-            objects[role] = SceneObject(role, "button", body, pos, {"travel": 0.012, "top": 0.05})
-            continue
-        if kind == "rack":
-            pos = (float(xy[0]), float(xy[1]), assets.BENCH_TOP)
-            body = assets.rack(cid, pos)
-            objects[role] = SceneObject(role, "rack", body, pos, {"height": assets.RACK_HEIGHT})
-            for i, h in enumerate(assets.hole_positions(pos)):
-                zones[f"{role}_hole{i}"] = (h[0], h[1], assets.BENCH_TOP)
-                labels[f"{role}_hole{i}"] = f"hole {i + 1} of the {labels[role]}"
-            continue
-        od = resolve_object(spec["object"], variant, custom_objects)
-        z0 = float(spec.get("z", 0.0)) + assets.BENCH_TOP
-        if od["kind"] == "vessel":
-            vs = assets.VesselSpec(
-                radius=od["radius"],
-                height=od["height"],
-                sides=int(od.get("sides", 8)),
-                neck_radius=float(od.get("neck_radius", 0.0)),
-                rgba=tuple(od["rgba"]),
-                mass=float(od.get("mass", 0.12)),
-            )
-            pos = (float(xy[0]), float(xy[1]), z0)
-            body = assets.vessel(cid, vs, pos)
-            objects[role] = SceneObject(
-                role, "vessel", body, pos, {"radius": vs.radius, "height": vs.height, "neck": vs.neck_radius}
-            )
-            n = int(spec.get("liquid", 0))
-            if n:
-                parts[role] = assets.particles(cid, (pos[0], pos[1], z0 + 0.006), n)
-        elif od["kind"] == "rod":
-            ln = float(od["length"])
-            if "in" in spec:  # standing in a rack hole
-                hx, hy, _ = zones[spec["in"]]
-                pos = (hx, hy, z0 + 0.006 + ln / 2)
-            else:
-                pos = (float(xy[0]), float(xy[1]), z0 + ln / 2)
-            body = assets.rod(cid, pos, length=ln, radius=float(od["radius"]), rgba=tuple(od["rgba"]))
-            objects[role] = SceneObject(role, "rod", body, pos, {"length": ln, "radius": float(od["radius"])})
-        else:
-            raise ValueError(f"scenario: object {spec['object']!r} has unknown kind {od['kind']!r}")
-    robot.carries_liquid = bool(parts)  # liquid in play: a closed gripper turns slowly (robot.LIQUID_TURN)
-    return Scene(cid, robot, objects, zones, parts, appearance, bench_id, labels)
+        _place_glassware(cid, role, spec, resolve_object(spec["object"], variant, custom_objects), xy, out)
+    robot.carries_liquid = bool(out.parts)  # liquid in play: a closed gripper turns slowly (robot.LIQUID_TURN)
+    return Scene(cid, robot, out.objects, out.zones, out.parts, appearance, bench_id, out.labels)
 
 
 def add_distractors(

@@ -30,11 +30,7 @@ SUPERVISORS = Registry(
         "vlm": "sim_backends.supervision.vlm",
     },
 )
-register_supervisor = SUPERVISORS.register
-
-
-def make_supervisor(name: str, **kwargs: Any) -> "Supervisor":
-    return SUPERVISORS.make(name, **kwargs)
+register_supervisor, make_supervisor = SUPERVISORS.register, SUPERVISORS.make  # lazy: imported on first use
 
 
 @dataclass

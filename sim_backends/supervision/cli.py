@@ -1,12 +1,12 @@
 """Closed-loop supervision: success rate per task without and with a supervisor (the paper's recovery table).
-The code behind scripts/supervise.py and the `labrobfail-supervise` console script.
+The code behind labrobfail-supervise and the `labrobfail-supervise` console script.
 
 Run as:
-    python scripts/supervise.py policy=scripted supervisor=oracle task=place trials=25 backend=pybullet
-    python scripts/supervise.py policy=scripted supervisor=vlm vlm.model=outputs/demo_train/final task=place
-    python scripts/supervise.py policy=act act.checkpoint=outputs/act/pick/final supervisor=oracle task=pick
-    python scripts/supervise.py policy=openvla openvla.url=http://127.0.0.1:8777/act supervisor=none task=pour
-    python scripts/supervise.py policy=openvla openvla.encoded=true openvla.timeout_s=30 task=pick
+    labrobfail-supervise policy=scripted supervisor=oracle task=place trials=25 backend=pybullet
+    labrobfail-supervise policy=scripted supervisor=vlm vlm.model=outputs/demo_train/final task=place
+    labrobfail-supervise policy=act act.checkpoint=outputs/act/pick/final supervisor=oracle task=pick
+    labrobfail-supervise policy=openvla openvla.url=http://127.0.0.1:8777/act supervisor=none task=pour
+    labrobfail-supervise policy=openvla openvla.encoded=true openvla.timeout_s=30 task=pick
 
 Writes out_dir/results.json (per task: successes, rate, difference, query latency p50/p95, interventions,
 policy errors), out_dir/results.md (the table), out_dir/log.jsonl (every query and episode) and out_dir/grids/.

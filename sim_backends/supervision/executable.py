@@ -30,7 +30,7 @@ SHARD_COLUMNS = ["episode_id", "variant", "scenario", "seed", "keyframes", "pert
 
 
 def shard_index(dirs: Iterable[str | Path]) -> dict[str, dict[str, Any]]:
-    """Shard rows by trajectory id ("<variant>-<episode_id>", as data/annotate.py names them)."""
+    """Shard rows by trajectory id ("<variant>-<episode_id>", as labrobfail_data/annotate.py names them)."""
     out: dict[str, dict[str, Any]] = {}
     for d in dirs:
         files = sorted(Path(d).glob("shard-*.parquet"))
@@ -122,7 +122,7 @@ def q6_texts(recs: list[dict[str, Any]], preds: dict[str, str] | None = None) ->
 
 def executable_rows(ex: Any, recs: list[dict], traj: dict[str, dict], predictions: dict[str, dict[str, str]]) -> dict:
     """Executable correction accuracy of each prediction set and of the gold corrections, for the bench
-    (`scripts/evaluate.py executable.enabled=true`; `ex` is its `executable` section)."""
+    (`labrobfail-evaluate executable.enabled=true`; `ex` is its `executable` section)."""
     from sim_backends.registry import available_backends, make_backend
 
     if not ex.shards:

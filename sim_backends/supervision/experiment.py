@@ -1,4 +1,4 @@
-"""The recovery experiment behind scripts/supervise.py: trials per task family, with and without supervision.
+"""The recovery experiment behind labrobfail-supervise: trials per task family, with and without supervision.
 
 Each task runs `trials` trials (trial i: scenario i mod n, seed `seed + i`), once without supervision (the
 baseline, when `baseline` is on) and once under the chosen supervisor, on identical initial states and

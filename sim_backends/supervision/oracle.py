@@ -3,7 +3,7 @@
 The oracle is the upper bound of supervision: it reads the simulator state, which no camera-based
 supervisor sees. It runs the labeler's detectors (sim_backends/labeler.py) on the trace recorded so far;
 the step-order check is made prefix-aware here (on a running episode the steps not run yet are not
-omitted). The correction is the one the dataset would annotate for that failure (data/annotate.py's
+omitted). The correction is the one the dataset would annotate for that failure (labrobfail_data/annotate.py's
 `failure_context` + the strategy table), mapped through the action dictionary.
 """
 

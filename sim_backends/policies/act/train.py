@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -142,26 +143,21 @@ def augment_config(section: Any) -> AugmentConfig | None:
         raise ConfigError(f"train.{e}") from None
 
 
-def train(cfg: DictConfig, family: Any) -> dict[str, Any]:
-    import torch
-    from torch.utils.data import DataLoader
-
-    from sim_backends.policies.act.modeling_act import ACTModel
-
-    out = Path(cfg.out_dir)
+def _model_config(cfg: DictConfig, out: Path) -> ACTConfig:
+    """Create out_dir and read the model section; either failing is a ConfigError (before any recording)."""
     try:
         out.mkdir(parents=True, exist_ok=True)
-        model_cfg = ACTConfig(**OmegaConf.to_container(cfg.model, resolve=True))  # type: ignore[arg-type]
+        return ACTConfig(**OmegaConf.to_container(cfg.model, resolve=True))  # type: ignore[arg-type]
     except OSError as e:
         raise ConfigError(f"out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
     except (TypeError, ValueError) as e:
         raise ConfigError(str(e)) from None
-    demos, info = load_or_record(cfg, family, out)
-    model_cfg.stats = normalisation(demos)
-    t = cfg.train
-    torch.manual_seed(int(t.seed))
-    torch.set_num_threads(int(t.threads))
-    model = ACTModel(model_cfg)
+
+
+def _optimiser(model: Any, t: DictConfig) -> tuple[Any, Any]:
+    """(AdamW, its learning-rate schedule): the backbone gets its own rate (train.lr_backbone)."""
+    import torch
+
     backbone = [p for n, p in model.named_parameters() if n.startswith("backbone.")]
     rest = [p for n, p in model.named_parameters() if not n.startswith("backbone.")]
     opt = torch.optim.AdamW(
@@ -177,78 +173,137 @@ def train(cfg: DictConfig, family: Any) -> dict[str, Any]:
         if t.schedule == "cosine"
         else get_constant_schedule_with_warmup(opt, warmup)
     )
+    return opt, sched
+
+
+@dataclass
+class _Run:
+    """What the training loop reads and updates: the model, its optimiser and data, and where it stands (so a
+    resumed run picks up all of it from a checkpoint)."""
+
+    model: Any
+    model_cfg: ACTConfig
+    opt: Any
+    sched: Any
+    data: DemoDataset
+    order: Any  # the loader's torch.Generator
+    loader: Any
+    same: dict[str, Any]  # the train settings a resumed run must share
+    out: Path
+    curve: list[dict[str, float]] = field(default_factory=list)
+    step: int = 0
+    done_s: float = 0.0
+    skip: int = 0  # batches of the resumed epoch already trained on
+    rng_after: Any = None  # torch's RNG state after the last of them
+
+
+def _resume(r: _Run) -> None:
+    """Load the newest complete checkpoint into `r`; a ConfigError when there is none or its settings differ."""
+    last = last_progress(r.out / "checkpoints")
+    if last is None:
+        raise ConfigError(f"resume: no complete checkpoint under {r.out / 'checkpoints'}")
+    tensors, saved = load_progress(r.model, last)
+    if saved["train"] != r.same or saved["model"] != r.model_cfg.to_dict():
+        raise ConfigError(f"resume: {last} was trained with other settings; rerun without resume=true")
+    r.opt.load_state_dict(tensors["opt"])
+    r.sched.load_state_dict(tensors["sched"])
+    r.order.set_state(tensors["order"])  # the epoch's shuffle, then its first batches skipped (loaded, not used)
+    r.data.rng.bit_generator.state = saved["augment_rng"]
+    r.step, r.done_s, r.skip, r.curve = saved["step"], saved["seconds"], saved["batch"], saved["curve"]
+    r.rng_after = tensors["rng"]
+
+
+def _save_progress(r: _Run, at_epoch: dict[str, Any], batch: int, t0: float) -> None:
+    """Write checkpoints/step-N: the model plus everything a resumed run needs to go on exactly as this one."""
+    import torch
+
+    save_progress(
+        r.model,
+        r.model_cfg,
+        r.out / "checkpoints" / f"step-{r.step}",
+        {"opt": r.opt.state_dict(), "sched": r.sched.state_dict(), "rng": torch.get_rng_state()}
+        | {"order": at_epoch["order"]},
+        {
+            "step": r.step,
+            "batch": batch,
+            "seconds": time.perf_counter() - t0,
+            "augment_rng": at_epoch["augment_rng"],
+            "curve": r.curve,
+            "train": r.same,
+            "model": r.model_cfg.to_dict(),
+        },
+    )
+
+
+def _optimise(r: _Run, t: DictConfig, t0: float, budget: float, progress: bool) -> None:
+    """The training loop: steps until train.steps or the wall-clock budget, logging and checkpointing as it goes."""
+    import torch
+
+    bar = tqdm(total=int(t.steps), initial=r.step, desc="train", unit="step", disable=not progress)
+    r.model.train()
+    while r.step < int(t.steps) and time.perf_counter() - t0 < budget:
+        at_epoch = {"order": r.order.get_state(), "augment_rng": r.data.rng.bit_generator.state}
+        for batch, (images, state, actions, pad, points) in enumerate(r.loader, 1):
+            if r.skip:
+                r.skip -= 1
+                if not r.skip:
+                    torch.set_rng_state(r.rng_after)  # dropout and the CVAE draws go on as they would have
+                continue
+            loss, parts = r.model.loss(images, state, actions, pad, points)
+            r.opt.zero_grad(set_to_none=True)
+            loss.backward()
+            r.opt.step()
+            lr = r.sched.get_last_lr()[0]  # the rate this step used
+            r.sched.step()
+            r.step += 1
+            bar.update(1)
+            if r.step % int(t.log_every) == 0 or r.step == 1:
+                r.curve.append({"step": r.step, "minutes": round((time.perf_counter() - t0) / 60, 3), "lr": lr} | parts)
+            if r.step % int(t.save_every) == 0:
+                _save_progress(r, at_epoch, batch, t0)
+            if r.step >= int(t.steps) or time.perf_counter() - t0 >= budget:
+                break
+    bar.close()
+
+
+def train(cfg: DictConfig, family: Any) -> dict[str, Any]:
+    """Record (or reuse) the demonstrations, then train ACT on them under train.max_minutes, resuming from the
+    newest checkpoint when resume=true; writes final/ and train_log.json and returns the log."""
+    import torch
+    from torch.utils.data import DataLoader
+
+    from sim_backends.policies.act.modeling_act import ACTModel
+
+    out = Path(cfg.out_dir)
+    model_cfg = _model_config(cfg, out)
+    demos, info = load_or_record(cfg, family, out)
+    model_cfg.stats = normalisation(demos)
+    t = cfg.train
+    torch.manual_seed(int(t.seed))
+    torch.set_num_threads(int(t.threads))
+    model = ACTModel(model_cfg)
+    opt, sched = _optimiser(model, t)
     data = DemoDataset(demos, model_cfg, augment_config(t.augment), int(t.seed), bool(t.hold_end))
     order = torch.Generator().manual_seed(int(t.seed))  # the loader's shuffles, one draw per epoch
     loader = DataLoader(data, batch_size=int(t.batch_size), shuffle=True, drop_last=True, generator=order)
-    curve: list[dict[str, float]] = []
-    step, done_s, skip, rng_after = 0, 0.0, 0, None
     same = {k: v for k, v in OmegaConf.to_container(t, resolve=True).items() if k not in RESUME_FREE}  # type: ignore[union-attr]
+    r = _Run(model, model_cfg, opt, sched, data, order, loader, same, out)
     if cfg.resume:
-        last = last_progress(out / "checkpoints")
-        if last is None:
-            raise ConfigError(f"resume: no complete checkpoint under {out / 'checkpoints'}")
-        tensors, saved = load_progress(model, last)
-        if saved["train"] != same or saved["model"] != model_cfg.to_dict():
-            raise ConfigError(f"resume: {last} was trained with other settings; rerun without resume=true")
-        opt.load_state_dict(tensors["opt"])
-        sched.load_state_dict(tensors["sched"])
-        order.set_state(tensors["order"])  # the epoch's shuffle, then its first batches skipped (loaded, not used)
-        data.rng.bit_generator.state = saved["augment_rng"]
-        step, done_s, skip, curve = saved["step"], saved["seconds"], saved["batch"], saved["curve"]
-        rng_after = tensors["rng"]
-    step0 = step
-    t0, budget = time.perf_counter() - done_s, float(t.max_minutes) * 60
-    bar = tqdm(total=int(t.steps), initial=step, desc="train", unit="step", disable=not cfg.progress)
-    model.train()
-    while step < int(t.steps) and time.perf_counter() - t0 < budget:
-        at_epoch = {"order": order.get_state(), "augment_rng": data.rng.bit_generator.state}
-        for batch, (images, state, actions, pad, points) in enumerate(loader, 1):
-            if skip:
-                skip -= 1
-                if not skip:
-                    torch.set_rng_state(rng_after)  # dropout and the CVAE draws go on as they would have
-                continue
-            loss, parts = model.loss(images, state, actions, pad, points)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            lr = sched.get_last_lr()[0]  # the rate this step used
-            sched.step()
-            step += 1
-            bar.update(1)
-            if step % int(t.log_every) == 0 or step == 1:
-                curve.append({"step": step, "minutes": round((time.perf_counter() - t0) / 60, 3), "lr": lr} | parts)
-            if step % int(t.save_every) == 0:
-                save_progress(
-                    model,
-                    model_cfg,
-                    out / "checkpoints" / f"step-{step}",
-                    {"opt": opt.state_dict(), "sched": sched.state_dict(), "rng": torch.get_rng_state()}
-                    | {"order": at_epoch["order"]},
-                    {
-                        "step": step,
-                        "batch": batch,
-                        "seconds": time.perf_counter() - t0,
-                        "augment_rng": at_epoch["augment_rng"],
-                        "curve": curve,
-                        "train": same,
-                        "model": model_cfg.to_dict(),
-                    },
-                )
-            if step >= int(t.steps) or time.perf_counter() - t0 >= budget:
-                break
-    bar.close()
+        _resume(r)
+    step0 = r.step
+    t0, budget = time.perf_counter() - r.done_s, float(t.max_minutes) * 60
+    _optimise(r, t, t0, budget, bool(cfg.progress))
     save_checkpoint(model.eval(), model_cfg, out / "final")
     summary = {
         "task": family.name,
         "demos": info,
-        "steps": step,
+        "steps": r.step,
         **({"resumed_at_step": step0} if step0 else {}),
         "train_minutes": round((time.perf_counter() - t0) / 60, 2),
-        "samples": step * int(t.batch_size),
+        "samples": r.step * int(t.batch_size),
         "parameters": sum(p.numel() for p in model.parameters()),
         "final": str(out / "final"),
-        "curve": curve,
+        "curve": r.curve,
     }
     atomic_write_json(out / "train_log.json", summary)
     return summary

@@ -7,7 +7,7 @@ Output layout (out_dir):
   trajectories.json                  per-trajectory metadata (labels, split, sampled keyframes, strategy)
   stats.json                         counts, filter report (drops by reason), split sizes
   plots/*.png                        horizon distribution, success/failure per task, types by category
-  review.html                        the human-sampling page (data/review.py)
+  review.html                        the human-sampling page (labrobfail_data/review.py)
 Every file is written atomically; a trajectory is kept only with all six records passing the filter.
 """
 
@@ -26,9 +26,9 @@ import pyarrow.parquet as pq
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from data.annotate import PREFIX_QUESTIONS, Annotated, annotate, check_record, grid_failure_frame, grid_picks
-from data.paraphrase import Paraphraser
-from data.splits import assign
+from labrobfail_data.annotate import PREFIX_QUESTIONS, Annotated, annotate, check_record, grid_failure_frame, grid_picks
+from labrobfail_data.paraphrase import Paraphraser
+from labrobfail_data.splits import assign
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import GridConfig
@@ -139,16 +139,22 @@ def _review_marks(path: str | None) -> dict[str, str]:
     return marks
 
 
-def build(cfg: DictConfig) -> dict[str, Any]:
-    files = _shard_files(cfg)
-    check_unique(files)
+def _grid_config(cfg: DictConfig) -> GridConfig:
+    """The grid settings, checked by GridConfig (a bad one is a one-line config error)."""
     try:
-        gcfg = GridConfig(**OmegaConf.to_container(cfg.grid))  # type: ignore[arg-type]
+        return GridConfig(**OmegaConf.to_container(cfg.grid))  # type: ignore[arg-type]
     except (TypeError, ValueError) as e:
         raise ConfigError(str(e)) from None
-    check_rendered(cfg, gcfg.max_frames)
+
+
+def _check_ratios(cfg: DictConfig) -> None:
+    """The seen train/val/test ratios: three non-negative fractions summing to 1."""
     if len(cfg.ratios) != 3 or any(float(r) < 0 for r in cfg.ratios) or abs(sum(cfg.ratios) - 1) > 1e-6:
         raise ConfigError(f"ratios: three non-negative fractions summing to 1, got {list(cfg.ratios)}")
+
+
+def _prefix_questions(cfg: DictConfig) -> list[str]:
+    """prefix.pair_cuts and prefix.questions checked; returns the prefix questions as a list."""
     if not isinstance(cfg.prefix.pair_cuts, bool):
         raise ConfigError(f"prefix.pair_cuts: true or false, got {cfg.prefix.pair_cuts!r}")
     got = cfg.prefix.questions
@@ -162,41 +168,102 @@ def build(cfg: DictConfig) -> dict[str, Any]:
             f"prefix.questions: Q2, Q3, then any of Q5, Q6 (Q4's severity is a rule on the final "
             f"state, which a prefix does not show), got {questions}"
         )
+    return questions
+
+
+def _views(cfg: DictConfig) -> list[str] | None:
+    """The camera views of each grid, in order (None: every view of the shards)."""
     views = None if cfg.views is None else [str(v) for v in cfg.views]
     if views is not None and (not views or len(set(views)) != len(views)):
         raise ConfigError(f"views: expected distinct camera names, e.g. [front, side], got {views}")
-    marks = _review_marks(cfg.review)
-    para = (
+    return views
+
+
+def _paraphraser(cfg: DictConfig) -> Paraphraser | None:
+    """The LLM rewording client when paraphrase.enabled, else None."""
+    return (
         Paraphraser(cfg.paraphrase.base_url, cfg.paraphrase.model, cfg.paraphrase.api_key_env, cfg.paraphrase.timeout_s)
         if cfg.paraphrase.enabled
         else None
     )
+
+
+def _out_dir(cfg: DictConfig) -> Path:
+    """The output folder with its images/ and plots/ made."""
     out = Path(cfg.out_dir)
     try:
         (out / "images").mkdir(parents=True, exist_ok=True)
         (out / "plots").mkdir(exist_ok=True)
     except OSError as e:
         raise ConfigError(f"out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
+    return out
 
+
+def _check_variant(row: dict[str, Any]) -> None:
+    """Refuse a row of a variant the dataset does not know (with a hint for shards of a renamed one)."""
+    if row["variant"] not in DATA_VARIANTS:
+        why = (
+            " (shards made before each variant drew its own episodes replay the seen run's: regenerate them)"
+            if row["variant"] in RENAMED_VARIANTS
+            else ""
+        )
+        raise ConfigError(f"shards: row {row['episode_id']} has unknown variant {row['variant']!r}{why}")
+
+
+def _paraphrase(ann: Annotated, para: Paraphraser, dimensions: Any, para_stats: Counter[str]) -> None:
+    """Replace each record of `dimensions` (never Q2) by its rewording when that passes the filter."""
+    for i, rec in enumerate(ann.records):
+        dim = rec["id"].rsplit("_", 1)[-1]
+        if dim not in dimensions or dim == "Q2":
+            continue
+        new = para.reword(rec, dim, ann.meta["task"])
+        if new is not None and check_record(new, ann.meta) is None:
+            ann.records[i] = new
+            para_stats["accepted"] += 1
+        else:
+            para_stats["rejected"] += 1
+
+
+def _write_grids(ann: Annotated, out: Path) -> None:
+    """Write the trajectory's grid and its prefix grids as PNGs, then drop them from memory."""
+    for a in (ann, *ann.prefixes):
+        buf = io.BytesIO()
+        a.grid.save(buf, format="PNG", optimize=False, compress_level=3)
+        atomic_write_bytes(out / a.image_name, buf.getvalue())
+        a.grid = None  # on disk now; held in memory, 17,000 grids of 512 x 512 px took 13 GB
+
+
+@dataclasses.dataclass
+class _Annotation:
+    """The annotation pass's results: the kept trajectories and the counts that stats.json reports."""
+
+    kept: list[Annotated] = dataclasses.field(default_factory=list)
+    drops: Counter[str] = dataclasses.field(default_factory=Counter)
+    para_stats: Counter[str] = dataclasses.field(default_factory=Counter)
+    total_rows: int = 0
+
+
+def _annotate_all(
+    cfg: DictConfig,
+    files: list[Path],
+    gcfg: GridConfig,
+    questions: list[str],
+    views: list[str] | None,
+    marks: dict[str, str],
+    para: Paraphraser | None,
+    out: Path,
+) -> _Annotation:
+    """Annotate every shard row, filter its records and write the grids of the trajectories kept."""
     rng = np.random.default_rng(int(cfg.seed))
     # Twins cut at the same keyframes: before their failure the two prefix grids are the same picture with the
     # same answer, after it they differ by the failure alone (a clean contrast for pair batches).
     pair_cuts = int(cfg.prefix.cuts) > 0 and cfg.prefix.pair_cuts
     cut_frames = _pair_cut_frames(files, gcfg.max_frames) if pair_cuts else {}
-    drops: Counter[str] = Counter()
-    para_stats: Counter[str] = Counter()
-    kept: list[Annotated] = []
-    total_rows = 0
+    res = _Annotation()
     n_total = sum(pq.ParquetFile(f).metadata.num_rows for f in files)
     for row in tqdm(_rows(files), total=n_total, desc="annotate", unit="traj", disable=not cfg.progress):
-        total_rows += 1
-        if row["variant"] not in DATA_VARIANTS:
-            why = (
-                " (shards made before each variant drew its own episodes replay the seen run's: regenerate them)"
-                if row["variant"] in RENAMED_VARIANTS
-                else ""
-            )
-            raise ConfigError(f"shards: row {row['episode_id']} has unknown variant {row['variant']!r}{why}")
+        res.total_rows += 1
+        _check_variant(row)
         # prefix cuts draw from their own stream: the main records are the same with or without them
         group = f"{row['variant']}-{row['pair_id']}"
         traj_key = zlib.crc32((group if pair_cuts else f"{row['variant']}-{row['episode_id']}").encode())
@@ -212,31 +279,22 @@ def build(cfg: DictConfig) -> dict[str, Any]:
             views=views,
         )
         if marks.get(ann.trajectory) == "reject":
-            drops["review_rejected"] += 1
+            res.drops["review_rejected"] += 1
             continue
         if para is not None:
-            for i, rec in enumerate(ann.records):
-                dim = rec["id"].rsplit("_", 1)[-1]
-                if dim not in cfg.paraphrase.dimensions or dim == "Q2":
-                    continue
-                new = para.reword(rec, dim, ann.meta["task"])
-                if new is not None and check_record(new, ann.meta) is None:
-                    ann.records[i] = new
-                    para_stats["accepted"] += 1
-                else:
-                    para_stats["rejected"] += 1
+            _paraphrase(ann, para, cfg.paraphrase.dimensions, res.para_stats)
         reasons = [r for a in (ann, *ann.prefixes) for rec in a.records if (r := check_record(rec, a.meta))]
         reasons += [r for rec in ann.aux if (r := check_record(rec, ann.meta))]
         if reasons:
-            drops.update(reasons)
+            res.drops.update(reasons)
             continue
-        for a in (ann, *ann.prefixes):
-            buf = io.BytesIO()
-            a.grid.save(buf, format="PNG", optimize=False, compress_level=3)
-            atomic_write_bytes(out / a.image_name, buf.getvalue())
-            a.grid = None  # on disk now; held in memory, 17,000 grids of 512 x 512 px took 13 GB
-        kept.append(ann)
+        _write_grids(ann, out)
+        res.kept.append(ann)
+    return res
 
+
+def _split_records(kept: list[Annotated], cfg: DictConfig) -> dict[str, list[dict[str, Any]]]:
+    """Assign each kept trajectory (and its prefixes) a split; split name -> its records."""
     split_of = assign([(a.group, a.variant) for a in kept], int(cfg.seed), tuple(cfg.ratios))
     splits: dict[str, list[dict[str, Any]]] = {s: [] for s in (*SEEN_SPLITS, *HELD_OUT_SPLITS, *REPLAY_SPLITS)}
     for a in kept:
@@ -248,6 +306,11 @@ def build(cfg: DictConfig) -> dict[str, Any]:
             p.meta["split"] = split_of[a.group]
             name = "train" if p.meta["split"] == "train" else f"{p.meta['split']}_prefix"
             splits.setdefault(name, []).extend(p.records)
+    return splits
+
+
+def _write_splits(out: Path, splits: dict[str, list[dict[str, Any]]]) -> None:
+    """Write each split's records (the seen splits always, others when not empty) and dataset_info.json."""
     for name, recs in splits.items():
         if name in SEEN_SPLITS or recs:
             atomic_write_json(out / f"{name}.json", recs)
@@ -264,9 +327,27 @@ def build(cfg: DictConfig) -> dict[str, Any]:
             if name in SEEN_SPLITS or recs
         },
     )
+
+
+def build(cfg: DictConfig) -> dict[str, Any]:
+    files = _shard_files(cfg)
+    check_unique(files)
+    gcfg = _grid_config(cfg)
+    check_rendered(cfg, gcfg.max_frames)
+    _check_ratios(cfg)
+    questions = _prefix_questions(cfg)
+    views = _views(cfg)
+    marks = _review_marks(cfg.review)
+    para = _paraphraser(cfg)
+    out = _out_dir(cfg)
+
+    res = _annotate_all(cfg, files, gcfg, questions, views, marks, para, out)
+    kept = res.kept
+    splits = _split_records(kept, cfg)
+    _write_splits(out, splits)
     trajectories = [a.meta for a in kept]
     atomic_write_json(out / "trajectories.json", trajectories + [p.meta for a in kept for p in a.prefixes])
-    stats = dataset_stats(trajectories, splits, total_rows, drops, para_stats, gcfg)
+    stats = dataset_stats(trajectories, splits, res.total_rows, res.drops, res.para_stats, gcfg)
     stats["prefix"] = {
         "cuts": int(cfg.prefix.cuts),
         "pair_cuts": bool(cfg.prefix.pair_cuts),
@@ -279,8 +360,8 @@ def build(cfg: DictConfig) -> dict[str, Any]:
         "records": sum(len(a.aux) for a in kept if a.meta["split"] == "train"),
     }
     atomic_write_json(out / "stats.json", stats)
-    from data.plots import write_plots
-    from data.review import write_review_page
+    from labrobfail_data.plots import write_plots
+    from labrobfail_data.review import write_review_page
 
     write_plots(trajectories, out / "plots")
     write_review_page(kept, out / "review.html", int(cfg.review_sample), int(cfg.seed))

@@ -2,7 +2,7 @@
 
 Off by default. The API key is read from the environment variable named in the config and
 only ever placed in the Authorization header: never logged, never written. A reworded
-record must pass the same rule-based filter as the original (data.annotate.check_record);
+record must pass the same rule-based filter as the original (labrobfail_data.annotate.check_record);
 otherwise the original wording is kept and the rejection is counted.
 """
 

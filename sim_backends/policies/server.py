@@ -1,10 +1,11 @@
-"""Serve a project policy (ACT, scripted) behind OpenVLA's REST protocol, on loopback: a drop-in peer of
-OpenVLA's `vla-scripts/deploy.py`.
+"""Serve a project policy (ACT, scripted) behind OpenVLA's REST protocol: a drop-in peer of OpenVLA's
+`vla-scripts/deploy.py`, on the same FastAPI/uvicorn stack as the diagnosis server (labrobfail_vlm/serve/).
 
 Run as:
-    python scripts/serve_policy.py policy=act act.checkpoint=outputs/act/pick/final port=8777
-    python scripts/serve_policy.py policy=scripted port=0          # prints the port it got
-    python scripts/serve_policy.py policy=scripted default_episode.scenario=pick_place_beaker_small
+    labrobfail-serve-policy policy=act act.checkpoint=outputs/act/pick/final port=8777
+    labrobfail-serve-policy policy=scripted port=0          # prints the port it got
+    labrobfail-serve-policy policy=scripted default_episode.scenario=pick_place_beaker_small
+    LABROBFAIL_POLICY_TOKEN=... labrobfail-serve-policy policy=act act.checkpoint=DIR host=0.0.0.0
 
 `POST /act` takes OpenVLA's request exactly as OpenVLA's own client sends it (`requests.post(url, json={"image":
 uint8 HxWx3, "instruction": str})` after `json_numpy.patch()`, optional `unnorm_key`, or the `{"encoded":
@@ -15,9 +16,16 @@ client may add optional extras: `images` (every view), `proprio` (ee_pos, ee_qua
 - the episode is `default_episode` (configs/serve_policy.yaml), and a new instruction starts a new one;
 - the arm's state is the server's own account: the backend's home pose at the episode start, then each
   target it answered, taken as reached (the gripper width stays at its home value).
-Errors, as OpenVLA's server (FastAPI) gives them: a body that is not json-numpy (bad JSON, too deep, an object
-array) is HTTP 400, one that is not a JSON object 422, one over `max_body_mb` 413; a request the policy cannot
-answer is HTTP 200 with the JSON string "error", and one line on stderr. Defaults: configs/serve_policy.yaml.
+`GET /health` answers {"status": "ok", "policy": ..., "requests": n}.
+
+The diagnosis server's limits, token and shutdown: loopback unless `host` says otherwise; with the variable
+`token_env` names set (LABROBFAIL_POLICY_TOKEN), every request but /health needs `Authorization: Bearer <token>`
+(the project's client sends it from `openvla.token_env`); a body over `max_body_mb` is 413 (checked before it is
+read, and while it streams), one not complete `request_timeout_s` after its first read 408, more than
+`max_connections` at once 503; Ctrl-C / SIGTERM finishes the request in flight, then exits 0.
+Errors as OpenVLA's server (FastAPI) gives them, `{"detail": ...}`: a body that is not json-numpy (bad JSON, too
+deep, an object array) is HTTP 400, one that is not a JSON object 422; a request the policy cannot answer is
+HTTP 200 with the JSON string "error", and one line on stderr. Defaults: configs/serve_policy.yaml.
 """
 
 from __future__ import annotations
@@ -25,12 +33,16 @@ from __future__ import annotations
 import json
 import sys
 import threading
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
 import numpy as np
+from fastapi import FastAPI, Request  # FastAPI reads the routes' annotations from this module's names
+from fastapi.responses import JSONResponse, Response
+from starlette.concurrency import run_in_threadpool
+from starlette.requests import ClientDisconnect
 
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from labrobfail_vlm.serve.app import BodyTimeout, BodyTooLarge, Guard
 from sim_backends.policies import wire
 
 
@@ -200,115 +212,91 @@ def unwrap(payload: dict[str, Any], max_body: int) -> tuple[dict[str, Any], bool
     return inner, True
 
 
-def content_length(value: str | None, max_body: int) -> tuple[int, int | None, str]:
-    """(length, None, "") for an acceptable Content-Length; else (0, HTTP status, reason)."""
-    if value is None:
-        return 0, 411, "Content-Length required"
-    try:
-        n = int(value)
-    except ValueError:
-        return 0, 400, "bad Content-Length"
-    if n < 0:
-        return 0, 400, "bad Content-Length"
-    if n > max_body:
-        return 0, 413, f"request over {max_body} bytes"
-    return n, None, ""
-
-
 def log_error(what: str, e: BaseException) -> None:
     print(f"error: {what}: {type(e).__name__}: {wire.one_line(e)}", file=sys.stderr, flush=True)
 
 
-def handler(service: PolicyService, max_body: int, timeout_s: float) -> type[BaseHTTPRequestHandler]:
+def create_app(service: PolicyService, max_body: int, token: str | None = None, body_timeout_s: float = 30.0) -> Any:
+    """The ASGI app: POST /act and GET /health behind the diagnosis server's Guard (token, size, body deadline)."""
     lock = threading.Lock()  # one policy and one backend: requests are answered one at a time
+    served = {"requests": 0}
 
-    class Handler(BaseHTTPRequestHandler):
-        timeout = timeout_s  # a client that stops sending mid-request frees its thread
+    def answer(payload: dict[str, Any]) -> str:
+        try:  # OpenVLA's predict_action: any failure is HTTP 200 and the string "error"
+            payload, encoded = unwrap(payload, max_body)
+            with lock:
+                action = service.answer(payload)
+                served["requests"] += 1
+            return json.dumps(wire.dumps(action)) if encoded else wire.dumps(action)
+        except Exception as e:  # noqa: BLE001 - the protocol answers every failure the same way
+            log_error("request failed", e)
+            return json.dumps("error")
 
-        def log_message(self, fmt: str, *args: Any) -> None:  # one line per failure, not per request
-            pass
+    app = FastAPI(title="LabRobFail policy server", docs_url=None, redoc_url=None, openapi_url=None)
 
-        def _send(self, code: int, body: str) -> None:
-            data = body.encode()
-            self.send_response(code)
-            self.send_header("Content-Type", "application/json")
-            self.send_header("Content-Length", str(len(data)))
-            self.end_headers()
-            self.wfile.write(data)
+    @app.exception_handler(BodyTooLarge)
+    async def too_large(_: Request, __: BodyTooLarge) -> JSONResponse:
+        return JSONResponse({"detail": f"request over {max_body} bytes"}, status_code=413)
 
-        def _read(self) -> bytes | None:
-            """The request body, or None once an HTTP error has been sent."""
-            n, code, reason = content_length(self.headers.get("Content-Length"), max_body)
-            if code is not None:
-                self._send(code, json.dumps({"detail": reason}))
-                return None
-            return self.rfile.read(n)
+    @app.exception_handler(BodyTimeout)
+    async def too_slow(_: Request, __: BodyTimeout) -> JSONResponse:
+        detail = f"request body not received within {body_timeout_s:g} s"
+        return JSONResponse({"detail": detail}, status_code=408, headers={"connection": "close"})
 
-        def do_POST(self) -> None:  # noqa: N802 - http.server's name
-            if self.path.split("?")[0].rstrip("/") != "/act":
-                self._send(404, json.dumps({"detail": "Not Found"}))
-                return
-            body = self._read()
-            if body is None:
-                return
-            try:  # FastAPI's layer in OpenVLA's server: the body must be a JSON object
-                payload = wire.loads(body, max_body)
-            except wire.WireError as e:
-                self._send(400, json.dumps({"detail": f"request body is not json-numpy: {e}"}))
-                return
-            if not isinstance(payload, dict):
-                self._send(422, json.dumps({"detail": "the request must be a JSON object"}))
-                return
-            try:  # OpenVLA's predict_action: any failure is HTTP 200 and the string "error"
-                payload, encoded = unwrap(payload, max_body)
-                with lock:
-                    action = service.answer(payload)
-                reply = json.dumps(wire.dumps(action)) if encoded else wire.dumps(action)
-            except Exception as e:  # noqa: BLE001 - the protocol answers every failure the same way
-                log_error("request failed", e)
-                reply = json.dumps("error")
-            self._send(200, reply)
+    @app.exception_handler(ClientDisconnect)
+    async def gone(_: Request, __: ClientDisconnect) -> Response:
+        return Response(status_code=400)  # nobody reads it
 
-    return Handler
+    @app.get("/health")
+    async def health() -> dict[str, Any]:
+        return {"status": "ok", "policy": str(service.cfg.policy), "requests": served["requests"]}
+
+    @app.post("/act")
+    async def act(request: Request) -> Response:
+        try:  # FastAPI's layer in OpenVLA's server: the body must be a JSON object
+            payload = wire.loads(await request.body(), max_body)
+        except wire.WireError as e:
+            return JSONResponse({"detail": f"request body is not json-numpy: {e}"}, status_code=400)
+        if not isinstance(payload, dict):
+            return JSONResponse({"detail": "the request must be a JSON object"}, status_code=422)
+        return Response(await run_in_threadpool(answer, payload), media_type="application/json")
+
+    return Guard(app, token, max_body, body_timeout_s, error_key="detail")
 
 
-class Server(ThreadingHTTPServer):
-    daemon_threads = True
-
-    def handle_error(self, request: Any, client_address: Any) -> None:
-        """A connection that broke (timed out, reset) is one line on stderr, not a traceback."""
-        e = sys.exc_info()[1]
-        if e is not None:
-            log_error(f"connection from {client_address[0]}", e)
-
-
-def main(argv: list[str]) -> int:
-    cfg = load_config("serve_policy.yaml", argv)
-    if not isinstance(cfg.max_body_mb, int) or cfg.max_body_mb < 1:
+def check_config(cfg: Any) -> None:
+    if not isinstance(cfg.max_body_mb, int) or isinstance(cfg.max_body_mb, bool) or cfg.max_body_mb < 1:
         raise ConfigError(f"max_body_mb: must be a positive integer, got {cfg.max_body_mb!r}")
     if not isinstance(cfg.request_timeout_s, (int, float)) or not cfg.request_timeout_s > 0:
         raise ConfigError(f"request_timeout_s: must be a positive number, got {cfg.request_timeout_s!r}")
+    if not isinstance(cfg.max_connections, int) or cfg.max_connections < 1:
+        raise ConfigError(f"max_connections: must be a positive integer, got {cfg.max_connections!r}")
+    if not isinstance(cfg.port, int) or not 0 <= cfg.port <= 65535:
+        raise ConfigError(f"port: expected 0-65535, got {cfg.port!r}")
+    if str(cfg.log_level) not in ("critical", "error", "warning", "info", "debug"):
+        raise ConfigError(f"log_level: expected critical, error, warning, info or debug, got {cfg.log_level!r}")
+
+
+def main(argv: list[str]) -> int:
+    from labrobfail_vlm.serve.http import bearer_token, listen, serve
+
+    cfg = load_config("serve_policy.yaml", argv)
+    check_config(cfg)
+    token = bearer_token(str(cfg.token_env), str(cfg.host))
+    sock = listen(str(cfg.host), int(cfg.port))  # before the policy loads: a taken port fails fast
     service = PolicyService(cfg)
     try:
-        server = Server(
-            (str(cfg.host), int(cfg.port)), handler(service, int(cfg.max_body_mb) << 20, float(cfg.request_timeout_s))
-        )
-    except (OSError, OverflowError) as e:
-        service.close()
-        raise ConfigError(
-            f"port: cannot listen on {cfg.host}:{cfg.port} ({getattr(e, 'strerror', None) or e})"
-        ) from None
-    host, port = server.server_address[:2]
-    print(f"serving {cfg.policy} on http://{host}:{port}/act", flush=True)
-    try:
-        server.serve_forever()
-    except KeyboardInterrupt:
-        pass
+        app = create_app(service, int(cfg.max_body_mb) << 20, token, float(cfg.request_timeout_s))
+        host, port = sock.getsockname()[:2]
+        print(f"serving {cfg.policy} on http://{host}:{port}/act", flush=True)  # clients read the URL off this line
+        if token:
+            print("token required", file=sys.stderr, flush=True)
+        serve(app, sock, str(cfg.log_level), int(cfg.max_connections))
     finally:
-        server.server_close()
         service.close()
     return 0
 
 
-if __name__ == "__main__":
+def cli() -> None:
+    """The `labrobfail-serve-policy` console script."""
     cli_main(main, __doc__)

@@ -17,14 +17,14 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from PIL import Image
 
-from data.facts import aux_records, frame_facts
+from labrobfail_data.facts import aux_records, frame_facts
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.corrections import Context, correction
 from labrobfail_vlm.grid import GridConfig, build_grid, frame_for_keyframe, sample_keyframes
 from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, Category, Severity
 from sim_backends.failure_context import failure_context
-from sim_backends.labeler import severity
+from sim_backends.labeler import derive_labels, severity
 from sim_backends.schema import trace_until
 
 # What a prefix grid may be asked (prefix.questions). Q4 is not: severity is a rule on the final state (a door
@@ -83,35 +83,23 @@ def grid_failure_frame(row: dict[str, Any], picks: list[int]) -> int | None:
     return None if row["success"] else frame_for_keyframe(picks, int(row["failure_keyframe"]))
 
 
-def annotate(
-    row: dict[str, Any],
-    grid_cfg: GridConfig,
-    rng: np.random.Generator,
-    prefix_cuts: int = 0,
-    prefix_rng: np.random.Generator | None = None,
-    aux: int = 0,
-    cut_frame: int | None = None,
-    *,
-    prefix_questions: Sequence[str],
-    views: Sequence[str] | None = None,
-) -> Annotated:
-    """`prefix_cuts` > 0 adds that many prefix grids, each with a record per `prefix_questions`
-    (`prefix_records`); `aux` > 0 that many per-frame fact records (data/facts.py). Both draw from `prefix_rng`,
-    so the six main records are the same with or without them. `cut_frame`: the failure frame the prefix cuts are
-    placed around (None: this trajectory's own); the builder passes a pair's so that twins are cut at the same
-    keyframes."""
-    meta = json.loads(row["task_meta"])
-    trace = json.loads(row["state_trace"])
-    picks = grid_picks(row, grid_cfg.max_frames)
-    views = decode_views(row_images(row, views), picks)
-    grid = build_grid(views, grid_cfg)
-    traj = f"{row['variant']}-{row['episode_id']}"
-    image = f"images/{traj}.png"
-    task_name = meta.get("description") or row["scenario"].replace("_", " ")
-    success = bool(row["success"])
+def _qa_record(rid: str, image: str, question: str, answer: str) -> dict[str, Any]:
+    """One ShareGPT/LLaVA record: the grid, one question and its answer."""
+    return {
+        "id": rid,
+        "image": image,
+        "images": [image],  # "images": LLaMA-Factory's column
+        "conversations": [{"from": "human", "value": question}, {"from": "gpt", "value": answer}],
+    }
+
+
+def _answers(
+    row: dict[str, Any], meta: dict[str, Any], trace: Any, picks: list[int]
+) -> tuple[dict[str, str], int | None, Context | None, str | None]:
+    """The answers Q1, Q3-Q6 (Q2 follows its wording), the grid failure frame, the failure context and strategy."""
     answers: dict[str, str] = {"Q1": Q.format_actions(list(row["actions"]))}
     ctx, strategy = None, None
-    if success:
+    if bool(row["success"]):
         answers.update(Q3=Q.NO_FAILURE, Q4=Q.NO_FAILURE, Q5=Q.NO_FAILURE, Q6=Q.NO_CORRECTION)
         frame = None
     else:
@@ -119,31 +107,47 @@ def annotate(
         ctx = failure_context(row, meta, trace)
         strategy, fix = correction(ctx)
         answers.update(Q3=str(frame), Q4=str(int(row["severity"])), Q5=str(int(row["category"])), Q6=fix)
+    return answers, frame, ctx, strategy
+
+
+def _main_records(
+    traj: str,
+    image: str,
+    task_name: str,
+    answers: dict[str, str],
+    success: bool,
+    grid_cfg: GridConfig,
+    rng: np.random.Generator,
+) -> list[dict[str, Any]]:
+    """The six records of a trajectory, each question's wording drawn from `rng` in Q.DIMENSIONS order."""
     records = []
     for dim in Q.DIMENSIONS:
         v = int(rng.integers(len(Q.VARIANTS[dim])))
         ans = Q.q2_answer(v, success) if dim == "Q2" else answers[dim]
-        records.append(
-            {
-                "id": Q.record_id(traj, dim),
-                "image": image,
-                "images": [image],  # "images": LLaMA-Factory's column
-                "conversations": [
-                    {
-                        "from": "human",
-                        "value": Q.question_text(dim, v, task_name, grid_cfg.time_axis, grid_cfg.draw_index),
-                    },
-                    {"from": "gpt", "value": ans},
-                ],
-            }
-        )
-    info = {
+        question = Q.question_text(dim, v, task_name, grid_cfg.time_axis, grid_cfg.draw_index)
+        records.append(_qa_record(Q.record_id(traj, dim), image, question, ans))
+    return records
+
+
+def _trajectory_info(
+    row: dict[str, Any],
+    meta: dict[str, Any],
+    traj: str,
+    task_name: str,
+    frame: int | None,
+    picks: list[int],
+    views: list[list[Image.Image]],
+    strategy: str | None,
+    keep: list[str],
+) -> dict[str, Any]:
+    """The trajectory's metadata: labels, sampled keyframes, strategy (what the review page and stats show)."""
+    return {
         "trajectory": traj,
         "group": f"{row['variant']}-{row['pair_id']}",
         "scenario": row["scenario"],
         "task": task_name,
         "variant": row["variant"],
-        "success": success,
+        "success": bool(row["success"]),
         "failure_type": row["failure_type"],
         "category": row["category"],
         "severity": row["severity"],
@@ -158,8 +162,40 @@ def annotate(
         "strategy": strategy,
         # the scene's object and place names: what a robot stack knows, and what Q6's template mode fills in
         "objects": sorted(set(meta.get("labels", {}).values())),
-        "q6_keep": q6_keep(ctx, answers["Q6"]),
+        "q6_keep": keep,
     }
+
+
+def annotate(
+    row: dict[str, Any],
+    grid_cfg: GridConfig,
+    rng: np.random.Generator,
+    prefix_cuts: int = 0,
+    prefix_rng: np.random.Generator | None = None,
+    aux: int = 0,
+    cut_frame: int | None = None,
+    *,
+    prefix_questions: Sequence[str],
+    views: Sequence[str] | None = None,
+) -> Annotated:
+    """`prefix_cuts` > 0 adds that many prefix grids, each with a record per `prefix_questions`
+    (`prefix_records`); `aux` > 0 that many per-frame fact records (labrobfail_data/facts.py). Both draw from
+    `prefix_rng`, so the six main records are the same with or without them. `cut_frame`: the failure frame the
+    prefix cuts are placed around (None: this trajectory's own); the builder passes a pair's so that twins are cut
+    at the same keyframes."""
+    meta = json.loads(row["task_meta"])
+    trace = json.loads(row["state_trace"])
+    picks = grid_picks(row, grid_cfg.max_frames)
+    views = decode_views(row_images(row, views), picks)
+    grid = build_grid(views, grid_cfg)
+    traj = f"{row['variant']}-{row['episode_id']}"
+    image = f"images/{traj}.png"
+    task_name = meta.get("description") or row["scenario"].replace("_", " ")
+    success = bool(row["success"])
+    answers, frame, ctx, strategy = _answers(row, meta, trace, picks)
+    records = _main_records(traj, image, task_name, answers, success, grid_cfg, rng)
+    info = _trajectory_info(row, meta, traj, task_name, frame, picks, views, strategy, q6_keep(ctx, answers["Q6"]))
+    info |= onset(row, trace, meta)
     ann = Annotated(traj, info["group"], row["variant"], image, grid, records, info)
     if prefix_cuts > 0:
 
@@ -187,6 +223,17 @@ def annotate(
             prefix_rng or rng,
         )
     return ann
+
+
+def onset(row: dict[str, Any], trace: dict[str, Any], meta: dict[str, Any]) -> dict[str, Any]:
+    """A failure's onset, the first keyframe (and sim time) its state signature shows, re-derived from the trace by
+    the labeler as every label is (shards before 29 Nov do not store `onset_s`); None for a success."""
+    if row["success"]:
+        return {"onset_keyframe": None, "onset_s": None}
+    lab = derive_labels(trace, meta)
+    if lab.failure_keyframe != row["failure_keyframe"]:  # the shard's label and the trace disagree: never guess
+        raise ConfigError(f"shards: {row['episode_id']}'s failure keyframe does not re-derive from its trace")
+    return {"onset_keyframe": lab.failure_keyframe, "onset_s": lab.onset_s}
 
 
 def prefix_cut_points(frames: int, failure_frame: int | None, n: int, rng: np.random.Generator) -> list[int]:
@@ -236,20 +283,8 @@ def prefix_records(
         for dim in questions:  # Q2 and Q3 draw first, so the default prefixes are what they always were
             v = int(rng.integers(len(Q.VARIANTS[dim])))
             ans = Q.q2_answer(v, not failed) if dim == "Q2" else answers[dim]
-            records.append(
-                {
-                    "id": Q.record_id(traj, dim),
-                    "image": image,
-                    "images": [image],
-                    "conversations": [
-                        {
-                            "from": "human",
-                            "value": Q.question_text(dim, v, info["task"], grid_cfg.time_axis, grid_cfg.draw_index),
-                        },
-                        {"from": "gpt", "value": ans},
-                    ],
-                }
-            )
+            question = Q.question_text(dim, v, info["task"], grid_cfg.time_axis, grid_cfg.draw_index)
+            records.append(_qa_record(Q.record_id(traj, dim), image, question, ans))
         meta = {
             **info,
             "trajectory": traj,
@@ -294,7 +329,7 @@ def check_record(rec: Any, info: dict[str, Any]) -> str | None:
         return "malformed"
     dim = rid.rsplit("_", 1)[-1]
     ok = info["success"]
-    if Q.is_aux(dim):  # a per-frame fact (data/facts.py), derived from the trace
+    if Q.is_aux(dim):  # a per-frame fact (labrobfail_data/facts.py), derived from the trace
         return None if a in ("Yes", "No") and q.endswith("(Yes/No)") else "malformed"
     if dim == "Q1":
         acts = [s.strip() for s in a.split(",")]

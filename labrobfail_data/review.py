@@ -17,7 +17,7 @@ import numpy as np
 from labrobfail_vlm.io import atomic_write_bytes
 
 if TYPE_CHECKING:
-    from data.annotate import Annotated
+    from labrobfail_data.annotate import Annotated
 
 _E = html.escape
 

@@ -4,9 +4,10 @@ One output file per source shard (`frames-<variant>-<shard>-<signature>.parquet`
 the files already written, so a killed build resumes; the signature names the target definitions and grid, so a
 changed definition rebuilds instead of mixing), then `index.json`: the files, the target names, and each pair's split.
 A row is one trajectory: the PNG bytes of the keyframes a grid of `max_frames` shows, in every rendered view
-(`images[view][frame]`), and its targets from data/frame_targets.py (cells (F, V, K) and points (F, V, C, P, 2) as
-float32 bytes). Seen pairs are split train/val by `ratios` (data/splits.py, grouped by pair, so no held-out frame
-has a training twin); held-out variants are evaluation sets only: the tower never trains on them.
+(`images[view][frame]`), and its targets from labrobfail_data/frame_targets.py (cells (F, V, K) and points
+(F, V, C, P, 2) as float32 bytes). Seen pairs are split train/val by `ratios` (labrobfail_data/splits.py, grouped by
+pair, so no held-out frame has a training twin); held-out variants are evaluation sets only: the tower never trains
+on them.
 """
 
 from __future__ import annotations
@@ -23,28 +24,14 @@ import pyarrow.parquet as pq
 from omegaconf import DictConfig
 from tqdm import tqdm
 
-from data.annotate import grid_failure_frame, grid_picks
-from data.build import _rows, _shard_files
-from data.frame_targets import CELL_TARGETS, MAX_POINTS, TOKEN_TARGETS, row_targets
-from data.splits import assign
+from labrobfail_data.annotate import grid_failure_frame, grid_picks
+from labrobfail_data.build import READ_COLUMNS, _rows, _shard_files
+from labrobfail_data.frame_targets import CELL_TARGETS, MAX_POINTS, TOKEN_TARGETS, row_targets
+from labrobfail_data.splits import assign
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.io import atomic_write_json
 
-READ = [
-    "episode_id",
-    "pair_id",
-    "variant",
-    "scenario",
-    "success",
-    "failure_type",
-    "failure_keyframe",
-    "images",
-    "state_trace",
-    "task_meta",
-    "keyframes",
-    "camera_names",
-    "cameras",
-]
+READ = [*READ_COLUMNS, "cameras"]  # the dataset's columns and the camera matrices (token targets)
 SCHEMA = pa.schema(
     [
         ("trajectory", pa.string()),

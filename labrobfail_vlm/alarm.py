@@ -1,0 +1,84 @@
+"""A failure alarm with a false-alarm bound: a running failure score over a trajectory's keyframes and a threshold
+calibrated on successful trajectories only (split conformal prediction, as FIPER calibrates on successes).
+
+The score of a trajectory at keyframe k is whatever the monitor gives for the trajectory seen so far (the model's
+P(failure) on the prefix grid of keyframes 1..k, for one); the alarm fires at the first k whose score exceeds the
+threshold. A success's nonconformity is its largest score over all its keyframes: the alarm fires on it somewhere
+exactly when that maximum exceeds the threshold. With n calibration successes, the threshold is the
+ceil((n + 1)(1 - alpha))-th smallest of their maxima (the order statistic; no interpolation), so that for a new
+success exchangeable with them
+
+    P(the alarm fires on it) <= alpha,
+
+a finite-sample bound that holds for any score and any n, on average over calibration draws (Vovk et al.; Angelopoulos
+and Bates, "A Gentle Introduction to Conformal Prediction", 2021). When (n + 1)(1 - alpha) > n there are too few
+successes for the bound: the threshold is +inf and the alarm never fires (say so, and calibrate on more).
+
+What it does not promise: anything on a success that is not exchangeable with the calibration set (a new scene, a
+new policy, another camera: recalibrate there), any detection rate or latency on failures (those are measured),
+nor a per-keyframe rate: the bound is per trajectory.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+
+def trajectory_score(scores: Sequence[float]) -> float:
+    """A success's nonconformity: its largest running score (the alarm fires on it iff this exceeds the threshold)."""
+    if len(scores) == 0:
+        raise ValueError("alarm: a trajectory needs at least one keyframe score")
+    return float(np.max(np.asarray(scores, np.float64)))
+
+
+def conformal_threshold(success_maxima: Sequence[float], alpha: float) -> float:
+    """The split-conformal threshold: the ceil((n+1)(1-alpha))-th smallest calibration maximum, +inf when n is too
+    small for alpha. The alarm fires where a score is strictly above it."""
+    if not 0 < alpha < 1:
+        raise ValueError(f"alarm: alpha must be in (0, 1), got {alpha!r}")
+    s = np.sort(np.asarray(success_maxima, np.float64))
+    if s.ndim != 1 or not np.all(np.isfinite(s)):
+        raise ValueError("alarm: calibration scores must be a list of finite numbers")
+    n = len(s)
+    rank = math.ceil((n + 1) * (1 - alpha))
+    return math.inf if rank > n else float(s[rank - 1])
+
+
+def min_calibration(alpha: float) -> int:
+    """The fewest calibration successes for which the threshold is finite at this alpha."""
+    return math.ceil((1 - alpha) / alpha)
+
+
+def first_alarm(scores: Sequence[float], threshold: float) -> int | None:
+    """0-based keyframe of the first score above the threshold, or None."""
+    hits = np.flatnonzero(np.asarray(scores, np.float64) > threshold)
+    return int(hits[0]) if len(hits) else None
+
+
+@dataclass(frozen=True)
+class Alarm:
+    """A calibrated alarm: `fires(scores)` gives the keyframe it fires at on a running trajectory, or None."""
+
+    alpha: float
+    threshold: float
+    n_calibration: int
+
+    @classmethod
+    def calibrate(cls, success_scores: Sequence[Sequence[float]], alpha: float) -> "Alarm":
+        """From the per-keyframe scores of successful calibration trajectories only."""
+        maxima = [trajectory_score(s) for s in success_scores]
+        return cls(float(alpha), conformal_threshold(maxima, alpha), len(maxima))
+
+    def fires(self, scores: Sequence[float]) -> int | None:
+        return first_alarm(scores, self.threshold)
+
+    def to_dict(self) -> dict[str, float | int | None]:
+        return {
+            "alpha": self.alpha,
+            "threshold": None if math.isinf(self.threshold) else self.threshold,
+            "n_calibration": self.n_calibration,
+        }

@@ -1,0 +1,60 @@
+"""The calibrated alarm's false-alarm bound on synthetic scores, and the recovery table's paired statistics
+(exact McNemar p, Agresti-Min interval) on tables worked out by hand."""
+
+import math
+
+import numpy as np
+import pytest
+
+from labrobfail_vlm.alarm import Alarm, conformal_threshold, first_alarm, min_calibration
+from sim_backends.supervision.paired import difference_ci, mcnemar_exact, paired_cell
+
+
+def test_threshold_is_the_conformal_order_statistic():
+    s = list(range(1, 20))  # n = 19 maxima 1..19
+    assert conformal_threshold(s, 0.05) == 19  # ceil(20 * 0.95) = 19th smallest
+    assert conformal_threshold(s, 0.1) == 18  # ceil(20 * 0.9) = 18
+    assert conformal_threshold(s, 0.2) == 16
+    assert math.isinf(conformal_threshold(s[:18], 0.05))  # ceil(19 * 0.95) = 19 > 18: no finite bound
+    assert min_calibration(0.05) == 19 and min_calibration(0.01) == 99 and min_calibration(0.2) == 4
+    assert first_alarm([0.1, 0.5, 0.9, 0.95], 0.5) == 2 and first_alarm([0.1, 0.2], 0.5) is None
+    with pytest.raises(ValueError, match="alpha"):
+        conformal_threshold(s, 1.0)
+
+
+def _successes(rng, k):
+    """Running scores of successful trajectories: random lengths, a random walk squashed into (0, 1)."""
+    return [1 / (1 + np.exp(-np.cumsum(rng.normal(-0.2, 0.6, rng.integers(3, 17))))) for _ in range(k)]
+
+
+@pytest.mark.parametrize("alpha", [0.01, 0.05, 0.1, 0.2])
+def test_false_alarm_rate_on_new_successes_is_within_the_bound(alpha):
+    """Averaged over calibration draws, the alarm fires on at most alpha of new exchangeable successes, and (the
+    scores being continuous) on at least alpha - 1/(n+1): the bound is tight, not vacuous."""
+    rng = np.random.default_rng(int(alpha * 1000))
+    n = max(min_calibration(alpha), 40)
+    rates = []
+    for _ in range(300):
+        alarm = Alarm.calibrate(_successes(rng, n), alpha)
+        assert alarm.n_calibration == n and math.isfinite(alarm.threshold)
+        rates.append(np.mean([alarm.fires(s) is not None for s in _successes(rng, 100)]))
+    mean, se = float(np.mean(rates)), float(np.std(rates) / np.sqrt(len(rates)))
+    assert alpha - 1 / (n + 1) - 3 * se <= mean <= alpha + 3 * se, (alpha, n, mean, se)
+
+
+def test_mcnemar_and_the_difference_interval_on_known_tables():
+    assert mcnemar_exact(1, 9) == pytest.approx(22 / 1024)  # 2 * (C(10,0) + C(10,1)) / 2^10
+    assert mcnemar_exact(0, 6) == pytest.approx(2 / 64)
+    assert mcnemar_exact(5, 5) == 1.0 and mcnemar_exact(0, 0) == 1.0
+    lo, hi = difference_ci(1, 9, 100)  # Agresti-Min: (9.5 - 1.5) / 102 +- 1.96 * sqrt(11 - 64/102) / 102
+    assert (lo, hi) == pytest.approx((0.016545, 0.140317), abs=1e-5)
+    assert difference_ci(0, 0, 10)[0] < 0 < difference_ci(0, 0, 10)[1]
+    without = [True] * 60 + [False] * 40
+    with_sup = [True] * 59 + [False] + [True] * 10 + [False] * 30  # one success broken, ten failures rescued
+    cell = paired_cell(without, with_sup)
+    assert (cell.n, cell.broken, cell.rescued, cell.base_successes, cell.supervised_successes) == (100, 1, 10, 60, 69)
+    s = cell.summary()
+    assert s["gain_points"] == 9.0 and s["mcnemar_p"] == pytest.approx(mcnemar_exact(1, 10))
+    assert s["broken_share"] == pytest.approx(1 / 60, abs=1e-4) and s["ci95_points"][0] > 0
+    with pytest.raises(ValueError, match="same"):
+        paired_cell([True], [True, False])
