@@ -63,7 +63,7 @@ demo: $(STAMP)
 	$(BIN)/labrobfail-generate preset=demo num_episodes=$(DEMO_EPISODES) out_dir=outputs/demo_shards seed=0 workers=2 image_size=128 render_frames=8
 	$(PY) scripts/render_strips.py shards=outputs/demo_shards out=outputs/demo_strips
 	$(BIN)/labrobfail-build-dataset shards=outputs/demo_shards out_dir=outputs/demo_dataset $(DEMO_GRID)
-	$(PY) train.py preset=tiny dataset_dir=outputs/demo_dataset output_dir=outputs/demo_train epochs=$(DEMO_EPOCHS)
+	$(BIN)/labrobfail-train preset=tiny dataset_dir=outputs/demo_dataset output_dir=outputs/demo_train epochs=$(DEMO_EPOCHS)
 	$(BIN)/labrobfail-evaluate model=outputs/demo_train/final dataset_dir=outputs/demo_dataset split=test
 	$(BIN)/labrobfail-supervise policy=scripted supervisor=vlm vlm.model=outputs/demo_train/final task=place \
 	  trials=25 loop.query_every=-1 out_dir=outputs/demo_supervise progress=false $(DEMO_WORLD)
@@ -80,7 +80,7 @@ demo-online: $(STAMP)
 	@test -d outputs/demo_train/final || { echo "demo-online: run make demo first (no outputs/demo_train/final)" >&2; exit 2; }
 	$(BIN)/labrobfail-build-dataset shards=outputs/demo_shards out_dir=outputs/demo_online_dataset $(DEMO_GRID) \
 	  $(ONLINE_PREFIX) progress=false
-	$(PY) train.py preset=tiny dataset_dir=outputs/demo_online_dataset output_dir=outputs/demo_online_train epochs=8 \
+	$(BIN)/labrobfail-train preset=tiny dataset_dir=outputs/demo_online_dataset output_dir=outputs/demo_online_train epochs=8 \
 	  model.path=outputs/demo_train/final $(ONLINE_STAGE)
 	for s in test prefix; do $(BIN)/labrobfail-evaluate model=outputs/demo_online_train/final \
 	  dataset_dir=outputs/demo_online_dataset split=$$s progress=false || exit 1; done
@@ -120,7 +120,7 @@ reproduce: $(STAMP)
 	$(call stamp,dataset)
 	$(BIN)/labrobfail-build-dataset $(REPRO_SHARDS) out_dir=$(R)/dataset $(DEMO_GRID) 'views=[front,side]' progress=false
 	$(call stamp,train)
-	$(PY) train.py $(REPRO_TRAIN) dataset_dir=$(R)/dataset output_dir=$(R)/train
+	$(BIN)/labrobfail-train $(REPRO_TRAIN) dataset_dir=$(R)/dataset output_dir=$(R)/train
 	$(call stamp,evaluate)
 	$(call bench,$(R)/train,test $(HELD_OUT),$(R)/dataset)
 	$(call stamp,learning_curve)
@@ -131,10 +131,10 @@ reproduce: $(STAMP)
 # After make reproduce, on its data: the scratch tower (the pre-tower recipe) and the front + wrist sensor row.
 reproduce-rows: $(STAMP)
 	@test -f $(R)/train/final/eval_test/results.json || { echo "reproduce-rows: run make reproduce first" >&2; exit 2; }
-	$(PY) train.py $(REPRO_TRAIN) tower=scratch dataset_dir=$(R)/dataset output_dir=$(R)/rows/scratch
+	$(BIN)/labrobfail-train $(REPRO_TRAIN) tower=scratch dataset_dir=$(R)/dataset output_dir=$(R)/rows/scratch
 	$(call bench,$(R)/rows/scratch,test $(HELD_OUT),$(R)/dataset)
 	$(BIN)/labrobfail-build-dataset $(REPRO_SHARDS) out_dir=$(R)/dataset_wrist $(DEMO_GRID) 'views=[front,wrist]' progress=false
-	$(PY) train.py $(REPRO_TRAIN) dataset_dir=$(R)/dataset_wrist output_dir=$(R)/rows/wrist
+	$(BIN)/labrobfail-train $(REPRO_TRAIN) dataset_dir=$(R)/dataset_wrist output_dir=$(R)/rows/wrist
 	$(call bench,$(R)/rows/wrist,test $(HELD_OUT),$(R)/dataset_wrist)
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 
@@ -143,11 +143,11 @@ reproduce-rows: $(STAMP)
 ablate: $(STAMP)
 	@test -f $(R)/train/final/eval_test/results.json || { echo "ablate: run make reproduce first" >&2; exit 2; }
 	mkdir -p $(R)/ablate && ln -sfn ../train $(R)/ablate/frozen
-	$(PY) train.py $(REPRO_TRAIN) lr.vision=3e-5 lr.merger=3e-5 dataset_dir=$(R)/dataset output_dir=$(R)/ablate/tuned
+	$(BIN)/labrobfail-train $(REPRO_TRAIN) lr.vision=3e-5 lr.merger=3e-5 dataset_dir=$(R)/dataset output_dir=$(R)/ablate/tuned
 	$(call bench,$(R)/ablate/tuned,test,$(R)/dataset)
 	$(BIN)/labrobfail-build-dataset $(REPRO_SHARDS) out_dir=$(R)/dataset_noindex $(DEMO_GRID) 'views=[front,side]' \
 	  grid.draw_index=false progress=false
-	$(PY) train.py $(REPRO_TRAIN) grid_index=false dataset_dir=$(R)/dataset_noindex output_dir=$(R)/ablate/no_index
+	$(BIN)/labrobfail-train $(REPRO_TRAIN) grid_index=false dataset_dir=$(R)/dataset_noindex output_dir=$(R)/ablate/no_index
 	$(call bench,$(R)/ablate/no_index,test,$(R)/dataset_noindex)
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 
@@ -160,7 +160,7 @@ reproduce-online: $(STAMP)
 	@test -d $(R)/train/final || { echo "reproduce-online: run make reproduce first (no $(R)/train/final)" >&2; exit 2; }
 	$(BIN)/labrobfail-build-dataset $(REPRO_SHARDS) out_dir=$(R)/dataset_online $(DEMO_GRID) 'views=[front,side]' \
 	  $(ONLINE_PREFIX) progress=false
-	$(PY) train.py $(REPRO_TRAIN) epochs=$(ONLINE_EPOCHS) dataset_dir=$(R)/dataset_online output_dir=$(R)/online \
+	$(BIN)/labrobfail-train $(REPRO_TRAIN) epochs=$(ONLINE_EPOCHS) dataset_dir=$(R)/dataset_online output_dir=$(R)/online \
 	  model.path=$(R)/train/final $(ONLINE_STAGE)
 	$(call bench,$(R)/online,test prefix val_both,$(R)/dataset_online)
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)

@@ -227,12 +227,12 @@ def annotate(
 
 def onset(row: dict[str, Any], trace: dict[str, Any], meta: dict[str, Any]) -> dict[str, Any]:
     """A failure's onset, the first keyframe (and sim time) its state signature shows, re-derived from the trace by
-    the labeler as every label is (shards before 29 Nov do not store `onset_s`); None for a success."""
-    if row["success"]:
+    the labeler as every label is (shards before 29 Nov do not store `onset_s`). None for a success, and for a
+    failure whose stored keyframe the labeler no longer derives from its trace (a shard of an older labeler): no
+    onset is guessed."""
+    lab = None if row["success"] else derive_labels(trace, meta)
+    if lab is None or lab.failure_keyframe != row["failure_keyframe"]:
         return {"onset_keyframe": None, "onset_s": None}
-    lab = derive_labels(trace, meta)
-    if lab.failure_keyframe != row["failure_keyframe"]:  # the shard's label and the trace disagree: never guess
-        raise ConfigError(f"shards: {row['episode_id']}'s failure keyframe does not re-derive from its trace")
     return {"onset_keyframe": lab.failure_keyframe, "onset_s": lab.onset_s}
 
 
@@ -295,6 +295,8 @@ def prefix_records(
             "failure_type": info["failure_type"] if failed else None,
             "category": info["category"] if failed else None,
             "severity": info["severity"] if failed else None,
+            "onset_keyframe": info.get("onset_keyframe") if failed else None,
+            "onset_s": info.get("onset_s") if failed else None,
         }
         if "Q6" in questions:  # the prefix's own correction (its trajectory's may follow from a later fall)
             meta.update(strategy=fix[0], q6_keep=q6_keep(ctx, fix[1]))

@@ -176,10 +176,15 @@ def fit_grid(img: Image.Image, cfg: GridConfig) -> Image.Image:
     w, h = img.size
     if (w, h) == (cfg.width, cfg.height):
         return img
+    check_layout(w, h, cfg)
+    return img.resize((cfg.width, cfg.height), Image.Resampling.BICUBIC)
+
+
+def check_layout(w: int, h: int, cfg: GridConfig) -> None:
+    """A one-line ConfigError unless a w x h grid has the aspect ratio of `cfg` (within 1 %)."""
     if abs(w * cfg.height - h * cfg.width) > 0.01 * h * cfg.width:
         raise ConfigError(
             f"grid: a {w}x{h} image is not the {cfg.width}x{cfg.height} layout the model was trained on "
             f"({cfg.max_frames} keyframes in {cfg.columns} columns, time along {cfg.time_axis}); send that grid, "
             "or the keyframes or videos per view and let it be composed"
         )
-    return img.resize((cfg.width, cfg.height), Image.Resampling.BICUBIC)

@@ -36,6 +36,8 @@ THUMB = 32  # motion is measured on THUMB x THUMB grey thumbnails
 def _capture(path: Path, name: str, field: str):  # -> cv2.VideoCapture
     # FFmpeg's own log lines ("moov atom not found") would print around our one-line error: quiet before first use
     os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+    # local files only: a playlist (HLS, concat) inside an upload must not make FFmpeg open URLs or other files
+    os.environ.setdefault("OPENCV_FFMPEG_CAPTURE_OPTIONS", "protocol_whitelist;file")
     import cv2
 
     log = cv2.utils.logging
@@ -95,8 +97,11 @@ def _check_size(w: int, h: int, name: str, field: str) -> None:
         raise ConfigError(f"{field}: {name} has {w}x{h} frames; at least {MIN_SIDE} px per side needed")
 
 
-def scan(path: str | Path, field: str = "video", name: str | None = None) -> VideoInfo:
-    """The first pass: every frame decoded once (a truncated video is refused), motion measured on thumbnails."""
+def scan(
+    path: str | Path, field: str = "video", name: str | None = None, max_frames: int = MAX_VIDEO_FRAMES
+) -> VideoInfo:
+    """The first pass: every frame decoded once (a truncated video is refused, and one with more than `max_frames`
+    or whose frames change size from what its header priced), motion measured on thumbnails."""
     import cv2
 
     p, name = Path(path), name or str(path)

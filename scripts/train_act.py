@@ -7,7 +7,7 @@ Run as:
     python scripts/train_act.py ... resume=true   # after a kill: on from the newest checkpoints/step-N
 
 Writes out_dir/demos.npz (reused by a rerun with the same recording settings), out_dir/final/
-(model.safetensors + act.json: the checkpoint labrobfail-supervise's policy=act and serve_policy.py load),
+(model.safetensors + act.json: the checkpoint labrobfail-supervise's policy=act and labrobfail-serve-policy load),
 checkpoints/step-N and train_log.json (demos, steps, minutes, loss curve). Defaults: configs/act.yaml.
 """
 

@@ -393,14 +393,13 @@ def main(argv: list[str]) -> int:
 
 
 def cli() -> None:
-    """The `labrobfail-generate` console script (and labrobfail-generate)."""
+    """The `labrobfail-generate` console script."""
     from labrobfail_vlm.config import cli_main
 
     cli_main(main, GENERATE_DOC)
 
 
-GENERATE_DOC = """Generate labeled failure/success episode pairs into Parquet shards (labrobfail-generate,
-labrobfail-generate).
+GENERATE_DOC = """Generate labeled failure/success episode pairs into Parquet shards (labrobfail-generate).
 
 Run as:
     labrobfail-generate backend=pybullet num_episodes=200 out_dir=outputs/shards seed=0 workers=2

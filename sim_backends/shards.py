@@ -34,7 +34,7 @@ SCHEMA = pa.schema(
         ("category", pa.int8()),
         ("severity", pa.int8()),
         ("failure_keyframe", pa.int32()),
-        ("onset_s", pa.float32()),  # the failure's onset in sim time (Labels.onset_s); shards before 29 Nov lack it
+        ("onset_s", pa.float64()),  # the failure's onset in sim time (Labels.onset_s); shards before 29 Nov lack it
         ("evidence", pa.string()),
         ("actions", pa.list_(pa.string())),
         ("horizon", pa.string()),

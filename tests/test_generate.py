@@ -50,7 +50,8 @@ def test_labels_rederived_from_recorded_state(run6):
         stored = Labels(
             r["success"], r["failure_type"], r["category"], r["severity"], r["failure_keyframe"], r["evidence"]
         )
-        assert lab == stored
+        stored.onset_s = r["onset_s"]  # the onset's sim time, stored beside the labels
+        assert lab == stored and (r["onset_s"] is None) == r["success"]
 
 
 def test_loads_with_hf_datasets(run6):

@@ -159,3 +159,21 @@ def test_a_grid_of_another_size_is_fitted_to_the_models_or_refused(mixed_model):
     with pytest.raises(ConfigError, match=r"a 512x512 image is not the 256x128 layout") as e:
         fa.analyze(Image.new("RGB", (512, 512)), "stir the solution")
     assert "\n" not in str(e.value)
+
+
+def test_the_server_form_fits_or_refuses_a_grid_before_it_is_queued():
+    """The diagnosis server checks the layout from the image header (a 400 before decoding, never a 500 from the
+    model thread) and resizes a grid of the right shape in its decode step."""
+    from labrobfail_vlm.grid import GridConfig
+    from labrobfail_vlm.serve.form import Upload, build, plan
+
+    def upload(w, h):
+        buf = io.BytesIO()
+        Image.new("RGB", (w, h), (90, 120, 150)).save(buf, format="PNG")
+        return [("grid", Upload("g.png", buf.getvalue()))]
+
+    trained = GridConfig(width=256, height=128, max_frames=8, columns=4)
+    with pytest.raises(ConfigError, match="a 300x300 image is not the 256x128 layout"):
+        plan(upload(300, 300), trained, fit=True)
+    assert build(plan(upload(512, 256), trained, fit=True), trained).grid.size == (256, 128)
+    assert build(plan(upload(300, 300), trained), trained).grid.size == (300, 300)  # a model that names no grid

@@ -1,5 +1,5 @@
 """Score a model (or a predictions file) on LabRobFail-Bench and write results.json, results.md and PNGs. The code
-behind labrobfail-evaluate and the `labrobfail-evaluate` console script.
+behind the `labrobfail-evaluate` console script.
 
 Run as:
     labrobfail-evaluate model=outputs/demo_train/final dataset_dir=outputs/demo_dataset split=test

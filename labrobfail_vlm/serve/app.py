@@ -301,6 +301,8 @@ def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
             body = await batcher.submit(req)
         except Busy as e:
             return error(503, str(e))
+        except ConfigError as e:  # the request's own fault found by the model thread: a 400, like the form's
+            return error(400, str(e))
         finally:  # the decoded grid waited in the queue until now: its memory counted until the reply
             await held.release()
         return Response(body, media_type="application/json")
@@ -308,7 +310,7 @@ def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
     async def prepare(items: list[tuple[str, str | Upload]]) -> tuple[DiagnosisRequest, Reservation]:
         """Fields checked and images priced from their headers, memory reserved, then decoded (off the event
         loop); the reservation shrinks to what the request still holds. The raw uploads are dropped on return."""
-        p = await run_in_threadpool(plan, items, analyzer.grid, cfg.max_request_decode_bytes)
+        p = await run_in_threadpool(plan, items, analyzer.grid, cfg.max_request_decode_bytes, analyzer.fit_grid)
         held = await budget.reserve(p.cost, cfg.decode_wait_s)
         try:
             req = await run_in_threadpool(build, p, analyzer.grid)

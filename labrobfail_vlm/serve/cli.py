@@ -1,5 +1,5 @@
 """Serve LabRobFail-VLM over HTTP: POST /diagnose (grid or per-view keyframes -> Diagnosis JSON), GET /health,
-/info. The code behind labrobfail-serve and the `labrobfail-serve` console script.
+/info. The code behind the `labrobfail-serve` console script.
 
 Run as:
     labrobfail-serve --model outputs/demo_train/final [--host 127.0.0.1] [--port 8100]

@@ -26,14 +26,13 @@ import tempfile
 import warnings
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Iterator, Sequence
 
 from PIL import Image, UnidentifiedImageError
 
 from labrobfail_vlm.analyzer import DiagnosisRequest, frames_to_grid
 from labrobfail_vlm.config import ConfigError
-from labrobfail_vlm.grid import GridConfig
+from labrobfail_vlm.grid import GridConfig, check_layout, fit_grid
 from labrobfail_vlm.images import ImageTooLarge, decode_image
 from labrobfail_vlm.serve.budget import mb
 
@@ -42,6 +41,7 @@ TEXT_FIELDS = ("task", "prefix", "objects", "keyframes")
 MAX_TEXT = 2000  # characters of a text field
 MAX_VIEWS = 8
 MAX_REQUEST_DECODE_BYTES = 256 << 20  # the default per-request limit (ServeConfig.max_request_decode_bytes)
+MAX_VIDEO_FRAMES = 9000  # frames one uploaded video may hold (5 min at 30 fps): each is decoded twice
 RGB_BYTES = 4  # PIL keeps an RGB image at 4 bytes per pixel (padded)
 # bytes per grid pixel a request holds once decoded, until its reply: the RGB grid in the queue (4), the model
 # thread's RGB copy of it (FailureAnalyzer._prepare, 4) and the image processor's float32 RGB arrays (12; measured:
@@ -73,6 +73,7 @@ class Plan:
     cost: int
     kept: int
     videos: dict[str, Upload] | None = None
+    fit: bool = False  # a grid of another size is brought to the model's (grid.fit_grid) before it is queued
 
 
 @dataclass(frozen=True)
@@ -114,9 +115,14 @@ def read_header(u: Upload, fld: str) -> Header:
 
 
 def plan(
-    items: Sequence[tuple[str, str | Upload]], grid: GridConfig, max_bytes: int = MAX_REQUEST_DECODE_BYTES
+    items: Sequence[tuple[str, str | Upload]],
+    grid: GridConfig,
+    max_bytes: int = MAX_REQUEST_DECODE_BYTES,
+    fit: bool = False,
 ) -> Plan:
-    """Check every field and price the images from their headers; ImageTooLarge if they exceed `max_bytes`."""
+    """Check every field and price the images from their headers; ImageTooLarge if they exceed `max_bytes`. `fit`:
+    the model names its grid, so a grid image of another aspect ratio is refused here and one of another size
+    resized in `build` (grid.fit_grid)."""
     text: dict[str, str] = {}
     image: Upload | None = None
     views: dict[str, list[Upload]] = {}
@@ -155,6 +161,8 @@ def plan(
         return _plan_videos(text, videos, grid, max_bytes)
     if image is not None:
         hd = read_header(image, "grid")
+        if fit:
+            check_layout(hd.width, hd.height, grid)
         kept = hd.width * hd.height * KEPT_BYTES
         cost = max(hd.decode, kept)
         if cost > max_bytes:
@@ -162,7 +170,7 @@ def plan(
                 f"grid: {_name(image)} is too large to decode: {hd.describe()} takes ~{mb(cost)} "
                 f"to decode and diagnose, over the {mb(max_bytes)} per-request limit"
             )
-        return Plan(text, image, {}, _prefix(text.get("prefix"), grid.max_frames), cost, kept)
+        return Plan(text, image, {}, _prefix(text.get("prefix"), grid.max_frames), cost, kept, fit=fit)
     counts = {v: len(f) for v, f in views.items()}
     if len(set(counts.values())) != 1:
         raise ConfigError(f"frames: views have unequal numbers of frames: {counts}")
@@ -192,7 +200,12 @@ def _plan_videos(text: dict[str, str], videos: dict[str, Upload], grid: GridConf
     for v, u in videos.items():
         with _spooled(u) as path:
             w, h, n = header(path, f"video.{v}", _name(u))
-        shown = min(shown, n) if n > 0 else shown
+        if not 0 < n <= MAX_VIDEO_FRAMES:  # decoding is bounded by what the container states, checked in `scan`
+            raise ImageTooLarge(
+                f"video.{v}: {_name(u)} states {n} frames; 1 to {MAX_VIDEO_FRAMES} are accepted (cut the video "
+                "to the trajectory)"
+            )
+        shown = min(shown, n)
         cost += (grid.max_frames + 2) * w * h * RGB_BYTES
         if max(cost, kept) > max_bytes:
             raise ImageTooLarge(
@@ -205,8 +218,8 @@ def _plan_videos(text: dict[str, str], videos: dict[str, Upload], grid: GridConf
 @contextmanager
 def _spooled(u: Upload) -> Iterator[str]:
     """An uploaded video as a temporary file (OpenCV reads files, not memory), removed afterwards."""
-    suffix = Path(u.filename).suffix[:8] if u.filename else ".mp4"
-    fd, path = tempfile.mkstemp(prefix="labrobfail-video-", suffix=suffix if suffix.isascii() else ".mp4")
+    # a fixed name: FFmpeg finds the container from the bytes, and a client's file name never picks its demuxer
+    fd, path = tempfile.mkstemp(prefix="labrobfail-video-", suffix=".bin")
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(u.data)
@@ -231,18 +244,24 @@ def build(p: Plan, grid: GridConfig) -> DiagnosisRequest:
     if p.videos:
         frames = _video_frames(p, grid)
         shown = min(len(frames[0]), grid.max_frames)
+        if p.prefix is not None and p.prefix > shown:
+            raise ConfigError(f"prefix: expected an integer from 1 to {shown} (keyframes shown), got {p.prefix}")
         return DiagnosisRequest(frames_to_grid(frames, grid, visible=p.prefix), task, p.prefix or shown, objects)
     if p.image is not None:
-        return DiagnosisRequest(_decode(p.image, "grid"), task, p.prefix, objects)
+        img = _decode(p.image, "grid")
+        return DiagnosisRequest(fit_grid(img, grid) if p.fit else img, task, p.prefix, objects)
     frames = [[_decode(u, f"frames.{v}") for u in fs] for v, fs in p.views.items()]
     shown = min(len(frames[0]), grid.max_frames)
     return DiagnosisRequest(frames_to_grid(frames, grid, visible=p.prefix), task, p.prefix or shown, objects)
 
 
 def parse(
-    items: Sequence[tuple[str, str | Upload]], grid: GridConfig, max_bytes: int = MAX_REQUEST_DECODE_BYTES
+    items: Sequence[tuple[str, str | Upload]],
+    grid: GridConfig,
+    max_bytes: int = MAX_REQUEST_DECODE_BYTES,
+    fit: bool = False,
 ) -> DiagnosisRequest:
-    return build(plan(items, grid, max_bytes), grid)
+    return build(plan(items, grid, max_bytes, fit), grid)
 
 
 def _decode(u: Upload, fld: str):

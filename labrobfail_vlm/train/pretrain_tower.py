@@ -163,7 +163,7 @@ def train_epoch(run: Run, epoch: int) -> dict[str, Any]:
     cfg, train, state = run.cfg, run.train, run.state
     bs, steps, nviews = int(cfg.batch_size), run.steps, len(run.layouts[0])
     total = int(cfg.epochs) * steps
-    warm = int(float(cfg.warmup_ratio) * total)
+    warm = int(float(cfg.warmup_ratio) * int(cfg.epochs) * steps)  # as written before the split: same rounding
     aug_cfg = AugmentConfig.from_section(cfg.augment)
     pos_weight = float(run.grid.width // run.grid.columns // T.TOKEN_PX) ** 2 / 2
     cell_pos_weight = T.positive_weights(train) if cfg.balance_cells else None

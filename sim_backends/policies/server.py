@@ -28,21 +28,14 @@ deep, an object array) is HTTP 400, one that is not a JSON object 422; a request
 HTTP 200 with the JSON string "error", and one line on stderr. Defaults: configs/serve_policy.yaml.
 """
 
-from __future__ import annotations
-
 import json
 import sys
 import threading
 from typing import Any
 
 import numpy as np
-from fastapi import FastAPI, Request  # FastAPI reads the routes' annotations from this module's names
-from fastapi.responses import JSONResponse, Response
-from starlette.concurrency import run_in_threadpool
-from starlette.requests import ClientDisconnect
 
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
-from labrobfail_vlm.serve.app import BodyTimeout, BodyTooLarge, Guard
 from sim_backends.policies import wire
 
 
@@ -217,7 +210,16 @@ def log_error(what: str, e: BaseException) -> None:
 
 
 def create_app(service: PolicyService, max_body: int, token: str | None = None, body_timeout_s: float = 30.0) -> Any:
-    """The ASGI app: POST /act and GET /health behind the diagnosis server's Guard (token, size, body deadline)."""
+    """The ASGI app: POST /act and GET /health behind the diagnosis server's Guard (token, size, body deadline).
+    FastAPI (the `serve` extra) is imported here: the module's annotations are evaluated, not postponed, so the
+    routes' `Request` is this function's."""
+    from fastapi import FastAPI, Request
+    from fastapi.responses import JSONResponse, Response
+    from starlette.concurrency import run_in_threadpool
+    from starlette.requests import ClientDisconnect
+
+    from labrobfail_vlm.serve.app import BodyTimeout, BodyTooLarge, Guard
+
     lock = threading.Lock()  # one policy and one backend: requests are answered one at a time
     served = {"requests": 0}
 
@@ -282,6 +284,13 @@ def main(argv: list[str]) -> int:
 
     cfg = load_config("serve_policy.yaml", argv)
     check_config(cfg)
+    try:
+        import fastapi  # noqa: F401
+        import uvicorn  # noqa: F401
+    except ImportError:
+        raise ConfigError(
+            "labrobfail-serve-policy needs FastAPI and uvicorn: pip install 'labrobfail[serve]'"
+        ) from None
     token = bearer_token(str(cfg.token_env), str(cfg.host))
     sock = listen(str(cfg.host), int(cfg.port))  # before the policy loads: a taken port fails fast
     service = PolicyService(cfg)

@@ -1,5 +1,5 @@
 """Closed-loop supervision: success rate per task without and with a supervisor (the paper's recovery table).
-The code behind labrobfail-supervise and the `labrobfail-supervise` console script.
+The code behind the `labrobfail-supervise` console script.
 
 Run as:
     labrobfail-supervise policy=scripted supervisor=oracle task=place trials=25 backend=pybullet
