@@ -260,8 +260,8 @@ sim20k: $(STAMP)
 	  $(BIN)/labrobfail-generate seed=0 workers=$(SIM_WORKERS) $(SIM_EXEC) num_episodes=$(SIM_VAL) variant=$$v \
 	    out_dir=$(SIM)/$$v || exit 1; done
 
-# Lint and format check (ruff, line length 120), then every test. `make test-fast`: the quick ones only (no long
-# runs, no browser, no ManiSkill; pytest markers in pyproject.toml).
+# Lint and format check (ruff, line length 120), then every test. `make test-fast`: the quick ones only (`-m "not slow"`:
+# no training, trials, servers, browser or ManiSkill; tests/conftest.py SLOW_FILES, markers in pyproject.toml).
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
@@ -276,7 +276,7 @@ test: $(STAMP) $(APT_STAMP) $(VULKAN_STAMP) lint
 	LABROBFAIL_REQUIRE_BROWSER=1 $(PYTEST) tests
 
 test-fast: $(STAMP) lint
-	$(PYTEST) tests -m "not slow and not browser and not maniskill"
+	$(PYTEST) tests -m "not slow"
 
 bench: $(STAMP)
 	$(PY) scripts/bench_grid.py

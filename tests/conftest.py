@@ -154,3 +154,33 @@ def check_injection_summary(rows: list[dict]) -> None:
     assert sum(sum(v.values()) for v in inj["by_operator"].values()) == len(rows)
     fails = {r["failure_type"] for r in rows[2:]}
     assert fails == {"gripper_control_failure"}, [r["evidence"] for r in rows[2:]]  # both faults explained as such
+
+
+# Test files whose tests train a model, run supervised trials or episodes by the dozen, or start servers: `slow`
+# (make test runs them; make test-fast, `-m "not slow"`, leaves them out), as are the browser and ManiSkill tests.
+SLOW_FILES = {
+    "test_act.py",
+    "test_checkpoint_guard.py",
+    "test_endpoint.py",
+    "test_executable.py",
+    "test_faults.py",
+    "test_grounding.py",
+    "test_infer_bench.py",
+    "test_openvla.py",
+    "test_policy_faults.py",
+    "test_serve.py",
+    "test_server_bounds.py",
+    "test_supervise.py",
+    "test_tower.py",
+    "test_tower_cache.py",
+    "test_train.py",
+    "test_video.py",
+    "test_batching.py",
+    "test_wheel.py",
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.path.name in SLOW_FILES or {"browser", "maniskill"} & {m.name for m in item.iter_markers()}:
+            item.add_marker(pytest.mark.slow)

@@ -126,6 +126,7 @@ def test_unwritable_out_dir_and_nothing_lost(run6, tmp_path):
     assert {p.name: p.read_bytes() for p in run6.iterdir()} == before
 
 
+@pytest.mark.slow  # starts a Ray cluster
 def test_ray_executor_matches_processes(run6, tmp_path):
     pytest.importorskip("ray")
     out = tmp_path / "r"
@@ -160,6 +161,7 @@ def test_a_nominal_plan_that_fails_is_redrawn_and_counted(tmp_path):
     assert all(r["evidence"] for r in records[:-1])
 
 
+@pytest.mark.slow  # starts a Ray cluster
 def test_ray_executor_gives_the_same_data(run6, tmp_path):
     """The paper-scale path: the same command on a (here local, 2-CPU) Ray instance writes the same shards."""
     out = tmp_path / "ray"
