@@ -242,6 +242,9 @@ def candidates(names: Sequence[str], category: int | None = None, severity: int 
         )
         pools = [choices["action" if k == "omitted" else k] for k in keys]
         for combo in itertools.product(*pools):
-            ctx = replace(Context(failure_type="", action=""), **dict(zip(keys, combo)))
+            filled = dict(zip(keys, combo))
+            if "destination" in filled and filled["destination"] in (filled.get("target"), filled.get("source")):
+                continue  # one object both moved and where it goes ("the beaker above the beaker") reads wrong
+            ctx = replace(Context(failure_type="", action=""), **filled)
             out.append((sid, instruction(sid, ctx)))
     return list(dict.fromkeys(out))

@@ -34,6 +34,16 @@ def test_every_filled_template_maps_without_manual_phrases():
             assert all(p["op"] in PRIMITIVES for p in prims)
 
 
+def test_no_candidate_moves_an_object_onto_itself():
+    """A correction never names one object as both what is moved and where it goes: in no candidate does a
+    move_above/place primitive's destination equal the object it moves."""
+    for sid, text in candidates(SCENE):
+        for p in to_primitives(text, SCENE):
+            moved = p.get("obj") or p.get("target_id")
+            assert not (moved and p.get("dest_id") == moved), (sid, text, p)
+    assert "the small beaker above the small beaker" not in " ".join(t for _, t in candidates(SCENE))
+
+
 def test_a_category_narrows_the_templates_to_its_own_strategies():
     """Every strategy the rule gives a failure type lies in its category's set, the sets cover the table, and a
     category's candidates are exactly its strategies (MANUAL in each: a fall is possible in any category)."""
