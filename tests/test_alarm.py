@@ -58,3 +58,15 @@ def test_mcnemar_and_the_difference_interval_on_known_tables():
     assert s["broken_share"] == pytest.approx(1 / 60, abs=1e-4) and s["ci95_points"][0] > 0
     with pytest.raises(ValueError, match="same"):
         paired_cell([True], [True, False])
+
+
+@pytest.mark.parametrize("k", [1, 3, 8])
+def test_a_prefix_grid_cut_from_the_whole_grid_is_the_one_the_dataset_builds(k):
+    from labrobfail_vlm.bench.online import prefix_grid
+    from labrobfail_vlm.grid import GridConfig, build_grid
+
+    cfg = GridConfig(width=512, height=512, max_frames=8, columns=4)
+    rng = np.random.default_rng(k)
+    frames = [[rng.integers(0, 255, (64, 64, 3), dtype=np.uint8) for _ in range(8)] for _ in range(2)]
+    got = prefix_grid(build_grid(frames, cfg), cfg, 2, k)
+    assert np.array_equal(np.asarray(got), np.asarray(build_grid(frames, cfg, visible=k)))

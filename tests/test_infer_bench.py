@@ -396,3 +396,21 @@ def test_evaluate_refuses_a_predictions_folder_or_unreadable_file_before_writing
         assert r.returncode == 2 and len(lines) == 1 and "Traceback" not in r.stderr, (pred, r.stderr[-500:])
         assert lines[0].startswith("error: predictions: ") and str(pred) in lines[0] and needle in lines[0], lines
     assert not list((tmp_path / "preds").iterdir()) and not (tmp_path / "eval_test").exists()  # no output folder
+
+
+def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, small_ds, tmp_path):  # noqa: F811
+    out = tmp_path / "online"
+    r = evaluate(
+        f"model={tiny}", small_ds, "mode=online", "split=test", "calibration=train", f"out_dir={out}", timeout=900
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    res = json.loads((out / "online.json").read_text())
+    assert set(res["rows"]) == {"model", "majority class", "blind (grey grid)", "labeler on live state (ceiling)"}
+    model = res["rows"]["model"]
+    assert set(model) == {"0.01", "0.05", "0.1", "0.2"} and res["cpu_s_per_check"] > 0
+    for row in model.values():
+        assert row["false_alarm_rate"] is None or 0 <= row["false_alarm_rate"] <= 1
+        assert row["n_calibration"] == res["calibration_successes"]
+    assert len(res["auroc_by_keyframe"]["model"]) >= 1 and (out / "auroc_by_keyframe.png").is_file()
+    r = evaluate(f"model={tiny}", small_ds, "mode=online", "split=test", "calibration=test")
+    assert r.returncode == 2 and "calibration: must be another split" in r.stderr, r.stderr

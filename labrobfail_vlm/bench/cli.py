@@ -34,6 +34,8 @@ def _check_args(cfg: Any) -> None:
         raise ConfigError("model/predictions/endpoint: give exactly one of model=DIR, predictions=FILE or endpoint=URL")
     if cfg.dataset_dir is None:
         raise ConfigError("dataset_dir: required")
+    if cfg.mode not in ("offline", "online"):
+        raise ConfigError(f"mode: expected offline or online, got {cfg.mode!r}")
     if not isinstance(cfg.batch_size, int) or cfg.batch_size < 1:
         raise ConfigError(f"batch_size: expected a positive integer, got {cfg.batch_size!r}")
     if cfg.model is not None and not Path(cfg.model).is_dir():  # before anything is written
@@ -248,6 +250,8 @@ def main(argv: list[str]) -> int:
 
     cfg = load_config("evaluate.yaml", argv)
     _check_args(cfg)
+    if cfg.mode == "online":
+        return _online(cfg)
     recs, traj = ev.load_split(cfg.dataset_dir, cfg.split)
     out = _out_dir(cfg)
     log_lines: list[str] = []
@@ -282,6 +286,22 @@ def main(argv: list[str]) -> int:
     atomic_write_bytes(out / "unparseable.log", "\n".join(log_lines).encode())
     _write_pngs(out, cfg.split, results, name)
     print(md)
+    return 0
+
+
+def _online(cfg: Any) -> int:
+    """mode=online (labrobfail_vlm/bench/online.py): a local model's alarm on prefix grids, per keyframe."""
+    from labrobfail_vlm.bench.online import run_online
+
+    if cfg.model is None:
+        raise ConfigError("mode=online: give model=DIR (the alarm reads the model's P(failure) on prefix grids)")
+    if cfg.max_trajectories is not None and (not isinstance(cfg.max_trajectories, int) or cfg.max_trajectories < 1):
+        raise ConfigError(f"max_trajectories: expected a positive integer or null, got {cfg.max_trajectories!r}")
+    fa, _ = _load_analyzer(cfg)
+    out = Path(cfg.out_dir or Path(cfg.model) / f"eval_online_{cfg.split}")
+    res = run_online(cfg, fa, out)
+    print(json.dumps({k: res[k] for k in ("split", "calibration", "trajectories", "cpu_s_per_check")}))
+    print(json.dumps(res["rows"]["model"], indent=1))
     return 0
 
 

@@ -1,0 +1,210 @@
+"""The online bench: how early and how reliably an alarm catches a failure while the trajectory runs.
+
+Run as:
+    labrobfail-evaluate mode=online model=outputs/reproduce/train/final dataset_dir=outputs/reproduce/dataset \
+        split=test calibration=val
+    labrobfail-evaluate mode=online model=DIR dataset_dir=DIR split=val_both calibration=val max_trajectories=200
+
+For every trajectory of `split` and of the `calibration` split, the model is asked Q2 on each prefix grid (the
+first k keyframes shown, k = 1..F; the later cells blank, as labrobfail_data builds prefix grids) and its P(failure)
+is the running score. The alarm (labrobfail_vlm/alarm.py) is calibrated per alpha on the calibration split's
+successes only (split conformal: at most alpha of new exchangeable successes raise it), then run on `split`:
+
+- per alpha: the false-alarm rate on successes (against the bound), the detection rate on failures, the latency
+  from the onset in grid frames (median and 90th percentile; the onset frame is the grid frame where the labelled
+  failure first shows, from simulator state), the share caught at or before the onset frame;
+- AUROC of the score at each keyframe against the trajectory's outcome (a curve, as SAFE plots it: PNG);
+- rows: the model, the majority class (never alarms), the blind model (grey prefix grids: one score per k for
+  every trajectory), and the labeler on live state (the ceiling: it alarms at the onset frame, never on a success);
+- the CPU time of one alarm check (one prefix grid's Q2).
+
+Not measured here (said on the page): latency in seconds (the dataset keeps grid frames, not keyframe times) and
+the share caught before an irreversible event (spill, fall, breakage): both need the shards' traces.
+Writes out_dir/online.json and out_dir/auroc_by_keyframe.png (out_dir: MODEL/eval_online_SPLIT by default).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+from PIL import Image
+
+from labrobfail_vlm.alarm import Alarm
+from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.grid import BLANK, GridConfig
+
+ALPHAS = (0.01, 0.05, 0.1, 0.2)
+LABELER = "labeler on live state (ceiling)"
+
+
+def prefix_grid(grid: Image.Image, cfg: GridConfig, views: int, k: int) -> Image.Image:
+    """The grid as a prefix grid of its first k keyframes: every later cell blank (build_grid(visible=k) draws
+    neither the frame nor its index tag there, so blanking the cell gives the same pixels)."""
+    arr = np.asarray(grid.convert("RGB")).copy()
+    rows, cols = cfg.shape(views)
+    cw, ch = cfg.width // cols, cfg.height // rows
+    for v in range(views):
+        for t in range(k, cfg.max_frames):
+            r, c = cfg.cell(t, v, views)
+            arr[r * ch : (r + 1) * ch, c * cw : (c + 1) * cw] = BLANK[0]
+    return Image.fromarray(arr)
+
+
+def trajectories(dataset: Path, split: str, limit: int | None) -> list[dict[str, Any]]:
+    """The split's whole trajectories (no prefix records), in file order, at most `limit`."""
+    try:
+        rows = json.loads((dataset / "trajectories.json").read_text())
+    except (OSError, ValueError) as e:
+        raise ConfigError(f"dataset_dir: cannot read {dataset / 'trajectories.json'} ({e})") from None
+    out = [t for t in rows if t.get("split") == split and "prefix_of" not in t]
+    if not out:
+        raise ConfigError(f"split: {split!r} has no trajectories in {dataset}")
+    return out[:limit] if limit else out
+
+
+def score_prefixes(
+    fa: Any, dataset: Path, trajs: Sequence[dict[str, Any]], cfg: GridConfig, blind: bool = False
+) -> tuple[list[list[float]], float]:
+    """Per trajectory, P(failure) on each of its prefix grids; and the CPU seconds of one check (the mean)."""
+    scores: list[list[float]] = []
+    cpu = 0.0
+    checks = 0
+    grey = Image.new("RGB", (cfg.width, cfg.height), (128, 128, 128))
+    seen: dict[tuple[str, int, int], list[float]] = {}  # the blind model's grids differ only in task and length
+    for t in trajs:
+        n, key = int(t["frames"]), (t["task"], int(t["frames"]), int(t["views"]))
+        if blind and key in seen:
+            scores.append(seen[key])
+            continue
+        full = grey if blind else Image.open(dataset / "images" / f"{t['trajectory']}.png").convert("RGB")
+        grids = [prefix_grid(full, cfg, int(t["views"]), k) for k in range(1, n + 1)]
+        c0 = time.process_time()
+        ans = fa.answers_batch(grids, [t["task"]] * n, list(range(1, n + 1)), None, [{"Q2"}] * n)
+        cpu += time.process_time() - c0
+        checks += n
+        scores.append([float(a.p_failure) for a in ans])
+        seen[key] = scores[-1]
+    return scores, cpu / max(checks, 1)
+
+
+def alarm_rows(
+    cal: list[list[float]], cal_trajs: Sequence[dict[str, Any]], ev: list[list[float]], ev_trajs: Sequence[dict]
+) -> dict[str, Any]:
+    """Per alpha: the calibrated threshold, false alarms on successes, detection and latency on failures."""
+    succ = [s for s, t in zip(cal, cal_trajs) if t["success"]]
+    out: dict[str, Any] = {}
+    for alpha in ALPHAS:
+        alarm = Alarm.calibrate(succ, alpha)
+        fired = [alarm.fires(s) for s in ev]
+        ok = [f for f, t in zip(fired, ev_trajs) if t["success"]]
+        lat = [f + 1 - int(t["frame"]) for f, t in zip(fired, ev_trajs) if not t["success"] and f is not None]
+        fails = sum(not t["success"] for t in ev_trajs)
+        out[str(alpha)] = alarm.to_dict() | {
+            "false_alarm_rate": _share(sum(f is not None for f in ok), len(ok)),
+            "successes": len(ok),
+            "detection_rate": _share(len(lat), fails),
+            "failures": fails,
+            "latency_frames_median": float(np.median(lat)) if lat else None,
+            "latency_frames_p90": float(np.percentile(lat, 90)) if lat else None,
+            "caught_by_onset": _share(sum(x <= 0 for x in lat), fails),
+        }
+    return out
+
+
+def auroc_by_keyframe(scores: list[list[float]], trajs: Sequence[dict[str, Any]]) -> list[float | None]:
+    """AUROC of the score at keyframe k (1-based position in the list) against the trajectory's outcome."""
+    from sklearn.metrics import roc_auc_score
+
+    longest = max(len(s) for s in scores)
+    out: list[float | None] = []
+    for k in range(longest):
+        y = [not t["success"] for s, t in zip(scores, trajs) if len(s) > k]
+        p = [s[k] for s in scores if len(s) > k]
+        out.append(round(float(roc_auc_score(y, p)), 4) if 0 < sum(y) < len(y) else None)
+    return out
+
+
+def ceiling(trajs: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """The labeler on live state: it alarms exactly at each failure's onset frame and never on a success."""
+    fails = sum(not t["success"] for t in trajs)
+    return {
+        "false_alarm_rate": 0.0,
+        "detection_rate": 1.0 if fails else None,
+        "latency_frames_median": 0.0,
+        "latency_frames_p90": 0.0,
+        "caught_by_onset": 1.0 if fails else None,
+    }
+
+
+def _share(k: int, n: int) -> float | None:
+    return round(k / n, 4) if n else None
+
+
+def auroc_png(curves: dict[str, list[float | None]], title: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from labrobfail_vlm.io import save_figure
+
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    for name, ys in curves.items():
+        xs = [k + 1 for k, y in enumerate(ys) if y is not None]
+        ax.plot(xs, [y for y in ys if y is not None], marker="o", label=name)
+    ax.axhline(0.5, color="grey", lw=0.8, ls=":")
+    ax.set(xlabel="keyframes shown", ylabel="AUROC (outcome)", title=title, ylim=(0.4, 1.0))
+    ax.legend(fontsize=8)
+    save_figure(fig, path)
+
+
+def run_online(cfg: Any, fa: Any, out_dir: Path) -> dict[str, Any]:
+    """The online bench of `cfg.split`, calibrated on `cfg.calibration`; writes online.json and the AUROC PNG."""
+    from labrobfail_vlm.io import atomic_write_json
+
+    dataset = Path(str(cfg.dataset_dir))
+    stats = json.loads((dataset / "stats.json").read_text())
+    grid = GridConfig(**stats["grid"])
+    if cfg.calibration == cfg.split:
+        raise ConfigError("calibration: must be another split than the one scored (split conformal)")
+    limit = cfg.get("max_trajectories")
+    cal_t, ev_t = trajectories(dataset, str(cfg.calibration), limit), trajectories(dataset, str(cfg.split), limit)
+    cal, _ = score_prefixes(fa, dataset, cal_t, grid)
+    ev, cpu = score_prefixes(fa, dataset, ev_t, grid)
+    bcal, _ = score_prefixes(fa, dataset, cal_t, grid, blind=True)
+    bev, _ = score_prefixes(fa, dataset, ev_t, grid, blind=True)
+    never = [[0.0] * len(s) for s in ev]
+    res = {
+        "split": str(cfg.split),
+        "calibration": str(cfg.calibration),
+        "trajectories": len(ev_t),
+        "calibration_successes": sum(t["success"] for t in cal_t),
+        "cpu_s_per_check": round(cpu, 4),
+        "rows": {
+            "model": alarm_rows(cal, cal_t, ev, ev_t),
+            "majority class": {str(a): {"false_alarm_rate": 0.0, "detection_rate": 0.0} for a in ALPHAS},
+            "blind (grey grid)": alarm_rows(bcal, cal_t, bev, ev_t),
+            LABELER: ceiling(ev_t),
+        },
+        "auroc_by_keyframe": {"model": auroc_by_keyframe(ev, ev_t), "blind (grey grid)": auroc_by_keyframe(bev, ev_t)},
+        "auroc_majority": auroc_by_keyframe(never, ev_t)[:1],
+        "not_measured": "latency in seconds; the share caught before an irreversible event (need the traces)",
+    }
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out_dir / "online.json", res)
+    auroc_png(res["auroc_by_keyframe"], f"online bench, {cfg.split}", out_dir / "auroc_by_keyframe.png")
+    return res
+
+
+def bound_holds(rows: dict[str, Any], n_successes: int) -> dict[str, bool]:
+    """Per alpha, whether the measured false-alarm rate is within alpha plus two binomial standard errors."""
+    return {
+        a: r["false_alarm_rate"] is not None
+        and r["false_alarm_rate"] <= float(a) + 2 * math.sqrt(float(a) * (1 - float(a)) / max(n_successes, 1))
+        for a, r in rows.items()
+    }
