@@ -359,3 +359,21 @@ def test_an_unnamed_policy_is_first_asked_once_it_has_reached_a_plan_keyframe():
     # unnamed: the half-way tick and the first keyframe (reached, its name unchanged) are not asked after; the
     # move on to the second keyframe is
     assert asked[False] == [(k, False) for k in range(3, n + 2)] + [(n + 1, True)]
+
+
+def test_the_vlm_supervisor_takes_the_threshold_the_online_bench_calibrated(tmp_path, tiny):  # noqa: F811
+    """vlm.alarm + vlm.alpha: the analyzer intervenes exactly where the alarm fires (strictly above the calibrated
+    threshold); an alpha the bench did not calibrate, or one with too few successes, is a one-line error."""
+    from labrobfail_vlm.config import ConfigError
+    from sim_backends.supervision.base import make_supervisor
+
+    alarm = tmp_path / "online.json"
+    rows = {"0.05": {"threshold": 0.73, "alpha": 0.05}, "0.01": {"threshold": None, "alpha": 0.01}}
+    alarm.write_text(json.dumps({"rows": {"model": rows}}))
+    sup = make_supervisor("vlm", model=str(tiny), alarm=str(alarm), alpha=0.05)
+    assert 0.73 < sup.fa.threshold < 0.7300001  # P = 0.73 does not fire, anything above does
+    for alpha, needle in ((0.2, "was not calibrated"), (0.01, "too few calibration successes")):
+        with pytest.raises(ConfigError, match=needle):
+            make_supervisor("vlm", model=str(tiny), alarm=str(alarm), alpha=alpha)
+    with pytest.raises(ConfigError, match="give both"):
+        make_supervisor("vlm", model=str(tiny), alpha=0.05)

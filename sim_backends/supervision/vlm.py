@@ -18,6 +18,28 @@ from sim_backends.source import FailureSource
 from sim_backends.supervision.base import Supervisor, Verdict, live_grid, register_supervisor, view_indices
 
 
+def calibrated_threshold(alarm: str | None, alpha: float | None) -> float:
+    """The threshold the online bench calibrated at `alpha` (its online.json, the model's row): the alarm fires
+    when P(failure) is strictly above it, the analyzer when at or above, hence the next float up."""
+    import json
+    import math
+
+    if alarm is None or alpha is None:
+        raise ConfigError("vlm.alarm/vlm.alpha: give both (an online bench's online.json and one of its alphas)")
+    try:
+        rows = json.loads(Path(alarm).read_text())["rows"]["model"]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ConfigError(f"vlm.alarm: {alarm} is not an online bench's online.json ({type(e).__name__})") from None
+    row = rows.get(str(float(alpha)) if isinstance(alpha, (int, float)) else str(alpha))
+    if row is None:
+        raise ConfigError(f"vlm.alpha: {alpha!r} was not calibrated in {alarm} (it has {', '.join(rows)})")
+    if row.get("threshold") is None:
+        raise ConfigError(
+            f"vlm.alpha: too few calibration successes in {alarm} for alpha {alpha}: the alarm never fires"
+        )
+    return math.nextafter(float(row["threshold"]), math.inf)
+
+
 @register_supervisor("vlm")
 class VLMSupervisor(Supervisor):
     name = "vlm"
@@ -30,9 +52,13 @@ class VLMSupervisor(Supervisor):
         analyzer: Any = None,
         threshold: float = 0.5,
         views: list[str] | None = None,
+        alarm: str | None = None,
+        alpha: float | None = None,
     ):
         from labrobfail_vlm.analyzer import FailureAnalyzer, check_threshold
 
+        if alarm is not None or alpha is not None:
+            threshold = calibrated_threshold(alarm, alpha)
         try:
             threshold = check_threshold(threshold)
         except ValueError as e:
