@@ -28,6 +28,7 @@ from typing import Any
 
 from labrobfail_vlm.bench.evaluate import BLIND, MAJORITY
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from sim_backends.supervision.paired import paired_md
 
 DEFAULTS = """
 run: outputs/reproduce     # the make reproduce run folder
@@ -366,7 +367,7 @@ def supervision(run: Path, online_stand_in: list[str] | None = None) -> list[str
                 rows.append(
                     f"| {task} | {r['policy']} | {base['success']}/{base['trials']} | {got['success']}/{got['trials']} "
                     f"| {r['improvement']:+.0f} | {'yes' if r['improvement'] >= RECOVERY_TARGET else 'no'} | "
-                    f"{got['episodes_with_intervention']} | {got['stopped']} |"
+                    f"{paired_md(r.get('paired'))} | {got['episodes_with_intervention']} | {got['stopped']} |"
                 )
     if rows:
         lines += [
@@ -378,9 +379,9 @@ def supervision(run: Path, online_stand_in: list[str] | None = None) -> list[str
             )
             + ".",
             "",
-            f"| task | policy | none | +VLM | diff (points) | >= +{RECOVERY_TARGET} | episodes with an intervention "
-            "| stopped early |",
-            "|---|---|---|---|---|---|---|---|",
+            f"| task | policy | none | +VLM | diff (points) | >= +{RECOVERY_TARGET} | 95 % CI (paired) | McNemar p "
+            "| successes broken | episodes with an intervention | stopped early |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
             *rows,
         ]
     return lines

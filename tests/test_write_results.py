@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 from scripts.write_results import supervision
+from sim_backends.supervision.paired import paired_cell
 
 
 def _results(
@@ -30,7 +31,14 @@ def _results(
                     "loop": {"query_every": every, "final_query": True, "budget": 2, "on_manual": "stop"},
                 },
                 "tasks": {
-                    t: {"policy": policy, "none": summary(a), "vlm": summary(b), "improvement": 4.0 * (b - a)}
+                    t: {
+                        "policy": policy,
+                        "none": summary(a),
+                        "vlm": summary(b),
+                        "improvement": 4.0 * (b - a),
+                        # trial i succeeds without the supervisor for i < a, with it for i < b
+                        "paired": paired_cell([i < a for i in range(25)], [i < b for i in range(25)]).summary(),
+                    }
                     for t, (a, b) in tasks.items()
                 },
             }
@@ -46,9 +54,10 @@ def test_the_recovery_table_has_a_row_per_task_and_policy(tmp_path: Path) -> Non
     assert "asked at every keyframe and once more when the policy stops, budget 2" in lines[0]
     rows = [r for r in lines if r.startswith("| ") and not r.startswith("| task")]
     assert rows == [
-        "| pick | scripted | 6/25 | 6/25 | +0 | no | 3 | 1 |",
-        "| place | scripted | 8/25 | 16/25 | +32 | yes | 3 | 1 |",
-        "| pour | act | 3/25 | 2/25 | -4 | no | 3 | 1 |",
+        # the paired 95 % interval (Agresti-Min, worked by hand), exact McNemar p, successes broken
+        "| pick | scripted | 6/25 | 6/25 | +0 | no | [-7.3, +7.3] | 1 | 0/6 | 3 | 1 |",
+        "| place | scripted | 8/25 | 16/25 | +32 | yes | [+10.9, +48.3] | 0.00781 | 0/8 | 3 | 1 |",
+        "| pour | act | 3/25 | 2/25 | -4 | no | [-13.9, +6.5] | 1 | 1/3 | 3 | 1 |",
     ]
 
 
@@ -170,7 +179,7 @@ def test_a_recovery_table_alone_replaces_the_pages_and_keeps_its_online_table(tm
     section, tail = rest.split("## Paper-comparable tables\n")
     assert head == PAGE.split("## Supervision\n")[0] and tail == PAGE.split("## Paper-comparable tables\n")[1]
     assert "| seen, whole | 81.1 [78.3, 83.7] |" in section and "as the page had it" in section
-    assert "| pick | scripted | 6/25 | 25/25 | +76 | yes | 3 | 1 |" in section
+    assert "| pick | scripted | 6/25 | 25/25 | +76 | yes | [+51.7, +89.1] | 3.81e-06 | 0/6 | 3 | 1 |" in section
     assert "23/25" not in section
     assert main([f"run={run}", f"out={page}", "sections=[supervision]"]) == 0
     assert page.read_text() == text

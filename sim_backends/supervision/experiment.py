@@ -23,6 +23,7 @@ from labrobfail_vlm.taxonomy import check_variant
 from sim_backends.policies.base import POLICIES, Policy, make_policy
 from sim_backends.supervision.base import SUPERVISORS, Supervisor, make_supervisor
 from sim_backends.supervision.loop import LoopConfig, RunLog, TaskFamily, run_trial
+from sim_backends.supervision.paired import paired_cell, paired_md
 
 
 def families(cfg: DictConfig, templates: dict[str, str]) -> dict[str, TaskFamily]:
@@ -164,6 +165,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             if len(sups) == 2:
                 base, sup = results[fam.name]["none"], results[fam.name][cfg.supervisor]
                 results[fam.name]["improvement"] = round(sup["rate"] - base["rate"], 2)
+                # trial i ran from the same seed with and without the supervisor: compared pair by pair
+                outcomes = [[bool(r["success"]) for r in per[n]] for n in sups]
+                results[fam.name]["paired"] = paired_cell(*outcomes).summary()
         bar.close()
     finally:
         log.close()
@@ -180,15 +184,16 @@ def table_md(res: dict[str, Any]) -> str:
         f"Success rate of downstream policy recovery ({cfg['policy']} policy, supervisor {sup}, "
         f"{cfg['trials']} trials per task, variant {cfg['variant']})",
         "",
-        f"| Task | Baseline | Rate (%) | +{sup} | Rate (%) | Improv. |",
-        "|---|---|---|---|---|---|",
+        f"| Task | Baseline | Rate (%) | +{sup} | Rate (%) | Improv. | 95 % CI | McNemar p | successes broken |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for task, r in res["tasks"].items():
         base = r.get("none")
         s = r.get(sup, base)
         lines.append(
             f"| {task} | {cfg['policy']} | {base['rate'] if base else '-'} | {s['success']}/{s['trials']} | "
-            f"{s['rate']} | {('%+.0f%%' % r['improvement']) if 'improvement' in r else '-'} |"
+            f"{s['rate']} | {('%+.0f%%' % r['improvement']) if 'improvement' in r else '-'} | "
+            f"{paired_md(r.get('paired'))} |"
         )
     errors = sum(
         len(v.get("policy_errors", [])) for r in res["tasks"].values() for v in r.values() if isinstance(v, dict)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 Z95 = 1.959963984540054
 
@@ -77,3 +77,11 @@ def difference_ci(b: int, c: int, n: int, z: float = Z95) -> tuple[float, float]
     d = (c2 - b2) / n2
     se = math.sqrt(max(0.0, (b2 + c2) - (c2 - b2) ** 2 / n2)) / n2
     return max(-1.0, d - z * se), min(1.0, d + z * se)
+
+
+def paired_md(p: dict[str, Any] | None) -> str:
+    """A cell's paired statistics as table columns: the gain's 95 % interval, McNemar's p, the broken successes."""
+    if not p:
+        return "- | - | -"
+    lo, hi = p["ci95_points"]
+    return f"[{lo:+.1f}, {hi:+.1f}] | {p['mcnemar_p']:.3g} | {p['broken']}/{p['base_successes']}"
