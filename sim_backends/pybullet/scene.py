@@ -300,13 +300,7 @@ def place_distractors(
                 )
             ):
                 od = table[kind]
-                vs = assets.VesselSpec(
-                    radius=od["radius"],
-                    height=od["height"],
-                    sides=int(od.get("sides", 8)),
-                    neck_radius=float(od.get("neck_radius", 0.0)),
-                    rgba=tuple(od["rgba"]),
-                )
+                vs = vessel_spec(od)
                 body = assets.vessel(cid, vs, (float(q[0]), float(q[1]), assets.BENCH_TOP))
                 # A resting distractor sleeps (no solver work) until something touches it.
                 p.changeDynamics(body, -1, activationState=p.ACTIVATION_STATE_ENABLE_SLEEPING, physicsClientId=cid)
@@ -401,20 +395,25 @@ def _place_fixture(cid: int, role: str, kind: str, spec: dict[str, Any], xy: np.
     return True
 
 
+def vessel_spec(od: dict[str, Any], **extra: Any) -> assets.VesselSpec:
+    """A catalogue entry's vessel geometry and colour (`extra`: mass, for a task object)."""
+    return assets.VesselSpec(
+        radius=od["radius"],
+        height=od["height"],
+        sides=int(od.get("sides", 8)),
+        neck_radius=float(od.get("neck_radius", 0.0)),
+        rgba=tuple(od["rgba"]),
+        **extra,
+    )
+
+
 def _place_glassware(
     cid: int, role: str, spec: dict[str, Any], od: dict[str, Any], xy: np.ndarray, out: _Parts
 ) -> None:
     """Place a vessel (with its liquid, if any) or a rod (on the bench or standing in a rack hole)."""
     z0 = float(spec.get("z", 0.0)) + assets.BENCH_TOP
     if od["kind"] == "vessel":
-        vs = assets.VesselSpec(
-            radius=od["radius"],
-            height=od["height"],
-            sides=int(od.get("sides", 8)),
-            neck_radius=float(od.get("neck_radius", 0.0)),
-            rgba=tuple(od["rgba"]),
-            mass=float(od.get("mass", 0.12)),
-        )
+        vs = vessel_spec(od, mass=float(od.get("mass", 0.12)))
         pos = (float(xy[0]), float(xy[1]), z0)
         body = assets.vessel(cid, vs, pos)
         out.objects[role] = SceneObject(
