@@ -77,17 +77,23 @@ class VideoInfo:
 
 def header(path: str | Path, field: str = "video", name: str | None = None) -> tuple[int, int, int]:
     """(width, height, frame count as the container states it) without decoding a frame: for pricing memory."""
+    cap, w, h, n = _opened(Path(path), name or str(path), field)
+    cap.release()
+    return w, h, n
+
+
+def _opened(p: Path, name: str, field: str):  # -> (cv2.VideoCapture, width, height, stated frame count)
+    """A capture and what its header states, the frame size checked (the caller releases the capture)."""
     import cv2
 
-    p = Path(path)
-    cap = _capture(p, name or str(path), field)
+    cap = _capture(p, name, field)
+    w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
     try:
-        w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
-        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-    finally:
+        _check_size(w, h, name, field)
+    except ConfigError:
         cap.release()
-    _check_size(w, h, name or str(path), field)
-    return w, h, n
+        raise
+    return cap, w, h, int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
 
 
 def _check_size(w: int, h: int, name: str, field: str) -> None:
@@ -105,8 +111,7 @@ def scan(
     import cv2
 
     p, name = Path(path), name or str(path)
-    w, h, stated = header(p, field, name)
-    cap = _capture(p, name, field)
+    cap, w, h, stated = _opened(p, name, field)  # one capture: the header's size, then every frame
     motion: list[float] = []
     prev: np.ndarray | None = None
     try:
@@ -114,9 +119,11 @@ def scan(
             ok, frame = cap.read()
             if not ok:
                 break
-            if len(motion) == MAX_VIDEO_FRAMES:
+            if len(motion) == max_frames:
+                raise ConfigError(f"{field}: {name} has more than {max_frames:,} frames; cut it to the trajectory")
+            if frame.shape[:2] != (h, w):  # memory was priced from the header's size
                 raise ConfigError(
-                    f"{field}: {name} has more than {MAX_VIDEO_FRAMES:,} frames; cut it to the trajectory"
+                    f"{field}: {name} changes frame size ({w}x{h}, then {frame.shape[1]}x{frame.shape[0]})"
                 )
             thumb = cv2.resize(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY), (THUMB, THUMB), interpolation=cv2.INTER_AREA)
             thumb = thumb.astype(np.float32)

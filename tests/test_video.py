@@ -141,6 +141,9 @@ def test_bad_and_truncated_videos_are_one_line_errors(episode_videos, mixed_mode
         assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr, r.stderr
     with pytest.raises(ConfigError, match="truncated or corrupt"):
         scan(tmp_path / "cut.avi")
+    with pytest.raises(ConfigError, match="has more than 10 frames"):  # the server's bound on decoding
+        scan(avi, max_frames=10)
+    assert scan(avi, max_frames=20).frames == 20
 
 
 def test_a_grid_of_another_size_is_fitted_to_the_models_or_refused(mixed_model):  # noqa: F811

@@ -26,7 +26,6 @@ Writes out_dir/online.json and out_dir/auroc_by_keyframe.png (out_dir: MODEL/eva
 from __future__ import annotations
 
 import json
-import math
 import time
 from pathlib import Path
 from typing import Any, Sequence
@@ -199,12 +198,3 @@ def run_online(cfg: Any, fa: Any, out_dir: Path) -> dict[str, Any]:
     atomic_write_json(out_dir / "online.json", res)
     auroc_png(res["auroc_by_keyframe"], f"online bench, {cfg.split}", out_dir / "auroc_by_keyframe.png")
     return res
-
-
-def bound_holds(rows: dict[str, Any], n_successes: int) -> dict[str, bool]:
-    """Per alpha, whether the measured false-alarm rate is within alpha plus two binomial standard errors."""
-    return {
-        a: r["false_alarm_rate"] is not None
-        and r["false_alarm_rate"] <= float(a) + 2 * math.sqrt(float(a) * (1 - float(a)) / max(n_successes, 1))
-        for a, r in rows.items()
-    }

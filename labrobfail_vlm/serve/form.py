@@ -233,7 +233,10 @@ def _video_frames(p: Plan, grid: GridConfig) -> list[list[Image.Image]]:
 
     assert p.videos is not None
     with ExitStack() as stack:
-        clips = [scan(stack.enter_context(_spooled(u)), f"video.{v}", _name(u)) for v, u in p.videos.items()]
+        clips = [
+            scan(stack.enter_context(_spooled(u)), f"video.{v}", _name(u), MAX_VIDEO_FRAMES)
+            for v, u in p.videos.items()
+        ]
         return keyframes(clips, grid.max_frames, p.text.get("keyframes") or "uniform")
 
 
