@@ -26,6 +26,37 @@ def run(argv: list, timeout: float = 600, **kw) -> subprocess.CompletedProcess:
     return subprocess.run(argv, capture_output=True, text=True, timeout=timeout, **kw)
 
 
+# the checkout's thin root scripts and the console script each one calls
+ROOT_SCRIPTS = {"train.py": "labrobfail-train", "infer.py": "labrobfail-infer"}
+
+
+def run_here(argv: list) -> subprocess.CompletedProcess:
+    """What run(argv) returns, the console script's entry point called in this process instead: the same code from
+    sys.argv to the exit code, without a Python start and a torch import per call. For a test's many one-line-error
+    cases, whose first case still runs as a real process (an uncaught exception here fails the test: stricter)."""
+    import contextlib
+    import io
+    from importlib.metadata import entry_points
+
+    argv = [str(a) for a in argv]
+    if argv[0] == sys.executable:  # [python, train.py, ...]
+        argv = argv[1:]
+    argv[0] = ROOT_SCRIPTS.get(argv[0], argv[0])
+    name = Path(argv[0]).name
+    (ep,) = entry_points(group="console_scripts", name=name)
+    out, err, code = io.StringIO(), io.StringIO(), 0
+    old = sys.argv
+    sys.argv = [name, *argv[1:]]
+    try:
+        with contextlib.chdir(ROOT), contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            ep.load()()
+    except SystemExit as e:
+        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    finally:
+        sys.argv = old
+    return subprocess.CompletedProcess(argv, code, out.getvalue(), err.getvalue())
+
+
 def background(argv: list) -> subprocess.Popen:
     """Start a command from the checkout root, its output thrown away (a run a test kills part-way)."""
     return subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

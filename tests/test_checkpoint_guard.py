@@ -9,6 +9,8 @@ MemoryError instead of taking the machine down."""
 import json
 import resource
 import shutil
+import subprocess
+from pathlib import Path
 
 import pytest
 from conftest import program, run
@@ -23,12 +25,42 @@ def _cap_memory() -> None:
     resource.setrlimit(resource.RLIMIT_AS, (MEMORY_GUARD, MEMORY_GUARD))
 
 
-def guarded(args, env_extra=None, timeout=300):
+def guarded(args, env_extra=None, timeout=300, **kw):
     import os
 
     env = {k: v for k, v in os.environ.items() if k != BUDGET_ENV}
     env.update(env_extra or {})
-    return run([*program(args[0]), *args[1:]], timeout, preexec_fn=_cap_memory, env=env)
+    return run([*program(args[0]), *args[1:]], timeout, preexec_fn=_cap_memory, env=env, **kw)
+
+
+# One capped process runs many cases in turn (run_here: each console script's entry point from sys.argv to its exit
+# code), with one Python start and torch import for all of them instead of one per case.
+_CASES_CHILD = r"""
+import json, os, sys
+sys.path.insert(0, sys.argv[1])
+from conftest import run_here
+out = []
+for argv, env in json.loads(sys.stdin.read()):
+    saved = dict(os.environ)
+    os.environ.update(env)
+    r = run_here(argv)
+    os.environ.clear()
+    os.environ.update(saved)
+    out.append([r.returncode, r.stdout, r.stderr])
+print(json.dumps(out))
+"""
+
+
+def guarded_cases(cases: list) -> list:
+    """guarded() of each (args, env) in one capped process: the CompletedProcess of each, in order."""
+    todo = [[program(args[0])[-1], *map(str, args[1:])] for args, _ in cases]
+    r = guarded(
+        ["-c", _CASES_CHILD, str(Path(__file__).parent)], input=json.dumps(list(zip(todo, [e for _, e in cases])))
+    )
+    assert r.returncode == 0, r.stderr[-1500:]
+    return [
+        subprocess.CompletedProcess(a, c, o, e) for a, (c, o, e) in zip(todo, json.loads(r.stdout.splitlines()[-1]))
+    ]
 
 
 def _clone(src, dst, config=None, raw=None):
@@ -122,15 +154,19 @@ def _one_line_error(r, needle, what):
 
 def test_infer_refuses_bad_checkpoints_in_one_line(bad_models, tmp_path):
     Image.new("RGB", (256, 128), (9, 9, 9)).save(tmp_path / "g.png")
-    for what, model, env, needle in bad_models:
-        r = guarded(["infer.py", "--grid", str(tmp_path / "g.png"), "--model", str(model)], env)
+    cases = [(["infer.py", "--grid", tmp_path / "g.png", "--model", model], env) for _, model, env, _ in bad_models]
+    r = guarded(*cases[0])  # the first case as its own process, then all of them in one
+    _one_line_error(r, bad_models[0][3], bad_models[0][0])
+    for r, (what, _, _, needle) in zip(guarded_cases(cases), bad_models):
         _one_line_error(r, needle, what)
         assert r.stdout == "", what
 
 
 def test_serve_refuses_bad_checkpoints_at_start(bad_models):
-    for what, model, env, needle in bad_models:
-        r = guarded(["labrobfail-serve", "--model", str(model), "--port", "0"], env, timeout=120)
+    cases = [(["labrobfail-serve", "--model", model, "--port", "0"], env) for _, model, env, _ in bad_models]
+    r = guarded(*cases[0], timeout=120)  # the first case as its own process, then all of them in one
+    _one_line_error(r, bad_models[0][3], bad_models[0][0])
+    for r, (what, _, _, needle) in zip(guarded_cases(cases), bad_models):
         _one_line_error(r, needle, what)
         assert "serving" not in r.stdout, what
 
@@ -138,30 +174,47 @@ def test_serve_refuses_bad_checkpoints_at_start(bad_models):
 def test_budget_argument_and_good_checkpoints(tiny, bad_models, tmp_path):  # noqa: F811
     """--max-model-gb overrides the default; a good base and a good fine-tuned checkpoint still diagnose."""
     Image.new("RGB", (256, 128), (9, 9, 9)).save(tmp_path / "g.png")
-    r = guarded(["infer.py", "--grid", str(tmp_path / "g.png"), "--model", str(tiny), "--max-model-gb", "0.001"])
-    _one_line_error(r, "over the 1.0 MB model memory budget", "argument")
-    r = guarded(["infer.py", "--grid", str(tmp_path / "g.png"), "--model", str(tiny), "--max-model-gb", "-1"])
-    assert r.returncode == 2 and "max_model_gb: expected a positive number" in r.stderr, r.stderr[-500:]
-    r = guarded(["labrobfail-serve", "--model", str(tiny), "--max-model-gb", "0.001"], timeout=120)
-    _one_line_error(r, "over the 1.0 MB model memory budget", "serve argument")
     hybrid = next(m for what, m, *_ in bad_models if m.name == "hybrid_over_empty").parent / "hybrid_ok"
-    for model in (tiny, hybrid):
-        r = guarded(["infer.py", "--grid", str(tmp_path / "g.png"), "--model", str(model)])
+    infer = ["infer.py", "--grid", tmp_path / "g.png", "--model"]
+    small, bad, served, *good = guarded_cases(
+        [
+            ([*infer, tiny, "--max-model-gb", "0.001"], {}),
+            ([*infer, tiny, "--max-model-gb", "-1"], {}),
+            (["labrobfail-serve", "--model", tiny, "--max-model-gb", "0.001"], {}),
+            ([*infer, tiny], {}),
+            ([*infer, hybrid], {}),
+        ]
+    )
+    _one_line_error(small, "over the 1.0 MB model memory budget", "argument")
+    assert bad.returncode == 2 and "max_model_gb: expected a positive number" in bad.stderr, bad.stderr[-500:]
+    _one_line_error(served, "over the 1.0 MB model memory budget", "serve argument")
+    for r in good:
         assert r.returncode == 0 and json.loads(r.stdout)["raw"]["Q2"] in ("Yes", "No"), r.stderr[-800:]
 
 
 def test_from_pretrained_and_the_vlm_supervisor_validate_first(bad_models):
     """The supervisor loads through FailureAnalyzer.from_pretrained: same checks, a ConfigError (one line)."""
-    code = (
-        "import sys\nfrom labrobfail_vlm.config import ConfigError\n"
-        "from sim_backends.supervision.vlm import VLMSupervisor\n"
-        "try:\n    VLMSupervisor(model=sys.argv[1])\nexcept ConfigError as e:\n    print(e)\n    sys.exit(2)\n"
-    )
-    for what, model, env, needle in bad_models:
-        if what not in ("empty config", "truncated safetensors", "too large for the budget"):
-            continue
-        r = guarded(["-c", code, str(model)], env)
-        assert r.returncode == 2 and needle in r.stdout and "Traceback" not in r.stderr, (what, r.stdout, r.stderr)
+    code = r"""
+import json, os, sys
+from labrobfail_vlm.config import ConfigError
+from sim_backends.supervision.vlm import VLMSupervisor
+out = []
+for model, env in json.loads(sys.stdin.read()):
+    os.environ.update(env)
+    try:
+        VLMSupervisor(model=model)
+        out.append("loaded")
+    except ConfigError as e:
+        out.append(str(e))
+    for k in env:
+        del os.environ[k]
+print(json.dumps(out))
+"""
+    cases = [c for c in bad_models if c[0] in ("empty config", "truncated safetensors", "too large for the budget")]
+    r = guarded(["-c", code], input=json.dumps([[str(model), env] for _, model, env, _ in cases]))
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr[-1500:]
+    for msg, (what, _, _, needle) in zip(json.loads(r.stdout.splitlines()[-1]), cases, strict=True):
+        assert needle in msg and "\n" not in msg, (what, msg)
 
 
 def test_parameter_estimate_equals_the_real_model():

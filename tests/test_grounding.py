@@ -4,7 +4,7 @@ import json
 
 import pytest
 import torch
-from conftest import background, run
+from conftest import background, run, run_here
 from test_train import scratch_train, small_ds, tiny, tiny_train  # noqa: F401  (session fixtures)
 
 
@@ -127,7 +127,8 @@ def test_a_run_from_a_checkpoint_repeats_exactly(tiny, small_ds, tmp_path):  # n
     ],
 )
 def test_bad_grounding_config_is_one_line(tiny, small_ds, tmp_path, bad, field):  # noqa: F811
-    r = run([*scratch_train(tiny, small_ds, f"{tmp_path}/o"), bad, "wandb.enabled=false"], 300)
+    # in this process (the train CLI's one-line errors run as a process in test_train)
+    r = run_here([*scratch_train(tiny, small_ds, f"{tmp_path}/o"), bad, "wandb.enabled=false"])
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith(f"error: {field}:")
 

@@ -6,7 +6,7 @@ import sys
 import numpy as np
 import pytest
 import torch
-from conftest import evaluate, run
+from conftest import evaluate, run, run_here
 from PIL import Image
 from test_train import small_ds, tiny  # noqa: F401  (session fixtures)
 
@@ -143,8 +143,8 @@ def _bad_inputs(tmp, tiny):  # noqa: F811
 
 
 def test_bad_inputs_are_one_line_errors(tiny, tmp_path):  # noqa: F811
-    for args, needle in _bad_inputs(tmp_path, tiny):
-        r = infer(*args)
+    for i, (args, needle) in enumerate(_bad_inputs(tmp_path, tiny)):
+        r = infer(*args) if i == 0 else run_here([sys.executable, "infer.py", *args])  # the first as a process
         assert r.returncode == 2, (args, r.stderr[-500:])
         lines = r.stderr.strip().splitlines()
         assert len(lines) == 1 and "Traceback" not in r.stderr and needle in lines[0], (args, r.stderr[-500:])

@@ -4,11 +4,10 @@ one line by labrobfail-infer."""
 
 import io
 import json
-import subprocess
 
 import numpy as np
 import pytest
-from conftest import ROOT, cli
+from conftest import cli, run, run_here
 from hypothesis import given
 from hypothesis import strategies as st
 from PIL import Image
@@ -88,13 +87,10 @@ def test_analyze_video_equals_the_diagnosis_of_its_keyframes(episode_videos, mix
         got = fa.analyze_video(paths, task="pick up the small beaker", keyframes=mode)
         want = fa.analyze(read_keyframes(paths, fa.num_frames, mode), task="pick up the small beaker")
         assert got == want
-    r = subprocess.run(
+    r = run(
         [cli("infer"), "--video", str(paths[0]), "--video", str(paths[1]), "--keyframes", "motion"]
         + ["--task", "pick up the small beaker", "--model", str(mixed_model)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
+        300,
     )
     assert r.returncode == 0, r.stderr[-1000:]
     assert json.loads(r.stdout) == json.loads(got.to_json())
@@ -129,14 +125,9 @@ def test_bad_and_truncated_videos_are_one_line_errors(episode_videos, mixed_mode
         (["--video", str(paths[0]), "--grid", str(paths[0])], "give one of them"),
         (["--video", str(paths[0]), "--keyframes", "random"], "keyframes: expected uniform or motion"),
     ]
-    for args, needle in cases:
-        r = subprocess.run(
-            [cli("infer"), *args, "--model", str(mixed_model)],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=300,
-        )
+    for i, (args, needle) in enumerate(cases):
+        call = run_here if i else run  # the first case as a real process, the rest in this one
+        r = call([cli("infer"), *args, "--model", str(mixed_model)])
         assert r.returncode == 2 and needle in r.stderr, (args, r.returncode, r.stderr[-500:])
         assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr, r.stderr
     with pytest.raises(ConfigError, match="truncated or corrupt"):
