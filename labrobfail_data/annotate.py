@@ -18,6 +18,7 @@ import numpy as np
 from PIL import Image
 
 from labrobfail_data.facts import aux_records, frame_facts
+from labrobfail_data.robot_signals import frame_times, irreversible, robot_signals
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.corrections import Context, correction
@@ -195,7 +196,8 @@ def annotate(
     answers, frame, ctx, strategy = _answers(row, meta, trace, picks)
     records = _main_records(traj, image, task_name, answers, success, grid_cfg, rng)
     info = _trajectory_info(row, meta, traj, task_name, frame, picks, views, strategy, q6_keep(ctx, answers["Q6"]))
-    info |= onset(row, trace, meta)
+    info |= onset(row, trace, meta) | irreversible(trace, meta)
+    info |= {"frame_times_s": frame_times(trace, picks), "robot_signals": robot_signals(trace, row["keyframes"], picks)}
     ann = Annotated(traj, info["group"], row["variant"], image, grid, records, info)
     if prefix_cuts > 0:
 
@@ -286,7 +288,7 @@ def prefix_records(
             question = Q.question_text(dim, v, info["task"], grid_cfg.time_axis, grid_cfg.draw_index)
             records.append(_qa_record(Q.record_id(traj, dim), image, question, ans))
         meta = {
-            **info,
+            **{k: v for k, v in info.items() if k != "robot_signals"},  # the online bench reads whole trajectories'
             "trajectory": traj,
             "prefix_of": ann.trajectory,
             "visible": k,

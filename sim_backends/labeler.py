@@ -357,6 +357,39 @@ def impact_speed(trace: Trace, obj: str) -> float:
     return max((m + GRAVITY / (2 * rate) for m in means if m > 0), default=0.0)
 
 
+HELD = 0.1  # m: a vessel this close to the hand is in it (a pour tilts its vessel on purpose)
+
+
+def irreversible_sample(trace: Trace, meta: Meta) -> Optional[tuple[int, str]]:
+    """The first sample of an event no correction undoes, and which: liquid spilled outside every vessel ("spill"),
+    a movable object knocked off the bench or a vessel tipped over out of the hand ("fall"), glassware moving down
+    fast enough to break (>= BREAK_SPEED, read as `impact_speed` reads it: "breakage"). None when none happens. An
+    alarm raised before this sample could still have saved the run; the online bench counts those."""
+    meta = meta_dict(meta)
+    movables = [k for k, o in meta["objects"].items() if o["kind"] in MOVABLE]
+    vessels = {m for m in movables if meta["objects"][m]["kind"] == "vessel"}
+    rate = float(trace.get("rate_hz", 40.0))
+    low = meta["bench_top"] + OFF_BENCH
+    liquid = trace.get("liquid.outside")
+    for j in range(len(trace["t"])):
+        if liquid and liquid[j] - liquid[0] >= SPILL_PARTICLES:
+            return j, "spill"
+        for m in movables:
+            pos = trace[f"{m}.pos"]
+            if pos[j][2] < low:
+                return j, "fall"
+            if (
+                j
+                and pos[j - 1][2] > pos[j][2]
+                and (pos[j - 1][2] - pos[j][2]) * rate + GRAVITY / (2 * rate) >= BREAK_SPEED
+            ):
+                return j, "breakage"
+            far = np.linalg.norm(np.subtract(pos[j], trace["ee_pos"][j])) > HELD
+            if m in vessels and far and tilt(trace[f"{m}.quat"][j]) > UPRIGHT_TILT:
+                return j, "fall"
+    return None
+
+
 def severity(trace: Trace, meta: Meta, failure_type: str) -> Severity:
     """The severity rule table (first match wins; docs/ARCHITECTURE.md quotes it):
 

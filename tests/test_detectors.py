@@ -285,6 +285,25 @@ def test_onset_is_the_first_sample_the_failure_shows_in_sim_time():
     assert derive_labels(tr, meta).onset_s is None
 
 
+def test_irreversible_events_are_found_where_they_happen_and_not_in_a_success():
+    """The first irreversible sample: a spill where liquid leaves every vessel, a drop where the glassware falls
+    fast enough to break, nothing in a success (a vessel tilted in the hand, as a pour tilts it, is no fall)."""
+    from sim_backends.labeler import BREAK_SPEED, SPILL_PARTICLES, irreversible_sample
+
+    tr, meta = _case("success")
+    assert irreversible_sample(tr, meta) is None
+    tr, meta = _case("protocol_violation")
+    tr["liquid.bystander"] = [0] * len(tr["t"])
+    start = tr["kf_end"][meta.executed.index("s1_carry")] - 3
+    tr["liquid.outside"] = [0 if k < start else SPILL_PARTICLES for k in range(len(tr["t"]))]
+    assert irreversible_sample(tr, meta) == (start, "spill")
+    tr, meta = _case("object_slippage")  # dropped from carry height
+    j, kind = irreversible_sample(tr, meta)
+    z = [p[2] for p in tr["obj.pos"]]
+    assert kind == "breakage" and z[j] < z[j - 1] and all(z[k] >= z[k - 1] - 1e-9 for k in range(1, j - 3))
+    assert (z[j - 1] - z[j]) * RATE + 9.81 / (2 * RATE) >= BREAK_SPEED
+
+
 def test_a_failure_no_detector_explains_is_not_given_a_type():
     """The object stands where the plan put it, but the goal asks for another spot: no state signature
     explains the failed goal, so the label says so instead of guessing a type."""

@@ -405,7 +405,11 @@ def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, smal
     )
     assert r.returncode == 0, r.stderr[-2000:]
     res = json.loads((out / "online.json").read_text())
+    # the robot-signal baseline is fitted on the train split: calibrated on it, its row is left out
     assert set(res["rows"]) == {"model", "majority class", "blind (grey grid)", "labeler on live state (ceiling)"}
+    ceiling = res["rows"]["labeler on live state (ceiling)"]
+    assert ceiling["latency_s_median"] == 0.0 and "irreversible_failures" in ceiling
+    assert "latency_s_median" in res["rows"]["model"]["0.2"]
     model = res["rows"]["model"]
     assert set(model) == {"0.01", "0.05", "0.1", "0.2"} and res["cpu_s_per_check"] > 0
     for row in model.values():
@@ -414,3 +418,22 @@ def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, smal
     assert len(res["auroc_by_keyframe"]["model"]) >= 1 and (out / "auroc_by_keyframe.png").is_file()
     r = evaluate(f"model={tiny}", small_ds, "mode=online", "split=test", "calibration=test")
     assert r.returncode == 2 and "calibration: must be another split" in r.stderr, r.stderr
+
+
+def test_robot_signal_baseline_reads_each_prefix_and_scores_held_out_trajectories(small_ds):  # noqa: F811
+    from labrobfail_vlm.bench import robot_baseline
+
+    trajs = [t for t in json.loads((small_ds / "trajectories.json").read_text()) if "prefix_of" not in t]
+    for t in trajs:  # when each frame was taken, and the robot's signals per frame, from the shard's trace
+        assert len(t["frame_times_s"]) == len(t["robot_signals"]) == t["frames"]
+        assert t["frame_times_s"] == sorted(t["frame_times_s"]) and len(t["robot_signals"][0]) == 12
+    sig = [[0.0] * 12 for _ in range(3)]
+    sig[1][9], sig[2][9], sig[0][11] = 0.05, 0.01, 0.02
+    f = robot_baseline.prefix_features(sig)
+    assert f.shape == (3, 16)  # the frame's signals, the three running maxima, k / F
+    assert f[:, 12].tolist() == [0.0, 0.05, 0.05] and f[:, 14].tolist() == [0.02, 0.02, 0.02]
+    assert f[:, 15].tolist() == pytest.approx([1 / 3, 2 / 3, 1.0])
+    train = [t for t in trajs if t["split"] == "train"]
+    test = [t for t in trajs if t["split"] == "test"]
+    scores = robot_baseline.score(robot_baseline.fit(train), test)
+    assert [len(s) for s in scores] == [t["frames"] for t in test] and all(0 <= p <= 1 for s in scores for p in s)

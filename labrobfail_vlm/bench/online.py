@@ -14,12 +14,12 @@ successes only (split conformal: at most alpha of new exchangeable successes rai
   from the onset in grid frames (median and 90th percentile; the onset frame is the grid frame where the labelled
   failure first shows, from simulator state), the share caught at or before the onset frame;
 - AUROC of the score at each keyframe against the trajectory's outcome (a curve, as SAFE plots it: PNG);
+- per alpha, from the sim times the dataset keeps (datasets built from 29 Nov): the latency in seconds (median and
+  90th percentile) and the share of failures with an irreversible event (spill, fall, breakage) caught before it;
 - rows: the model, the majority class (never alarms), the blind model (grey prefix grids: one score per k for
-  every trajectory), and the labeler on live state (the ceiling: it alarms at the onset frame, never on a success);
+  every trajectory), a non-VLM baseline on the robot's own signals (robot_baseline.py, fitted on the train split),
+  and the labeler on live state (the ceiling: it alarms at the onset frame, never on a success);
 - the CPU time of one alarm check (one prefix grid's Q2).
-
-Not measured here (said on the page): latency in seconds (the dataset keeps grid frames, not keyframe times) and
-the share caught before an irreversible event (spill, fall, breakage): both need the shards' traces.
 Writes out_dir/online.json and out_dir/auroc_by_keyframe.png (out_dir: MODEL/eval_online_SPLIT by default).
 """
 
@@ -34,11 +34,13 @@ import numpy as np
 from PIL import Image
 
 from labrobfail_vlm.alarm import Alarm
+from labrobfail_vlm.bench import robot_baseline
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import BLANK, GridConfig
 
 ALPHAS = (0.01, 0.05, 0.1, 0.2)
 LABELER = "labeler on live state (ceiling)"
+ROBOT = "robot signals (MLP)"
 
 
 def prefix_grid(grid: Image.Image, cfg: GridConfig, views: int, k: int) -> Image.Image:
@@ -103,16 +105,38 @@ def alarm_rows(
         ok = [f for f, t in zip(fired, ev_trajs) if t["success"]]
         lat = [f + 1 - int(t["frame"]) for f, t in zip(fired, ev_trajs) if not t["success"] and f is not None]
         fails = sum(not t["success"] for t in ev_trajs)
-        out[str(alpha)] = alarm.to_dict() | {
-            "false_alarm_rate": _share(sum(f is not None for f in ok), len(ok)),
-            "successes": len(ok),
-            "detection_rate": _share(len(lat), fails),
-            "failures": fails,
-            "latency_frames_median": float(np.median(lat)) if lat else None,
-            "latency_frames_p90": float(np.percentile(lat, 90)) if lat else None,
-            "caught_by_onset": _share(sum(x <= 0 for x in lat), fails),
-        }
+        out[str(alpha)] = (
+            alarm.to_dict()
+            | {
+                "false_alarm_rate": _share(sum(f is not None for f in ok), len(ok)),
+                "successes": len(ok),
+                "detection_rate": _share(len(lat), fails),
+                "failures": fails,
+                "latency_frames_median": float(np.median(lat)) if lat else None,
+                "latency_frames_p90": float(np.percentile(lat, 90)) if lat else None,
+                "caught_by_onset": _share(sum(x <= 0 for x in lat), fails),
+            }
+            | timing(fired, ev_trajs)
+        )
     return out
+
+
+def timing(fired: Sequence[int | None], trajs: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Latency from the onset in sim seconds (the alarm sounds when its frame's images are taken: frame_times_s),
+    and the share of the failures with an irreversible event (spill, fall, breakage) whose alarm sounded before
+    it. Empty for a dataset built before 29 Nov (no frame times, onsets or events)."""
+    if not all(t.get("frame_times_s") and "irreversible_s" in t for t in trajs):
+        return {}
+    fails = [(f, t) for f, t in zip(fired, trajs) if not t["success"]]
+    lat = [t["frame_times_s"][f] - t["onset_s"] for f, t in fails if f is not None and t.get("onset_s") is not None]
+    grave = [(f, t) for f, t in fails if t["irreversible_s"] is not None]
+    early = sum(f is not None and t["frame_times_s"][f] < t["irreversible_s"] for f, t in grave)
+    return {
+        "latency_s_median": round(float(np.median(lat)), 3) if lat else None,
+        "latency_s_p90": round(float(np.percentile(lat, 90)), 3) if lat else None,
+        "irreversible_failures": len(grave),
+        "caught_before_irreversible": _share(early, len(grave)),
+    }
 
 
 def auroc_by_keyframe(scores: list[list[float]], trajs: Sequence[dict[str, Any]]) -> list[float | None]:
@@ -131,13 +155,19 @@ def auroc_by_keyframe(scores: list[list[float]], trajs: Sequence[dict[str, Any]]
 def ceiling(trajs: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """The labeler on live state: it alarms exactly at each failure's onset frame and never on a success."""
     fails = sum(not t["success"] for t in trajs)
-    return {
+    out = {
         "false_alarm_rate": 0.0,
         "detection_rate": 1.0 if fails else None,
         "latency_frames_median": 0.0,
         "latency_frames_p90": 0.0,
         "caught_by_onset": 1.0 if fails else None,
     }
+    if all("irreversible_s" in t for t in trajs):  # it sounds at the onset itself: before the event unless they meet
+        grave = [t for t in trajs if not t["success"] and t["irreversible_s"] is not None]
+        early = sum(t.get("onset_s") is not None and t["onset_s"] < t["irreversible_s"] for t in grave)
+        out |= {"latency_s_median": 0.0, "latency_s_p90": 0.0, "irreversible_failures": len(grave)}
+        out["caught_before_irreversible"] = _share(early, len(grave))
+    return out
 
 
 def _share(k: int, n: int) -> float | None:
@@ -178,21 +208,29 @@ def run_online(cfg: Any, fa: Any, out_dir: Path) -> dict[str, Any]:
     bcal, _ = score_prefixes(fa, dataset, cal_t, grid, blind=True)
     bev, _ = score_prefixes(fa, dataset, ev_t, grid, blind=True)
     never = [[0.0] * len(s) for s in ev]
+    rows = {
+        "model": alarm_rows(cal, cal_t, ev, ev_t),
+        "majority class": {str(a): {"false_alarm_rate": 0.0, "detection_rate": 0.0} for a in ALPHAS},
+        "blind (grey grid)": alarm_rows(bcal, cal_t, bev, ev_t),
+    }
+    curves = {"model": auroc_by_keyframe(ev, ev_t), "blind (grey grid)": auroc_by_keyframe(bev, ev_t)}
+    train_t = [t for t in json.loads((dataset / "trajectories.json").read_text()) if t.get("split") == "train"]
+    # fitted on the train split, so it is calibrated and scored on others only
+    if "train" not in (cfg.calibration, cfg.split) and robot_baseline.has_signals([*train_t, *cal_t, *ev_t]):
+        fitted = robot_baseline.fit(train_t)
+        rcal, rev = robot_baseline.score(fitted, cal_t), robot_baseline.score(fitted, ev_t)
+        rows[ROBOT] = alarm_rows(rcal, cal_t, rev, ev_t)
+        curves[ROBOT] = auroc_by_keyframe(rev, ev_t)
+    rows[LABELER] = ceiling(ev_t)
     res = {
         "split": str(cfg.split),
         "calibration": str(cfg.calibration),
         "trajectories": len(ev_t),
         "calibration_successes": sum(t["success"] for t in cal_t),
         "cpu_s_per_check": round(cpu, 4),
-        "rows": {
-            "model": alarm_rows(cal, cal_t, ev, ev_t),
-            "majority class": {str(a): {"false_alarm_rate": 0.0, "detection_rate": 0.0} for a in ALPHAS},
-            "blind (grey grid)": alarm_rows(bcal, cal_t, bev, ev_t),
-            LABELER: ceiling(ev_t),
-        },
-        "auroc_by_keyframe": {"model": auroc_by_keyframe(ev, ev_t), "blind (grey grid)": auroc_by_keyframe(bev, ev_t)},
+        "rows": rows,
+        "auroc_by_keyframe": curves,
         "auroc_majority": auroc_by_keyframe(never, ev_t)[:1],
-        "not_measured": "latency in seconds; the share caught before an irreversible event (need the traces)",
     }
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out_dir / "online.json", res)
