@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from labrobfail_vlm.bench.evaluate import BLIND, MAJORITY
+from labrobfail_vlm.bench.online import online_md
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
 from sim_backends.supervision.paired import paired_md
 
@@ -325,6 +326,17 @@ def _online_table(section: list[str]) -> list[str]:
     return section[at:end]
 
 
+def online_benches(run: Path) -> list[str]:
+    """The online bench's tables (labrobfail-evaluate mode=online) of the run's models, seen split first."""
+    out: list[str] = []
+    for model in ("train", "online"):
+        for f in sorted(
+            (run / model / "final").glob("eval_online_*/online.json"), key=lambda p: p.parent.name != "eval_online_test"
+        ):
+            out += [f"`{model}/final`, {f.parent.name}:", "", *online_md(json.loads(f.read_text())), ""]
+    return out
+
+
 def supervision(run: Path, online_stand_in: list[str] | None = None) -> list[str]:
     """The online model (make reproduce-online) on whole and prefix grids, and the recovery table (make recovery):
     success out of the trials per task and policy, without a supervisor and with the VLM. `online_stand_in` (the
@@ -345,6 +357,7 @@ def supervision(run: Path, online_stand_in: list[str] | None = None) -> list[str
             ),
             "",
         ]
+    lines += online_benches(run)
     rows: list[str] = []
     settings: dict[str, list[str]] = {}  # each supervisor setting and the cells it ran (a task may need its own)
     for f in _recovery_files(run):

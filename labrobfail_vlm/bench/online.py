@@ -170,6 +170,42 @@ def ceiling(trajs: Sequence[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def _pct(x: float | None) -> str:
+    return "-" if x is None else f"{100 * x:.1f}"
+
+
+def _num(x: float | None) -> str:
+    return "-" if x is None else f"{x:g}"
+
+
+def online_md(res: dict[str, Any]) -> list[str]:
+    """The bench's table: per row and alpha, false alarms on successes against alpha, detection, latency from the
+    onset (grid frames and sim seconds: median / 90th percentile), caught at the onset frame and before an
+    irreversible event (of how many such failures)."""
+    out = [
+        f"Online bench, split {res['split']} ({res['trajectories']} trajectories), alarm calibrated on "
+        f"{res['calibration_successes']} successes of {res['calibration']}; CPU per check {res['cpu_s_per_check']} s.",
+        "",
+        "| row | alpha | false alarms (%) | detection (%) | latency frames (median / p90) | latency s (median / p90) "
+        "| caught by onset (%) | before an irreversible event (%) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name, per in res["rows"].items():
+        for alpha, r in per.items() if name != LABELER else [("-", per)]:
+            if "latency_frames_median" not in r:  # the majority class never alarms: one line says it
+                if alpha != str(ALPHAS[0]):
+                    continue
+                alpha = "any"
+            grave = "" if r.get("irreversible_failures") is None else f" (of {r['irreversible_failures']})"
+            out.append(
+                f"| {name} | {alpha} | {_pct(r['false_alarm_rate'])} | {_pct(r['detection_rate'])} | "
+                f"{_num(r.get('latency_frames_median'))} / {_num(r.get('latency_frames_p90'))} | "
+                f"{_num(r.get('latency_s_median'))} / {_num(r.get('latency_s_p90'))} | "
+                f"{_pct(r.get('caught_by_onset'))} | {_pct(r.get('caught_before_irreversible'))}{grave} |"
+            )
+    return out
+
+
 def _share(k: int, n: int) -> float | None:
     return round(k / n, 4) if n else None
 
@@ -194,7 +230,7 @@ def auroc_png(curves: dict[str, list[float | None]], title: str, path: Path) -> 
 
 def run_online(cfg: Any, fa: Any, out_dir: Path) -> dict[str, Any]:
     """The online bench of `cfg.split`, calibrated on `cfg.calibration`; writes online.json and the AUROC PNG."""
-    from labrobfail_vlm.io import atomic_write_json
+    from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
 
     dataset = Path(str(cfg.dataset_dir))
     stats = json.loads((dataset / "stats.json").read_text())
@@ -234,5 +270,6 @@ def run_online(cfg: Any, fa: Any, out_dir: Path) -> dict[str, Any]:
     }
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out_dir / "online.json", res)
+    atomic_write_bytes(out_dir / "online.md", ("\n".join(online_md(res)) + "\n").encode())
     auroc_png(res["auroc_by_keyframe"], f"online bench, {cfg.split}", out_dir / "auroc_by_keyframe.png")
     return res
