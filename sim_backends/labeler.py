@@ -43,7 +43,9 @@ STILL = 0.005  # m: end-effector displacement between keyframes that counts as n
 INSERT_MISS = 0.015  # m: a rod/tube this far from its hole or vessel axis at the end of an insertion
 HANDLE_MISS = 0.015  # m: gripper-to-handle/button offset that misses it
 RELEASE_LEAD = 0.2  # s: slip checks stop this long before the release keyframe ends (the fingers open)
-SPILL_PARTICLES = 5  # liquid particles newly outside every vessel that make a spill (nominal pours lose up to 4)
+# liquid particles newly outside every vessel that make a spill, where too little reached the destination (a pour
+# that delivers enough may lose more: 323 of the 497 successful pours of outputs/r14 did)
+SPILL_PARTICLES = 5
 GRAVITY = 9.81  # m/s^2
 BREAK_SPEED = 1.2  # m/s: glassware that hits something this fast (a fall of ~8 cm or more) counts as broken
 
@@ -361,7 +363,8 @@ HELD = 0.1  # m: a vessel this close to the hand is in it (a pour tilts its vess
 
 
 def irreversible_sample(trace: Trace, meta: Meta) -> Optional[tuple[int, str]]:
-    """The first sample of an event no correction undoes, and which: liquid spilled outside every vessel ("spill"),
+    """The first sample of an event no correction undoes, and which: liquid spilled outside every vessel where too
+    little reached its destination ("spill", as detect_spill reads it: a pour that delivers enough loses some drops),
     a movable object knocked off the bench or a vessel tipped over out of the hand ("fall"), glassware moving down
     fast enough to break (>= BREAK_SPEED, read as `impact_speed` reads it: "breakage"). None when none happens. An
     alarm raised before this sample could still have saved the run; the online bench counts those."""
@@ -370,7 +373,9 @@ def irreversible_sample(trace: Trace, meta: Meta) -> Optional[tuple[int, str]]:
     vessels = {m for m in movables if meta["objects"][m]["kind"] == "vessel"}
     rate = float(trace.get("rate_hz", 40.0))
     low = meta["bench_top"] + OFF_BENCH
-    liquid = trace.get("liquid.outside")
+    bad = failed_goals(trace, meta)
+    lost = any(g["kind"] == "liquid" and g in bad for g in meta["goals"])
+    liquid = trace.get("liquid.outside") if lost else None
     for j in range(len(trace["t"])):
         if liquid and liquid[j] - liquid[0] >= SPILL_PARTICLES:
             return j, "spill"
