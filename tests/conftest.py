@@ -62,9 +62,11 @@ def background(argv: list) -> subprocess.Popen:
     return subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
-def evaluate(source: str, dataset, *extra: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    """labrobfail-evaluate of `source` (model=... or predictions=...) on the dataset folder `dataset`."""
-    return run([cli("evaluate"), source, f"dataset_dir={dataset}", *extra], timeout)
+def evaluate(source: str, dataset, *extra: str, timeout: float = 600, call=None) -> subprocess.CompletedProcess:
+    """labrobfail-evaluate of `source` (model=... or predictions=...) on the dataset folder `dataset`, as a process
+    (or through `call`, e.g. run_here)."""
+    argv = [cli("evaluate"), source, f"dataset_dir={dataset}", *extra]
+    return call(argv) if call else run(argv, timeout)
 
 
 def supervise_front(out, policy: list[str], task: str, trials: int, image_size: int, *extra: str, timeout: float = 600):

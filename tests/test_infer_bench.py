@@ -376,7 +376,8 @@ def test_json_output_and_frame_count_are_checked_before_inference(tiny, tmp_path
         (["--json", str(tmp_path / "nope" / "d.json")], "does not exist"),
         (["--num-frames", "0"], "num_frames:"),
     ):
-        r = infer("--grid", str(tmp_path / "g.png"), "--model", str(tiny), *args)
+        args = ["--grid", str(tmp_path / "g.png"), "--model", str(tiny), *args]
+        r = infer(*args) if needle == "is a directory" else run_here(["infer.py", *args])  # the first as a process
         lines = r.stderr.strip().splitlines()
         assert r.returncode == 2 and len(lines) == 1 and needle in lines[0] and r.stdout == "", (args, r.stderr)
         assert "Loading weights" not in r.stderr  # refused before the model was loaded
@@ -391,7 +392,8 @@ def test_evaluate_refuses_a_predictions_folder_or_unreadable_file_before_writing
         (_unreadable(tmp_path), "cannot read"),
         (tmp_path / "missing.jsonl", "cannot read"),
     ):
-        r = evaluate(f"predictions={pred}", tmp_path / "ds", timeout=120)
+        argv = [f"predictions={pred}", tmp_path / "ds"]
+        r = evaluate(*argv, timeout=120) if needle == "Is a directory" else evaluate(*argv, call=run_here)
         lines = r.stderr.strip().splitlines()
         assert r.returncode == 2 and len(lines) == 1 and "Traceback" not in r.stderr, (pred, r.stderr[-500:])
         assert lines[0].startswith("error: predictions: ") and str(pred) in lines[0] and needle in lines[0], lines
