@@ -329,12 +329,20 @@ def _online_table(section: list[str]) -> list[str]:
 def online_benches(run: Path) -> list[str]:
     """The online bench's tables (labrobfail-evaluate mode=online) of the run's models, seen split first."""
     out: list[str] = []
+    guarantee = (
+        "The online bench's alarm is a threshold on the running P(failure), set on the calibration split's "
+        "successes only (split conformal). It guarantees that at most alpha of new successes exchangeable with those "
+        "(same scenes, policy, cameras and task mix) raise it, on average; it guarantees nothing on a new scene or "
+        "object set (val_both below is one), and no detection rate or latency: those are measured. Latency is from "
+        "the failure's onset in simulator state (negative: the alarm came first); an irreversible event is a spill, "
+        "a fall or glassware moving fast enough to break."
+    )
     for model in ("train", "online"):
         for f in sorted(
             (run / model / "final").glob("eval_online_*/online.json"), key=lambda p: p.parent.name != "eval_online_test"
         ):
             out += [f"`{model}/final`, {f.parent.name}:", "", *online_md(json.loads(f.read_text())), ""]
-    return out
+    return [guarantee, "", *out] if out else []
 
 
 def supervision(run: Path, online_stand_in: list[str] | None = None) -> list[str]:
