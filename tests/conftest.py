@@ -1,3 +1,4 @@
+import os
 import socket
 import subprocess
 import sys
@@ -30,10 +31,11 @@ def run(argv: list, timeout: float = 600, **kw) -> subprocess.CompletedProcess:
 ROOT_SCRIPTS = {"train.py": "labrobfail-train", "infer.py": "labrobfail-infer"}
 
 
-def run_here(argv: list) -> subprocess.CompletedProcess:
+def run_here(argv: list, env: dict | None = None) -> subprocess.CompletedProcess:
     """What run(argv) returns, the console script's entry point called in this process instead: the same code from
     sys.argv to the exit code, without a Python start and a torch import per call. For a test's many one-line-error
-    cases, whose first case still runs as a real process (an uncaught exception here fails the test: stricter)."""
+    cases, whose first case still runs as a real process (an uncaught exception here fails the test: stricter).
+    `env`: variables set for the call (and restored after it)."""
     import contextlib
     import io
     from importlib.metadata import entry_points
@@ -45,8 +47,9 @@ def run_here(argv: list) -> subprocess.CompletedProcess:
     name = Path(argv[0]).name
     (ep,) = entry_points(group="console_scripts", name=name)
     out, err, code = io.StringIO(), io.StringIO(), 0
-    old = sys.argv
+    old, saved = sys.argv, dict(os.environ)
     sys.argv = [name, *argv[1:]]
+    os.environ.update(env or {})
     try:
         with contextlib.chdir(ROOT), contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             ep.load()()
@@ -54,6 +57,8 @@ def run_here(argv: list) -> subprocess.CompletedProcess:
         code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
     finally:
         sys.argv = old
+        os.environ.clear()
+        os.environ.update(saved)
     return subprocess.CompletedProcess(argv, code, out.getvalue(), err.getvalue())
 
 

@@ -6,7 +6,7 @@ import json
 import os
 
 import pytest
-from conftest import program, run
+from conftest import program, run, run_here
 from fake_openai import FakeOpenAI
 from serve_fixtures import TASKS, grids, mixed_model  # noqa: F401  (fixtures)
 from test_train import small_ds  # noqa: F401  (session fixture)
@@ -79,7 +79,10 @@ def test_endpoint_template_mode_uses_choices(fake, local, grids):  # noqa: F811
     local.q6_mode = "free"
 
 
-def _run(*args, env=None):
+def _run(*args, env=None, here=False):
+    """A console script or root script with `env` added, as a process (or in this one: here=True)."""
+    if here:
+        return run_here([*program(args[0]), *args[1:]], env=env)
     return run([*program(args[0]), *args[1:]], env={**os.environ, **(env or {})})
 
 
@@ -117,10 +120,11 @@ def test_infer_through_the_endpoint(fake, local, grids, tmp_path):  # noqa: F811
             fake.url,
             *args,
             env={"OPENAI_API_KEY": KEY if args else ""},
+            here=True,  # one-line errors: in this process (the call above ran infer.py as a process)
         )
         assert r.returncode == 2 and needle in r.stderr and "Traceback" not in r.stderr, r.stderr[-1000:]
         assert KEY not in r.stderr
-    r = _run("infer.py", "--grid", str(tmp_path / "g.png"), "--endpoint", "http://127.0.0.1:9/v1")
+    r = _run("infer.py", "--grid", str(tmp_path / "g.png"), "--endpoint", "http://127.0.0.1:9/v1", here=True)
     assert r.returncode == 2 and "cannot list models" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
@@ -135,7 +139,9 @@ def test_evaluate_through_the_endpoint_matches_the_local_model(fake, mixed_model
         *common,
     )
     assert r.returncode == 0, r.stderr[-2000:]
-    r = _run("labrobfail-evaluate", f"model={mixed_model}", f"out_dir={tmp_path / 'm'}", "batch_size=4", *common)
+    r = _run(
+        "labrobfail-evaluate", f"model={mixed_model}", f"out_dir={tmp_path / 'm'}", "batch_size=4", *common, here=True
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     preds = [
         dict(
@@ -150,7 +156,9 @@ def test_evaluate_through_the_endpoint_matches_the_local_model(fake, mixed_model
     }
     res = json.loads((tmp_path / "e" / "results.json").read_text())
     assert res["method"] == f"LabRobFail-VLM endpoint ({fake.name})"
-    r = _run("labrobfail-evaluate", f"endpoint={fake.url}", f"model={mixed_model}", f"dataset_dir={small_ds}")
+    r = _run(
+        "labrobfail-evaluate", f"endpoint={fake.url}", f"model={mixed_model}", f"dataset_dir={small_ds}", here=True
+    )
     assert r.returncode == 2 and "exactly one" in r.stderr
 
 
@@ -158,7 +166,7 @@ def test_evaluate_batch_size_gives_the_same_predictions(mixed_model, small_ds, t
     common = [f"model={mixed_model}", f"dataset_dir={small_ds}", "split=test", "progress=false", "baselines=[blind]"]
     outs, probs = [], []
     for b in (1, 5):
-        r = _run("labrobfail-evaluate", f"out_dir={tmp_path / str(b)}", f"batch_size={b}", *common)
+        r = _run("labrobfail-evaluate", f"out_dir={tmp_path / str(b)}", f"batch_size={b}", *common, here=b > 1)
         assert r.returncode == 0, r.stderr[-2000:]
         lines = [json.loads(x) for x in (tmp_path / str(b) / "predictions.jsonl").read_text().splitlines()]
         probs.append([x.pop("p_failure", None) for x in lines])  # float sums over padded rows: equal to rounding
@@ -168,5 +176,5 @@ def test_evaluate_batch_size_gives_the_same_predictions(mixed_model, small_ds, t
     assert outs[0] == outs[2] and outs[1] == outs[3]
     assert [p is None for p in probs[0]] == [p is None for p in probs[1]] and any(p is not None for p in probs[0])
     assert [p or 0 for p in probs[0]] == pytest.approx([p or 0 for p in probs[1]], abs=1e-4)
-    r = _run("labrobfail-evaluate", "batch_size=0", *common)
+    r = _run("labrobfail-evaluate", "batch_size=0", *common, here=True)
     assert r.returncode == 2 and "batch_size" in r.stderr

@@ -11,7 +11,7 @@ import threading
 import time
 
 import pytest
-from conftest import ROOT, background, evaluate, free_port, run
+from conftest import ROOT, background, evaluate, free_port, run, run_here
 from serve_fixtures import grids, mixed_model  # noqa: F401  (fixtures)
 from test_serve import Server
 from test_train import small_ds, tiny, tiny_train  # noqa: F401  (session fixtures)
@@ -59,7 +59,7 @@ def test_training_killed_mid_run_resumes_to_the_final_step_and_evaluates(tiny, s
     assert r.returncode == 0, r.stderr[-3000:]
     assert json.loads((tmp_path / "eval" / "results.json").read_text())["detection"]["trajectories"] > 0
     # nothing to resume from is one line
-    r = run([*common[:-3], f"output_dir={tmp_path / 'empty'}", "resume=true", "progress=false"], 300)
+    r = run_here([*common[:-3], f"output_dir={tmp_path / 'empty'}", "resume=true", "progress=false"])
     assert r.returncode == 2 and "no complete checkpoint" in r.stderr.strip().splitlines()[-1], r.stderr
 
 

@@ -138,7 +138,7 @@ def test_resuming_a_run_made_without_grounding_is_one_line(tiny, small_ds, tmp_p
     common = [*scratch_train(tiny, small_ds, f"{tmp_path}/o"), "save_steps=1", "wandb.enabled=false", "progress=false"]
     r = run([*common, "max_steps=1", "grounding.weight=0", "grounding.pretrain_epochs=0"])
     assert r.returncode == 0, r.stderr[-2000:]
-    r = run([*common, "max_steps=2", "resume=true"])
+    r = run_here([*common, "max_steps=2", "resume=true"])
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith("error: resume:") and "grounding.weight=0" in r.stderr
 

@@ -142,7 +142,7 @@ def test_train_takes_a_tower_or_scratch(tower_shards, tower_data, tmp_path):
         assert r.returncode == 0, r.stderr[-3000:]
         cfg = json.loads((out / "tiny_base" / "config.json").read_text())["vision_config"]
         assert (cfg["depth"], cfg["hidden_size"]) == ((1, 32) if tower != "scratch" else (2, 64))
-    r = run([*common, f"output_dir={tmp_path / 'bad'}", f"tower={tmp_path / 'none'}"], 300)
+    r = run_here([*common, f"output_dir={tmp_path / 'bad'}", f"tower={tmp_path / 'none'}"])
     assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].startswith("error: tower:"), r.stderr
 
 

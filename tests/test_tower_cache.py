@@ -5,7 +5,7 @@ import json
 
 import pytest
 import torch
-from conftest import run
+from conftest import run, run_here
 from test_train import small_ds, tiny, tiny_train  # noqa: F401 - session fixtures
 
 from labrobfail_vlm.train.tower_cache import TowerCache, cache_frozen_tower
@@ -95,5 +95,5 @@ def test_a_frozen_tower_run_encodes_each_grid_once_and_trains_as_without_the_cac
     assert cached["tower_cache"]["misses"] + cached["tower_cache"]["hits"] == 2 * grids
     assert "tower_cache" not in plain
     assert cached["train_loss"] == pytest.approx(plain["train_loss"], rel=1e-5)
-    r = run(tiny_train(tiny, small_ds, tmp_path / "bad", *frozen, "tower_cache_mb=-1"), 300)
+    r = run_here(tiny_train(tiny, small_ds, tmp_path / "bad", *frozen, "tower_cache_mb=-1"))
     assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].startswith("error: tower_cache_mb:"), r.stderr
