@@ -169,49 +169,43 @@ reproduce-online: $(STAMP)
 # the seeds RECOVERY_SEED, RECOVERY_SEED + 1, ..., each once without a supervisor and once with it (the same seed:
 # a paired table, McNemar p and the gain's 95 % interval per cell). Seeds 0-49 were spent developing the recipes and
 # 10000-10099 is the development block; 20000-20099, the default, is the reporting block that no choice has seen.
-# The scripted cells: `make reproduce`'s model reviewing the whole trajectory when the policy stops
-# (`make recovery-scripted` alone: about 15 min on 2 cores for 3 x 100 pairs, 29 Nov). The ACT cells: an ACT policy
-# trained here per task (pick and place: 120 scripted demos, 5,700 steps on one thread, about 8 minutes alone: a
-# step count, not a clock, ends it, so the same seed gives the same ACT whatever else the machine runs; pour: 480 +
-# 120 regrasp demos, about 33 + 40 min; kept when it exists), supervised by $(VLM) asked at every keyframe, except
-# the ACT pour cell (below) (out: $(R)/recovery/<policy>/, results.md is the table). At 25 trials per cell the whole
-# table took 87 min with the pour demonstrations already recorded (28 Nov), about 30 of them the trials; at 100
-# about 2 h more.
+# Every cell's supervisor is `make reproduce`'s model ($(VLM)) reviewing the whole trajectory when the policy stops
+# (the 25-trial table of 28 Nov asked `make reproduce-online`'s model at every keyframe, except the ACT pour cell).
+# The scripted cells: `make recovery-scripted` alone, 8.6 min on 2 cores for 3 x 100 pairs (29 Nov). The ACT cells:
+# an ACT policy trained here per task (pick and place: 120 scripted demos, 5,700 steps on one thread, about 8
+# minutes alone: a step count, not a clock, ends it, so the same seed gives the same ACT whatever else the machine
+# runs; pour: 480 + 120 regrasp demos, about 33 + 40 min; kept when it exists), then 100 pairs per task: about 6
+# min for pick and 27 for place alone (29 Nov); out: $(R)/recovery/<policy>/, results.md is the table.
 RECOVERY_TRIALS ?= 100
 RECOVERY_SEED ?= 20000
-RECOVERY_RUN = trials=$(RECOVERY_TRIALS) seed=$(RECOVERY_SEED) progress=false
-VLM ?= $(R)/online/final
-VLM_scripted ?= $(R)/train/final
+RECOVERY_RUN = trials=$(RECOVERY_TRIALS) seed=$(RECOVERY_SEED) progress=false loop.query_every=-1
+VLM ?= $(R)/train/final
 # Per task: the ACT's training arguments and the supervised run's settings. A pour must find the source and the
 # destination: a hand camera, DART-style drift of every free and carrying move, keypoint tokens, a cosine schedule,
 # demonstrations that start from a corrected grasp, two auxiliary queries that learn where the demonstration grasps
 # and tilts, the chunks run open loop (no temporal ensembling), and chunks past a demonstration's end taught to hold
-# its last target, so the ACT stops when done instead of undoing its pour. Its supervisor is `make reproduce`'s model
-# reviewing the whole trajectory when the ACT stops (docs/EXPERIMENTS.md, 28 Nov: 1/25 -> 2/25). Its own folder, so
-# a pour ACT of an older recipe left in $(R)/act is never mistaken for it.
+# its last target, so the ACT stops when done instead of undoing its pour (docs/EXPERIMENTS.md, 28 Nov: 1/25 ->
+# 2/25). Its own folder, so a pour ACT of an older recipe left in $(R)/act is never mistaken for it.
 ACT_pick := demos=120 train.steps=5700 train.max_minutes=30 train.threads=1
 ACT_place := $(ACT_pick)
 ACT_pour := demos=480 regrasp_demos=120 miss=0.08 'model.cameras=[front,wrist]' model.image_size=96 noise=0.03 \
   carry_noise=0.03 model.keypoints=32 model.aux_weight=1.0 model.temporal_ensemble_coeff=null train.lr=5e-4 \
   train.lr_backbone=5e-4 train.schedule=cosine train.warmup=500 train.steps=20000 train.max_minutes=46 \
   train.hold_end=true
-ACT_SUP_pour := backend_kwargs.wrist=true loop.query_every=-1
-VLM_pour ?= $(R)/train/final
+ACT_SUP_pour := backend_kwargs.wrist=true
 ACT_DIR_pour := pour_hold
 act_dir = $(R)/act/$(or $(ACT_DIR_$(1)),$(1))
 recovery-scripted: $(STAMP)
-	@test -d $(VLM_scripted) || { echo "recovery: no model $(VLM_scripted) (make reproduce, or VLM_scripted=<model dir>)" >&2; exit 2; }
-	$(BIN)/labrobfail-supervise policy=scripted supervisor=vlm vlm.model=$(VLM_scripted) loop.query_every=-1 \
-	  task=pick,place,pour $(RECOVERY_RUN) out_dir=$(R)/recovery/scripted
+	@test -d $(VLM) || { echo "recovery: no model $(VLM) (make reproduce, or VLM=<model dir>)" >&2; exit 2; }
+	$(BIN)/labrobfail-supervise policy=scripted supervisor=vlm vlm.model=$(VLM) task=pick,place,pour $(RECOVERY_RUN) \
+	  out_dir=$(R)/recovery/scripted
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 
 recovery: recovery-scripted
-	@test -d $(VLM) || { echo "recovery: no model $(VLM) (make reproduce-online, or VLM=<model dir>)" >&2; exit 2; }
-	@test -d $(VLM_pour) || { echo "recovery: no model $(VLM_pour) (make reproduce, or VLM_pour=<model dir>)" >&2; exit 2; }
 	$(foreach t,pick place pour,test -f $(call act_dir,$(t))/final/model.safetensors || OMP_NUM_THREADS=1 \
 	  $(PY) scripts/train_act.py task=$(t) $(ACT_$(t)) progress=false out_dir=$(call act_dir,$(t)) || exit 1;)
 	$(foreach t,pick place pour,$(BIN)/labrobfail-supervise policy=act act.checkpoint=$(call act_dir,$(t))/final \
-	  $(ACT_SUP_$(t)) supervisor=vlm vlm.model=$(or $(VLM_$(t)),$(VLM)) task=$(t) $(RECOVERY_RUN) \
+	  $(ACT_SUP_$(t)) supervisor=vlm vlm.model=$(VLM) task=$(t) $(RECOVERY_RUN) \
 	  out_dir=$(R)/recovery/act/$(t) || exit 1;)
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 

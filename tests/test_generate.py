@@ -126,14 +126,6 @@ def test_unwritable_out_dir_and_nothing_lost(run6, tmp_path):
     assert {p.name: p.read_bytes() for p in run6.iterdir()} == before
 
 
-@pytest.mark.slow  # starts a Ray cluster
-def test_ray_executor_matches_processes(run6, tmp_path):
-    pytest.importorskip("ray")
-    out = tmp_path / "r"
-    gen(out, "num_episodes=6", "seed=5", "executor=ray", "workers=2")
-    assert [r["state_trace"] for r in rows(out)] == [r["state_trace"] for r in rows(run6)]
-
-
 def test_a_nominal_plan_that_fails_is_redrawn_and_counted(tmp_path):
     """A scenario whose nominal plan can never succeed (a button out of reach): every draw is recorded and the
     pair is given up, so nothing unlabeled or mislabeled reaches a shard."""
@@ -163,7 +155,9 @@ def test_a_nominal_plan_that_fails_is_redrawn_and_counted(tmp_path):
 
 @pytest.mark.slow  # starts a Ray cluster
 def test_ray_executor_gives_the_same_data(run6, tmp_path):
-    """The paper-scale path: the same command on a (here local, 2-CPU) Ray instance writes the same shards."""
+    """The paper-scale path: the same command on a (here local, 2-CPU) Ray instance writes the same shards as the
+    process pool (run6): traces, labels and images. (It replaced a second Ray run that compared the traces alone.)"""
+    pytest.importorskip("ray")
     out = tmp_path / "ray"
     gen(out, "num_episodes=6", "seed=5", "executor=ray", "workers=2")
     keys = ("episode_id", "scenario", "seed", "success", "failure_type", "failure_keyframe", "state_trace", "images")
