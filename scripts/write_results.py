@@ -16,7 +16,8 @@ With `sections=[rows]`, `[ablation]` or `[supervision]` it replaces only those s
 run that holds just those folders (a fresh machine's regeneration with the same seed, say): it checks first that the
 run's data are the page's (the same trajectories and splits line). What such a run lacks is carried from the page and
 said so: the ablation's frozen row is the page's shipped front + side row (the recipe's model is the frozen one), and
-the online model's table stays when the run has only a recovery table.
+the online model's table and the online bench stay when the run has only recovery tables, and so do the page's
+recovery rows for cells the run did not re-measure (the table's lead line names them as carried).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from typing import Any
 from labrobfail_vlm.bench.evaluate import BLIND, MAJORITY
 from labrobfail_vlm.bench.online import online_md
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
-from sim_backends.supervision.paired import paired_md
+from sim_backends.supervision.report import LEAD, page_recovery, recovery_files, recovery_md
 
 DEFAULTS = """
 run: outputs/reproduce     # the make reproduce run folder
@@ -74,7 +75,6 @@ ROWS = {
     "train": "sim-pretrained tower (shipped), front + side",
     "rows/wrist": "sim-pretrained tower, front + wrist (sensor ablation, not the paper's views)",
 }
-RECOVERY_TARGET = 4  # points of success rate that supervision must add per task and policy (the tower issue)
 ABLATIONS = {
     "ablate/tuned": "tuned tower and merger",
     "ablate/frozen": "frozen tower and merger",
@@ -221,7 +221,7 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
         "rows": lambda: rows_table(run, shipped),
         # the shipped row's seen Q2, Q3, Q5 and ROUGE-L cells
         "ablation": lambda: ablation_table(run, [cells[1], cells[3], cells[4], cells[5]] if cells else None),
-        "supervision": lambda: supervision(run, _online_table(old_sv)),
+        "supervision": lambda: supervision(run, old_sv),
     }
     for name in names:
         heading, _, folders = SECTIONS[name]
@@ -304,17 +304,9 @@ def ablation_table(run: Path, frozen_cells: list[str] | None = None) -> list[str
     ]
 
 
-def _recovery_files(run: Path) -> list[Path]:
-    """`make recovery`'s results.json files of a run: the scripted policy's, then each ACT task's."""
-    rec = run / "recovery"
-    return [
-        f for f in (rec / "scripted" / "results.json", *sorted((rec / "act").glob("*/results.json"))) if f.is_file()
-    ]
-
-
 def _ran(run: Path, folder: str) -> bool:
     """Whether a section's run folder holds results: `make recovery`'s tables, or a bench of the seen test split."""
-    return bool(_recovery_files(run)) if folder == "recovery" else bool(_evals(run / folder, ("test",)))
+    return bool(recovery_files(run)) if folder == "recovery" else bool(_evals(run / folder, ("test",)))
 
 
 def _online_table(section: list[str]) -> list[str]:
@@ -326,30 +318,43 @@ def _online_table(section: list[str]) -> list[str]:
     return section[at:end]
 
 
+def _page_online_benches(section: list[str]) -> list[str]:
+    """The online bench's lines of an existing Supervision section: its guarantee paragraph up to the recovery
+    table's lead (or the section's end)."""
+    at = next((i for i, line in enumerate(section) if line.startswith(ONLINE_GUARANTEE[:40])), None)
+    if at is None:
+        return []
+    end = next((i for i in range(at, len(section)) if section[i].startswith(LEAD)), len(section))
+    return section[at:end]
+
+
+ONLINE_GUARANTEE = (
+    "The online bench's alarm is a threshold on the running P(failure), set on the calibration split's "
+    "successes only (split conformal). It guarantees that at most alpha of new successes exchangeable with those "
+    "(same scenes, policy, cameras and task mix) raise it, on average; it guarantees nothing on a new scene or "
+    "object set (val_both below is one), and no detection rate or latency: those are measured. Latency is from "
+    "the failure's onset in simulator state (negative: the alarm came first); an irreversible event is a spill, "
+    "a fall or glassware moving fast enough to break."
+)
+
+
 def online_benches(run: Path) -> list[str]:
     """The online bench's tables (labrobfail-evaluate mode=online) of the run's models, seen split first."""
     out: list[str] = []
-    guarantee = (
-        "The online bench's alarm is a threshold on the running P(failure), set on the calibration split's "
-        "successes only (split conformal). It guarantees that at most alpha of new successes exchangeable with those "
-        "(same scenes, policy, cameras and task mix) raise it, on average; it guarantees nothing on a new scene or "
-        "object set (val_both below is one), and no detection rate or latency: those are measured. Latency is from "
-        "the failure's onset in simulator state (negative: the alarm came first); an irreversible event is a spill, "
-        "a fall or glassware moving fast enough to break."
-    )
     for model in ("train", "online"):
         for f in sorted(
             (run / model / "final").glob("eval_online_*/online.json"), key=lambda p: p.parent.name != "eval_online_test"
         ):
             out += [f"`{model}/final`, {f.parent.name}:", "", *online_md(json.loads(f.read_text())), ""]
-    return [guarantee, "", *out] if out else []
+    return [ONLINE_GUARANTEE, "", *out] if out else []
 
 
-def supervision(run: Path, online_stand_in: list[str] | None = None) -> list[str]:
-    """The online model (make reproduce-online) on whole and prefix grids, and the recovery table (make recovery):
-    success out of the trials per task and policy, without a supervisor and with the VLM. `online_stand_in` (the
-    page's own online table) stands in for a run without the online model, and says so."""
+def supervision(run: Path, page: list[str] | None = None) -> list[str]:
+    """The online model (make reproduce-online) on whole and prefix grids, the online bench, and the recovery table
+    (make recovery). `page` (the page's own Supervision section, for a splice) stands in for what the run lacks (the
+    online model's table, the online bench, recovery cells not re-run), and the section says so."""
     lines = []
+    online_stand_in = _online_table(page or [])
     ev = _evals(run / "online", ("test", "prefix", "val_both"))
     titles = {"test": "seen, whole", "prefix": "seen, prefix (first k keyframes)", "val_both": "val both, whole"}
     if not ev and online_stand_in:
@@ -365,46 +370,12 @@ def supervision(run: Path, online_stand_in: list[str] | None = None) -> list[str
             ),
             "",
         ]
-    lines += online_benches(run)
-    rows: list[str] = []
-    settings: dict[str, list[str]] = {}  # each supervisor setting and the cells it ran (a task may need its own)
-    for f in _recovery_files(run):
-        res = json.loads(f.read_text())
-        cfg = res["config"]
-        sup, loop = cfg["supervisor"], cfg["loop"]
-        asked = {0: "at every keyframe", -1: "only when the policy stops"}.get(
-            loop["query_every"], f"every {loop['query_every']} policy steps"
-        )
-        setting = (
-            f"{cfg['trials']} trials per cell, variant {cfg['variant']}, supervisor {sup} "
-            f"(`{(cfg.get(sup) or {}).get('model', '')}`) asked {asked}"
-            + (" and once more when the policy stops" if loop["final_query"] and loop["query_every"] >= 0 else "")
-            + f", budget {loop['budget']}, a manual correction: {loop['on_manual']}"
-        )
-        for task, r in res["tasks"].items():
-            settings.setdefault(setting, []).append(f"{r['policy']} {task}")
-            base, got = r.get("none"), r.get(sup)
-            if base and got:
-                rows.append(
-                    f"| {task} | {r['policy']} | {base['success']}/{base['trials']} | {got['success']}/{got['trials']} "
-                    f"| {r['improvement']:+.0f} | {'yes' if r['improvement'] >= RECOVERY_TARGET else 'no'} | "
-                    f"{paired_md(r.get('paired'))} | {got['episodes_with_intervention']} | {got['stopped']} |"
-                )
-    if rows:
-        lines += [
-            "Recovery: the same initial states and injections with and without the supervisor; "
-            + (
-                next(iter(settings))
-                if len(settings) == 1
-                else "; ".join(f"{', '.join(cells)}: {s}" for s, cells in settings.items())
-            )
-            + ".",
-            "",
-            f"| task | policy | none | +VLM | diff (points) | >= +{RECOVERY_TARGET} | 95 % CI (paired) | McNemar p "
-            "| successes broken | episodes with an intervention | stopped early |",
-            "|---|---|---|---|---|---|---|---|---|---|---|",
-            *rows,
-        ]
+    benches = online_benches(run)
+    if not benches and page:
+        benches = _page_online_benches(page)
+        benches = ["The online bench as the page had it (this run has none):", "", *benches] if benches else []
+    lines += benches
+    lines += recovery_md([json.loads(f.read_text()) for f in recovery_files(run)], page_recovery(page or []))
     return lines
 
 

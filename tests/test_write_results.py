@@ -226,3 +226,46 @@ def test_the_targets_table_needs_the_margin_over_both_baselines_and_says_what_wa
     assert "not run" in rows["sealed unseen objects and scene Q2"] and "| no |" in rows["sealed unseen scene Q2"]
     assert "not on val_both" in rows["failure-only Q4 above the majority class on every split"]  # 70 <= 76
     assert "object_slippage 75" in rows["seen Q2 recall >= 80 % for each failure type with >= 20 test failures"]
+
+
+def test_a_rerun_of_some_cells_keeps_the_pages_other_cells_and_online_bench(tmp_path: Path) -> None:
+    """`sections=[supervision]` from a run that re-measured one ACT cell only (a fresh machine): that row is the run's,
+    the page's scripted rows and online bench are carried and named as carried; splicing again changes nothing."""
+    from scripts.write_results import ONLINE_GUARANTEE, main
+    from sim_backends.supervision.report import HEADER, LEAD
+
+    setting = "25 trials per cell, variant seen, supervisor vlm (`m`) asked only when the policy stops, budget 2"
+    old = [
+        "## Supervision",
+        "",
+        ONLINE_GUARANTEE,
+        "",
+        "| row | alpha | false alarms (%) |",
+        "",
+        f"{LEAD}{setting}.",
+        "",
+        HEADER,
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| pick | scripted | 6/25 | 23/25 | +68 | yes | - | - | - | 19 | 0 |",
+        "| pick | act | 1/25 | 2/25 | +4 | yes | - | - | - | 3 | 0 |",
+        "",
+    ]
+    page, run = tmp_path / "RESULTS.md", tmp_path / "run"
+    head, tail = PAGE.split("## Supervision\n")[0], PAGE.split("\n\n## Paper-comparable tables")[1]
+    page.write_text(head + "\n".join(old) + "\n## Paper-comparable tables" + tail)
+    (run / "dataset").mkdir(parents=True)
+    (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
+    _results(run / "recovery" / "act" / "pick" / "results.json", "act", {"pick": (2, 12)}, "m", -1)
+    assert main([f"run={run}", f"out={page}", "sections=[supervision]"]) == 0
+    text = page.read_text()
+    section = text.split("## Supervision\n")[1].split("## Paper-comparable tables")[0]
+    assert "The online bench as the page had it (this run has none):" in section
+    assert "| row | alpha | false alarms (%) |" in section
+    rows = [r for r in section.splitlines() if r.startswith("| pick |")]
+    assert rows[0] == "| pick | scripted | 6/25 | 23/25 | +68 | yes | - | - | - | 19 | 0 |"
+    assert rows[1].startswith("| pick | act | 2/25 | 12/25 | +40 | yes |") and len(rows) == 2
+    lead = next(line for line in section.splitlines() if line.startswith(LEAD))
+    assert f"act pick: {setting}, a manual correction: stop" in lead
+    assert f"scripted pick: {setting} (rows carried from the page, not re-run)" in lead
+    assert main([f"run={run}", f"out={page}", "sections=[supervision]"]) == 0
+    assert page.read_text() == text
