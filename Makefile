@@ -276,9 +276,12 @@ lint: $(STAMP)
 # Two pytest workers: most tests wait on a subprocess (a CLI's import of torch, a simulation) with one core idle,
 # so two cut the suite's time to about 0.6x on 2 cores (docs/EXPERIMENTS.md, 2026-11-27). Whole files go to one
 # worker (--dist loadfile) so that a module's fixtures (a trained tiny model, a generated run) are built once.
-# The slowest tests are listed at the end.
+# The slowest tests are listed at the end. One thread per process (TEST_THREADS): with torch's default of a
+# thread per core, two workers and the training runs they start oversubscribe the two cores and OpenMP's
+# spin-waits cost more than the second thread gains (suite 782 s -> 639 s, docs/EXPERIMENTS.md, 2026-12-01).
 TEST_WORKERS ?= 2
-PYTEST := $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=10
+TEST_THREADS ?= 1
+PYTEST := OMP_NUM_THREADS=$(TEST_THREADS) $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=10
 test: $(STAMP) $(APT_STAMP) $(VULKAN_STAMP) lint
 	LABROBFAIL_REQUIRE_BROWSER=1 $(PYTEST) tests
 
