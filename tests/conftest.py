@@ -37,6 +37,7 @@ def run_here(argv: list, env: dict | None = None) -> subprocess.CompletedProcess
     cases, whose first case still runs as a real process (an uncaught exception here fails the test: stricter).
     `env`: variables set for the call (and restored after it)."""
     import contextlib
+    import functools
     import io
     from importlib.metadata import entry_points
 
@@ -45,14 +46,20 @@ def run_here(argv: list, env: dict | None = None) -> subprocess.CompletedProcess
         argv = argv[1:]
     argv[0] = ROOT_SCRIPTS.get(argv[0], argv[0])
     name = Path(argv[0]).name
-    (ep,) = entry_points(group="console_scripts", name=name)
+    if name.endswith(".py"):  # a checkout script (scripts/train_act.py): run as `python scripts/x.py` runs it
+        import runpy
+
+        entry = functools.partial(runpy.run_path, str(ROOT / argv[0]), run_name="__main__")
+    else:
+        (ep,) = entry_points(group="console_scripts", name=name)
+        entry = ep.load()
     out, err, code = io.StringIO(), io.StringIO(), 0
     old, saved = sys.argv, dict(os.environ)
     sys.argv = [name, *argv[1:]]
     os.environ.update(env or {})
     try:
         with contextlib.chdir(ROOT), contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            ep.load()()
+            entry()
     except SystemExit as e:
         code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
     finally:
