@@ -193,6 +193,6 @@ def test_a_run_killed_in_stage_a_resumes_and_ends_as_an_uninterrupted_one(tiny, 
     # a stage A of another length is not resumed silently
     other = tmp_path / "other"
     shutil.copytree(tmp_path / "full" / "stage_a", other / "stage_a")
-    r = run([*cmd(other, "resume=true"), "grounding.pretrain_epochs=3"])
+    r = run_here([*cmd(other, "resume=true"), "grounding.pretrain_epochs=3"])  # a refusal: in the test's process
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith("error: resume:") and "6 epochs" in r.stderr
