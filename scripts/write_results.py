@@ -318,16 +318,6 @@ def _online_table(section: list[str]) -> list[str]:
     return section[at:end]
 
 
-def _page_online_benches(section: list[str]) -> list[str]:
-    """The online bench's lines of an existing Supervision section: its guarantee paragraph up to the recovery
-    table's lead (or the section's end)."""
-    at = next((i for i, line in enumerate(section) if line.startswith(ONLINE_GUARANTEE[:40])), None)
-    if at is None:
-        return []
-    end = next((i for i in range(at, len(section)) if section[i].startswith(LEAD)), len(section))
-    return section[at:end]
-
-
 ONLINE_GUARANTEE = (
     "The online bench's alarm is a threshold on the running P(failure), set on the calibration split's "
     "successes only (split conformal). It guarantees that at most alpha of new successes exchangeable with those "
@@ -336,6 +326,16 @@ ONLINE_GUARANTEE = (
     "the failure's onset in simulator state (negative: the alarm came first); an irreversible event is a spill, "
     "a fall or glassware moving fast enough to break."
 )
+
+
+def _page_online_benches(section: list[str]) -> list[str]:
+    """The online bench's lines of an existing Supervision section: its guarantee paragraph up to the recovery
+    table's lead (or the section's end)."""
+    at = next((i for i, line in enumerate(section) if line.startswith(ONLINE_GUARANTEE[:40])), None)
+    if at is None:
+        return []
+    end = next((i for i in range(at, len(section)) if section[i].startswith(LEAD)), len(section))
+    return section[at:end]
 
 
 def online_benches(run: Path) -> list[str]:

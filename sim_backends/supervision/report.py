@@ -101,7 +101,7 @@ def recovery_md(results: list[dict[str, Any]], page: tuple[str, list[str]] | Non
             row = _row(task, r, cfg["supervisor"])
             if row:
                 settings.setdefault(setting(cfg), []).append(f"{r['policy']} {task}")
-                rows[_cell(row)] = row
+                rows[task, r["policy"]] = row
     old_line, old_rows = page or ("", [])
     old_settings = _page_settings(old_line)
     for row in old_rows:
