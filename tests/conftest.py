@@ -33,13 +33,17 @@ ROOT_SCRIPTS = {"train.py": "labrobfail-train", "infer.py": "labrobfail-infer"}
 
 def run_here(argv: list, env: dict | None = None) -> subprocess.CompletedProcess:
     """What run(argv) returns, the console script's entry point called in this process instead: the same code from
-    sys.argv to the exit code, without a Python start and a torch import per call. For a test's many one-line-error
-    cases, whose first case still runs as a real process (an uncaught exception here fails the test: stricter).
-    `env`: variables set for the call (and restored after it)."""
+    sys.argv to the exit code, without a Python start and the imports (torch, transformers, peft: about 8 s of a
+    12 s tiny training run on 2 cores). For a test's one-line-error cases and for the runs whose process is not
+    what the test is about; a run a test kills, signals or serves from stays a process, and every console script
+    still runs as one somewhere in the suite (an uncaught exception here fails the test: stricter).
+    `env`: variables set for the call (and restored after it), as is torch's thread count (a run may set it)."""
     import contextlib
     import functools
     import io
     from importlib.metadata import entry_points
+
+    import torch
 
     argv = [str(a) for a in argv]
     if argv[0] == sys.executable:  # [python, train.py, ...]
@@ -55,6 +59,7 @@ def run_here(argv: list, env: dict | None = None) -> subprocess.CompletedProcess
         entry = ep.load()
     out, err, code = io.StringIO(), io.StringIO(), 0
     old, saved = sys.argv, dict(os.environ)
+    threads = torch.get_num_threads()
     sys.argv = [name, *argv[1:]]
     os.environ.update(env or {})
     try:
@@ -66,6 +71,7 @@ def run_here(argv: list, env: dict | None = None) -> subprocess.CompletedProcess
         sys.argv = old
         os.environ.clear()
         os.environ.update(saved)
+        torch.set_num_threads(threads)
     return subprocess.CompletedProcess(argv, code, out.getvalue(), err.getvalue())
 
 

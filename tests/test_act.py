@@ -278,7 +278,7 @@ def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
     policy server."""
     out = tmp_path / "act"
     toy = [f"model.{k}={json.dumps(v).replace(' ', '')}" for k, v in TOY.items() if k != "cameras"]
-    r = run(
+    r = run_here(  # in this process (train_act.py runs as a process in the resume test below)
         [
             sys.executable,
             "scripts/train_act.py",
@@ -309,11 +309,11 @@ def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
     # where the ACT puts its grasp, against its demonstration's (the regrasp one starts holding: not probed)
     probe = tmp_path / "probe.json"
     cmd = [sys.executable, "scripts/probe_act.py", f"checkpoint={out / 'final'}", f"demos={out / 'demos.npz'}"]
-    r = run([*cmd, "ahead=[2]", f"out={probe}"], 300)
+    r = run_here([*cmd, "ahead=[2]", f"out={probe}"])
     assert r.returncode == 0, r.stderr
     res = json.loads(probe.read_text())
     assert res["probed"] == 1 and res["median_error_cm"]["2"]["chunk"] >= 0 and res["median_error_cm"]["2"]["aux"] >= 0
-    r = run([*cmd, "ahead=[4]"], 300)
+    r = run_here([*cmd, "ahead=[4]"])
     assert r.returncode == 2 and r.stderr.strip().splitlines() == [
         "error: ahead: a list of ticks from 1 to 3 (the chunk), not [4]"
     ]
@@ -388,7 +388,7 @@ def test_a_killed_act_training_resumes_and_ends_as_an_uninterrupted_one(tmp_path
         return [sys.executable, "scripts/train_act.py", *args, f"out_dir={out}", *extra]
 
     full, cut = tmp_path / "full", tmp_path / "cut"
-    r = run(cmd(full))
+    r = run_here(cmd(full))  # the uninterrupted run in this process, the killed one a process
     assert r.returncode == 0, r.stderr
     assert "resumed_at_step" not in json.loads(r.stdout.strip().splitlines()[-1])
     steps = sorted(full.glob("checkpoints/step-*"), key=lambda d: int(d.name.split("-")[1]))
@@ -411,7 +411,7 @@ def test_a_killed_act_training_resumes_and_ends_as_an_uninterrupted_one(tmp_path
     at = last_progress(cut / "checkpoints")
     assert at is not None and not (cut / "final").exists()
     assert json.loads((at / TRAIN_STATE).read_text())["batch"] < reached(), "killed in the first epoch"
-    r = run(cmd(cut, "resume=true"))
+    r = run_here(cmd(cut, "resume=true"))
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout.strip().splitlines()[-1])
     assert summary["steps"] == 300 and summary["resumed_at_step"] >= int(at.name.split("-")[1])

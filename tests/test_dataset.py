@@ -17,8 +17,10 @@ from labrobfail_vlm import questions as Q
 from labrobfail_vlm.grid import BLANK, GridConfig, build_grid, frame_for_keyframe, sample_keyframes
 
 
-def build(shards, out, *extra, timeout: float = 600, **kw):
-    return run([cli("build-dataset"), f"shards={shards}", f"out_dir={out}", "progress=false", *extra], timeout, **kw)
+def build(shards, out, *extra, here: bool = True, **kw):
+    """labrobfail-build-dataset in this process (run_here), or as a process with here=False (`kw`: run's)."""
+    argv = [cli("build-dataset"), f"shards={shards}", f"out_dir={out}", "progress=false", *extra]
+    return run_here(argv) if here else run(argv, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +33,7 @@ def held2(tmp_path_factory):
 @pytest.fixture(scope="module")
 def ds(run6, held2, tmp_path_factory):
     out = tmp_path_factory.mktemp("ds") / "d"
-    r = build(f"[{run6},{held2}]", out)
+    r = build(f"[{run6},{held2}]", out, here=False)
     assert r.returncode == 0, r.stderr
     return out
 
@@ -225,7 +227,7 @@ def test_paraphrase_through_openai_compatible_endpoint(run6, tmp_path, mode):
     out = tmp_path / "p"
     url = f"http://127.0.0.1:{srv.server_port}/v1"
     paraphrase = ["paraphrase.enabled=true", f"paraphrase.base_url={url}", "paraphrase.api_key_env=LRF_TEST_KEY"]
-    r = build(run6, out, *paraphrase, timeout=300, env=env)
+    r = build(run6, out, *paraphrase, here=False, timeout=300, env=env)  # the key from a process's environment
     srv.shutdown()
     assert r.returncode == 0, r.stderr
     assert _FakeLLM.seen_auth and set(_FakeLLM.seen_auth) == {"Bearer sk-secret-123"}

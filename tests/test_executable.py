@@ -2,7 +2,7 @@
 
 import json
 
-from conftest import evaluate
+from conftest import evaluate, run_here
 from test_train import small_ds  # noqa: F401  (session fixture: a dataset built from conftest's run6 shards)
 
 
@@ -33,6 +33,7 @@ def test_gold_and_predicted_corrections_are_run_in_the_simulator(run6, small_ds,
         "progress=false",
         "baselines=[]",
         f"out_dir={out}",
+        call=run_here,  # in this process: labrobfail-evaluate runs as one in test_faults.py
     )
     assert r.returncode == 0, r.stderr
     res = json.loads((out / "results.json").read_text())
@@ -47,5 +48,5 @@ def test_executable_needs_the_shards(small_ds, tmp_path):  # noqa: F811
     preds = tmp_path / "p.jsonl"
     preds.write_text("")
     extra = ("executable.enabled=true", "progress=false", f"out_dir={tmp_path / 'o'}")
-    r = evaluate(f"predictions={preds}", small_ds, *extra, timeout=300)
+    r = evaluate(f"predictions={preds}", small_ds, *extra, call=run_here)
     assert r.returncode == 2 and "executable.shards: name the shard folder" in r.stderr

@@ -11,7 +11,7 @@ import threading
 import time
 
 import pytest
-from conftest import ROOT, background, evaluate, free_port, run, run_here
+from conftest import ROOT, background, evaluate, free_port, run_here
 from serve_fixtures import grids, mixed_model  # noqa: F401  (fixtures)
 from test_serve import Server
 from test_train import small_ds, tiny, tiny_train  # noqa: F401  (session fixtures)
@@ -48,7 +48,7 @@ def test_training_killed_mid_run_resumes_to_the_final_step_and_evaluates(tiny, s
     partial = out / f"checkpoint-{done[-1] + 2}"
     shutil.copytree(out / f"checkpoint-{done[-1]}", partial)
     (partial / "trainer_state.json").write_text('{"global_step": ')
-    r = run([*common, "resume=true"])
+    r = run_here([*common, "resume=true"])  # the killed run was a process; its resume runs here
     assert r.returncode == 0, r.stderr[-3000:]
     assert f"skipping {partial}" in r.stderr
     assert json.loads((out / "train_summary.json").read_text())["global_step"] == 8

@@ -4,7 +4,7 @@ import json
 
 import pytest
 import torch
-from conftest import background, run, run_here
+from conftest import background, run_here
 from test_train import scratch_train, small_ds, tiny, tiny_train  # noqa: F401  (session fixtures)
 
 
@@ -71,7 +71,7 @@ def test_head_reads_each_time_step_from_its_own_cells(kind):
 def test_training_with_grounding_logs_saves_and_resumes(tiny, small_ds, tmp_path):  # noqa: F811
     out = tmp_path / "g"
     common = tiny_train(tiny, small_ds, out, "grounding.weight=1.0", "save_steps=2", "logging_steps=1")
-    r = run([*common, "max_steps=2", "grounding.pretrain_epochs=1"])
+    r = run_here([*common, "max_steps=2", "grounding.pretrain_epochs=1"])
     assert r.returncode == 0, r.stderr[-3000:]
     assert "grounding_loss" in r.stdout + r.stderr
     # stage A ran before the VQA steps, and the learning curve's clocks count it
@@ -82,7 +82,7 @@ def test_training_with_grounding_logs_saves_and_resumes(tiny, small_ds, tmp_path
 
     saved = load_file(str(out / "checkpoint-2" / "grounding_head.safetensors"))
     assert saved and all(torch.isfinite(t).all() for t in saved.values())
-    r = run([*common, "max_steps=3", "resume=true"])
+    r = run_here([*common, "max_steps=3", "resume=true"])
     assert r.returncode == 0, r.stderr[-3000:]
     summary = json.loads((out / "train_summary.json").read_text())
     assert summary["global_step"] == 3 and "grounding_pretrain" not in summary  # the checkpoint holds stage A
@@ -96,7 +96,7 @@ def test_training_with_grounding_logs_saves_and_resumes(tiny, small_ds, tmp_path
     (old / "images").symlink_to(small_ds / "images")
     (old / "trajectories.json").write_text(json.dumps([{k: v for k, v in t.items() if k != "views"} for t in traj]))
     on_old = [f"dataset_dir={old}", f"output_dir={tmp_path}/o", "max_steps=1", "grounding.weight=1"]
-    r = run([*common[:4], *on_old, "wandb.enabled=false"])
+    r = run_here([*common[:4], *on_old, "wandb.enabled=false"])
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert "grounding" in r.stderr.strip().splitlines()[-1]
 
@@ -108,7 +108,7 @@ def test_a_run_from_a_checkpoint_repeats_exactly(tiny, small_ds, tmp_path):  # n
     for name in ("a", "b"):
         argv = scratch_train(tiny, small_ds, tmp_path / name)
         steps = ["global_batch=2", "per_device_batch=2", "max_steps=2", "grounding.weight=1.0"]
-        r = run([*argv, *steps, "grounding.pretrain_epochs=0", "wandb.enabled=false", "progress=false"])
+        r = run_here([*argv, *steps, "grounding.pretrain_epochs=0", "wandb.enabled=false", "progress=false"])
         assert r.returncode == 0, r.stderr[-3000:]
         s = json.loads((tmp_path / name / "train_summary.json").read_text())
         got.append((s["first_loss"], s["last_loss"]))
@@ -136,7 +136,7 @@ def test_bad_grounding_config_is_one_line(tiny, small_ds, tmp_path, bad, field):
 def test_resuming_a_run_made_without_grounding_is_one_line(tiny, small_ds, tmp_path):  # noqa: F811
     """On a scratch tower the tiny preset grounds by default; a run without the head cannot resume with one."""
     common = [*scratch_train(tiny, small_ds, f"{tmp_path}/o"), "save_steps=1", "wandb.enabled=false", "progress=false"]
-    r = run([*common, "max_steps=1", "grounding.weight=0", "grounding.pretrain_epochs=0"])
+    r = run_here([*common, "max_steps=1", "grounding.weight=0", "grounding.pretrain_epochs=0"])
     assert r.returncode == 0, r.stderr[-2000:]
     r = run_here([*common, "max_steps=2", "resume=true"])
     assert r.returncode == 2 and "Traceback" not in r.stderr
@@ -163,7 +163,7 @@ def test_a_run_killed_in_stage_a_resumes_and_ends_as_an_uninterrupted_one(tiny, 
             *extra,
         )
 
-    r = run(cmd(tmp_path / "full"))
+    r = run_here(cmd(tmp_path / "full"))  # the uninterrupted run: in this process (the killed one is not)
     assert r.returncode == 0, r.stderr[-3000:]
     full = json.loads((tmp_path / "full" / "train_summary.json").read_text())
     assert "resumed_at_epoch" not in full["grounding_pretrain"]
@@ -181,7 +181,7 @@ def test_a_run_killed_in_stage_a_resumes_and_ends_as_an_uninterrupted_one(tiny, 
     assert at is not None and not (out / "train_summary.json").exists()
     done = int(at.name.split("-")[1])
     assert 1 <= done < 6
-    r = run(cmd(out, "resume=true"))
+    r = run_here(cmd(out, "resume=true"))
     assert r.returncode == 0, r.stderr[-3000:]
     again = json.loads((out / "train_summary.json").read_text())
     assert again["grounding_pretrain"]["resumed_at_epoch"] >= done

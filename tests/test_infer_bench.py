@@ -28,8 +28,10 @@ KEYS = {
 }
 
 
-def infer(*args):
-    return run([sys.executable, "infer.py", *args], 300)
+def infer(*args, here: bool = False):
+    """infer.py as a process (or in this one: run_here)."""
+    argv = [sys.executable, "infer.py", *args]
+    return run_here(argv) if here else run(argv, 300)
 
 
 @pytest.fixture(scope="module")
@@ -91,7 +93,7 @@ def test_frames_folder_builds_the_grid(tiny, tmp_path):  # noqa: F811
         (tmp_path / "f" / view).mkdir(parents=True)
         for i in range(5):
             Image.fromarray(rng.integers(0, 255, (64, 64, 3), dtype=np.uint8)).save(tmp_path / "f" / view / f"{i}.png")
-    r = infer("--frames", str(tmp_path / "f"), "--model", str(tiny))
+    r = infer("--frames", str(tmp_path / "f"), "--model", str(tiny), here=True)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["failure_frame"] in (None, 1, 2, 3, 4, 5)
 
@@ -192,7 +194,8 @@ def test_parse_free_form_replies(dim, reply, want):
 
 
 def test_evaluate_model_and_predictions_file(tiny, small_ds, tmp_path):  # noqa: F811
-    r = evaluate(f"model={tiny}", small_ds, "split=test", f"out_dir={tmp_path / 'e'}", "progress=false")
+    # labrobfail-evaluate in this process here (it runs as one in test_faults.py)
+    r = evaluate(f"model={tiny}", small_ds, "split=test", f"out_dir={tmp_path / 'e'}", "progress=false", call=run_here)
     assert r.returncode == 0, r.stderr[-2000:]
     res = json.loads((tmp_path / "e" / "results.json").read_text())
     for k in ("q1", "q2", "q3", "q4", "q5", "q3_within1"):
@@ -208,17 +211,17 @@ def test_evaluate_model_and_predictions_file(tiny, small_ds, tmp_path):  # noqa:
     assert res["baselines"]["majority class"]["detection"]["auroc"] == 0.5  # a constant score ranks nothing
     # the same predictions, scored from the file they were saved to, give the same numbers
     saved = f"predictions={tmp_path / 'e' / 'predictions.jsonl'}"
-    r = evaluate(saved, small_ds, f"out_dir={tmp_path / 'p'}", "baselines=[majority]", timeout=300)
+    r = evaluate(saved, small_ds, f"out_dir={tmp_path / 'p'}", "baselines=[majority]", call=run_here)
     assert r.returncode == 0, r.stderr[-2000:]
     res2 = json.loads((tmp_path / "p" / "results.json").read_text())
     keys = ("q1", "q2", "q3", "q4", "q5", "q6", "failure_only")
     assert {k: res2[k] for k in keys} == {k: res[k] for k in keys}
     assert res2["detection"]["auroc"] == res["detection"]["auroc"]  # P(failure) travels in the predictions file
     (tmp_path / "bad.jsonl").write_text("{not json}\n")
-    r = evaluate(f"predictions={tmp_path / 'bad.jsonl'}", small_ds, timeout=120)
+    r = evaluate(f"predictions={tmp_path / 'bad.jsonl'}", small_ds, call=run_here)
     assert r.returncode == 2 and "line 1" in r.stderr and "Traceback" not in r.stderr
     # a missing model is refused before anything is written (no empty eval_<split> folder beside it)
-    r = evaluate(f"model={tmp_path / 'gone' / 'final'}", small_ds, timeout=120)
+    r = evaluate(f"model={tmp_path / 'gone' / 'final'}", small_ds, call=run_here)
     assert r.returncode == 2 and "no such directory" in r.stderr and not (tmp_path / "gone").exists()
 
 
@@ -316,7 +319,13 @@ def test_evaluate_reports_types_template_row_and_skips_majority_without_train(ti
     shutil.copytree(small_ds, ds)
     (ds / "train.json").unlink()
     r = evaluate(
-        f"model={tiny}", ds, "split=test", f"out_dir={tmp_path / 'e'}", "progress=false", "baselines=[majority]"
+        f"model={tiny}",
+        ds,
+        "split=test",
+        f"out_dir={tmp_path / 'e'}",
+        "progress=false",
+        "baselines=[majority]",
+        call=run_here,
     )
     assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr[-2000:]
     assert "majority baseline skipped" in r.stderr
@@ -403,7 +412,7 @@ def test_evaluate_refuses_a_predictions_folder_or_unreadable_file_before_writing
 def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, small_ds, tmp_path):  # noqa: F811
     out = tmp_path / "online"
     r = evaluate(
-        f"model={tiny}", small_ds, "mode=online", "split=test", "calibration=train", f"out_dir={out}", timeout=900
+        f"model={tiny}", small_ds, "mode=online", "split=test", "calibration=train", f"out_dir={out}", call=run_here
     )
     assert r.returncode == 0, r.stderr[-2000:]
     res = json.loads((out / "online.json").read_text())
@@ -418,7 +427,7 @@ def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, smal
         assert row["false_alarm_rate"] is None or 0 <= row["false_alarm_rate"] <= 1
         assert row["n_calibration"] == res["calibration_successes"]
     assert len(res["auroc_by_keyframe"]["model"]) >= 1 and (out / "auroc_by_keyframe.png").is_file()
-    r = evaluate(f"model={tiny}", small_ds, "mode=online", "split=test", "calibration=test")
+    r = evaluate(f"model={tiny}", small_ds, "mode=online", "split=test", "calibration=test", call=run_here)
     assert r.returncode == 2 and "calibration: must be another split" in r.stderr, r.stderr
 
 

@@ -13,8 +13,10 @@ from labrobfail_vlm.actions import PRIMITIVES
 FAST = ["image_size=48", "progress=false", "cameras=[front]"]
 
 
-def supervise(*args, check=True):
-    r = run([cli("supervise"), *FAST, *args])
+def supervise(*args, check=True, here=True):
+    """labrobfail-supervise in this process (run_here), or as a process with here=False."""
+    argv = [cli("supervise"), *FAST, *args]
+    r = run_here(argv) if here else run(argv)
     if check:
         assert r.returncode == 0, r.stderr
     return r
@@ -33,6 +35,7 @@ def test_three_oracle_trials_write_the_log_and_the_table(tmp_path):
         "task=pick_place_beaker_small",
         "trials=3",
         f"out_dir={out}",
+        here=False,  # the console script as a real process once in this file
     )
     recs = records(out)
     eps = [x for x in recs if x["event"] == "episode"]
@@ -137,7 +140,7 @@ def test_a_family_runs_in_make_demos_world_from_the_command_line(tmp_path):
 )
 def test_bad_settings_are_one_line_errors(tmp_path, args, msg):
     if args == ["policy=teleop"]:  # the first case as a real process, the rest in this one
-        r = supervise(*args, f"out_dir={tmp_path / 'x'}", check=False)
+        r = supervise(*args, f"out_dir={tmp_path / 'x'}", check=False, here=False)
     else:
         r = run_here([cli("supervise"), *FAST, *args, f"out_dir={tmp_path / 'x'}"])
     assert r.returncode == 2 and msg in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr

@@ -62,9 +62,11 @@ def test_targets_come_from_simulator_state(tower_shards):
 
 def test_pretraining_resumes_exports_and_the_tiny_model_takes_the_tower(tower_data, tmp_path):
     run = tmp_path / "run"
-    r = _pretrain(tower_data, run, "epochs=1", "layouts=[[front,side],[front,wrist]]")
+    r = _pretrain(tower_data, run, "epochs=1", "layouts=[[front,side],[front,wrist]]", here=True)
     assert r.returncode == 0, r.stderr[-3000:]
-    r = _pretrain(tower_data, run, "epochs=2", "layouts=[[front,side],[front,wrist]]", f"export_dir={tmp_path / 'x'}")
+    r = _pretrain(
+        tower_data, run, "epochs=2", "layouts=[[front,side],[front,wrist]]", f"export_dir={tmp_path / 'x'}", here=True
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     assert "resuming after epoch 1" in r.stderr
     metrics = json.loads((run / "metrics.json").read_text())
@@ -100,6 +102,7 @@ def test_pretraining_resumes_exports_and_the_tiny_model_takes_the_tower(tower_da
         "lr=1e-12",
         "augment.hue=0.5",
         f"export_dir={tmp_path / 'y'}",
+        here=True,
     )
     assert r.returncode == 0, r.stderr[-3000:]
     again = load_file(str(tmp_path / "y" / "tower.safetensors"))
@@ -138,7 +141,7 @@ def test_train_takes_a_tower_or_scratch(tower_shards, tower_data, tmp_path):
     ]
     for tower in (str(pretrained), "scratch"):
         out = tmp_path / f"t-{tower == 'scratch'}"
-        r = run([*common, f"output_dir={out}", f"tower={tower}"])
+        r = run_here([*common, f"output_dir={out}", f"tower={tower}"])
         assert r.returncode == 0, r.stderr[-3000:]
         cfg = json.loads((out / "tiny_base" / "config.json").read_text())["vision_config"]
         assert (cfg["depth"], cfg["hidden_size"]) == ((1, 32) if tower != "scratch" else (2, 64))

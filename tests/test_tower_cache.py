@@ -5,7 +5,7 @@ import json
 
 import pytest
 import torch
-from conftest import run, run_here
+from conftest import run_here
 from test_train import small_ds, tiny, tiny_train  # noqa: F401 - session fixtures
 
 from labrobfail_vlm.train.tower_cache import TowerCache, cache_frozen_tower
@@ -84,7 +84,7 @@ def test_a_frozen_tower_run_encodes_each_grid_once_and_trains_as_without_the_cac
     summaries = []
     for mb in (4096, 0):
         out = tmp_path / f"mb{mb}"
-        r = run(tiny_train(tiny, small_ds, out, *frozen, f"tower_cache_mb={mb}"))
+        r = run_here(tiny_train(tiny, small_ds, out, *frozen, f"tower_cache_mb={mb}"))
         assert r.returncode == 0, r.stderr[-3000:]
         summaries.append(json.loads((out / "train_summary.json").read_text()))
     cached, plain = summaries
