@@ -55,7 +55,7 @@ def test_training_killed_mid_run_resumes_to_the_final_step_and_evaluates(tiny, s
     steps = [row["step"] for row in json.loads((out / "progress.json").read_text())]
     assert steps == sorted(set(steps)) and steps[-1] == 8  # the learning curve has no duplicated or lost rows
     no_baselines = ("split=test", "baselines=[]", "q6_template=false", f"out_dir={tmp_path / 'eval'}", "progress=false")
-    r = evaluate(f"model={out / 'final'}", small_ds, *no_baselines)
+    r = evaluate(f"model={out / 'final'}", small_ds, *no_baselines, call=run_here)
     assert r.returncode == 0, r.stderr[-3000:]
     assert json.loads((tmp_path / "eval" / "results.json").read_text())["detection"]["trajectories"] > 0
     # nothing to resume from is one line
