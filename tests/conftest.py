@@ -124,8 +124,10 @@ SMALL_IMAGES = ["image_size=48", "episodes_per_shard=2", "render_frames=null", "
 SMALL = ["scenarios=[press_button_red,open_oven_center,pick_place_bottle]", *SMALL_IMAGES]
 
 
-def gen(out, *extra, check=True):
-    r = run([cli("generate"), f"out_dir={out}", *SMALL, *extra])
+def gen(out, *extra, check=True, here=False):
+    """labrobfail-generate into `out` at the tests' small sizes, as a process (or in this one: run_here)."""
+    argv = [cli("generate"), f"out_dir={out}", *SMALL, *extra]
+    r = run_here(argv) if here else run(argv)
     if check:
         assert r.returncode == 0, r.stderr
     return r
