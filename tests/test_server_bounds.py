@@ -239,13 +239,30 @@ def test_bound_flags_are_checked(tiny):  # noqa: F811
 
 
 def test_max_connections_bounds_raw_upload_memory(tiny, tmp_path):  # noqa: F811
-    """--max-connections: a connection beyond the limit is answered 503 at once (uploads held <= limit x size)."""
-    s = Server(tiny, tmp_path / "log", "--max-connections", "1", "--body-timeout-s", "5", token=None)
-    try:
+    """--max-connections: a connection beyond the limit is answered 503 at once (uploads held <= limit x size). A
+    client that connects and says nothing, or drips its request head, holds its slot no longer than the body
+    timeout: the server closes it and the next client is served (uvicorn alone kept such a connection forever)."""
+    s = Server(tiny, tmp_path / "log", "--max-connections", "1", "--body-timeout-s", str(BODY_TIMEOUT_S), token=None)
+    health = b"GET /health HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n"
+    try:  # one connection is served (uvicorn counted the asking connection: --max-connections 1 served none)
+        assert raw_request(s, health)[0].startswith("HTTP/1.1 200")
         with socket.create_connection(_host_port(s), timeout=10) as hold:
             hold.sendall(_head(100_000) + PART)  # keeps the only slot while its body never finishes
             time.sleep(0.3)
             status, _, _ = raw_request(s, _head(len(b"--B--\r\n")) + b"--B--\r\n")
             assert status.startswith("HTTP/1.1 503"), status
+        for drip in (b"", b"G"):  # silent; a header byte every 0.4 s
+            with socket.create_connection(_host_port(s), timeout=10) as idle:
+                time.sleep(0.3)
+                assert raw_request(s, health)[0].startswith("HTTP/1.1 503")  # it holds the only slot
+                t, closed = time.monotonic(), False
+                while not closed and time.monotonic() - t < BODY_TIMEOUT_S + 5:
+                    if drip:
+                        idle.sendall(drip)
+                    closed = bool(select.select([idle], [], [], 0.4)[0]) and idle.recv(1) == b""
+                took = time.monotonic() - t
+                assert closed and BODY_TIMEOUT_S - 1 < took < BODY_TIMEOUT_S + 5, (drip, took)  # 0.3 s before t
+            status, _, _ = raw_request(s, health)
+            assert status.startswith("HTTP/1.1 200"), (drip, status)
     finally:
         assert s.stop() == 0

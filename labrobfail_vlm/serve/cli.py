@@ -15,7 +15,8 @@ default half the machine's memory, weights), so a bad checkpoint fails at start.
 
 Memory bound besides the model: raw uploads <= max_connections x max_upload_mb, decoded images <=
 max_decode_mb across all requests (<= max_request_decode_mb each, priced from the image headers before
-decoding), plus the model's activations for max_batch grids. A body must arrive within body_timeout_s (408).
+decoding), plus the model's activations for max_batch grids. A body must arrive within body_timeout_s (408), and a
+request's head within the same time of its connection (else the connection is closed).
 Defaults: configs/serve.yaml.
 """
 
@@ -94,7 +95,7 @@ def main(argv: list[str]) -> int:
         f"token {'required' if token else 'off'})",
         flush=True,
     )
-    serve(create_app(fa, cfg), sock, a.log_level, a.max_connections)
+    serve(create_app(fa, cfg), sock, a.log_level, a.max_connections, a.body_timeout_s)
     return 0
 
 

@@ -300,7 +300,7 @@ def main(argv: list[str]) -> int:
         print(f"serving {cfg.policy} on http://{host}:{port}/act", flush=True)  # clients read the URL off this line
         if token:
             print("token required", file=sys.stderr, flush=True)
-        serve(app, sock, str(cfg.log_level), int(cfg.max_connections))
+        serve(app, sock, str(cfg.log_level), int(cfg.max_connections), float(cfg.request_timeout_s))
     finally:
         service.close()
     return 0
