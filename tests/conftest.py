@@ -87,9 +87,11 @@ def evaluate(source: str, dataset, *extra: str, timeout: float = 600, call=None)
     return call(argv) if call else run(argv, timeout)
 
 
-def supervise_front(out, policy: list[str], task: str, trials: int, image_size: int, *extra: str, timeout: float = 600):
+def supervise_front(
+    out, policy: list[str], task: str, trials: int, image_size: int, *extra: str, timeout: float = 600, here=False
+):
     """labrobfail-supervise: `trials` trials of `task` driven by `policy` (its settings), on the front camera at
-    `image_size` px, written to `out`; `extra` settings go after the camera."""
+    `image_size` px, written to `out`; `extra` settings go after the camera. A process, or this one with `here`."""
     argv = [
         cli("supervise"),
         *policy,
@@ -98,7 +100,8 @@ def supervise_front(out, policy: list[str], task: str, trials: int, image_size: 
         f"image_size={image_size}",
         "cameras=[front]",
     ]
-    return run([*argv, *extra, "progress=false", f"out_dir={out}"], timeout)
+    argv = [*argv, *extra, "progress=false", f"out_dir={out}"]
+    return run_here(argv) if here else run(argv, timeout)
 
 
 def serve_policy(*args: str, **kw) -> subprocess.Popen:

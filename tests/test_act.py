@@ -319,7 +319,7 @@ def test_train_act_then_supervise_and_serve_the_policy(tmp_path):
     ]
     sup = tmp_path / "sup"
     act = ["policy=act", f"act.checkpoint={out / 'final'}", "act.max_ticks=12"]
-    r = supervise_front(sup, act, "pick_place_bottle", 1, 48, "backend_kwargs.wrist=true")
+    r = supervise_front(sup, act, "pick_place_bottle", 1, 48, "backend_kwargs.wrist=true", here=True)
     assert r.returncode == 0, r.stderr
     eps = [json.loads(x) for x in (sup / "log.jsonl").read_text().splitlines() if '"episode"' in x]
     assert len(eps) == 2 and all(e["policy"] == "act" and 0 < e["ticks"] <= 12 for e in eps)
