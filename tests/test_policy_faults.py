@@ -439,7 +439,7 @@ def test_hostile_uploads_get_clean_answers_and_the_server_keeps_serving(server, 
     assert post(port, good_request())[0] == 200 and proc.poll() is None
 
 
-def test_server_bounds_a_chunked_upload_and_survives_a_stalled_upload(server):
+def test_server_bounds_a_chunked_upload_and_survives_a_stalled_upload_and_a_silent_connection(server):
     port, proc = server
     chunk = b"x" * 65536
     chunked = b"".join(b"%x\r\n%s\r\n" % (len(chunk), chunk) for _ in range(20)) + b"0\r\n\r\n"  # 1.25 MiB
@@ -460,6 +460,10 @@ def test_server_bounds_a_chunked_upload_and_survives_a_stalled_upload(server):
             answer += part
         assert answer.startswith(b"HTTP/1.1 408") and b"not received within 1 s" in answer, answer[:200]
         assert time.monotonic() - t < 5.0
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as silent:  # connects, never sends a request
+        t = time.monotonic()
+        assert silent.recv(1) == b""  # closed by the server once request_timeout_s has passed without a head
+        assert 0.5 < time.monotonic() - t < 5.0
     assert post(port, good_request())[0] == 200 and proc.poll() is None
 
 
