@@ -30,7 +30,7 @@ from typing import Any
 from labrobfail_vlm.bench.evaluate import BLIND, MAJORITY
 from labrobfail_vlm.bench.online import online_md
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
-from sim_backends.supervision.report import LEAD, page_recovery, recovery_files, recovery_md
+from sim_backends.supervision.report import LEAD, block, page_recovery, recovery_files, recovery_md
 
 DEFAULTS = """
 run: outputs/reproduce     # the make reproduce run folder
@@ -311,11 +311,7 @@ def _ran(run: Path, folder: str) -> bool:
 
 def _online_table(section: list[str]) -> list[str]:
     """The online model's table of an existing Supervision section (its header row to the blank line after it)."""
-    at = next((i for i, line in enumerate(section) if line.startswith("| grids |")), None)
-    if at is None:
-        return []
-    end = next((i for i in range(at, len(section)) if not section[i].startswith("|")), len(section))
-    return section[at:end]
+    return block(section, lambda line: line.startswith("| grids |"), lambda line: not line.startswith("|"))
 
 
 ONLINE_GUARANTEE = (
@@ -331,11 +327,7 @@ ONLINE_GUARANTEE = (
 def _page_online_benches(section: list[str]) -> list[str]:
     """The online bench's lines of an existing Supervision section: its guarantee paragraph up to the recovery
     table's lead (or the section's end)."""
-    at = next((i for i, line in enumerate(section) if line.startswith(ONLINE_GUARANTEE[:40])), None)
-    if at is None:
-        return []
-    end = next((i for i in range(at, len(section)) if section[i].startswith(LEAD)), len(section))
-    return section[at:end]
+    return block(section, lambda line: line.startswith(ONLINE_GUARANTEE[:40]), lambda line: line.startswith(LEAD))
 
 
 def online_benches(run: Path) -> list[str]:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from sim_backends.supervision.paired import paired_md
 
@@ -68,14 +68,23 @@ def _order(cell: tuple[str, str]) -> tuple[int, int, str]:
     return (policy != "scripted", TASK_ORDER.index(task) if task in TASK_ORDER else len(TASK_ORDER), task)
 
 
+def block(section: list[str], starts: Callable[[str], bool], ends: Callable[[str], bool], skip: int = 0) -> list[str]:
+    """A page section's lines from the first that `starts` up to (not including) the first that `ends`, looked for
+    from `skip` lines after the start on (or the section's end); [] when no line starts it."""
+    at = next((i for i, line in enumerate(section) if starts(line)), None)
+    if at is None:
+        return []
+    end = next((i for i in range(at + skip, len(section)) if ends(section[i])), len(section))
+    return section[at:end]
+
+
 def page_recovery(section: list[str]) -> tuple[str, list[str]]:
     """An existing Supervision section's recovery setting (its "Recovery:" line less the lead) and table rows."""
     lead = next((line for line in section if line.startswith(LEAD)), "")
-    at = next((i for i, line in enumerate(section) if line == HEADER), None)
-    if at is None:
+    table = block(section, lambda line: line == HEADER, lambda line: not line.startswith("| "), skip=2)
+    if not table:
         return lead, []
-    end = next((i for i in range(at + 2, len(section)) if not section[i].startswith("| ")), len(section))
-    return lead.removeprefix(LEAD).removesuffix("."), section[at + 2 : end]
+    return lead.removeprefix(LEAD).removesuffix("."), table[2:]
 
 
 def _page_settings(line: str) -> dict[str, str]:
