@@ -320,7 +320,8 @@ ONLINE_GUARANTEE = (
     "(same scenes, policy, cameras and task mix) raise it, on average; it guarantees nothing on a new scene or "
     "object set (val_both below is one), and no detection rate or latency: those are measured. Latency is from "
     "the failure's onset in simulator state (negative: the alarm came first); an irreversible event is a spill, "
-    "a fall or glassware moving fast enough to break."
+    "a fall, glassware moving fast enough to break or, in data generated from 1 Dec, an object pushed out of the "
+    "arm's reach."
 )
 
 

@@ -360,14 +360,24 @@ def impact_speed(trace: Trace, obj: str) -> float:
 
 
 HELD = 0.1  # m: a vessel this close to the hand is in it (a pour tilts its vessel on purpose)
+# m from the arm's base, horizontally: the Panda's reach at grasp height for the hand's approach along +x. Measured
+# with PyBullet's IK on the Panda model (straight ahead and 0.5 rad aside): the hand reaches a side grasp 3-8 cm above the bench within 1.5 cm out to
+# 0.90 m and misses by 3-8 cm from 0.925 to 0.975 m (a top-down grasp already misses by 1.3 cm at 0.80 m).
+REACH = 0.90
+
+
+def _beyond_reach(pos, base) -> bool:
+    return float(np.hypot(pos[0] - base[0], pos[1] - base[1])) > REACH
 
 
 def irreversible_sample(trace: Trace, meta: Meta) -> Optional[tuple[int, str]]:
     """The first sample of an event no correction undoes, and which: liquid spilled outside every vessel where too
     little reached its destination ("spill", as detect_spill reads it: a pour that delivers enough loses some drops),
     a movable object knocked off the bench or a vessel tipped over out of the hand ("fall"), glassware moving down
-    fast enough to break (>= BREAK_SPEED, read as `impact_speed` reads it: "breakage"). None when none happens. An
-    alarm raised before this sample could still have saved the run; the online bench counts those."""
+    fast enough to break (>= BREAK_SPEED, read as `impact_speed` reads it: "breakage"), a movable object that began
+    within the arm's reach pushed beyond it out of the hand (> REACH from the arm's base: "out_of_reach"; never read
+    when the meta has no `robot_base`). None when none happens. An alarm raised before this sample could still have
+    saved the run; the online bench counts those."""
     meta = meta_dict(meta)
     movables = [k for k, o in meta["objects"].items() if o["kind"] in MOVABLE]
     vessels = {m for m in movables if meta["objects"][m]["kind"] == "vessel"}
@@ -376,6 +386,8 @@ def irreversible_sample(trace: Trace, meta: Meta) -> Optional[tuple[int, str]]:
     bad = failed_goals(trace, meta)
     lost = any(g["kind"] == "liquid" and g in bad for g in meta["goals"])
     liquid = trace.get("liquid.outside") if lost else None
+    base = meta.get("robot_base")
+    reachable = {m for m in movables if base is not None and not _beyond_reach(trace[f"{m}.pos"][0], base)}
     for j in range(len(trace["t"])):
         if liquid and liquid[j] - liquid[0] >= SPILL_PARTICLES:
             return j, "spill"
@@ -392,6 +404,8 @@ def irreversible_sample(trace: Trace, meta: Meta) -> Optional[tuple[int, str]]:
             far = np.linalg.norm(np.subtract(pos[j], trace["ee_pos"][j])) > HELD
             if m in vessels and far and tilt(trace[f"{m}.quat"][j]) > UPRIGHT_TILT:
                 return j, "fall"
+            if m in reachable and far and _beyond_reach(pos[j], base):
+                return j, "out_of_reach"
     return None
 
 

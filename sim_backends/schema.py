@@ -154,6 +154,9 @@ class TaskMeta:
     liquid_total: dict[str, int]  # vessel -> particles it held at the start
     labels: dict[str, str]  # role -> words for task text and corrections
     description: str  # the task in words
+    # World position of the arm's base; None in shards written before it was recorded (then no object is ever
+    # read as out of the arm's reach: labeler.irreversible_sample).
+    robot_base: list[float] | None = None
 
     @property
     def actions(self) -> list[str]:
@@ -179,6 +182,7 @@ class TaskMeta:
             "liquid_total": self.liquid_total,
             "labels": self.labels,
             "description": self.description,
+            "robot_base": self.robot_base,
         }
 
     def to_json(self) -> str:
@@ -200,6 +204,7 @@ class TaskMeta:
             liquid_total=dict(d["liquid_total"]),
             labels=dict(d.get("labels", {})),
             description=str(d.get("description", "")),
+            robot_base=None if d.get("robot_base") is None else [float(v) for v in d["robot_base"]],
         )
 
     @classmethod

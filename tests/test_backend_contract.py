@@ -8,10 +8,10 @@ import pytest
 from PIL import Image
 
 from sim_backends import available_backends, make_backend
-from sim_backends.labeler import derive_labels
+from sim_backends.labeler import REACH, derive_labels
 from sim_backends.perturbations import control
 from sim_backends.registry import backend_spec, register_backend, register_task, task_templates
-from sim_backends.schema import TRACE_COLUMNS, TaskMeta, check_trace
+from sim_backends.schema import MOVABLE, TRACE_COLUMNS, TaskMeta, check_trace
 from sim_backends.source import FailureSource
 
 SIZE = 48
@@ -56,6 +56,11 @@ def test_trace_schema_and_images_per_view(src):
     assert tr["rate_hz"] > 0 and all(c in tr for c in TRACE_COLUMNS)
     assert len(tr["kf_end"]) == len(ep.executed_keyframes) == len(ep.task_meta.executed)
     assert len(ep.images) == len(ep.camera_names) >= 1
+    # the arm's base is recorded, and the hand and every object the plan moves start within the labeler's REACH of it
+    base = ep.task_meta.robot_base
+    assert base is not None and len(base) == 3
+    starts = [tr["ee_pos"][0]] + [tr[f"{m}.pos"][0] for m, o in ep.task_meta.objects.items() if o.kind in MOVABLE]
+    assert all(np.hypot(p[0] - base[0], p[1] - base[1]) < REACH for p in starts)
     for view in ep.images:
         assert len(view) == len(ep.executed_keyframes)
         assert Image.open(io.BytesIO(view[0])).size == (SIZE, SIZE)

@@ -304,6 +304,31 @@ def test_irreversible_events_are_found_where_they_happen_and_not_in_a_success():
     assert (z[j - 1] - z[j]) * RATE + 9.81 / (2 * RATE) >= BREAK_SPEED
 
 
+def test_an_object_pushed_beyond_the_arms_reach_is_irreversible_where_it_leaves_it():
+    """A beaker slid out of the hand to 0.95 m from the arm's base cannot be fetched back: the first sample beyond
+    REACH is the event. Carried there in the hand it is no event, nor where the meta does not know the base."""
+    from sim_backends.labeler import REACH, irreversible_sample
+
+    tr, meta = _case("success")
+    meta.robot_base = [0.0, 0.0, 0.0]
+    assert irreversible_sample(tr, meta) is None  # it stays at 0.5-0.56 m
+    start = tr["kf_end"][0] + 2  # after the reach, the hand still above the bench, away from it
+    n = len(tr["t"])
+    slid = [list(p) for p in tr["obj.pos"]]
+    for k in range(start, n):
+        slid[k] = [min(0.5 + 0.02 * (k - start), 0.95), 0.0, slid[start][2]]
+    tr["obj.pos"] = slid
+    j = next(k for k in range(n) if slid[k][0] > REACH)
+    assert irreversible_sample(tr, meta) == (j, "out_of_reach")
+    assert irreversible_sample(tr, meta.to_dict()) == (j, "out_of_reach")  # the JSON form a shard stores
+    tr["ee_pos"] = [list(p) if k < start else [p[0], p[1], p[2] + 0.05] for k, p in enumerate(slid)]
+    assert irreversible_sample(tr, meta) is None  # held: the hand is with it
+    meta.robot_base = None
+    tr, _ = _case("success")
+    tr["obj.pos"] = slid
+    assert irreversible_sample(tr, meta) is None
+
+
 def test_a_failure_no_detector_explains_is_not_given_a_type():
     """The object stands where the plan put it, but the goal asks for another spot: no state signature
     explains the failed goal, so the label says so instead of guessing a type."""

@@ -15,7 +15,8 @@ successes only (split conformal: at most alpha of new exchangeable successes rai
   failure first shows, from simulator state), the share caught at or before the onset frame;
 - AUROC of the score at each keyframe against the trajectory's outcome (a curve, as SAFE plots it: PNG);
 - per alpha, from the sim times the dataset keeps (datasets built from 29 Nov): the latency in seconds (median and
-  90th percentile) and the share of failures with an irreversible event (spill, fall, breakage) caught before it;
+  90th percentile) and the share of failures with an irreversible event (spill, fall, breakage, out of reach)
+  caught before it;
 - rows: the model, the majority class (never alarms), the blind model (grey prefix grids: one score per k for
   every trajectory), a non-VLM baseline on the robot's own signals (robot_baseline.py, fitted on the train split),
   and the labeler on live state (the ceiling: it alarms at the onset frame, never on a success);
@@ -123,8 +124,8 @@ def alarm_rows(
 
 def timing(fired: Sequence[int | None], trajs: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """Latency from the onset in sim seconds (the alarm sounds when its frame's images are taken: frame_times_s),
-    and the share of the failures with an irreversible event (spill, fall, breakage) whose alarm sounded before
-    it. Empty for a dataset built before 29 Nov (no frame times, onsets or events)."""
+    and the share of the failures with an irreversible event (spill, fall, breakage, out of reach) whose alarm
+    sounded before it. Empty for a dataset built before 29 Nov (no frame times, onsets or events)."""
     if not all(t.get("frame_times_s") and "irreversible_s" in t for t in trajs):
         return {}
     fails = [(f, t) for f, t in zip(fired, trajs) if not t["success"]]

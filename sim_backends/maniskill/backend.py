@@ -304,6 +304,7 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
             liquid_total={},
             labels=dict(self.info.labels),
             description=self.describe(self._key[0], self.info.labels),
+            robot_base=list(envs.ROBOT_BASE),
         )
 
     def close(self) -> None:
