@@ -360,9 +360,10 @@ def impact_speed(trace: Trace, obj: str) -> float:
 
 
 HELD = 0.1  # m: a vessel this close to the hand is in it (a pour tilts its vessel on purpose)
-# m from the arm's base, horizontally: the Panda's reach at grasp height for the hand's approach along +x. Measured
-# with PyBullet's IK on the Panda model (straight ahead and 0.5 rad aside): the hand reaches a side grasp 3-8 cm above the bench within 1.5 cm out to
-# 0.90 m and misses by 3-8 cm from 0.925 to 0.975 m (a top-down grasp already misses by 1.3 cm at 0.80 m).
+# m from the arm's base, horizontally: the Panda's reach at grasp height for the hand's approach along +x.
+# Measured with PyBullet's IK on the Panda model (straight ahead and 0.5 rad aside): the hand reaches a side grasp
+# 3-8 cm above the bench within 1.5 cm out to 0.90 m and misses by 3-8 cm from 0.925 to 0.975 m (a top-down grasp
+# already misses by 1.3 cm at 0.80 m).
 REACH = 0.90
 
 
