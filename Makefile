@@ -16,8 +16,6 @@ MANISKILL := mani-skill==3.0.1 sapien==3.0.3
 
 # pip byte-compiles every file it installs on one core (99 of 165 s here); compileall on every core gives the same
 # .pyc files in 69 s. Its exit code is 1 because a few packages ship files that are not Python 3 (pip skips those too).
-# DeepSpeed's CPU all-reduce op (C++, built once into ~/.cache/torch_extensions) is compiled here on both cores
-# rather than on first use, where it took 100 s inside the test suite, competing with the other test worker.
 PIP := $(PY) -m pip install -q --no-compile -c constraints.txt
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -26,7 +24,6 @@ $(STAMP): pyproject.toml constraints.txt
 	$(PIP) --no-deps $(MANISKILL)
 	$(PIP) --no-build-isolation deepspeed==0.19.8
 	$(PY) -m compileall -q -j 0 "$$($(PY) -c 'import sysconfig; print(sysconfig.get_path("purelib"))')" >/dev/null || true
-	$(PY) -c "from deepspeed.comm.torch import build_shm_op; build_shm_op()" >/dev/null 2>&1 || true
 	touch $(STAMP)
 
 install: $(STAMP) $(VULKAN_STAMP)
