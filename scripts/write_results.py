@@ -27,8 +27,17 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from labrobfail_vlm.bench.evaluate import BLIND, MAJORITY
 from labrobfail_vlm.bench.online import online_md
+from labrobfail_vlm.bench.page import (
+    PAPER_TABLES,
+    SPLIT_TITLES,
+    all_trajectory_tables,
+    ci_cell,
+    named_rows,
+    paper_tables,
+    per_type,
+    targets,
+)
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
 from sim_backends.supervision.report import LEAD, block, page_recovery, recovery_files, recovery_md
 
@@ -57,17 +66,6 @@ SECTIONS = {
         ("online", "recovery"),
     ),
 }
-# the first section after the ones above: where a spliced section that the page lacks is inserted, at the latest
-PAPER_TABLES = "## Paper-comparable tables"
-SPLIT_TITLES = {
-    "test": "Seen (test split)",
-    "val_object": "Validation: held-out objects",
-    "val_scene": "Validation: held-out scene",
-    "val_both": "Validation: held-out objects and scene",
-    "test_object": "Sealed test: unseen objects",
-    "test_scene": "Sealed test: unseen scene",
-    "test_both": "Sealed test: unseen objects and scene",
-}
 HELD_OUT_COLUMNS = ("val_object", "val_scene", "val_both", "test_object", "test_scene", "test_both")
 # optional training runs beside the main one: folder under the run -> row title
 ROWS = {
@@ -92,82 +90,6 @@ def _evals(folder: Path, splits: tuple[str, ...] = tuple(SPLIT_TITLES)) -> dict[
     """A training folder's bench results per split, or None when it has not been run."""
     files = {s: folder / "final" / f"eval_{s}" / "results.json" for s in splits}
     return {s: json.loads(f.read_text()) for s, f in files.items() if f.is_file()} or None
-
-
-def _ci(res: dict[str, Any], key: str, fo: bool = False) -> str:
-    """'value [lo, hi]' for an accuracy (or ROUGE-L) with its 95 % interval."""
-    src = res["failure_only"] if fo else res
-    v = src["q6"]["rougeL"] if key == "rougeL" else src[key]
-    ci = (src.get("ci95") or {}).get(key)
-    if v is None:
-        return "–"
-    return (
-        f"{v:.4f} [{ci[0]:.3f}, {ci[1]:.3f}]"
-        if key == "rougeL" and ci
-        else f"{v:.1f} [{ci[0]:.1f}, {ci[1]:.1f}]"
-        if ci
-        else f"{v}"
-    )
-
-
-# The principal issue's targets for the main row (front + side): the paper's 8B row on seen test, its unseen rows on
-# the sealed splits. (key, title, split, failure-only, target); ROUGE-L targets are on the 0-1 scale.
-TARGETS = (
-    ("q2", "seen Q2", "test", False, 90.8),
-    ("q3", "seen failure-only Q3", "test", True, 77.2),
-    ("q4", "seen failure-only Q4", "test", True, 83.2),
-    ("q5", "seen failure-only Q5", "test", True, 73.2),
-    ("rougeL", "seen failure-only ROUGE-L", "test", True, 0.75),
-    ("q2", "sealed unseen objects Q2", "test_object", False, 79.2),
-    ("q2", "sealed unseen scene Q2", "test_scene", False, 85.6),
-    ("q2", "sealed unseen objects and scene Q2", "test_both", False, 71.0),
-)
-MARGIN = 10.0  # points (0.10 for ROUGE-L) above the majority class and the blind model, on seen test
-MARGIN_BASELINES = (MAJORITY, BLIND)  # a target is met only with both baselines run and both beaten by MARGIN
-
-
-def _value(res: dict[str, Any], key: str, fo: bool) -> float | None:
-    src = res["failure_only"] if fo else res
-    return (src.get("q6") or {}).get("rougeL") if key == "rougeL" else src.get(key)
-
-
-def targets(evals: dict[str, Any]) -> list[str]:
-    """The principal issue's targets, each with its 95 % interval (by pair) and, on seen test, its margin over the
-    majority class and the blind model; a split that was not run reads "not run"."""
-    out = ["| goal | reached | target | met | 95 % interval / margin |", "|---|---|---|---|---|"]
-    for key, name, split, fo, want in TARGETS:
-        res = evals.get(split)
-        got = _value(res, key, fo) if res else None
-        margin = MARGIN / 100 if key == "rougeL" else MARGIN
-        note, ok = (_ci(res, key, fo), got is not None and got >= want) if res else ("not run", False)
-        if res and split == "test":
-            bases = res["baselines"]
-            over = {b: v for b in MARGIN_BASELINES if b in bases and (v := _value(bases[b], key, fo)) is not None}
-            ok = ok and len(over) == 2 and all(got - v >= margin for v in over.values())
-            note += "; " + ", ".join(f"{b} {over[b]}" if b in over else f"{b} not run" for b in MARGIN_BASELINES)
-        out.append(f"| {name} | {got if got is not None else '–'} | >= {want} | {'yes' if ok else 'no'} | {note} |")
-    q4 = [
-        s
-        for s, r in evals.items()
-        if (major := (r["baselines"].get(MAJORITY) or {}).get("failure_only", {}).get("q4")) is not None
-        and (r["failure_only"].get("q4") or 0) <= major
-    ]
-    out.append(
-        "| failure-only Q4 above the majority class on every split | "
-        + ("every split" if not q4 else "not on " + ", ".join(q4))
-        + f" | all {len(evals)} run | {'yes' if not q4 else 'no'} | |"
-    )
-    low = [
-        f"{t} {r['q2']:.0f}"
-        for t, r in (evals["test"].get("q2_by_type") or {}).items()
-        if t != "success" and r["n"] >= 20 and r["q2"] < 80
-    ]
-    out.append(
-        "| seen Q2 recall >= 80 % for each failure type with >= 20 test failures | "
-        + ("every type" if not low else ", ".join(low))
-        + f" | >= 80 | {'yes' if not low else 'no'} | |"
-    )
-    return out
 
 
 def _data_line(stats: dict[str, Any]) -> str:
@@ -263,9 +185,9 @@ def rows_table(run: Path, shipped: str | None = None) -> list[str]:
         t = ev["test"]
         det = (t.get("detection") or {}).get("auroc")
         lines.append(
-            f"| {title} | {_ci(t, 'q2')} | {det} | {_ci(t, 'q3', True)} | {_ci(t, 'q5', True)} | "
-            f"{_ci(t, 'rougeL', True)} | "
-            + " | ".join(_ci(ev[s], "q2") if s in ev else "–" for s in HELD_OUT_COLUMNS)
+            f"| {title} | {ci_cell(t, 'q2')} | {det} | {ci_cell(t, 'q3', True)} | {ci_cell(t, 'q5', True)} | "
+            f"{ci_cell(t, 'rougeL', True)} | "
+            + " | ".join(ci_cell(ev[s], "q2") if s in ev else "–" for s in HELD_OUT_COLUMNS)
             + " |"
         )
     return head + lines + _not_run(missing) if lines else []
@@ -289,7 +211,8 @@ def ablation_table(run: Path, frozen_cells: list[str] | None = None) -> list[str
         elif ev:
             t = ev["test"]
             lines.append(
-                f"| {title} | {_ci(t, 'q2')} | {_ci(t, 'q3', True)} | {_ci(t, 'q5', True)} | {_ci(t, 'rougeL', True)} |"
+                f"| {title} | {ci_cell(t, 'q2')} | {ci_cell(t, 'q3', True)} | {ci_cell(t, 'q5', True)} | "
+                f"{ci_cell(t, 'rougeL', True)} |"
             )
         else:
             missing.append(f"{title} (`{folder}`)")
@@ -357,8 +280,8 @@ def supervision(run: Path, page: list[str] | None = None) -> list[str]:
             "| grids | Q2 | majority Q2 | AUROC | Q3 (failures) | Q5 (failures) |",
             "|---|---|---|---|---|---|",
             *(
-                f"| {titles[s]} | {_ci(r, 'q2')} | {r['baselines'].get('majority class', {}).get('q2')} | "
-                f"{(r.get('detection') or {}).get('auroc')} | {_ci(r, 'q3', True)} | {_ci(r, 'q5', True)} |"
+                f"| {titles[s]} | {ci_cell(r, 'q2')} | {r['baselines'].get('majority class', {}).get('q2')} | "
+                f"{(r.get('detection') or {}).get('auroc')} | {ci_cell(r, 'q3', True)} | {ci_cell(r, 'q5', True)} |"
                 for s, r in ev.items()
             ),
             "",
@@ -370,16 +293,6 @@ def supervision(run: Path, page: list[str] | None = None) -> list[str]:
     lines += benches
     lines += recovery_md([json.loads(f.read_text()) for f in recovery_files(run)], page_recovery(page or []))
     return lines
-
-
-def per_type(res: dict[str, Any]) -> list[str]:
-    """Q2 per failure type (the recall of that type) with its bootstrap-over-pairs interval, from the bench's
-    `q2_by_type`; a results file written before the bench kept it has no interval to show."""
-    out = ["| type | Q2 recall | 95 % interval (by pair) | n |", "|---|---|---|---|"]
-    for name, row in (res.get("q2_by_type") or {}).items():
-        lo, hi = row["ci95"]
-        out.append(f"| {name} | {row['q2']:.1f} | {lo:.0f}-{hi:.0f} | {row['n']} |")
-    return out
 
 
 def timing(stamps: list[list[str]]) -> list[str]:
@@ -473,51 +386,6 @@ def _injection_line(inj: dict[str, Any]) -> str:
     )
 
 
-def _named(res: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """The model's row and its baselines, titled as the tables print them."""
-    return {
-        "tiny LabRobFail-VLM (ours, free Q6)": res,
-        **{
-            f"tiny LabRobFail-VLM (ours, {k.split(', ')[-1]})" if k.endswith("Q6 template") else k: v
-            for k, v in res["baselines"].items()
-        },
-    }
-
-
-def paper_tables(evals: dict[str, Any]) -> list[str]:
-    """The paper-comparable table of every split that was run, beside the paper's rows for its setting."""
-    from labrobfail_vlm.bench.report import PAPER_ROWS, markdown, paper_row, paper_unseen_row
-
-    lines = [
-        PAPER_TABLES,
-        "",
-        "Q1 and Q2 over every trajectory of the split; Q3, Q4, Q5 and Q6 (BLEU, ROUGE-L) over its failed "
-        'trajectories only, as the paper\'s table can be read (its Q4 and Q5 options have no "None"). The '
-        "majority class answers Q3-Q6 with the most frequent answer among training failures. Where the blind "
-        'baseline reaches Q1 = 100 (the preamble names the task), a tie at 100 counts as "above blind". '
-        "Severity options are the paper's appendix ones; its main text names the same four levels Minor, "
-        "Recoverable, Critical, Catastrophic (paired by position: option 1 = Minor ... 4 = Catastrophic). The "
-        "paper's unseen rows stand beside both the validation and the sealed split of the same setting.",
-        "",
-    ]
-    for split, res in evals.items():
-        fo = res["failure_only"]
-        rows = {k: paper_row(v) for k, v in _named(res).items()}
-        unseen = paper_unseen_row(split)
-        rows.update({"LabRobFail-VLM (paper, 8B)": unseen} if unseen else dict(PAPER_ROWS))
-        n_traj = res["detection"]["trajectories"] if res.get("detection") else "?"
-        lines += [
-            markdown(
-                rows, f"{SPLIT_TITLES[split]}: {n_traj} trajectories, Q3-Q6 over the {fo['trajectories']} failed ones"
-            ),
-            "95 % intervals by pair (ours, free Q6): "
-            + ", ".join(f"{k} {_ci(res, k.lower(), k in ('Q3', 'Q4', 'Q5'))}" for k in ("Q1", "Q2", "Q3", "Q4", "Q5"))
-            + f", ROUGE-L {_ci(res, 'rougeL', True)}.",
-            "",
-        ]
-    return lines
-
-
 def detection_section(run: Path, out: Path, evals: dict[str, Any]) -> list[str]:
     """Q2 as a score per split, with the reliability diagrams copied beside the page."""
     from labrobfail_vlm.bench.report import detection_markdown
@@ -532,27 +400,11 @@ def detection_section(run: Path, out: Path, evals: dict[str, Any]) -> list[str]:
     ]
     for split, res in evals.items():
         title = SPLIT_TITLES[split]
-        lines += [detection_markdown(_named(res), title), ""]
+        lines += [detection_markdown(named_rows(res), title), ""]
         png = run / "train" / "final" / f"eval_{split}" / "reliability_q2.png"
         if png.is_file():
             shutil.copyfile(png, out.parent / f"reliability_{split}.png")
             lines += [f"![reliability, {title}](reliability_{split}.png)", ""]
-    return lines
-
-
-def all_trajectory_tables(evals: dict[str, Any]) -> list[str]:
-    from labrobfail_vlm.bench.report import markdown, row
-
-    lines = [
-        "## All-trajectory tables (the project's own; not comparable with the paper)",
-        "",
-        'Q3-Q6 over every trajectory: a success\'s reference is "None" / the no-correction sentence, so the '
-        "majority class scores high on them.",
-        "",
-    ]
-    for split, res in evals.items():
-        title = f"{SPLIT_TITLES[split]}: {res['records']} records, all trajectories"
-        lines += [markdown({k: row(v) for k, v in _named(res).items()}, title), ""]
     return lines
 
 
