@@ -360,6 +360,9 @@ def impact_speed(trace: Trace, obj: str) -> float:
 
 
 HELD = 0.1  # m: a vessel this close to the hand is in it (a pour tilts its vessel on purpose)
+# s: a vessel tipped past UPRIGHT_TILT out of the hand has fallen over only if it stays tipped this long (or until the
+# trace ends). A retreating open hand that catches a beaker's rim rocks it to 0.65 rad and it rights itself in 0.2 s.
+TIPPED_FOR = 0.5
 # m from the arm's base, horizontally: the Panda's reach at grasp height for the hand's approach along +x.
 # Measured with PyBullet's IK on the Panda model (straight ahead and 0.5 rad aside): the hand reaches a side grasp
 # 3-8 cm above the bench within 1.5 cm out to 0.90 m and misses by 3-8 cm from 0.925 to 0.975 m (a top-down grasp
@@ -371,10 +374,15 @@ def _beyond_reach(pos, base) -> bool:
     return float(np.hypot(pos[0] - base[0], pos[1] - base[1])) > REACH
 
 
+def _tipped_from(quats: list, j: int, n: int) -> bool:
+    """Tipped past UPRIGHT_TILT at sample j and at each of the n samples after it that the trace has."""
+    return all(tilt(q) > UPRIGHT_TILT for q in quats[j : j + n + 1])
+
+
 def irreversible_sample(trace: Trace, meta: Meta) -> Optional[tuple[int, str]]:
     """The first sample of an event no correction undoes, and which: liquid spilled outside every vessel where too
     little reached its destination ("spill", as detect_spill reads it: a pour that delivers enough loses some drops),
-    a movable object knocked off the bench or a vessel tipped over out of the hand ("fall"), glassware moving down
+    a movable object knocked off the bench or a vessel tipped over out of the hand for TIPPED_FOR ("fall"), glassware moving down
     fast enough to break (>= BREAK_SPEED, read as `impact_speed` reads it: "breakage"), a movable object that began
     within the arm's reach pushed beyond it out of the hand (> REACH from the arm's base: "out_of_reach"; never read
     when the meta has no `robot_base`). None when none happens. An alarm raised before this sample could still have
@@ -403,7 +411,7 @@ def irreversible_sample(trace: Trace, meta: Meta) -> Optional[tuple[int, str]]:
             ):
                 return j, "breakage"
             far = np.linalg.norm(np.subtract(pos[j], trace["ee_pos"][j])) > HELD
-            if m in vessels and far and tilt(trace[f"{m}.quat"][j]) > UPRIGHT_TILT:
+            if m in vessels and far and _tipped_from(trace[f"{m}.quat"], j, samples_in(trace, TIPPED_FOR)):
                 return j, "fall"
             if m in reachable and far and _beyond_reach(pos[j], base):
                 return j, "out_of_reach"

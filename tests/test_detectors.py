@@ -304,6 +304,29 @@ def test_irreversible_events_are_found_where_they_happen_and_not_in_a_success():
     assert (z[j - 1] - z[j]) * RATE + 9.81 / (2 * RATE) >= BREAK_SPEED
 
 
+def test_a_vessel_rocked_out_of_the_hand_is_no_fall_unless_it_stays_tipped():
+    """An open hand retreating from a placed beaker can catch its rim and rock it past UPRIGHT_TILT for a few
+    samples; it rights itself, which is no fall. Tipped for TIPPED_FOR (or to the trace's end) it is, from the
+    first tipped sample."""
+    from sim_backends.goals import UPRIGHT_TILT
+    from sim_backends.labeler import HELD, TIPPED_FOR, irreversible_sample
+    from sim_backends.schema import samples_in
+
+    tr, meta = _case("success")
+    n = len(tr["t"])
+    # the last keyframe: the hand rises away from the released beaker; the first sample it is HELD away from it
+    away = [np.linalg.norm(np.subtract(p, e)) > HELD for p, e in zip(tr["obj.pos"], tr["ee_pos"])]
+    start = away.index(True, tr["kf_end"][-2] + 1)
+    a = UPRIGHT_TILT + 0.3
+    tipped = [float(np.sin(a / 2)), 0.0, 0.0, float(np.cos(a / 2))]
+    rock = 1  # sample; the trace ends n - start samples later, fewer than TIPPED_FOR spans
+    assert start + rock < n < start + samples_in(tr, TIPPED_FOR)
+    tr["obj.quat"] = [tipped if start <= k < start + rock else q for k, q in enumerate(tr["obj.quat"])]
+    assert irreversible_sample(tr, meta) is None
+    tr["obj.quat"] = [tipped if k >= start else q for k, q in enumerate(tr["obj.quat"])]  # tipped to the end
+    assert irreversible_sample(tr, meta) == (start, "fall")
+
+
 def test_an_object_pushed_beyond_the_arms_reach_is_irreversible_where_it_leaves_it():
     """A beaker slid out of the hand to 0.95 m from the arm's base cannot be fetched back: the first sample beyond
     REACH is the event. Carried there in the hand it is no event, nor where the meta does not know the base."""
