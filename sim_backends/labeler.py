@@ -382,11 +382,11 @@ def _tipped_from(quats: list, j: int, n: int) -> bool:
 def irreversible_sample(trace: Trace, meta: Meta) -> Optional[tuple[int, str]]:
     """The first sample of an event no correction undoes, and which: liquid spilled outside every vessel where too
     little reached its destination ("spill", as detect_spill reads it: a pour that delivers enough loses some drops),
-    a movable object knocked off the bench or a vessel tipped over out of the hand for TIPPED_FOR ("fall"), glassware moving down
-    fast enough to break (>= BREAK_SPEED, read as `impact_speed` reads it: "breakage"), a movable object that began
-    within the arm's reach pushed beyond it out of the hand (> REACH from the arm's base: "out_of_reach"; never read
-    when the meta has no `robot_base`). None when none happens. An alarm raised before this sample could still have
-    saved the run; the online bench counts those."""
+    a movable object knocked off the bench or a vessel tipped over out of the hand for TIPPED_FOR ("fall"), glassware
+    moving down fast enough to break (>= BREAK_SPEED, read as `impact_speed` reads it: "breakage"), a movable object
+    that began within the arm's reach pushed beyond it out of the hand (> REACH from the arm's base: "out_of_reach";
+    never read when the meta has no `robot_base`). None when none happens. An alarm raised before this sample could
+    still have saved the run; the online bench counts those."""
     meta = meta_dict(meta)
     movables = [k for k, o in meta["objects"].items() if o["kind"] in MOVABLE]
     vessels = {m for m in movables if meta["objects"][m]["kind"] == "vessel"}
