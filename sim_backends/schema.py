@@ -5,7 +5,7 @@ besides nothing else: the recorded state trace and the task metadata. Written
 down here, a second backend (ManiSkill/SAPIEN, a real robot log) fills them in
 without reading the labeler. `TaskMeta.to_dict()` is also what a shard stores in
 its `task_meta` column; its keys and their order are those of the untyped dict of
-earlier versions, so shards written before and after the change read the same.
+earlier versions plus `robot_base` (1 Dec), so shards written before and after read the same.
 See docs/ARCHITECTURE.md, "Task metadata (TaskMeta) and the state trace".
 """
 

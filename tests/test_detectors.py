@@ -305,26 +305,37 @@ def test_irreversible_events_are_found_where_they_happen_and_not_in_a_success():
 
 
 def test_a_vessel_rocked_out_of_the_hand_is_no_fall_unless_it_stays_tipped():
-    """An open hand retreating from a placed beaker can catch its rim and rock it past UPRIGHT_TILT for a few
-    samples; it rights itself, which is no fall. Tipped for TIPPED_FOR (or to the trace's end) it is, from the
-    first tipped sample."""
+    """An open hand retreating from a placed beaker can catch its rim and rock it past UPRIGHT_TILT; it rights
+    itself, which is no fall. Tipped for TIPPED_FOR (k samples after the first) it is, from the first tipped sample;
+    so is a vessel still tipped where the trace ends, however short that is."""
     from sim_backends.goals import UPRIGHT_TILT
     from sim_backends.labeler import HELD, TIPPED_FOR, irreversible_sample
     from sim_backends.schema import samples_in
 
-    tr, meta = _case("success")
-    n = len(tr["t"])
-    # the last keyframe: the hand rises away from the released beaker; the first sample it is HELD away from it
-    away = [np.linalg.norm(np.subtract(p, e)) > HELD for p, e in zip(tr["obj.pos"], tr["ee_pos"])]
-    start = away.index(True, tr["kf_end"][-2] + 1)
+    base, meta = _case("success")
+    k = samples_in(base, TIPPED_FOR)
+    n = len(base["t"])
+    # the released beaker stands still while the controller settles: 3k more samples of the last state
+    for c, col in base.items():
+        if isinstance(col, list) and len(col) == n:
+            col.extend([col[-1]] * (3 * k))
+    base["t"][n:] = [base["t"][n - 1] + (i + 1) / RATE for i in range(3 * k)]
+    # the first sample the hand is HELD away from the beaker, as it rises after the release
+    away = [np.linalg.norm(np.subtract(p, e)) > HELD for p, e in zip(base["obj.pos"], base["ee_pos"])]
+    start = away.index(True, base["kf_end"][-2] + 1)
+    assert start + k + 1 < len(base["t"]) - k
     a = UPRIGHT_TILT + 0.3
     tipped = [float(np.sin(a / 2)), 0.0, 0.0, float(np.cos(a / 2))]
-    rock = 1  # sample; the trace ends n - start samples later, fewer than TIPPED_FOR spans
-    assert start + rock < n < start + samples_in(tr, TIPPED_FOR)
-    tr["obj.quat"] = [tipped if start <= k < start + rock else q for k, q in enumerate(tr["obj.quat"])]
-    assert irreversible_sample(tr, meta) is None
-    tr["obj.quat"] = [tipped if k >= start else q for k, q in enumerate(tr["obj.quat"])]  # tipped to the end
-    assert irreversible_sample(tr, meta) == (start, "fall")
+
+    def tipped_during(first: int, last: int) -> dict:
+        tr = dict(base)
+        tr["obj.quat"] = [tipped if first <= i <= last else q for i, q in enumerate(base["obj.quat"])]
+        return tr
+
+    assert irreversible_sample(tipped_during(start, start + k - 1), meta) is None  # rocked, back within TIPPED_FOR
+    assert irreversible_sample(tipped_during(start, start + k), meta) == (start, "fall")
+    last = len(base["t"]) - 1
+    assert irreversible_sample(tipped_during(last - 2, last), meta) == (last - 2, "fall")  # tipped to the end
 
 
 def test_an_object_pushed_beyond_the_arms_reach_is_irreversible_where_it_leaves_it():
@@ -346,9 +357,13 @@ def test_an_object_pushed_beyond_the_arms_reach_is_irreversible_where_it_leaves_
     assert irreversible_sample(tr, meta.to_dict()) == (j, "out_of_reach")  # the JSON form a shard stores
     tr["ee_pos"] = [list(p) if k < start else [p[0], p[1], p[2] + 0.05] for k, p in enumerate(slid)]
     assert irreversible_sample(tr, meta) is None  # held: the hand is with it
+    tr["ee_pos"] = _case("success")[0]["ee_pos"]
+    far_start = [[0.95, 0.0, p[2]] for p in slid]  # beyond REACH from the first sample: never within reach
+    assert irreversible_sample({**tr, "obj.pos": far_start}, meta) is None
+    old_shard = meta.to_dict()
+    del old_shard["robot_base"]  # task metadata written before the base was recorded
+    assert irreversible_sample(tr, old_shard) is None
     meta.robot_base = None
-    tr, _ = _case("success")
-    tr["obj.pos"] = slid
     assert irreversible_sample(tr, meta) is None
 
 

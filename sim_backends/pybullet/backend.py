@@ -270,7 +270,7 @@ class PyBulletSource(ScenarioConfig, FailureSource):
             liquid_total={k: len(v) for k, v in scene.particles.items()},
             labels=scene.labels,
             description=self.describe(self._key[0], self.scene.labels),
-            robot_base=list(p.getBasePositionAndOrientation(scene.robot.id, physicsClientId=self.cid)[0]),
+            robot_base=list(scene.robot.base),
         )
 
 

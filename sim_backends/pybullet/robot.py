@@ -53,6 +53,7 @@ def lowpoly_urdf() -> str:
 class Panda:
     def __init__(self, client: int, base=(0.0, 0.0, 0.0), grip_force: float = 60.0, lowpoly: bool = True):
         self.cid = client
+        self.base = tuple(float(v) for v in base)  # where the base link stands (its URDF origin, not its mass centre)
         urdf = lowpoly_urdf() if lowpoly else str(PANDA_DIR / "panda.urdf")
         self.id = p.loadURDF(urdf, base, useFixedBase=True, physicsClientId=client)
         for j, q in zip(ARM_JOINTS, REST):
