@@ -397,6 +397,7 @@ def irreversible_sample(trace: Trace, meta: Meta) -> Optional[tuple[int, str]]:
     liquid = trace.get("liquid.outside") if lost else None
     base = meta.get("robot_base")
     reachable = {m for m in movables if base is not None and not _beyond_reach(trace[f"{m}.pos"][0], base)}
+    stay = samples_in(trace, TIPPED_FOR)
     for j in range(len(trace["t"])):
         if liquid and liquid[j] - liquid[0] >= SPILL_PARTICLES:
             return j, "spill"
@@ -411,7 +412,7 @@ def irreversible_sample(trace: Trace, meta: Meta) -> Optional[tuple[int, str]]:
             ):
                 return j, "breakage"
             far = np.linalg.norm(np.subtract(pos[j], trace["ee_pos"][j])) > HELD
-            if m in vessels and far and _tipped_from(trace[f"{m}.quat"], j, samples_in(trace, TIPPED_FOR)):
+            if m in vessels and far and _tipped_from(trace[f"{m}.quat"], j, stay):
                 return j, "fall"
             if m in reachable and far and _beyond_reach(pos[j], base):
                 return j, "out_of_reach"
