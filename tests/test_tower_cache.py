@@ -97,3 +97,45 @@ def test_a_frozen_tower_run_encodes_each_grid_once_and_trains_as_without_the_cac
     assert cached["train_loss"] == pytest.approx(plain["train_loss"], rel=1e-5)
     r = run_here(tiny_train(tiny, small_ds, tmp_path / "bad", *frozen, "tower_cache_mb=-1"))
     assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].startswith("error: tower_cache_mb:"), r.stderr
+
+
+def test_a_stored_grid_is_served_by_its_file_and_not_read_again(tiny, small_ds, tmp_path):  # noqa: F811
+    import os
+    import shutil
+
+    from labrobfail_vlm.model.loading import load_processor
+    from labrobfail_vlm.train.data import Collator
+    from labrobfail_vlm.train.packing import TrajectoryDataset
+    from labrobfail_vlm.train.tower_cache import file_key
+
+    proc = load_processor(tiny)
+    proc.tokenizer.padding_side = "right"
+    td = TrajectoryDataset(small_ds, "train")
+    copy = tmp_path / "grid.png"  # the second trajectory's grid, from a file this test may rewrite
+    shutil.copy(td[1][0]["image"], copy)
+    items = [td[0], [{**r, "image": str(copy)} for r in td[1]]]
+    plain = Collator(proc, 1024)(items)
+    model = _frozen(tiny)
+    want = _features(model, plain["pixel_values"], plain["image_grid_thw"])
+    cache = cache_frozen_tower(model, 64)
+    col = Collator(proc, 1024, tower_cache=cache)
+    first = col(items)
+    assert first["grid_keys"] == [file_key(it[0]["image"]) for it in items]
+    assert torch.equal(first["pixel_values"], plain["pixel_values"])  # a miss: the grid's own pixels
+    cache.given = first["grid_keys"]
+    torch.testing.assert_close(_features(model, first["pixel_values"], first["image_grid_thw"]), want)
+    assert (cache.misses, cache.hits, cache.given) == (2, 0, None)  # the keys served one call
+    again = col(items)  # stored: the grids are not read, their pixels are zeros nothing reads
+    assert not again["pixel_values"].any() and again["pixel_values"].shape == plain["pixel_values"].shape
+    assert torch.equal(again["input_ids"], plain["input_ids"]) and torch.equal(
+        again["image_grid_thw"], plain["image_grid_thw"]
+    )
+    cache.given = again["grid_keys"]
+    torch.testing.assert_close(_features(model, again["pixel_values"], again["image_grid_thw"]), want)
+    assert (cache.misses, cache.hits) == (2, 2)
+    st = os.stat(copy)  # a rewritten grid file is another key: read and encoded again
+    os.utime(copy, ns=(st.st_atime_ns, st.st_mtime_ns + 1))
+    third = col(items)
+    assert third["grid_keys"][1] != first["grid_keys"][1] and third["pixel_values"][-1].any()
+    # with augmentation nothing is keyed by file: every augmented grid is new
+    assert Collator(proc, 1024, augment=object(), tower_cache=cache).tower_cache is None

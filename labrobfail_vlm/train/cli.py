@@ -257,6 +257,7 @@ def _build_trainer(
     processor: Any,
     grid: dict[str, Any],
     curriculum: tuple[bool, float, float],
+    cache: Any = None,
 ) -> tuple[Any, Any, dict[str, Any] | None]:
     """(trainer, progress log, grounding or None): the training set, its collator and curriculum callbacks, and
     the HybridTrainer that runs them."""
@@ -290,6 +291,7 @@ def _build_trainer(
             targets,
             train.group_of,
             _augment(cfg, grid),
+            cache,
         ),
         processing_class=processor,
         group_lrs=dict(cfg.lr),
@@ -423,7 +425,7 @@ def run(cfg: Any) -> dict[str, Any]:
     processor, model, counts, cache = _load_tuned_model(cfg, dtype)
     if args.process_index == 0:
         print(json.dumps({"trainable_parameters": counts, "tuning": cfg.tuning, "preset": cfg.preset}), flush=True)
-    trainer, progress_log, grounding = _build_trainer(cfg, args, model, processor, grid, curriculum)
+    trainer, progress_log, grounding = _build_trainer(cfg, args, model, processor, grid, curriculum, cache)
     resume, resume_stage_a = _resume_point(cfg, pre_epochs)
     _load_resumed_head(resume, grounding)
     pre: dict[str, float] = {}

@@ -20,6 +20,7 @@ from torch.utils.data import Dataset
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.model.processor import common_prefix_len
+from labrobfail_vlm.train.tower_cache import file_key
 
 IGNORE = -100
 
@@ -123,9 +124,14 @@ class Collator:
         frame_targets: dict[str, list[float]] | None = None,
         group_of: dict[str, str] | None = None,
         augment: "GridAugment | None" = None,
+        tower_cache: Any = None,
     ):
         self.processor = processor
         self.augment = augment  # twin-consistent image augmentation (training only)
+        # a frozen tower's TowerCache: packed batches then name each grid by its file, and a grid it has stored is
+        # not read or preprocessed again (labrobfail_vlm/train/tower_cache.py); never with augmentation
+        self.tower_cache = tower_cache if augment is None else None
+        self._pixels: dict[str, tuple[torch.Tensor, int, torch.dtype]] = {}  # path -> grid_thw, row width, dtype
         # grounding (labrobfail_vlm/train/grounding.py): per-frame targets and twin ids, one row per image
         self.frame_targets, self.group_of = frame_targets, group_of or {}
         self.rewording = rewording  # labrobfail_vlm.train.curriculum.Rewording
@@ -194,20 +200,31 @@ class Collator:
         rows, pixels, thws, weights = [], [], [], []
         image_id = proc.tokenizer.convert_tokens_to_ids(self.image_token)
         at = 0
-        grids = self.images([recs[0] for recs in items])
-        for recs, grid in zip(items, grids):
+        cache = self.tower_cache
+        keys = [file_key(recs[0]["image"]) for recs in items] if cache is not None else None
+        stored = [
+            keys is not None and keys[i] in cache and recs[0]["image"] in self._pixels for i, recs in enumerate(items)
+        ]
+        grids = iter(self.images([recs[0] for recs, s in zip(items, stored) if not s]))
+        for recs, known in zip(items, stored):
+            path = recs[0]["image"]
             recs, at = flat[at : at + len(recs)], at + len(recs)
             fulls = [proc.apply_chat_template(messages(b["question"], b["answer"]), tokenize=False) for b in recs]
             prompts = [
                 proc.apply_chat_template(messages(b["question"]), tokenize=False, add_generation_prompt=True)
                 for b in recs
             ]
-            enc = proc(text=fulls[:1], images=[grid], return_tensors="pt")
-            thw = enc["image_grid_thw"][0]
-            ids = self._ids(fulls + prompts, thw)
-            f_ids, p_ids = ids[: len(fulls)], ids[len(fulls) :]
-            if f_ids[0] != enc["input_ids"][0].tolist():
-                raise ValueError(f"sample {recs[0]['id']}: tokenization differs from the processor's")
+            if known:  # the tower serves this grid from its file key: its pixels are never read
+                thw, width, dtype = self._pixels[path]
+                px = torch.zeros(1, width, dtype=dtype).expand(int(thw.prod()), width)
+                f_ids, p_ids = self._split_ids(fulls, prompts, thw)
+            else:
+                enc = proc(text=fulls[:1], images=[next(grids)], return_tensors="pt")
+                thw, px = enc["image_grid_thw"][0], enc["pixel_values"]
+                self._pixels[path] = (thw, int(px.shape[1]), px.dtype)
+                f_ids, p_ids = self._split_ids(fulls, prompts, thw)
+                if f_ids[0] != enc["input_ids"][0].tolist():
+                    raise ValueError(f"sample {recs[0]['id']}: tokenization differs from the processor's")
             # the shared prefix stops before every prompt's end, so each branch keeps a question token
             k = min(common_prefix_len(f_ids), min(len(p) for p in p_ids) - 1)
             row: dict[str, list[int]] = {
@@ -236,14 +253,23 @@ class Collator:
             row["types"] = [int(t == image_id) for t in row["ids"]]
             row["mask"] = [1] * len(row["ids"])
             rows.append(row)
-            pixels.append(enc["pixel_values"])
+            pixels.append(px)
             thws.append(thw)
         batch = pack_rows(rows, int(proc.tokenizer.pad_token_id))
         batch.update(
             pixel_values=torch.cat(pixels), image_grid_thw=torch.stack(thws), record_weight=torch.tensor(weights)
         )
+        if keys is not None:
+            batch["grid_keys"] = keys  # popped by HybridTrainer.compute_loss and handed to the tower cache
         self.add_grounding(batch, [recs[0]["id"] for recs in items])
         return batch
+
+    def _split_ids(
+        self, fulls: list[str], prompts: list[str], thw: torch.Tensor
+    ) -> tuple[list[list[int]], list[list[int]]]:
+        """Token ids of each record's whole conversation and of its prompt alone."""
+        ids = self._ids(fulls + prompts, thw)
+        return ids[: len(fulls)], ids[len(fulls) :]
 
     def __call__(self, batch: list[Any]) -> dict[str, torch.Tensor]:
         if batch and isinstance(batch[0], list):  # trajectories: shared-prefix packing

@@ -12,6 +12,13 @@ Why per image, and why by content:
 - The key is the pixels themselves, so a stale value cannot be served: an augmented grid is simply a miss.
 - The tower has no dropout (Qwen3-VL's vision attention runs at p = 0), so train and eval mode give one output.
 Memory is bounded by `max_mb`; once full, further images are encoded every time as before.
+
+Keyed by file: reading, preprocessing and hashing a 512x512 grid cost about a fifth of a later epoch's step
+(docs/EXPERIMENTS.md, 2026-12-01 "Grids keyed by file ..."). When nothing augments the grids, the collator names
+each grid by its file (`file_key`: path, size, modification time) and hands those keys over (`given`) with the
+batch; a grid stored under its file key is then neither read nor preprocessed again, and its rows of
+`pixel_values` are zeros that nothing reads. A stored value never leaves the store, so a key the collator saw
+stored is still there when the batch runs.
 """
 
 from __future__ import annotations
@@ -33,17 +40,25 @@ class TowerCache:
         self.max_bytes, self.bytes = int(max_mb * 2**20), 0
         self.store: dict[bytes, tuple[torch.Tensor, list[torch.Tensor]]] = {}
         self.hits = self.misses = 0
+        self.given: list[bytes] | None = None  # file keys of the next call's images, set by the trainer
         visual.forward = self  # an instance attribute: nn.Module.__call__ (and its hooks) now call this
 
     def stats(self) -> dict[str, float]:
         return {"hits": self.hits, "misses": self.misses, "stored": len(self.store), "mb": round(self.bytes / 2**20, 1)}
 
-    def _one(self, pixels: torch.Tensor, thw: torch.Tensor, kwargs: dict[str, Any]):
+    def __contains__(self, key: bytes) -> bool:
+        return key in self.store
+
+    @staticmethod
+    def pixel_key(pixels: torch.Tensor, thw: torch.Tensor) -> bytes:
         h = hashlib.blake2b(digest_size=16)
         h.update(str((pixels.dtype, tuple(pixels.shape), thw.tolist())).encode())
         # the raw bytes (bfloat16 has no numpy dtype), read in place by the buffer protocol: no copy per grid
         h.update(pixels.detach().contiguous().view(torch.uint8).cpu().numpy())
-        key = h.digest()
+        return h.digest()
+
+    def _one(self, pixels: torch.Tensor, thw: torch.Tensor, kwargs: dict[str, Any], key: bytes | None = None):
+        key = key or self.pixel_key(pixels, thw)
         hit = self.store.get(key)
         if hit is not None:
             self.hits += 1
@@ -62,9 +77,10 @@ class TowerCache:
         from transformers.models.qwen3_vl.modeling_qwen3_vl import BaseModelOutputWithDeepstackFeatures
 
         kwargs["return_dict"] = True
+        keys, self.given = self.given or [None] * len(grid_thw), None  # file keys serve one call only
         parts = [
-            self._one(px, thw, kwargs)
-            for px, thw in zip(torch.split(hidden_states, grid_thw.prod(-1).tolist()), grid_thw, strict=True)
+            self._one(px, thw, kwargs, key)
+            for px, thw, key in zip(torch.split(hidden_states, grid_thw.prod(-1).tolist()), grid_thw, keys, strict=True)
         ]
         deep = [torch.cat(level) for level in zip(*(p[1] for p in parts))]
         # last_hidden_state (the unmerged patches) is not kept: get_image_features reads only the merged tokens
@@ -81,3 +97,12 @@ def cache_frozen_tower(model: nn.Module, max_mb: float) -> TowerCache | None:
     if max_mb <= 0 or any(p.requires_grad for p in visual.parameters()):
         return None
     return TowerCache(visual, max_mb)
+
+
+def file_key(path: str) -> bytes:
+    """A grid file's key in a TowerCache: its path, size and modification time (a rewritten file is a miss)."""
+    import os
+
+    st = os.stat(path)
+    name = f"file:{os.path.abspath(path)}:{st.st_size}:{st.st_mtime_ns}"
+    return hashlib.blake2b(name.encode(), digest_size=16).digest()

@@ -68,6 +68,9 @@ class HybridTrainer(Trainer):
         slots = inputs.pop("label_slot", None)
         targets, groups = inputs.pop("frame_target", None), inputs.pop("pair_group", None)
         thw = inputs.get("image_grid_thw")
+        keys = inputs.pop("grid_keys", None)  # file keys of the grids (Collator with a tower cache)
+        if keys is not None:
+            self.data_collator.tower_cache.given = keys
         if "segment_ids" in inputs:  # shared-prefix packed rows (labrobfail_vlm/train/packing.py)
             inputs = prepare_packed(model, inputs)
         if self.loss_mode == "token":
