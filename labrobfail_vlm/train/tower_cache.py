@@ -4,21 +4,22 @@ With the tower and merger frozen (`tower=shipped`: `lr.vision=0 lr.merger=0`) th
 the pixels, yet the Trainer runs it again on every grid in every epoch; in the tiny recipe that forward pass is
 about half of each training step (docs/EXPERIMENTS.md, 2026-11-27 "Encoding each grid once ..."). `TowerCache`
 takes the place of the tower's `forward`: each image's output (the merged tokens and any DeepStack features) is
-kept under a digest of its patches and grid size and served again on the next epoch.
+kept under a digest of its patches and grid size (or of its file: below) and served again on the next epoch.
 
 Why per image, and why by content:
 - A miss is encoded alone, never beside the other images of its batch, so a stored value does not depend on
   which images happened to share a batch: a resumed run, or one with another batch size, reads the same numbers.
-- The key is the pixels themselves, so a stale value cannot be served: an augmented grid is simply a miss.
+- The key is the pixels themselves (or the file they were read from, which the key's modification time pins), so
+  a stale value cannot be served: an augmented grid is simply a miss.
 - The tower has no dropout (Qwen3-VL's vision attention runs at p = 0), so train and eval mode give one output.
 Memory is bounded by `max_mb`; once full, further images are encoded every time as before.
 
 Keyed by file: reading, preprocessing and hashing a 512x512 grid cost about a fifth of a later epoch's step
-(docs/EXPERIMENTS.md, 2026-12-01 "Grids keyed by file ..."). When nothing augments the grids, the collator names
-each grid by its file (`file_key`: path, size, modification time) and hands those keys over (`given`) with the
-batch; a grid stored under its file key is then neither read nor preprocessed again, and its rows of
-`pixel_values` are zeros that nothing reads. A stored value never leaves the store, so a key the collator saw
-stored is still there when the batch runs.
+(docs/EXPERIMENTS.md, 2026-12-01 late night, "Grids keyed by file ..."). When nothing augments the grids, the
+collator names each grid by its file (`file_key`: path, size, modification time) and hands those keys over
+(`given`) with the batch; a grid stored under its file key is then neither read nor preprocessed again, and its
+rows of `pixel_values` are zeros that nothing reads. A stored value never leaves the store, so a key the collator
+saw stored is still there when the batch runs.
 """
 
 from __future__ import annotations
