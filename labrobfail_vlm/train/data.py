@@ -214,17 +214,18 @@ class Collator:
                 proc.apply_chat_template(messages(b["question"]), tokenize=False, add_generation_prompt=True)
                 for b in recs
             ]
+            enc = None
             if known:  # the tower serves this grid from its file key: its pixels are never read
                 thw, width, dtype = self._pixels[path]
                 px = torch.zeros(1, width, dtype=dtype).expand(int(thw.prod()), width)
-                f_ids, p_ids = self._split_ids(fulls, prompts, thw)
             else:
                 enc = proc(text=fulls[:1], images=[next(grids)], return_tensors="pt")
                 thw, px = enc["image_grid_thw"][0], enc["pixel_values"]
                 self._pixels[path] = (thw, int(px.shape[1]), px.dtype)
-                f_ids, p_ids = self._split_ids(fulls, prompts, thw)
-                if f_ids[0] != enc["input_ids"][0].tolist():
-                    raise ValueError(f"sample {recs[0]['id']}: tokenization differs from the processor's")
+            ids = self._ids(fulls + prompts, thw)
+            f_ids, p_ids = ids[: len(fulls)], ids[len(fulls) :]
+            if enc is not None and f_ids[0] != enc["input_ids"][0].tolist():
+                raise ValueError(f"sample {recs[0]['id']}: tokenization differs from the processor's")
             # the shared prefix stops before every prompt's end, so each branch keeps a question token
             k = min(common_prefix_len(f_ids), min(len(p) for p in p_ids) - 1)
             row: dict[str, list[int]] = {
@@ -263,13 +264,6 @@ class Collator:
             batch["grid_keys"] = keys  # popped by HybridTrainer.compute_loss and handed to the tower cache
         self.add_grounding(batch, [recs[0]["id"] for recs in items])
         return batch
-
-    def _split_ids(
-        self, fulls: list[str], prompts: list[str], thw: torch.Tensor
-    ) -> tuple[list[list[int]], list[list[int]]]:
-        """Token ids of each record's whole conversation and of its prompt alone."""
-        ids = self._ids(fulls + prompts, thw)
-        return ids[: len(fulls)], ids[len(fulls) :]
 
     def __call__(self, batch: list[Any]) -> dict[str, torch.Tensor]:
         if batch and isinstance(batch[0], list):  # trajectories: shared-prefix packing
