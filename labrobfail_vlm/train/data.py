@@ -202,9 +202,12 @@ class Collator:
         at = 0
         cache = self.tower_cache
         keys = [file_key(recs[0]["image"]) for recs in items] if cache is not None else None
-        stored = [
-            keys is not None and keys[i] in cache and recs[0]["image"] in self._pixels for i, recs in enumerate(items)
-        ]
+        # a grid is served by its key once the tower stored it and its grid size was read from it
+        stored = (
+            [k in cache and r[0]["image"] in self._pixels for k, r in zip(keys, items)]
+            if keys
+            else [False] * len(items)
+        )
         grids = iter(self.images([recs[0] for recs, s in zip(items, stored) if not s]))
         for recs, known in zip(items, stored):
             path = recs[0]["image"]

@@ -25,6 +25,7 @@ saw stored is still there when the batch runs.
 from __future__ import annotations
 
 import hashlib
+import os
 from typing import Any
 
 import torch
@@ -102,8 +103,6 @@ def cache_frozen_tower(model: nn.Module, max_mb: float) -> TowerCache | None:
 
 def file_key(path: str) -> bytes:
     """A grid file's key in a TowerCache: its path, size and modification time (a rewritten file is a miss)."""
-    import os
-
     st = os.stat(path)
     name = f"file:{os.path.abspath(path)}:{st.st_size}:{st.st_mtime_ns}"
     return hashlib.blake2b(name.encode(), digest_size=16).digest()
