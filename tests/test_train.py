@@ -86,6 +86,34 @@ def test_record_loss_weights_each_record_equally(tiny, small_ds):
     assert float(token_mean) == pytest.approx(float(n2 * alone[0] + n6 * alone[1]) / (n2 + n6), rel=1e-4)
 
 
+def test_answer_balance_evens_out_the_answers_of_a_question(tiny):
+    from labrobfail_vlm.config import ConfigError
+    from labrobfail_vlm.model.loading import load_processor
+    from labrobfail_vlm.train.data import Collator, answer_balance
+
+    def rec(i: int, dim: str, answer: str) -> dict:
+        return {"id": f"seen-ep{i:07d}_{dim}", "conversations": [{"value": "q"}, {"value": answer}]}
+
+    severities = ["2"] * 6 + ["3"] * 3 + ["1"]  # six Dangerous, three Fatal, one Risk
+    raw = [rec(i, "Q4", a) for i, a in enumerate(severities)] + [rec(0, "Q2", "Yes"), rec(1, "Q2", "No")]
+    full = answer_balance(raw, {"Q4": 1.0, "Q2": 0.0})
+    assert set(full) == {"Q4"}  # p = 0 leaves a question alone
+    w = full["Q4"]
+    assert sum(w[a] for a in severities) == pytest.approx(len(severities))  # the question keeps its mean weight 1
+    assert 6 * w["2"] == pytest.approx(3 * w["3"]) == pytest.approx(w["1"])  # p = 1: every answer the same total
+    half = answer_balance(raw, {"Q4": 0.5})["Q4"]
+    assert w["2"] < half["2"] < 1.0 < half["1"] < w["1"]
+    for bad in ({"Q4": 1.5}, {"Q9": 0.5}, {"Q5": 0.5}):  # out of range, no such question, no Q5 records
+        with pytest.raises(ConfigError, match="loss.balance"):
+            answer_balance(raw, bad)
+    proc = load_processor(tiny)
+    col = Collator(proc, 512, {"Q4": 2.0}, answer_weights=full)
+    assert col.weight({"id": "seen-ep0000001_Q4", "answer": "1"}) == pytest.approx(2.0 * w["1"])
+    assert col.weight({"id": "seen-ep0000001_Q2", "answer": "No"}) == 1.0
+    with pytest.raises(ConfigError, match="mode=record"):
+        Collator(proc, 512, None, answer_weights=full)
+
+
 @pytest.mark.parametrize(
     "mode,expect",
     [("hybrid", {"vision", "merger", "lora"}), ("frozen_vision", {"lora"}), ("full", {"vision", "merger", "text"})],

@@ -262,7 +262,7 @@ def _build_trainer(
     """(trainer, progress log, grounding or None): the training set, its collator and curriculum callbacks, and
     the HybridTrainer that runs them."""
     from labrobfail_vlm.train.curriculum import DetectFirst, PolarityWarmup, Rewording
-    from labrobfail_vlm.train.data import Collator, VQADataset
+    from labrobfail_vlm.train.data import Collator, VQADataset, answer_balance
     from labrobfail_vlm.train.packing import TrajectoryDataset
     from labrobfail_vlm.train.trainer import HybridTrainer, ProgressLog
 
@@ -279,6 +279,8 @@ def _build_trainer(
         *([DetectFirst(rewording, detect)] if rewording is not None and detect else []),
     ]
     grounding, targets = _grounding(cfg, model, grid)
+    raw = train.records.records if cfg.packing else train.records
+    balance = answer_balance(raw, dict(cfg.loss.get("balance") or {}))
     trainer = HybridTrainer(
         model=model,
         args=args,
@@ -292,6 +294,7 @@ def _build_trainer(
             train.group_of,
             _augment(cfg, grid),
             cache,
+            balance,
         ),
         processing_class=processor,
         group_lrs=dict(cfg.lr),

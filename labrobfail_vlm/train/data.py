@@ -10,6 +10,7 @@ all) is an error, never a silent truncation.
 from __future__ import annotations
 
 import json
+from collections import Counter
 from pathlib import Path
 from typing import Any, Callable
 
@@ -111,9 +112,33 @@ def pack_rows(rows: list[dict[str, Any]], pad_id: int) -> dict[str, torch.Tensor
     }
 
 
+def answer_balance(records: list[dict[str, Any]], exponents: dict[str, float]) -> dict[str, dict[str, float]]:
+    """Per question named in `exponents`, a weight per answer that evens out its answer frequencies in `records`
+    (a split's raw records): count ** -p, scaled so that the question's records keep a mean weight of 1. p = 0
+    changes nothing; p = 1 gives every answer the same total weight. For a closed-set question whose majority
+    answer a small model learns to give whatever it sees (Q4, severity: most failures are Dangerous)."""
+    bad = {k: v for k, v in exponents.items() if k not in Q.DIMENSIONS or not 0.0 <= float(v) <= 1.0}
+    if bad:
+        raise ConfigError(
+            f"loss.balance: expected an exponent in [0, 1] for any of {', '.join(Q.DIMENSIONS)}; got {bad}"
+        )
+    out: dict[str, dict[str, float]] = {}
+    for dim, p in exponents.items():
+        if float(p) == 0.0:
+            continue
+        counts = Counter(r["conversations"][-1]["value"] for r in records if Q.dim_of(r["id"]) == dim)
+        if not counts:
+            raise ConfigError(f"loss.balance: the training split has no {dim} records")
+        raw = {a: c ** -float(p) for a, c in counts.items()}
+        mean = sum(raw[a] * c for a, c in counts.items()) / sum(counts.values())
+        out[dim] = {a: w / mean for a, w in raw.items()}
+    return out
+
+
 class Collator:
     """Batches for `model(**batch)`. With `question_weights` (dimension -> weight, default 1) each batch also
-    carries `record_weight`, which the trainer's record loss pops before the forward pass."""
+    carries `record_weight`, which the trainer's record loss pops before the forward pass; `answer_weights`
+    (answer_balance's) multiplies a record's weight by its answer's."""
 
     def __init__(
         self,
@@ -125,6 +150,7 @@ class Collator:
         group_of: dict[str, str] | None = None,
         augment: "GridAugment | None" = None,
         tower_cache: Any = None,
+        answer_weights: dict[str, dict[str, float]] | None = None,
     ):
         self.processor = processor
         self.augment = augment  # twin-consistent image augmentation (training only)
@@ -138,6 +164,9 @@ class Collator:
         self.max_length = int(max_length)
         self.image_token = processor.image_token
         self.weights: dict[str, float] | None = None
+        self.answer_weights = answer_weights or {}
+        if self.answer_weights and question_weights is None:
+            raise ConfigError("loss.balance: needs loss.mode=record (the token mean weighs no record)")
         if question_weights is not None:  # "aux": each auxiliary fact record (labrobfail_data/facts.py)
             self.weights = {d: 1.0 for d in (*Q.DIMENSIONS, "aux")} | {
                 str(k): float(v) for k, v in question_weights.items()
@@ -154,7 +183,8 @@ class Collator:
         if self.weights is None:
             return scale
         dim = Q.dim_of(rec["id"])
-        return self.weights["aux" if Q.is_aux(dim) else dim] * scale
+        balance = self.answer_weights.get(dim, {}).get(rec["answer"], 1.0)
+        return self.weights["aux" if Q.is_aux(dim) else dim] * scale * balance
 
     def add_grounding(self, batch: dict[str, Any], record_ids: list[str]) -> None:
         """`frame_target` (rows, max_frames) and `pair_group` (rows,) for the images of a batch, one per row."""
