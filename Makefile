@@ -4,7 +4,7 @@ PY    := $(VENV)/bin/python
 BIN   := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: install browser vulkan demo demo-online reproduce reproduce-rows ablate reproduce-online recovery recovery-scripted tower sim20k lint test test-fast bench clean
+.PHONY: install browser vulkan demo demo-bench demo-supervise demo-diagnosis demo-online reproduce reproduce-rows ablate reproduce-online recovery recovery-scripted tower sim20k lint test test-fast bench clean
 APT_STAMP := $(VENV)/.apt-stamp
 VULKAN_STAMP := $(VENV)/.vulkan-stamp
 BACKPORTS := /etc/apt/sources.list.d/bookworm-backports.sources
@@ -56,7 +56,7 @@ vulkan: $(VULKAN_STAMP)
 # tokens) -> the tiny Qwen3-VL on the shipped sim-pretrained tower (preset tiny: the tower and merger frozen, the
 # decoder trained from scratch on packed rows, pair batches, detection first) -> the bench with majority/blind baselines -> the model as the supervisor of a
 # scripted policy in its world (25 place trials, one review once the policy stops) -> one failure diagnosed (Q6
-# from the strategy table). About 8.5 minutes on this project's 2-core machines after the install.
+# from the strategy table). About 8 minutes on this project's 2-core machines after the install (8 min 16 s on 1 Dec).
 DEMO_EPISODES ?= 400
 # DEMO_EPOCHS: chosen on the demo's val split, 14 over 10 and 16 (docs/EXPERIMENTS.md, 2026-12-01 late night)
 DEMO_EPOCHS   ?= 14
@@ -69,10 +69,23 @@ demo: $(STAMP)
 	$(PY) scripts/render_strips.py shards=outputs/demo_shards out=outputs/demo_strips
 	$(BIN)/labrobfail-build-dataset shards=outputs/demo_shards out_dir=outputs/demo_dataset $(DEMO_GRID)
 	$(BIN)/labrobfail-train preset=tiny dataset_dir=outputs/demo_dataset output_dir=outputs/demo_train epochs=$(DEMO_EPOCHS)
-	$(BIN)/labrobfail-evaluate model=outputs/demo_train/final dataset_dir=outputs/demo_dataset split=test
-	$(BIN)/labrobfail-supervise policy=scripted supervisor=vlm vlm.model=outputs/demo_train/final task=place \
-	  trials=25 loop.query_every=-1 out_dir=outputs/demo_supervise progress=false $(DEMO_WORLD)
-	$(PY) scripts/demo_diagnosis.py dataset=outputs/demo_dataset model=outputs/demo_train/final
+	$(MAKE) --no-print-directory -j2 -O demo-bench demo-supervise demo-diagnosis DEMO_THREADS=1
+
+# make demo's last steps, each usable alone on its model. Inside make demo two run at a time with one thread each
+# (the diagnosis takes the bench's core when the bench ends; -O prints each one's output whole when it ends): 54 s
+# for the three against about 92 s one after the other with torch's two threads, the same tables and diagnosis
+# (docs/EXPERIMENTS.md, 2026-12-01 night).
+DEMO_THREADS ?= 2
+demo-diagnosis: $(STAMP)
+	OMP_NUM_THREADS=$(DEMO_THREADS) $(PY) scripts/demo_diagnosis.py dataset=outputs/demo_dataset \
+	  model=outputs/demo_train/final
+demo-bench: $(STAMP)
+	OMP_NUM_THREADS=$(DEMO_THREADS) $(BIN)/labrobfail-evaluate model=outputs/demo_train/final \
+	  dataset_dir=outputs/demo_dataset split=test progress=false
+demo-supervise: $(STAMP)
+	OMP_NUM_THREADS=$(DEMO_THREADS) $(BIN)/labrobfail-supervise policy=scripted supervisor=vlm \
+	  vlm.model=outputs/demo_train/final task=place trials=25 loop.query_every=-1 out_dir=outputs/demo_supervise \
+	  progress=false $(DEMO_WORLD)
 
 # After `make demo`: its model taught to supervise a running trajectory (docs/EXPERIMENTS.md, 2026-11-23 "With Q5 and Q6 on prefix grids ...").
 # A third stage on prefix grids (one per trajectory, twins cut at the same keyframes, each asked Q2, Q3, Q5 and
