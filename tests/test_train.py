@@ -92,7 +92,7 @@ def test_answer_balance_evens_out_the_answers_of_a_question(tiny):
     from labrobfail_vlm.train.data import Collator, answer_balance
 
     def rec(i: int, dim: str, answer: str) -> dict:
-        return {"id": f"seen-ep{i:07d}_{dim}", "conversations": [{"value": "q"}, {"value": answer}]}
+        return {"id": f"seen-ep{i:07d}_{dim}", "question": "q", "answer": answer}
 
     severities = ["2"] * 6 + ["3"] * 3 + ["1"]  # six Dangerous, three Fatal, one Risk
     raw = [rec(i, "Q4", a) for i, a in enumerate(severities)] + [rec(0, "Q2", "Yes"), rec(1, "Q2", "No")]

@@ -279,8 +279,7 @@ def _build_trainer(
         *([DetectFirst(rewording, detect)] if rewording is not None and detect else []),
     ]
     grounding, targets = _grounding(cfg, model, grid)
-    raw = train.records.records if cfg.packing else train.records
-    balance = answer_balance(raw, dict(cfg.loss.get("balance") or {}))
+    balance = answer_balance(train.records if cfg.packing else train, dict(cfg.loss.get("balance") or {}))
     trainer = HybridTrainer(
         model=model,
         args=args,

@@ -112,11 +112,12 @@ def pack_rows(rows: list[dict[str, Any]], pad_id: int) -> dict[str, torch.Tensor
     }
 
 
-def answer_balance(records: list[dict[str, Any]], exponents: dict[str, float]) -> dict[str, dict[str, float]]:
+def answer_balance(records: Any, exponents: dict[str, float]) -> dict[str, dict[str, float]]:
     """Per question named in `exponents`, a weight per answer that evens out its answer frequencies in `records`
-    (a split's raw records): count ** -p, scaled so that the question's records keep a mean weight of 1. p = 0
-    changes nothing; p = 1 gives every answer the same total weight. For a closed-set question whose majority
-    answer a small model learns to give whatever it sees (Q4, severity: most failures are Dangerous)."""
+    (a VQADataset, or any sequence of its items: the same `answer` the Collator weighs): count ** -p, scaled so
+    that the question's records keep a mean weight of 1. p = 0 changes nothing; p = 1 gives every answer the same
+    total weight. For a closed-set question whose majority answer a small model learns to give whatever it sees
+    (Q4, severity: most failures are Dangerous)."""
     bad = {k: v for k, v in exponents.items() if k not in Q.DIMENSIONS or not 0.0 <= float(v) <= 1.0}
     if bad:
         raise ConfigError(
@@ -126,7 +127,8 @@ def answer_balance(records: list[dict[str, Any]], exponents: dict[str, float]) -
     for dim, p in exponents.items():
         if float(p) == 0.0:
             continue
-        counts = Counter(r["conversations"][-1]["value"] for r in records if Q.dim_of(r["id"]) == dim)
+        items = (records[i] for i in range(len(records)))
+        counts = Counter(r["answer"] for r in items if Q.dim_of(r["id"]) == dim)
         if not counts:
             raise ConfigError(f"loss.balance: the training split has no {dim} records")
         raw = {a: c ** -float(p) for a, c in counts.items()}
