@@ -17,6 +17,11 @@ successes for the bound: the threshold is +inf and the alarm never fires (say so
 What it does not promise: anything on a success that is not exchangeable with the calibration set (a new scene, a
 new policy, another camera: recalibrate there), any detection rate or latency on failures (those are measured),
 nor a per-keyframe rate: the bound is per trajectory.
+
+Several monitors (the VLM and a detector on the robot's own signals, as Sentinel pairs a cheap statistical
+detector with a VLM) share one bound through `AnyAlarm`: each is calibrated at alpha / m on the same successes and
+the pair fires at the first keyframe either fires, so by the union bound P(it fires on a new success) <= alpha
+(Bonferroni; conservative where the monitors fire on the same successes).
 """
 
 from __future__ import annotations
@@ -82,3 +87,29 @@ class Alarm:
             "threshold": None if math.isinf(self.threshold) else self.threshold,
             "n_calibration": self.n_calibration,
         }
+
+
+@dataclass(frozen=True)
+class AnyAlarm:
+    """m monitors' alarms, each calibrated at alpha / m: `fires(per_monitor_scores)` gives the first keyframe at which
+    any of them fires, or None. With one monitor it is that monitor's Alarm at alpha."""
+
+    alarms: tuple[Alarm, ...]
+
+    @classmethod
+    def calibrate(cls, success_scores: Sequence[Sequence[Sequence[float]]], alpha: float) -> "AnyAlarm":
+        """`success_scores[i]`: monitor i's per-keyframe scores of the calibration successes (the same successes)."""
+        if not success_scores or len({len(s) for s in success_scores}) != 1:
+            raise ValueError("alarm: every monitor needs the scores of the same calibration successes")
+        return cls(tuple(Alarm.calibrate(s, alpha / len(success_scores)) for s in success_scores))
+
+    def fires(self, scores: Sequence[Sequence[float]]) -> int | None:
+        hits = [f for a, s in zip(self.alarms, scores, strict=True) if (f := a.fires(s)) is not None]
+        return min(hits) if hits else None
+
+    def to_dict(self) -> dict[str, float | int | None | list[float | None]]:
+        if len(self.alarms) == 1:
+            return self.alarms[0].to_dict()
+        ths = [a.to_dict()["threshold"] for a in self.alarms]
+        n = self.alarms[0].n_calibration
+        return {"alpha": sum(a.alpha for a in self.alarms), "thresholds": ths, "n_calibration": n}

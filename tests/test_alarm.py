@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from labrobfail_vlm.alarm import Alarm, conformal_threshold, first_alarm, min_calibration
+from labrobfail_vlm.alarm import Alarm, AnyAlarm, conformal_threshold, first_alarm, min_calibration
 from sim_backends.supervision.paired import difference_ci, mcnemar_exact, paired_cell
 
 
@@ -40,6 +40,31 @@ def test_false_alarm_rate_on_new_successes_is_within_the_bound(alpha):
         rates.append(np.mean([alarm.fires(s) is not None for s in _successes(rng, 100)]))
     mean, se = float(np.mean(rates)), float(np.std(rates) / np.sqrt(len(rates)))
     assert alpha - 1 / (n + 1) - 3 * se <= mean <= alpha + 3 * se, (alpha, n, mean, se)
+
+
+def test_two_monitors_share_one_bound_and_the_pair_fires_at_the_earlier_alarm():
+    """Each monitor is calibrated at alpha / 2 on the same successes: on new successes the pair fires on at most
+    alpha of them (union bound; independent monitors come close to it), and on a trajectory it fires at the first
+    keyframe either fires. One monitor is that monitor's own Alarm at alpha."""
+    rng = np.random.default_rng(7)
+    alpha, n = 0.1, 60
+    rates = []
+    for _ in range(300):
+        pair = AnyAlarm.calibrate([_successes(rng, n), _successes(rng, n)], alpha)
+        assert [a.alpha for a in pair.alarms] == [alpha / 2, alpha / 2]
+        new = zip(_successes(rng, 100), _successes(rng, 100))
+        rates.append(np.mean([pair.fires(s) is not None for s in new]))
+    mean, se = float(np.mean(rates)), float(np.std(rates) / np.sqrt(len(rates)))
+    assert alpha - 2 / (n + 1) - 3 * se <= mean <= alpha + 3 * se, (mean, se)
+    pair = AnyAlarm((Alarm(0.05, 0.5, 40), Alarm(0.05, 0.8, 40)))
+    assert pair.fires([[0.1, 0.2, 0.6, 0.9], [0.1, 0.9, 0.1, 0.1]]) == 1  # the second monitor fires first
+    assert pair.fires([[0.1, 0.2, 0.6, 0.9], [0.1, 0.1, 0.1, 0.1]]) == 2
+    assert pair.fires([[0.1, 0.2], [0.3, 0.4]]) is None
+    assert pair.to_dict() == {"alpha": 0.1, "thresholds": [0.5, 0.8], "n_calibration": 40}
+    one = _successes(rng, n)
+    assert AnyAlarm.calibrate([one], alpha).alarms == (Alarm.calibrate(one, alpha),)
+    with pytest.raises(ValueError, match="same calibration successes"):
+        AnyAlarm.calibrate([one, one[:-1]], alpha)
 
 
 def test_mcnemar_and_the_difference_interval_on_known_tables():

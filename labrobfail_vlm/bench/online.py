@@ -19,7 +19,9 @@ successes only (split conformal: at most alpha of new exchangeable successes rai
   caught before it;
 - rows: the model, the majority class (never alarms), the blind model (grey prefix grids: one score per k for
   every trajectory), a non-VLM baseline on the robot's own signals (robot_baseline.py, fitted on the train split),
-  and the labeler on live state (the ceiling: it alarms at the onset frame, never on a success);
+  the model or the MLP (Sentinel's pairing of a cheap detector with a VLM: either alarm, each calibrated at
+  alpha / 2, so the pair keeps the bound; alarm.AnyAlarm), and the labeler on live state (the ceiling: it alarms
+  at the onset frame, never on a success);
 - the CPU time of one alarm check (one prefix grid's Q2).
 Writes out_dir/online.json and out_dir/auroc_by_keyframe.png (out_dir: MODEL/eval_online_SPLIT by default).
 """
@@ -34,7 +36,7 @@ from typing import Any, Sequence
 import numpy as np
 from PIL import Image
 
-from labrobfail_vlm.alarm import Alarm
+from labrobfail_vlm.alarm import AnyAlarm
 from labrobfail_vlm.bench import robot_baseline
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import BLANK, GridConfig
@@ -42,6 +44,7 @@ from labrobfail_vlm.grid import BLANK, GridConfig
 ALPHAS = (0.01, 0.05, 0.1, 0.2)
 LABELER = "labeler on live state (ceiling)"
 ROBOT = "robot signals (MLP)"
+EITHER = "model or robot signals (alpha/2 each)"
 
 
 def prefix_grid(grid: Image.Image, cfg: GridConfig, views: int, k: int) -> Image.Image:
@@ -95,14 +98,18 @@ def score_prefixes(
 
 
 def alarm_rows(
-    cal: list[list[float]], cal_trajs: Sequence[dict[str, Any]], ev: list[list[float]], ev_trajs: Sequence[dict]
+    cal: Sequence[list[list[float]]],
+    cal_trajs: Sequence[dict[str, Any]],
+    ev: Sequence[list[list[float]]],
+    ev_trajs: Sequence[dict],
 ) -> dict[str, Any]:
-    """Per alpha: the calibrated threshold, false alarms on successes, detection and latency on failures."""
-    succ = [s for s, t in zip(cal, cal_trajs) if t["success"]]
+    """Per alpha: the calibrated threshold(s), false alarms on successes, detection and latency on failures.
+    `cal`, `ev`: one or more monitors' running scores per trajectory; several share alpha (alarm.AnyAlarm)."""
+    succ = [[s for s, t in zip(c, cal_trajs) if t["success"]] for c in cal]
     out: dict[str, Any] = {}
     for alpha in ALPHAS:
-        alarm = Alarm.calibrate(succ, alpha)
-        fired = [alarm.fires(s) for s in ev]
+        alarm = AnyAlarm.calibrate(succ, alpha)
+        fired = [alarm.fires(s) for s in zip(*ev)]
         ok = [f for f, t in zip(fired, ev_trajs) if t["success"]]
         lat = [f + 1 - int(t["frame"]) for f, t in zip(fired, ev_trajs) if not t["success"] and f is not None]
         fails = sum(not t["success"] for t in ev_trajs)
@@ -246,9 +253,9 @@ def run_online(cfg: Any, fa: Any, out_dir: Path) -> dict[str, Any]:
     bev, _ = score_prefixes(fa, dataset, ev_t, grid, blind=True)
     never = [[0.0] * len(s) for s in ev]
     rows = {
-        "model": alarm_rows(cal, cal_t, ev, ev_t),
+        "model": alarm_rows([cal], cal_t, [ev], ev_t),
         "majority class": {str(a): {"false_alarm_rate": 0.0, "detection_rate": 0.0} for a in ALPHAS},
-        "blind (grey grid)": alarm_rows(bcal, cal_t, bev, ev_t),
+        "blind (grey grid)": alarm_rows([bcal], cal_t, [bev], ev_t),
     }
     curves = {"model": auroc_by_keyframe(ev, ev_t), "blind (grey grid)": auroc_by_keyframe(bev, ev_t)}
     train_t = [t for t in json.loads((dataset / "trajectories.json").read_text()) if t.get("split") == "train"]
@@ -256,7 +263,8 @@ def run_online(cfg: Any, fa: Any, out_dir: Path) -> dict[str, Any]:
     if "train" not in (cfg.calibration, cfg.split) and robot_baseline.has_signals([*train_t, *cal_t, *ev_t]):
         fitted = robot_baseline.fit(train_t)
         rcal, rev = robot_baseline.score(fitted, cal_t), robot_baseline.score(fitted, ev_t)
-        rows[ROBOT] = alarm_rows(rcal, cal_t, rev, ev_t)
+        rows[ROBOT] = alarm_rows([rcal], cal_t, [rev], ev_t)
+        rows[EITHER] = alarm_rows([cal, rcal], cal_t, [ev, rev], ev_t)  # Sentinel's pairing, one shared bound
         curves[ROBOT] = auroc_by_keyframe(rev, ev_t)
     rows[LABELER] = ceiling(ev_t)
     res = {
