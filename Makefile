@@ -191,9 +191,10 @@ reproduce-online: $(STAMP)
 # (the 25-trial table of 28 Nov asked `make reproduce-online`'s model at every keyframe, except the ACT pour cell).
 # The scripted cells: `make recovery-scripted` alone, 8.6 min on 2 cores for 3 x 100 pairs (29 Nov). The ACT cells:
 # an ACT policy trained here per task (pick and place: 120 scripted demos, 5,700 steps on one thread, about 8
-# minutes alone: a step count, not a clock, ends it, so the same seed gives the same ACT whatever else the machine
-# runs; pour: 480 + 120 regrasp demos, about 33 + 40 min; kept when it exists), then 100 pairs per task: about 6
-# min for pick and 27 for place alone (29 Nov); out: $(R)/recovery/<policy>/, results.md is the table.
+# minutes alone, 28 beside a training run: a step count, not a clock, ends it, and the 60-minute cap is a safety
+# that warns when it cuts a run short, so the same seed gives the same ACT whatever else the machine runs; pour:
+# 480 + 120 regrasp demos, about 33 + 40 min; kept when it exists), then 100 pairs per task: about 6 min for pick
+# and 27 for place alone (29 Nov); out: $(R)/recovery/<policy>/, results.md is the table.
 RECOVERY_TRIALS ?= 100
 RECOVERY_SEED ?= 20000
 RECOVERY_RUN = trials=$(RECOVERY_TRIALS) seed=$(RECOVERY_SEED) progress=false loop.query_every=-1
@@ -204,7 +205,7 @@ VLM ?= $(R)/train/final
 # and tilts, the chunks run open loop (no temporal ensembling), and chunks past a demonstration's end taught to hold
 # its last target, so the ACT stops when done instead of undoing its pour (docs/EXPERIMENTS.md, 28 Nov: 1/25 ->
 # 2/25). Its own folder, so a pour ACT of an older recipe left in $(R)/act is never mistaken for it.
-ACT_pick := demos=120 train.steps=5700 train.max_minutes=30 train.threads=1
+ACT_pick := demos=120 train.steps=5700 train.max_minutes=60 train.threads=1
 ACT_place := $(ACT_pick)
 ACT_pour := demos=480 regrasp_demos=120 miss=0.08 'model.cameras=[front,wrist]' model.image_size=96 noise=0.03 \
   carry_noise=0.03 model.keypoints=32 model.aux_weight=1.0 model.temporal_ensemble_coeff=null train.lr=5e-4 \

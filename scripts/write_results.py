@@ -244,7 +244,8 @@ ONLINE_GUARANTEE = (
     "object set (val_both below is one), and no detection rate or latency: those are measured. Latency is from "
     "the failure's onset in simulator state (negative: the alarm came first); an irreversible event is a spill, "
     "a fall, glassware moving fast enough to break or, in data generated from 1 Dec, an object pushed out of the "
-    "arm's reach."
+    "arm's reach. The row pairing the model with the robot-signal MLP alarms when either does, each set at "
+    "alpha / 2 on the same successes: the pair keeps the same bound (a union bound)."
 )
 
 

@@ -424,6 +424,13 @@ def test_a_killed_act_training_resumes_and_ends_as_an_uninterrupted_one(tmp_path
         r = run_here([*cmd(cut, "resume=true"), *extra])  # refusals: in the test's process (resume ran as one)
         assert r.returncode == 2 and "Traceback" not in r.stderr
         assert r.stderr.strip().splitlines()[-1].startswith("error: resume:") and what in r.stderr
+    # a clock that runs out before the step count ends the run with a warning that names the step it reached
+    short = tmp_path / "short"
+    short.mkdir()
+    shutil.copy(full / "demos.npz", short / "demos.npz")
+    r = run_here(cmd(short, "train.max_minutes=0.000001"))
+    assert r.returncode == 0 and json.loads(r.stdout.strip().splitlines()[-1])["steps"] < 150, r.stderr
+    assert "warning: train.max_minutes ran out at step" in r.stderr and "of 150" in r.stderr, r.stderr
 
 
 def test_dart_demonstrations_drift_off_the_line_and_are_labelled_back_onto_it():

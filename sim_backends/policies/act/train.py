@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -293,6 +294,12 @@ def train(cfg: DictConfig, family: Any) -> dict[str, Any]:
     step0 = r.step
     t0, budget = time.perf_counter() - r.done_s, float(t.max_minutes) * 60
     _optimise(r, t, t0, budget, bool(cfg.progress))
+    if r.step < int(t.steps):  # a busy machine can run out the clock: this ACT is not the step count's
+        tqdm.write(
+            f"warning: train.max_minutes ran out at step {r.step} of {int(t.steps)}; this ACT differs from a full "
+            "run's (resume=true with a larger train.max_minutes finishes it)",
+            file=sys.stderr,
+        )
     save_checkpoint(model.eval(), model_cfg, out / "final")
     summary = {
         "task": family.name,
