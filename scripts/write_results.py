@@ -126,6 +126,13 @@ def _section(name: str, body: list[str], made_on: Path | None = None) -> list[st
     ]
 
 
+def _absent_line(part: list[str]) -> list[str]:
+    """The whole page's line naming the sections it lacks: written after the last section present, so a splice
+    of that section must carry it."""
+    names = [heading.removeprefix("## ") + " (`" for heading, _, _ in SECTIONS.values()]
+    return [line for line in part if line.startswith("Not run for this page: ") and any(n in line for n in names)]
+
+
 def splice(run: Path, out: Path, names: list[str]) -> int:
     """Replace the named sections of the existing page with this run's, leaving every other line as it was."""
     unknown = sorted(set(names) - set(SECTIONS))
@@ -156,7 +163,8 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
             at = next((i for i, p in enumerate(parts) if any(p[0].startswith(h) for h in later)), len(parts))
             parts.insert(at, new)
         else:
-            parts[at] = new
+            kept = _absent_line(parts[at])
+            parts[at] = new + ([*kept, ""] if kept else [])
     from labrobfail_vlm.io import atomic_write_bytes
 
     atomic_write_bytes(out, ("\n".join(line for p in parts for line in p) + "\n").encode())

@@ -169,7 +169,9 @@ def test_a_recovery_table_alone_replaces_the_pages_and_keeps_its_online_table(tm
     from scripts.write_results import main
 
     page, run = tmp_path / "RESULTS.md", tmp_path / "run"
-    page.write_text(PAGE)
+    row = "| pick | scripted | 6/25 | 23/25 | +68 | yes | 19 | 0 |\n"
+    absent = "Not run for this page: Ablation (the paper's table, seen split) (`ablate/tuned`)."
+    page.write_text(PAGE.replace(row, f"{row}\n{absent}\n"))  # where the whole page puts it: in its last section
     (run / "dataset").mkdir(parents=True)
     (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
     _results(run / "recovery" / "scripted" / "results.json", "scripted", {"pick": (6, 25)})
@@ -179,6 +181,7 @@ def test_a_recovery_table_alone_replaces_the_pages_and_keeps_its_online_table(tm
     section, tail = rest.split("## Paper-comparable tables\n")
     assert head == PAGE.split("## Supervision\n")[0] and tail == PAGE.split("## Paper-comparable tables\n")[1]
     assert "| seen, whole | 81.1 [78.3, 83.7] |" in section and "as the page had it" in section
+    assert section.count(absent) == 1  # the page's line on the sections it lacks survives the splice
     assert "| pick | scripted | 6/25 | 25/25 | +76 | yes | [+51.7, +89.1] | 3.81e-06 | 0/6 | 3 | 1 |" in section
     assert "23/25" not in section
     assert main([f"run={run}", f"out={page}", "sections=[supervision]"]) == 0
