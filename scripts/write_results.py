@@ -126,11 +126,19 @@ def _section(name: str, body: list[str], made_on: Path | None = None) -> list[st
     ]
 
 
+NOT_RUN = "Not run for this page: "
+
+
+def _absent(name: str) -> str:
+    """How the page names a section of SECTIONS it lacks: its heading and the run folders that would feed it."""
+    heading, _, folders = SECTIONS[name]
+    return f"{heading.removeprefix('## ')} (`{'`, `'.join(folders)}`)"
+
+
 def _absent_line(part: list[str]) -> list[str]:
     """The whole page's line naming the sections it lacks: written after the last section present, so a splice
     of that section must carry it."""
-    names = [heading.removeprefix("## ") + " (`" for heading, _, _ in SECTIONS.values()]
-    return [line for line in part if line.startswith("Not run for this page: ") and any(n in line for n in names)]
+    return [line for line in part if line.startswith(NOT_RUN) and any(_absent(n) in line for n in SECTIONS)]
 
 
 def splice(run: Path, out: Path, names: list[str]) -> int:
@@ -203,7 +211,7 @@ def rows_table(run: Path, shipped: str | None = None) -> list[str]:
 
 def _not_run(missing: list[str]) -> list[str]:
     """The closing line of a table that names the runs it lacks (`make reproduce-rows` / `make ablate` steps)."""
-    return ["", "Not run for this page: " + "; ".join(missing) + "."] if missing else []
+    return ["", NOT_RUN + "; ".join(missing) + "."] if missing else []
 
 
 def ablation_table(run: Path, frozen_cells: list[str] | None = None) -> list[str]:
@@ -459,9 +467,9 @@ def main(argv: list[str]) -> int:
         if body:
             lines += _section(name, body)
         else:
-            absent.append(f"{SECTIONS[name][0].removeprefix('## ')} (`{'`, `'.join(SECTIONS[name][2])}`)")
+            absent.append(_absent(name))
     if absent:  # say what this page lacks rather than leave a reader to notice a missing section
-        lines += ["Not run for this page: " + "; ".join(absent) + ".", ""]
+        lines += [NOT_RUN + "; ".join(absent) + ".", ""]
     lines += sealed_section(run)
     lines += paper_tables(evals)
     lines += detection_section(run, out, evals)

@@ -170,7 +170,10 @@ def test_a_recovery_table_alone_replaces_the_pages_and_keeps_its_online_table(tm
 
     page, run = tmp_path / "RESULTS.md", tmp_path / "run"
     row = "| pick | scripted | 6/25 | 23/25 | +68 | yes | 19 | 0 |\n"
-    absent = "Not run for this page: Ablation (the paper's table, seen split) (`ablate/tuned`)."
+    absent = (
+        "Not run for this page: Ablation (the paper's table, seen split) (`ablate/tuned`, `ablate/frozen`, "
+        "`ablate/no_index`)."
+    )
     page.write_text(PAGE.replace(row, f"{row}\n{absent}\n"))  # where the whole page puts it: in its last section
     (run / "dataset").mkdir(parents=True)
     (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
