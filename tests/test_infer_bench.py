@@ -225,6 +225,50 @@ def test_evaluate_model_and_predictions_file(tiny, small_ds, tmp_path):  # noqa:
     assert r.returncode == 2 and "no such directory" in r.stderr and not (tmp_path / "gone").exists()
 
 
+def test_accuracy_threshold_is_the_best_cut_and_ties_go_to_one_half():
+    from labrobfail_vlm.bench.detection import accuracy_threshold
+
+    assert accuracy_threshold([False, False, True, True], [0.1, 0.6, 0.7, 0.9]) == pytest.approx(0.65)
+    assert accuracy_threshold([True, True, False], [0.2, 0.3, 0.1]) == pytest.approx(0.15)
+    assert accuracy_threshold([False, True], [0.2, 0.8]) == 0.5  # every cut between them is as good: the argmax
+    assert accuracy_threshold([False, False], [0.3, 0.3]) == 0.5
+    with pytest.raises(ValueError, match="no scored"):
+        accuracy_threshold([], [])
+
+
+def test_evaluate_at_the_operating_point_chosen_on_val(tiny, small_ds, tmp_path):  # noqa: F811
+    from labrobfail_vlm.bench import evaluate as ev
+
+    model = tmp_path / "m"  # the tiny model, with a seen-val bench of its own written below
+    model.mkdir()
+    for f in tiny.iterdir():
+        (model / f.name).symlink_to(f)
+    fast = ("split=test", "baselines=[]", "q6_template=false", "progress=false")
+    for arg, needle in (
+        ("threshold=val", "eval_val/predictions.jsonl not found"),
+        ("threshold=1.5", "threshold: expected a number between 0 and 1"),
+    ):
+        r = evaluate(f"model={model}", small_ds, arg, *fast, call=run_here)
+        assert r.returncode == 2 and needle in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    r = evaluate(f"predictions={tmp_path / 'x.jsonl'}", small_ds, "threshold=0.3", call=run_here)
+    assert r.returncode == 2 and "only a model or endpoint run" in r.stderr
+    assert not [p for p in model.iterdir() if p.name.startswith("eval_test")]  # refused before writing
+    _, val = ev.load_split(small_ds, "val")
+    assert {i["success"] for i in val.values()} == {True, False}, "the fixture's val split needs both outcomes"
+    lines = [{"id": f"{t}_Q2", "prediction": "", "p_failure": 0.1 if i["success"] else 0.3} for t, i in val.items()]
+    (model / "eval_val").mkdir()
+    (model / "eval_val" / "predictions.jsonl").write_text("".join(json.dumps(x) + "\n" for x in lines))
+    r = evaluate(f"model={model}", small_ds, "threshold=val", *fast, call=run_here)
+    assert r.returncode == 0, r.stderr[-2000:]
+    res = json.loads((model / "eval_test_opval" / "results.json").read_text())
+    assert res["threshold"] == pytest.approx(0.2) and res["threshold_chosen_on"] == "val"
+    recs, _ = ev.load_split(small_ds, "test")  # every verdict is P(failure) >= 0.2, whichever way Q2 is asked
+    asked = {r["id"]: r["conversations"][0]["value"] for r in recs if r["id"].endswith("_Q2")}
+    out = [json.loads(x) for x in (model / "eval_test_opval" / "predictions.jsonl").read_text().splitlines()]
+    q2 = [x for x in out if x["id"] in asked]
+    assert q2 and all(x["prediction"] == ev.q2_as_asked(asked[x["id"]], x["p_failure"] >= 0.2) for x in q2)
+
+
 def _q6_prefix(fa, img, task):
     prompts = {"Q6": fa._prompt("Q6", task)}
     return next(fa._prefixes(img, prompts))[1]
@@ -365,6 +409,27 @@ def test_failure_only_scores_a_none_for_every_failure_as_wrong(small_ds, tmp_pat
     assert res["detection"]["score"] == "hard" and res["detection"]["auroc"] == 1.0  # gold Q2 ranks perfectly
     maj = res["baselines"]["majority class"]["failure_only"]  # the training failures' most frequent answers
     assert maj["q4"] > 0 or maj["q5"] > 0
+
+
+def test_detected_scores_the_diagnosis_of_the_failures_q2_caught(small_ds):  # noqa: F811
+    """One failure missed by Q2 (and its Q3-Q5 answered None), every other answer gold: the failure-only scores
+    count the miss as wrong, `detected` leaves it out and reads 100."""
+    from labrobfail_vlm import questions as Q
+    from labrobfail_vlm.bench import evaluate as ev
+
+    recs, traj = ev.load_split(small_ds, "train")  # the fixture's split with the most failures
+    failed = sorted({Q.traj_of(r["id"]) for r in ev.failed_records(recs, traj)})
+    assert len(failed) >= 2, "the fixture's train split needs two failures"
+    preds = {r["id"]: r["conversations"][1]["value"] for r in recs}
+    for r in recs:
+        if Q.traj_of(r["id"]) == failed[0]:
+            d, q = Q.dim_of(r["id"]), r["conversations"][0]["value"]
+            preds[r["id"]] = ev.q2_as_asked(q, failed=False) if d == "Q2" else preds[r["id"]] if d == "Q1" else "None"
+    res = ev.score(recs, preds, traj)
+    fo, det = res["failure_only"], res["failure_only"]["detected"]
+    assert fo["trajectories"] == len(failed) and det["trajectories"] == len(failed) - 1
+    assert fo["q4"] < 100 and det["q3"] == det["q4"] == det["q5"] == 100 and det["q6"]["rougeL"] == 1.0
+    assert ev.called_failed(recs, preds) == set(failed[1:])
 
 
 # ---- argument hygiene (issue 33): refused before inference, nothing left behind ------------------------------

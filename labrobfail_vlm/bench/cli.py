@@ -7,6 +7,7 @@ Run as:
     labrobfail-evaluate model=DIR dataset_dir=DIR external.enabled=true external.model=gpt-4o
     labrobfail-evaluate endpoint=http://127.0.0.1:8000/v1 dataset_dir=outputs/dataset split=test
     labrobfail-evaluate model=DIR dataset_dir=DIR batch_size=16      # grids decoded together
+    labrobfail-evaluate model=DIR dataset_dir=DIR split=val_both threshold=val   # Q2's operating point chosen on val
     labrobfail-evaluate model=DIR dataset_dir=DIR executable.enabled=true executable.shards=SHARDS_DIR
 
 results.json: q1..q5 (top-1 %, Q1 exact ordered list, Q3 exact frame), q3_within1, q6 {bleu1..bleu4
@@ -38,6 +39,18 @@ def _check_args(cfg: Any) -> None:
         raise ConfigError(f"mode: expected offline or online, got {cfg.mode!r}")
     if not isinstance(cfg.batch_size, int) or cfg.batch_size < 1:
         raise ConfigError(f"batch_size: expected a positive integer, got {cfg.batch_size!r}")
+    if cfg.threshold != 0.5:
+        from labrobfail_vlm.analyzer import check_threshold
+
+        try:
+            if cfg.threshold != "val":
+                check_threshold(cfg.threshold)
+        except ValueError as e:
+            raise ConfigError(f"{e} or val") from None
+        if cfg.predictions is not None or cfg.mode == "online":
+            raise ConfigError("threshold: only a model or endpoint run has an operating point (offline mode)")
+        if cfg.threshold == "val" and cfg.model is None:
+            raise ConfigError("threshold=val: needs model= (it reads <model>/eval_val/predictions.jsonl)")
     if cfg.model is not None and not Path(cfg.model).is_dir():  # before anything is written
         raise ConfigError(f"model: no such directory {cfg.model!r}")
     if cfg.predictions is not None:  # a folder or an unreadable file is refused before the output folder is made
@@ -50,13 +63,31 @@ def _check_args(cfg: Any) -> None:
             ) from None
 
 
+def val_threshold(model: str | Path, dataset_dir: str | Path) -> float:
+    """The operating point with the best Q2 accuracy on the model's own seen-val bench (its predictions.jsonl)."""
+    from labrobfail_vlm.bench import evaluate as ev
+    from labrobfail_vlm.bench.detection import accuracy_threshold
+
+    f = Path(model) / "eval_val" / "predictions.jsonl"
+    if not f.is_file():
+        raise ConfigError(f"threshold=val: {f} not found (run labrobfail-evaluate split=val with threshold=0.5 first)")
+    p = ev.read_predictions(f).p_failure
+    _, traj = ev.load_split(dataset_dir, "val")
+    ids = [t for t in traj if t in p]
+    if not ids:
+        raise ConfigError(f"threshold=val: {f} scores no trajectory of {dataset_dir}'s val split")
+    return accuracy_threshold([not traj[t].get("success", True) for t in ids], [p[t] for t in ids])
+
+
 def _out_dir(cfg: Any) -> Path:
-    """The output folder (made): out_dir, or eval_<split> beside the model or predictions file."""
+    """The output folder (made): out_dir, or eval_<split> beside the model or predictions file (eval_<split>_opval
+    at the operating point chosen on val, eval_<split>_t<threshold> at another given one)."""
+    op = "" if cfg.threshold == 0.5 else "_opval" if cfg.threshold == "val" else f"_t{cfg.threshold}"
     if cfg.endpoint is not None:
-        out = Path(cfg.out_dir or Path("outputs") / f"eval_endpoint_{cfg.split}")
+        out = Path(cfg.out_dir or Path("outputs") / f"eval_endpoint_{cfg.split}{op}")
     else:
         src = Path(cfg.model or cfg.predictions)
-        out = Path(cfg.out_dir or (src if src.is_dir() else src.parent) / f"eval_{cfg.split}")
+        out = Path(cfg.out_dir or (src if src.is_dir() else src.parent) / f"eval_{cfg.split}{op}")
     out.mkdir(parents=True, exist_ok=True)
     return out
 
@@ -81,16 +112,18 @@ def _load_analyzer(cfg: Any) -> tuple[Any, str]:
 
 
 def _predict(
-    cfg: Any, recs: list[dict], traj: dict[str, dict], results: dict[str, dict]
+    cfg: Any, recs: list[dict], traj: dict[str, dict], results: dict[str, dict], threshold: float = 0.5
 ) -> tuple[Any, str, Any, dict[str, str]]:
-    """Run the model or endpoint, or read the predictions file: (analyzer or None, row name, predictions, Q6
-    template predictions). A template run's scores go into `results` under "<name>, Q6 template"."""
+    """Run the model or endpoint at the Q2 operating point `threshold`, or read the predictions file: (analyzer or
+    None, row name, predictions, Q6 template predictions). A template run's scores go into `results` under
+    "<name>, Q6 template"."""
     from labrobfail_vlm.bench import evaluate as ev
 
     tmpl: dict[str, str] = {}  # Q6 in template mode (model and endpoint runs)
     if cfg.model is None and cfg.endpoint is None:
         return None, Path(cfg.predictions).stem, ev.read_predictions(cfg.predictions), tmpl
     analyzer, name = _load_analyzer(cfg)
+    analyzer.threshold = threshold
     preds = ev.model_predictions(
         analyzer, cfg.dataset_dir, recs, traj, progress=cfg.progress, batch_size=cfg.batch_size
     )
@@ -187,7 +220,15 @@ def _score_external(
 def _results_markdown(cfg: Any, recs: list[dict], results: dict[str, dict], name: str) -> str:
     """results.md's tables: paper-comparable rows (with the paper's own), all-trajectory rows and detection."""
     from labrobfail_vlm import questions as Q
-    from labrobfail_vlm.bench.report import PAPER_ROWS, detection_markdown, markdown, paper_row, paper_unseen_row, row
+    from labrobfail_vlm.bench.report import (
+        PAPER_ROWS,
+        detected_markdown,
+        detection_markdown,
+        markdown,
+        paper_row,
+        paper_unseen_row,
+        row,
+    )
 
     fo = results[name]["failure_only"]
     rows = {k: paper_row(v) for k, v in results.items()}
@@ -207,6 +248,7 @@ def _results_markdown(cfg: Any, recs: list[dict], results: dict[str, dict], name
         f"comparable with the paper), {len(recs)} records",
     )
     md += "\n" + detection_markdown(results, "Failure detection as a score: P(failure) for Q2")
+    md += "\n" + detected_markdown(results)
     return md
 
 
@@ -253,10 +295,11 @@ def main(argv: list[str]) -> int:
     if cfg.mode == "online":
         return _online(cfg)
     recs, traj = ev.load_split(cfg.dataset_dir, cfg.split)
+    threshold = val_threshold(cfg.model, cfg.dataset_dir) if cfg.threshold == "val" else float(cfg.threshold)
     out = _out_dir(cfg)
     log_lines: list[str] = []
     results: dict[str, dict] = {}
-    analyzer, name, preds, tmpl = _predict(cfg, recs, traj, results)
+    analyzer, name, preds, tmpl = _predict(cfg, recs, traj, results, threshold)
     _write_predictions(out, preds)
     results = {name: ev.score(recs, preds, traj, log_lines.append), **results}
     _score_baselines(cfg, recs, traj, analyzer, results, log_lines)
@@ -275,6 +318,11 @@ def main(argv: list[str]) -> int:
         **main_res,
         "split": cfg.split,
         "method": name,
+        **(
+            {"threshold": threshold, "threshold_chosen_on": "val" if cfg.threshold == "val" else "given"}
+            if analyzer is not None
+            else {}
+        ),
         "baselines": {k: v for k, v in results.items() if k != name},
     }
     if executable_rows:

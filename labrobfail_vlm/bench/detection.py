@@ -83,3 +83,18 @@ def reliability_png(curves: dict[str, dict[str, Any]], title: str, path: Path) -
     hx.set_xlabel("P(failure)")
     hx.set_ylabel("share")
     save_figure(fig, path, dpi=100)
+
+
+def accuracy_threshold(y: Sequence[bool], p: Sequence[float]) -> float:
+    """The operating point on P(failure) with the best Q2 accuracy on (y, p): "failed" when p >= threshold. The
+    candidates are 0.5 and the midpoints between neighbouring distinct scores (a threshold between two scores
+    scores like any other there); ties go to the candidate nearest 0.5, the decoder's own argmax."""
+    yt, pt = np.asarray(y, dtype=bool), np.asarray(p, dtype=np.float64)
+    if not len(yt):
+        raise ValueError("accuracy_threshold: no scored trajectories")
+    s = np.unique(pt)
+    cands = np.unique(np.concatenate([[0.5], (s[:-1] + s[1:]) / 2]))
+    cands = cands[(cands > 0.0) & (cands < 1.0)]
+    acc = ((pt[None, :] >= cands[:, None]) == yt[None, :]).mean(axis=1)
+    best = np.flatnonzero(acc >= acc.max() - 1e-12)
+    return float(cands[best[np.argmin(np.abs(cands[best] - 0.5))]])

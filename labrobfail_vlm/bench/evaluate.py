@@ -213,6 +213,16 @@ def failed_records(recs: list[dict], traj: dict[str, dict]) -> list[dict]:
     ]
 
 
+def called_failed(recs: list[dict], preds: dict[str, str]) -> set[str]:
+    """The trajectories whose Q2 reply says "failed", in the wording its record asks."""
+    return {
+        Q.traj_of(r["id"])
+        for r in recs
+        if Q.dim_of(r["id"]) == "Q2"
+        and parse("Q2", preds.get(r["id"]) or "") == q2_as_asked(r["conversations"][0]["value"], failed=True)
+    }
+
+
 def detection(recs: list[dict], preds: dict[str, str], traj: dict[str, dict]) -> dict[str, Any] | None:
     """AUROC/AUPRC/ECE of P(failure) over the split's trajectories that are asked Q2 (None when none are).
     Without a probability for a trajectory, its hard Q2 reply is the score (0 or 1)."""
@@ -243,10 +253,15 @@ def score(
     failure_preds: dict[str, str] | None = None,
 ) -> dict[str, Any]:
     """All-trajectory scores (top level), `failure_only` (Q3-Q6 over failed trajectories, from `failure_preds`
-    where a baseline answers failures differently) and `detection` (P(failure) as a score)."""
+    where a baseline answers failures differently; its `detected`: over the failed trajectories that Q2 called
+    failed, which separates diagnosing a failure from finding it) and `detection` (P(failure) as a score)."""
     res = _score(recs, preds, traj, log)
     fails = failed_records(recs, traj)
-    fo = _score(fails, failure_preds if failure_preds is not None else preds, traj) if fails else None
+    fpreds = failure_preds if failure_preds is not None else preds
+    fo = _score(fails, fpreds, traj) if fails else None
+    caught = called_failed(recs, preds)
+    hit = [r for r in fails if Q.traj_of(r["id"]) in caught]
+    dx = _score(hit, fpreds, traj) if hit else None
     res["failure_only"] = {
         "trajectories": len({Q.traj_of(r["id"]) for r in fails}),
         "records": len(fails),
@@ -255,6 +270,10 @@ def score(
             if fo
             else dict.fromkeys(("q3", "q3_within1", "q4", "q5", "q6"))
         ),
+        "detected": {
+            "trajectories": len({Q.traj_of(r["id"]) for r in hit}),
+            **({k: dx[k] for k in ("q3", "q4", "q5", "q6")} if dx else dict.fromkeys(("q3", "q4", "q5", "q6"))),
+        },
     }
     res["detection"] = detection(recs, preds, traj)
     res["scope"] = {"q1-q6": "all trajectories", "failure_only": "Q3-Q6 over failed trajectories (as the paper)"}

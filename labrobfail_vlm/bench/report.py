@@ -76,6 +76,27 @@ def paper_row(res: dict[str, Any]) -> list[float | None]:
     ]
 
 
+def detected_markdown(results: dict[str, dict[str, Any]]) -> str:
+    """Failure-only Q3-Q5 and ROUGE-L over the failures each method's Q2 caught: its diagnosis apart from its
+    recall (a missed failure counts wrong in the paper-comparable row)."""
+    lines = [
+        "### Diagnosis of the failures each method called failed",
+        "",
+        "| Method | failures caught | Q3 | Q4 | Q5 | ROUGE-L |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, res in results.items():
+        d = (res.get("failure_only") or {}).get("detected") or {}
+        if d.get("trajectories"):
+            f = lambda v: "—" if v is None else f"{v:.2f}"  # noqa: E731
+            n_fail = res["failure_only"]["trajectories"]
+            lines.append(
+                f"| {name} | {d['trajectories']} of {n_fail} | {f(d['q3'])} | {f(d['q4'])} | {f(d['q5'])} | "
+                f"{(d.get('q6') or {}).get('rougeL', 0):.4f} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
 def detection_markdown(results: dict[str, dict[str, Any]], title: str) -> str:
     """Q2 as a score: AUROC, AUPRC and ECE of P(failure) per method."""
     lines = [
