@@ -251,7 +251,7 @@ def test_evaluate_at_the_operating_point_chosen_on_val(tiny, small_ds, tmp_path)
         r = evaluate(f"model={model}", small_ds, arg, *fast, call=run_here)
         assert r.returncode == 2 and needle in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     r = evaluate(f"predictions={tmp_path / 'x.jsonl'}", small_ds, "threshold=0.3", call=run_here)
-    assert r.returncode == 2 and "only a model or endpoint run" in r.stderr
+    assert r.returncode == 2 and "only a local model's run" in r.stderr
     assert not [p for p in model.iterdir() if p.name.startswith("eval_test")]  # refused before writing
     _, val = ev.load_split(small_ds, "val")
     assert {i["success"] for i in val.values()} == {True, False}, "the fixture's val split needs both outcomes"

@@ -47,10 +47,8 @@ def _check_args(cfg: Any) -> None:
                 check_threshold(cfg.threshold)
         except ValueError as e:
             raise ConfigError(f"{e} or val") from None
-        if cfg.predictions is not None or cfg.mode == "online":
-            raise ConfigError("threshold: only a model or endpoint run has an operating point (offline mode)")
-        if cfg.threshold == "val" and cfg.model is None:
-            raise ConfigError("threshold=val: needs model= (it reads <model>/eval_val/predictions.jsonl)")
+        if cfg.model is None or cfg.mode == "online":  # an endpoint's or a file's replies are what they are
+            raise ConfigError("threshold: only a local model's run (model=, offline mode) has an operating point")
     if cfg.model is not None and not Path(cfg.model).is_dir():  # before anything is written
         raise ConfigError(f"model: no such directory {cfg.model!r}")
     if cfg.predictions is not None:  # a folder or an unreadable file is refused before the output folder is made
@@ -114,7 +112,7 @@ def _load_analyzer(cfg: Any) -> tuple[Any, str]:
 def _predict(
     cfg: Any, recs: list[dict], traj: dict[str, dict], results: dict[str, dict], threshold: float = 0.5
 ) -> tuple[Any, str, Any, dict[str, str]]:
-    """Run the model or endpoint at the Q2 operating point `threshold`, or read the predictions file: (analyzer or
+    """Run the model (at the Q2 operating point `threshold`) or endpoint, or read the predictions file: (analyzer or
     None, row name, predictions, Q6 template predictions). A template run's scores go into `results` under
     "<name>, Q6 template"."""
     from labrobfail_vlm.bench import evaluate as ev
@@ -123,7 +121,8 @@ def _predict(
     if cfg.model is None and cfg.endpoint is None:
         return None, Path(cfg.predictions).stem, ev.read_predictions(cfg.predictions), tmpl
     analyzer, name = _load_analyzer(cfg)
-    analyzer.threshold = threshold
+    if cfg.model is not None:
+        analyzer.threshold = threshold
     preds = ev.model_predictions(
         analyzer, cfg.dataset_dir, recs, traj, progress=cfg.progress, batch_size=cfg.batch_size
     )
