@@ -193,8 +193,10 @@ reproduce-online: $(STAMP)
 # an ACT policy trained here per task (pick and place: 120 scripted demos, 5,700 steps on one thread, about 8
 # minutes alone, 28 beside a training run: a step count, not a clock, ends it, and the 60-minute cap is a safety
 # that warns when it cuts a run short, so the same seed gives the same ACT whatever else the machine runs; pour:
-# 480 + 120 regrasp demos, about 33 + 40 min; kept when it exists), then 100 pairs per task: about 6 min for pick
-# and 27 for place alone (29 Nov); out: $(R)/recovery/<policy>/, results.md is the table.
+# 480 + 120 regrasp demos, 20,000 steps: about 33 + 40 min on 28 Nov's machine; on 2 Dec's, 51 min of demos and
+# about 11.5 min per 1,000 steps on one thread beside a training, so its cap is 300 min, a safety like pick's; kept
+# when it exists; a run stopped part-way goes on from its newest checkpoint), then 100 pairs per task: about 6 min for
+# pick and 27 for place alone (29 Nov); out: $(R)/recovery/<policy>/, results.md is the table.
 RECOVERY_TRIALS ?= 100
 RECOVERY_SEED ?= 20000
 RECOVERY_RUN = trials=$(RECOVERY_TRIALS) seed=$(RECOVERY_SEED) progress=false loop.query_every=-1
@@ -209,7 +211,7 @@ ACT_pick := demos=120 train.steps=5700 train.max_minutes=60 train.threads=1
 ACT_place := $(ACT_pick)
 ACT_pour := demos=480 regrasp_demos=120 miss=0.08 'model.cameras=[front,wrist]' model.image_size=96 noise=0.03 \
   carry_noise=0.03 model.keypoints=32 model.aux_weight=1.0 model.temporal_ensemble_coeff=null train.lr=5e-4 \
-  train.lr_backbone=5e-4 train.schedule=cosine train.warmup=500 train.steps=20000 train.max_minutes=46 \
+  train.lr_backbone=5e-4 train.schedule=cosine train.warmup=500 train.steps=20000 train.max_minutes=300 \
   train.hold_end=true
 ACT_SUP_pour := backend_kwargs.wrist=true
 ACT_DIR_pour := pour_hold
@@ -222,7 +224,8 @@ recovery-scripted: $(STAMP)
 
 recovery: recovery-scripted
 	$(foreach t,pick place pour,test -f $(call act_dir,$(t))/final/model.safetensors || OMP_NUM_THREADS=1 \
-	  $(PY) scripts/train_act.py task=$(t) $(ACT_$(t)) progress=false out_dir=$(call act_dir,$(t)) || exit 1;)
+	  $(PY) scripts/train_act.py task=$(t) $(ACT_$(t)) progress=false out_dir=$(call act_dir,$(t)) \
+	  $(if $(wildcard $(call act_dir,$(t))/checkpoints/step-*),resume=true) || exit 1;)
 	$(foreach t,pick place pour,$(BIN)/labrobfail-supervise policy=act act.checkpoint=$(call act_dir,$(t))/final \
 	  $(ACT_SUP_$(t)) supervisor=vlm vlm.model=$(VLM) task=$(t) $(RECOVERY_RUN) \
 	  out_dir=$(R)/recovery/act/$(t) || exit 1;)
