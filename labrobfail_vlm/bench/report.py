@@ -88,11 +88,11 @@ def detected_markdown(results: dict[str, dict[str, Any]]) -> str:
     for name, res in results.items():
         d = (res.get("failure_only") or {}).get("detected") or {}
         if d.get("trajectories"):
-            f = lambda v: "—" if v is None else f"{v:.2f}"  # noqa: E731
+            f = lambda v, fmt=".2f": "—" if v is None else format(v, fmt)  # noqa: E731
             n_fail = res["failure_only"]["trajectories"]
             lines.append(
                 f"| {name} | {d['trajectories']} of {n_fail} | {f(d['q3'])} | {f(d['q4'])} | {f(d['q5'])} | "
-                f"{(d.get('q6') or {}).get('rougeL', 0):.4f} |"
+                f"{f((d.get('q6') or {}).get('rougeL'), '.4f')} |"
             )
     return "\n".join(lines) + "\n"
 
