@@ -90,8 +90,8 @@ def _out_dir(cfg: Any) -> Path:
     return out
 
 
-def _load_analyzer(cfg: Any) -> tuple[Any, str]:
-    """The endpoint or local model that answers, and its row name."""
+def _load_analyzer(cfg: Any, threshold: float = 0.5) -> tuple[Any, str]:
+    """The endpoint or local model (at the Q2 operating point `threshold`) that answers, and its row name."""
     if cfg.endpoint is not None:
         from labrobfail_vlm.endpoint import EndpointAnalyzer
 
@@ -105,7 +105,7 @@ def _load_analyzer(cfg: Any) -> tuple[Any, str]:
         return analyzer, f"LabRobFail-VLM endpoint ({analyzer.client.model})"
     from labrobfail_vlm.analyzer import FailureAnalyzer
 
-    analyzer = FailureAnalyzer.from_pretrained(cfg.model)
+    analyzer = FailureAnalyzer.from_pretrained(cfg.model, threshold=threshold)
     return analyzer, "LabRobFail-VLM (" + Path(cfg.model).name + ")"
 
 
@@ -120,9 +120,7 @@ def _predict(
     tmpl: dict[str, str] = {}  # Q6 in template mode (model and endpoint runs)
     if cfg.model is None and cfg.endpoint is None:
         return None, Path(cfg.predictions).stem, ev.read_predictions(cfg.predictions), tmpl
-    analyzer, name = _load_analyzer(cfg)
-    if cfg.model is not None:
-        analyzer.threshold = threshold
+    analyzer, name = _load_analyzer(cfg, threshold)
     preds = ev.model_predictions(
         analyzer, cfg.dataset_dir, recs, traj, progress=cfg.progress, batch_size=cfg.batch_size
     )
@@ -319,7 +317,7 @@ def main(argv: list[str]) -> int:
         "method": name,
         **(
             {"threshold": threshold, "threshold_chosen_on": "val" if cfg.threshold == "val" else "given"}
-            if analyzer is not None
+            if cfg.model is not None
             else {}
         ),
         "baselines": {k: v for k, v in results.items() if k != name},

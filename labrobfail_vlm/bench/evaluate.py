@@ -213,14 +213,14 @@ def failed_records(recs: list[dict], traj: dict[str, dict]) -> list[dict]:
     ]
 
 
+def says_failed(rec: dict, preds: dict[str, str]) -> bool:
+    """Whether the reply to a Q2 record says "failed", in the wording the record asks."""
+    return parse("Q2", preds.get(rec["id"]) or "") == q2_as_asked(rec["conversations"][0]["value"], failed=True)
+
+
 def called_failed(recs: list[dict], preds: dict[str, str]) -> set[str]:
-    """The trajectories whose Q2 reply says "failed", in the wording its record asks."""
-    return {
-        Q.traj_of(r["id"])
-        for r in recs
-        if Q.dim_of(r["id"]) == "Q2"
-        and parse("Q2", preds.get(r["id"]) or "") == q2_as_asked(r["conversations"][0]["value"], failed=True)
-    }
+    """The trajectories whose Q2 reply says "failed"."""
+    return {Q.traj_of(r["id"]) for r in recs if Q.dim_of(r["id"]) == "Q2" and says_failed(r, preds)}
 
 
 def detection(recs: list[dict], preds: dict[str, str], traj: dict[str, dict]) -> dict[str, Any] | None:
@@ -239,9 +239,7 @@ def detection(recs: list[dict], preds: dict[str, str], traj: dict[str, dict]) ->
             ps.append(probs[t])
         else:
             hard = True
-            p = parse("Q2", preds.get(r["id"]) or "")
-            failed_as_asked = q2_as_asked(r["conversations"][0]["value"], failed=True)
-            ps.append(1.0 if p == failed_as_asked else 0.0)
+            ps.append(1.0 if says_failed(r, preds) else 0.0)
     return detection_metrics(ys, ps, "hard" if hard else "probability") if ys else None
 
 

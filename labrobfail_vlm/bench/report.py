@@ -85,10 +85,10 @@ def detected_markdown(results: dict[str, dict[str, Any]]) -> str:
         "| Method | failures caught | Q3 | Q4 | Q5 | ROUGE-L |",
         "|---|---|---|---|---|---|",
     ]
+    f = lambda v, fmt=".2f": "—" if v is None else format(v, fmt)  # noqa: E731
     for name, res in results.items():
         d = (res.get("failure_only") or {}).get("detected") or {}
         if d.get("trajectories"):
-            f = lambda v, fmt=".2f": "—" if v is None else format(v, fmt)  # noqa: E731
             n_fail = res["failure_only"]["trajectories"]
             lines.append(
                 f"| {name} | {d['trajectories']} of {n_fail} | {f(d['q3'])} | {f(d['q4'])} | {f(d['q5'])} | "
