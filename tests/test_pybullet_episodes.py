@@ -128,3 +128,18 @@ def test_randomised_scene_family_widens_seen_benches_only():
         assert src.execute(src.scripted_keyframes()).labels.success  # a dark striped bench changes no physics
     finally:
         src.close()
+
+
+def test_the_lowpoly_robot_file_is_one_file_shared_by_every_process():
+    """Each process once wrote its own temp folder and left it behind (a thousand after a day of runs)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = "from sim_backends.pybullet.robot import lowpoly_urdf; print(lowpoly_urdf())"
+    paths = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()}
+    paths.add(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip())
+    assert len(paths) == 1
+    urdf = Path(paths.pop())
+    assert urdf.is_file() and "meshes/collision/" in urdf.read_text() and "package://" not in urdf.read_text()
+    assert not list(urdf.parent.glob(urdf.name + "*.tmp"))
