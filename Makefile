@@ -194,9 +194,10 @@ reproduce-online: $(STAMP)
 # minutes alone, 28 beside a training run: a step count, not a clock, ends it, and the 60-minute cap is a safety
 # that warns when it cuts a run short, so the same seed gives the same ACT whatever else the machine runs; pour:
 # 480 + 120 regrasp demos, 20,000 steps: about 33 + 40 min on 28 Nov's machine; on 2 Dec's, 51 min of demos, then
-# about 3.5 min per 1,000 steps on one thread alone and 11.5 beside a training, so its cap is 300 min, a safety like
+# about 3.75 min per 1,000 steps on one thread alone and 11.5 beside a training, so its cap is 300 min, a safety like
 # pick's; kept when it exists; a run stopped part-way goes on from its newest checkpoint), then 100 pairs per task:
-# about 6 min for pick and 27 for place alone (29 Nov); out: $(R)/recovery/<policy>/, results.md is the table.
+# about 6 min for pick and 27 for place alone (29 Nov), 57 for pour (2 Dec: its ACT wanders to the 400-tick cap
+# in most trials); out: $(R)/recovery/<policy>/, results.md is the table.
 RECOVERY_TRIALS ?= 100
 RECOVERY_SEED ?= 20000
 RECOVERY_RUN = trials=$(RECOVERY_TRIALS) seed=$(RECOVERY_SEED) progress=false loop.query_every=-1
