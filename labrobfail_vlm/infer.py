@@ -49,13 +49,12 @@ def output_file(path: str) -> Path:
 
 
 def write_output(out: Path, text: str) -> None:
-    """Atomic write; if it fails after all (disk full), the temp file goes too and the error names the file."""
+    """Atomic write; if it fails after all (disk full), the error names the file (the temp file is already gone)."""
     from labrobfail_vlm.io import atomic_write_bytes
 
     try:
         atomic_write_bytes(out, (text + "\n").encode())
     except OSError as e:
-        out.with_name(out.name + ".tmp").unlink(missing_ok=True)
         raise ConfigError(f"json: cannot write {out} ({e.strerror or type(e).__name__})") from None
 
 

@@ -113,3 +113,26 @@ def test_server_killed_under_load_restarts_and_every_request_is_answered(mixed_m
         assert g == want
     assert {f: _sha(f) for f in files} == before  # the request files are the clients' and stay as they were
     assert not [p for p in os.listdir(ROOT) if p.endswith(".tmp")]  # and the server left nothing half-written
+
+
+def test_an_atomic_write_that_fails_leaves_the_old_file_and_no_temp_file(tmp_path, monkeypatch):
+    """Every atomic write goes through labrobfail_vlm.io: a write cut short (here data that is not bytes) keeps the
+    previous file whole and takes its temp file with it; each call writes under a temp name of its own, so two
+    processes that write the same file together never share one."""
+    from labrobfail_vlm import io
+
+    out = tmp_path / "r.json"
+    io.atomic_write_bytes(out, b"old")
+    with pytest.raises(TypeError):
+        io.atomic_write_bytes(out, "not bytes")  # type: ignore[arg-type]
+    assert out.read_bytes() == b"old" and sorted(p.name for p in tmp_path.iterdir()) == ["r.json"]
+    opened: list[str] = []
+
+    def spy(file, *a, **kw):
+        opened.append(str(file))
+        return open(file, *a, **kw)
+
+    monkeypatch.setattr(io, "open", spy, raising=False)  # the module's name for the builtin
+    io.atomic_write_bytes(out, b"a")
+    io.atomic_write_bytes(out, b"b")
+    assert len(set(opened)) == 2 and all(p.endswith(".tmp") for p in opened) and out.read_bytes() == b"b"

@@ -137,8 +137,10 @@ def test_the_lowpoly_robot_file_is_one_file_shared_by_every_process():
     from pathlib import Path
 
     code = "from sim_backends.pybullet.robot import lowpoly_urdf; print(lowpoly_urdf())"
-    paths = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()}
-    paths.add(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip())
+    paths = {
+        subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+        for _ in range(2)
+    }
     assert len(paths) == 1
     urdf = Path(paths.pop())
     assert urdf.is_file() and "meshes/collision/" in urdf.read_text() and "package://" not in urdf.read_text()

@@ -5,7 +5,6 @@ from __future__ import annotations
 import functools
 import hashlib
 import math
-import os
 import tempfile
 from pathlib import Path
 from typing import Callable
@@ -44,17 +43,16 @@ def lowpoly_urdf() -> str:
     stock visual meshes: 23 ms per 128 px image against 4.4 ms with these (measured, scripts/bench_sim.py).
     Physics is untouched (it always uses the collision meshes), so labels and trajectories are identical.
     One file per content in the temp folder, shared by every process (a folder per process had left one behind
-    for each run), written under a private name and renamed, so processes that start together never read half of it.
+    for each run), written atomically, so processes that start together never read half of it.
     """
     text = (PANDA_DIR / "panda.urdf").read_text()
     text = text.replace("package://meshes/visual/", f"{PANDA_DIR}/meshes/collision/")
     text = text.replace("package://", f"{PANDA_DIR}/")
     out = Path(tempfile.gettempdir()) / f"labrobfail_panda_{hashlib.sha256(text.encode()).hexdigest()[:16]}.urdf"
     if not out.is_file() or out.read_text() != text:
-        fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=out.name, suffix=".tmp")
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, out)
+        from labrobfail_vlm.io import atomic_write_bytes
+
+        atomic_write_bytes(out, text.encode())
     return str(out)
 
 
