@@ -187,8 +187,9 @@ reproduce-online: $(STAMP)
 # the seeds RECOVERY_SEED, RECOVERY_SEED + 1, ..., each once without a supervisor and once with it (the same seed:
 # a paired table, McNemar p and the gain's 95 % interval per cell). Seeds 0-49 were spent developing the recipes and
 # 10000-10099 is the development block; 20000-20099, the default, is the reporting block that no choice has seen.
-# Every cell's supervisor is `make reproduce`'s model ($(VLM)) reviewing the whole trajectory when the policy stops
-# (the 25-trial table of 28 Nov asked `make reproduce-online`'s model at every keyframe, except the ACT pour cell).
+# Every cell's supervisor reviews the whole trajectory when the policy stops: `make reproduce`'s model ($(VLM)), and in
+# the ACT pour cell that model taught the pour ACT's own rollouts (VLM_ACT_pour, below). The 25-trial table of 28 Nov
+# asked `make reproduce-online`'s model at every keyframe, except in the ACT pour cell.
 # The scripted cells: `make recovery-scripted` alone, 8.6 min on 2 cores for 3 x 100 pairs (29 Nov). The ACT cells:
 # an ACT policy trained here per task (pick and place: 120 scripted demos, 5,700 steps on one thread, about 8
 # minutes alone, 28 beside a training run: a step count, not a clock, ends it, and the 60-minute cap is a safety
@@ -217,6 +218,23 @@ ACT_pour := demos=480 regrasp_demos=120 miss=0.08 'model.cameras=[front,wrist]' 
 ACT_SUP_pour := backend_kwargs.wrist=true
 ACT_DIR_pour := pour_hold
 act_dir = $(R)/act/$(or $(ACT_DIR_$(1)),$(1))
+# The pour ACT's supervisor has also seen that ACT's own rollouts: ROLLOUTS trials of it without a supervisor from
+# seeds ROLLOUT_SEED on (outside the development and reporting blocks), each episode labeled by the labeler from the
+# simulator state (`shards=true`), built like any shards, then one more epoch of $(VLM) on its data with the rollouts
+# drawn 4 times each (`extra_train`, `extra_repeat`). Chosen on the development block, seeds 10000-10049: 1/50 with
+# $(VLM), 15/50 with this model (docs/EXPERIMENTS.md, 2 Dec). About 30 min of rollouts and 13 of training alone.
+ROLLOUTS ?= 160
+ROLLOUT_SEED ?= 30000
+VLM_ACT_pour := $(R)/actft/final
+$(R)/actft/final/labrobfail.json: $(VLM)/labrobfail.json | $(call act_dir,pour)/final/model.safetensors
+	rm -rf $(R)/rollouts/act_pour $(R)/rollouts/dataset $(R)/actft
+	$(BIN)/labrobfail-supervise policy=act act.checkpoint=$(call act_dir,pour)/final $(ACT_SUP_pour) supervisor=none \
+	  task=pour trials=$(ROLLOUTS) seed=$(ROLLOUT_SEED) shards=true loop.query_every=-1 progress=false \
+	  out_dir=$(R)/rollouts/act_pour
+	$(BIN)/labrobfail-build-dataset shards=$(R)/rollouts/act_pour/shards/none out_dir=$(R)/rollouts/dataset \
+	  $(DEMO_GRID) 'views=[front,side]' progress=false
+	$(BIN)/labrobfail-train $(REPRO_TRAIN) epochs=1 dataset_dir=$(R)/dataset 'extra_train=[$(R)/rollouts/dataset]' \
+	  extra_repeat=4 model.path=$(VLM) $(ONLINE_STAGE) output_dir=$(R)/actft
 recovery-scripted: $(STAMP)
 	@test -d $(VLM) || { echo "recovery: no model $(VLM) (make reproduce, or VLM=<model dir>)" >&2; exit 2; }
 	$(BIN)/labrobfail-supervise policy=scripted supervisor=vlm vlm.model=$(VLM) task=pick,place,pour $(RECOVERY_RUN) \
@@ -227,8 +245,9 @@ recovery: recovery-scripted
 	$(foreach t,pick place pour,test -f $(call act_dir,$(t))/final/model.safetensors || OMP_NUM_THREADS=1 \
 	  $(PY) scripts/train_act.py task=$(t) $(ACT_$(t)) progress=false out_dir=$(call act_dir,$(t)) \
 	  $(if $(wildcard $(call act_dir,$(t))/checkpoints/step-*),resume=true) || exit 1;)
+	$(MAKE) $(VLM_ACT_pour)/labrobfail.json
 	$(foreach t,pick place pour,$(BIN)/labrobfail-supervise policy=act act.checkpoint=$(call act_dir,$(t))/final \
-	  $(ACT_SUP_$(t)) supervisor=vlm vlm.model=$(VLM) task=$(t) $(RECOVERY_RUN) \
+	  $(ACT_SUP_$(t)) supervisor=vlm vlm.model=$(or $(VLM_ACT_$(t)),$(VLM)) task=$(t) $(RECOVERY_RUN) \
 	  out_dir=$(R)/recovery/act/$(t) || exit 1;)
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 

@@ -22,7 +22,7 @@ from labrobfail_data.robot_signals import frame_times, irreversible, robot_signa
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.corrections import Context, correction
-from labrobfail_vlm.grid import GridConfig, build_grid, frame_for_keyframe, sample_keyframes
+from labrobfail_vlm.grid import GridConfig, build_grid, frame_for_keyframe, whole_grid_picks
 from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, Category, Severity
 from sim_backends.failure_context import failure_context
 from sim_backends.labeler import derive_labels, severity
@@ -76,7 +76,8 @@ def decode_views(images: list[list[bytes]], picks: list[int]) -> list[list[Image
 
 def grid_picks(row: dict[str, Any], max_frames: int) -> list[int]:
     """The executed keyframes a grid of `max_frames` shows for this shard row."""
-    return sample_keyframes([k["segment"] for k in json.loads(row["keyframes"])], max_frames)
+    kfs = json.loads(row["keyframes"])
+    return whole_grid_picks([k["name"] for k in kfs], [k["segment"] for k in kfs], max_frames)
 
 
 def grid_failure_frame(row: dict[str, Any], picks: list[int]) -> int | None:

@@ -93,6 +93,22 @@ def sample_keyframes(segments: Sequence[int], m: int) -> list[int]:
     return sorted(chosen[:m])
 
 
+def whole_grid_picks(names: Sequence[str | None], segments: Sequence[int], m: int) -> list[int]:
+    """The keyframes a whole-trajectory grid of at most m frames shows: `sample_keyframes` over the trajectory's
+    keyframes, where consecutive keyframes with one name count as one, shown by its last. A learned policy's control
+    ticks are keyframes named after the plan keyframe they head for (the supervision loop's phase tracker), so its
+    grid shows the plan's progress, not m of its 400 ticks; when that grouping leaves fewer than m, every keyframe
+    counts (a one-cell grid of a policy the tracker could not place on the plan would show nothing). A scripted
+    episode never has two keyframes in a row with one name, so for it this is `sample_keyframes(segments, m)`.
+    One rule for the supervisor's final grid and the dataset's grids, so a policy's rollout written as a shard
+    trains on the grid the supervisor is shown."""
+    n = len(segments)
+    units = [i for i in range(n) if i == n - 1 or names[i + 1] != names[i]]
+    if len(units) < m:
+        units = list(range(n))
+    return [units[p] for p in sample_keyframes([segments[u] for u in units], m)]
+
+
 def frame_for_keyframe(sampled: Sequence[int], keyframe: int) -> int:
     """1-based grid frame number where a failure at `keyframe` is first visible.
 

@@ -136,6 +136,14 @@ def gen(out, *extra, check=True, here=False):
     return r
 
 
+def begin_episode(src, scenario: str = "pick_place_beaker_small", seed: int = 0) -> list:
+    """reset + begin an episode of `scenario` on a backend; the scripted plan, for the test to step."""
+    src.reset(scenario, seed, "seen")
+    plan = src.scripted_keyframes()
+    src.begin()
+    return plan
+
+
 def free_port() -> int:
     """A loopback port nobody holds now (a fixed one collides with a lingering or concurrent run)."""
     with socket.socket() as s:

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import ROOT, cli, run, run_here
+from conftest import ROOT, begin_episode, cli, run, run_here
 from test_train import tiny  # noqa: F401  (session fixture: a tiny Qwen3-VL checkpoint)
 
 from labrobfail_vlm.actions import PRIMITIVES
@@ -160,9 +160,7 @@ def test_a_stopped_learned_policy_is_reviewed_on_its_whole_trajectory():
     cfg = GridConfig(width=256, height=64, max_frames=8, columns=8)
     src = make_backend("pybullet", image_size=32, cameras=["front"], max_distractors=0)
     try:
-        src.reset("pick_place_beaker_small", 0, "seen")
-        plan = src.scripted_keyframes()
-        src.begin()
+        plan = begin_episode(src)
         for k in plan + plan[::-1][:4]:  # twelve ticks along the plan, all named as its first keyframe
             src.step(dataclasses.replace(k, name=plan[0].name, segment=0))
         running, stopped = live_grid(src, plan, cfg), live_grid(src, plan, cfg, final=True)

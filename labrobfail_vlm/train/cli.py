@@ -41,6 +41,10 @@ def dataset_stats(dataset_dir: Any) -> Path:
 def _check_dataset(cfg: Any) -> dict[str, Any]:
     """The dataset's grid config, after checking it matches the run."""
     grid = json.loads(dataset_stats(cfg.dataset_dir).read_text()).get("grid", {})
+    for d in cfg.extra_train or []:  # one grid for every record the run trains on
+        other = json.loads(dataset_stats(d).read_text()).get("grid", {})
+        if other != grid:
+            raise ConfigError(f"extra_train: {d} was built with grid {other}, {cfg.dataset_dir} with {grid}")
     drawn = grid.get("draw_index", True)
     if bool(drawn) != bool(cfg.grid_index):
         raise ConfigError(
@@ -269,7 +273,14 @@ def _build_trainer(
     pairs, warm, detect = curriculum
     # packing: a trajectory's records share one row and one image encoding (labrobfail_vlm/train/packing.py);
     # per_device_batch and global_batch then count trajectories
-    train = TrajectoryDataset(cfg.dataset_dir, "train") if cfg.packing else VQADataset(cfg.dataset_dir, "train")
+    extra, repeat = list(cfg.extra_train or []), int(cfg.extra_repeat)
+    if repeat < 1 or (repeat > 1 and not cfg.packing):
+        raise ConfigError(f"extra_repeat: a positive integer, above 1 only with packing=true; got {repeat}")
+    train = (
+        TrajectoryDataset(cfg.dataset_dir, "train", extra, repeat)
+        if cfg.packing
+        else VQADataset(cfg.dataset_dir, "train", extra)
+    )
     rewording = Rewording(train.group_of, pairs) if pairs or warm > 0 or detect > 0 else None
     records_per_item = len(train.records) / len(train) if cfg.packing else 1.0
     progress_log = ProgressLog(Path(cfg.output_dir), records_per_item)

@@ -46,10 +46,11 @@ class PairSampler(Sampler[int]):
     """
 
     def __init__(self, ids: Sequence[str], group_of: dict[str, str], batch: int, seed: int = 0):
-        units: dict[tuple[str, str], list[int]] = {}
+        units: dict[tuple[str, str, int], list[int]] = {}
+        copies: dict[str, int] = {}  # an id drawn more than once an epoch (extra_repeat): each copy a unit of its own
         for i, rid in enumerate(ids):
-            traj = Q.traj_of(rid)
-            units.setdefault((group_of.get(traj, traj), Q.dim_of(rid)), []).append(i)
+            traj, copies[rid] = Q.traj_of(rid), copies.get(rid, -1) + 1
+            units.setdefault((group_of.get(traj, traj), Q.dim_of(rid), copies[rid]), []).append(i)
         self.units = list(units.values())
         self.batch, self.seed, self.epoch = max(1, int(batch)), int(seed), 0
         self.n = len(ids)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 from collections import Counter
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import torch
 from PIL import Image
@@ -58,25 +58,40 @@ def messages(question: str, answer: str | None = None) -> list[dict[str, Any]]:
 class VQADataset(Dataset):
     """One split of a dataset built by labrobfail-build-dataset."""
 
-    def __init__(self, dataset_dir: str | Path, split: str = "train"):
+    def __init__(self, dataset_dir: str | Path, split: str = "train", extra: Sequence[str | Path] = ()):
+        """`extra`: more datasets whose same split is added (train.py's extra_train), each record's image read
+        from its own dataset (a record id or trajectory found twice is an error: two datasets built alike)."""
         self.root = Path(dataset_dir)
-        path = self.root / f"{split}.json"
+        self.records, self.group_of = [], {}
+        for root in (self.root, *map(Path, extra)):
+            records, groups = self._read(root, split)
+            if root != self.root:  # an absolute image path: self.root / it is it
+                records = [{**r, "image": str((root / r["image"]).resolve())} for r in records]
+            twice = {r["id"] for r in records} & {r["id"] for r in self.records} or groups.keys() & self.group_of.keys()
+            if twice:
+                raise ConfigError(f"extra_train: {root} repeats {sorted(twice)[0]!r} of an earlier dataset")
+            self.records += records
+            self.group_of |= groups
+            if root == self.root:
+                self.extra_from = len(self.records)  # records from here on come from `extra`
+
+    @staticmethod
+    def _read(root: Path, split: str) -> tuple[list[dict[str, Any]], dict[str, str]]:
+        path = root / f"{split}.json"
         if not path.is_file():
             raise ConfigError(f"dataset_dir: {path} not found (build it with labrobfail-build-dataset)")
         try:
-            self.records = json.loads(path.read_text())
+            records = json.loads(path.read_text())
         except ValueError as e:
             raise ConfigError(f"dataset_dir: {path} is not valid JSON ({e})") from None
-        for r in self.records[:1]:
+        for r in records[:1]:
             if not {"id", "image", "conversations"} <= set(r):
                 raise ConfigError(f"dataset_dir: {path} records lack id/image/conversations")
         # trajectory -> its success/failure pair (the curriculum's pair batches); absent in older datasets
-        meta = self.root / "trajectories.json"
-        self.group_of: dict[str, str] = (
-            {t["trajectory"]: t["group"] for t in json.loads(meta.read_text()) if "group" in t}
-            if meta.is_file()
-            else {}
-        )
+        meta = root / "trajectories.json"
+        trajs = json.loads(meta.read_text()) if meta.is_file() else []
+        groups = {t["trajectory"]: t["group"] for t in trajs if "group" in t}
+        return records, groups
 
     def __len__(self) -> int:
         return len(self.records)

@@ -17,7 +17,7 @@ prefix through a KV cache.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import torch
 from torch.utils.data import Dataset
@@ -29,13 +29,19 @@ from labrobfail_vlm.train.data import VQADataset
 class TrajectoryDataset(Dataset):
     """A split's records grouped by trajectory (one item = all of a trajectory's records, in file order)."""
 
-    def __init__(self, dataset_dir: str | Path, split: str = "train"):
-        self.records = VQADataset(dataset_dir, split)
+    def __init__(
+        self, dataset_dir: str | Path, split: str = "train", extra: Sequence[str | Path] = (), repeat: int = 1
+    ):
+        """`extra`: more datasets (VQADataset); `repeat`: each of their trajectories is an item this many times
+        (a small set of a policy's rollouts beside thousands of generated trajectories)."""
+        self.records = VQADataset(dataset_dir, split, extra)
         self.group_of = self.records.group_of
         order: dict[str, list[int]] = {}
         for i, r in enumerate(self.records.records):
             order.setdefault(Q.traj_of(r["id"]), []).append(i)
         self.items = list(order.values())
+        if extra and repeat > 1:
+            self.items += [it for it in self.items if it[0] >= self.records.extra_from] * (repeat - 1)
 
     def __len__(self) -> int:
         return len(self.items)

@@ -17,7 +17,7 @@ import numpy as np
 from PIL import Image
 
 from labrobfail_vlm.config import ConfigError
-from labrobfail_vlm.grid import GridConfig, build_grid, sample_keyframes
+from labrobfail_vlm.grid import GridConfig, build_grid, sample_keyframes, whole_grid_picks
 from labrobfail_vlm.registry import Registry
 from sim_backends.policies.base import EpisodeContext
 from sim_backends.source import FailureSource
@@ -104,24 +104,22 @@ def live_grid(
     far plus the plan's remaining ones (the episode's length is not known yet), and the cells not reached
     yet stay blank, as in a training prefix grid (`build_grid(..., visible=k)`).
 
-    `final`: the policy has stopped, so the episode is whole and laid out as a whole-trajectory grid: no cells
-    are kept for plan steps it never ran. When its names group it into fewer keyframes than the grid has cells
-    (ACT's ticks that the phase tracker could not place on the plan all carry the first keyframe's name), the
-    cells are spread over the executed ticks themselves; grouped, such an episode showed a single cell.
+    `final`: the policy has stopped, so the episode is whole and laid out as the dataset lays out a whole
+    trajectory (`whole_grid_picks`): no cells are kept for plan steps it never ran, and a policy's rollout written
+    as a shard (labrobfail-supervise shards=true) trains on this very grid.
 
     `views`: the rendered views shown, in order (`view_indices`); None: all of them.
     """
     done = src.executed_so_far()
-    units = [i for i in range(len(done)) if i == len(done) - 1 or done[i + 1].name != done[i].name]
-    if final and len(units) < cfg.max_frames:
-        units = list(range(len(done)))
-    rest: list = []  # final: the episode is whole, no cells for the plan's remaining keyframes
-    if not final:
+    if final:  # the episode is whole: the dataset's rule (no cells for the plan's remaining keyframes)
+        units = whole_grid_picks([k.name for k in done], [k.segment for k in done], cfg.max_frames)
+        picks = list(range(len(units)))
+    else:
+        units = [i for i in range(len(done)) if i == len(done) - 1 or done[i + 1].name != done[i].name]
         names = [k.name for k in nominal]
         last = done[units[-1]].name if units else None
         rest = nominal[len(names) - names[::-1].index(last) :] if last in names else nominal[len(units) :]
-    segments = [done[i].segment for i in units] + [k.segment for k in rest]
-    picks = sample_keyframes(segments, cfg.max_frames)
+        picks = sample_keyframes([done[i].segment for i in units] + [k.segment for k in rest], cfg.max_frames)
     shown = [p for p in picks if p < len(units)]
     pngs = src.images_so_far()
     pngs = pngs if views is None else [pngs[i] for i in views]

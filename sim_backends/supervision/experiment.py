@@ -101,6 +101,17 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+def rollout_sinks(cfg: DictConfig, tasks: list[TaskFamily], sups: list[str], out: Path) -> dict[str, Any]:
+    """`shards=true`: per supervisor run, the trials' episodes as shards in out_dir/shards/<supervisor>/."""
+    if not cfg.get("shards", False):
+        return {}
+    from sim_backends.supervision.rollouts import RolloutShards, check_family
+
+    for fam in tasks:
+        check_family(fam)
+    return {n: RolloutShards(out / "shards" / n, int(cfg.shard_frames), str(cfg.policy)) for n in sups}
+
+
 def run(cfg: DictConfig) -> dict[str, Any]:
     from sim_backends.registry import available_backends, backend_options, make_backend
 
@@ -130,6 +141,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             out.mkdir(parents=True, exist_ok=True)
         except OSError as e:
             raise ConfigError(f"out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
+        sinks = rollout_sinks(cfg, tasks, sups, out)
     except BaseException:
         src.close()
         raise
@@ -156,6 +168,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                             loop,
                             log,
                             f"{fam.name}-{name}-{i:03d}",
+                            keep=None if name not in sinks else lambda ep, n=name, f=fam.name: sinks[n].add(ep, f, n),
                         )
                     )
                     if rows[-1]["outcome"] == "policy_error":  # said once per trial; the run goes on
@@ -171,6 +184,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         bar.close()
     finally:
         log.close()
+        for sink in sinks.values():
+            sink.close()
         src.close()
         policy.close()
     return {"config": OmegaConf.to_container(cfg, resolve=True), "tasks": results}

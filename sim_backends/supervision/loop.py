@@ -23,7 +23,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, Callable, TextIO
 
 import numpy as np
 
@@ -239,7 +239,9 @@ def run_trial(
     log: RunLog | None,
     trial: str,
     grid_cfg: GridConfig = GridConfig(),
+    keep: Callable[[Episode], None] | None = None,
 ) -> dict[str, Any]:
+    """One trial; `keep` receives its finished episode (labeled from the simulator state: RolloutShards)."""
     src.reset(scenario, seed, variant)
     ctx = episode_context(src, family, scenario, seed, variant)
     events = policy.reset(ctx)
@@ -267,6 +269,8 @@ def run_trial(
         # when it stops (the budget bounds the rounds).
     ep = src.finish()
     success = family.success(ep)
+    if keep is not None:
+        keep(ep)
     # `success` is judged on the final state whatever happened; `outcome` also says why a trial ended early
     outcome = "policy_error" if t.error is not None else ("success" if success else "failure")
     res = {
