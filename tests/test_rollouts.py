@@ -3,10 +3,11 @@ labrobfail-train extra_train, on real PyBullet episodes and real files."""
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import begin_episode
+from conftest import begin_episode, cli, run_here
 from PIL import Image
 
 from labrobfail_vlm.config import ConfigError
@@ -104,11 +105,13 @@ def test_extra_train_adds_another_datasets_records_with_their_own_images(tmp_pat
     _dataset(tmp_path / "b", "seen-act-pour-s1-none", grid)
     ds = VQADataset(tmp_path / "a", "train", [tmp_path / "b"])
     assert len(ds) == 2 and ds.group_of == {t: f"g-{t}" for t in ("seen-ep1", "seen-act-pour-s1-none")}
-    assert Image.open(ds[1]["image"]).size == (8, 8) and str(tmp_path / "b" / "images") in ds[1]["image"]
+    assert Image.open(ds[1]["image"]).size == (8, 8)
+    assert Path(ds[1]["image"]).parent == (tmp_path / "b" / "images").resolve()
     with pytest.raises(ConfigError, match="extra_train: .* repeats 'seen-ep1_Q2'"):
         VQADataset(tmp_path / "a", "train", [tmp_path / "a"])
     _dataset(tmp_path / "c", "seen-other", {"width": 128, "max_frames": 4})
     run = OmegaConf.create({"dataset_dir": str(tmp_path / "a"), "grid_index": True, "extra_train": []})
+    run.update(extra_repeat=1, packing=True, grounding={"weight": 0.0}, augment={"enabled": False})
     assert _check_dataset(run) == grid
     run.extra_train = [str(tmp_path / "b"), str(tmp_path / "c")]
     with pytest.raises(ConfigError, match="extra_train: .*c was built with grid"):
@@ -128,3 +131,43 @@ def test_extra_repeat_draws_each_rollout_several_times_an_epoch_never_twice_in_o
     sampler = PairSampler(ds.ids(), ds.group_of, batch=4)
     assert sorted(map(len, sampler.units)) == [1, 1, 1, 1]  # three copies: three units, not one unit of three
     assert sorted(sampler) == [0, 1, 2, 3]
+
+
+@pytest.mark.parametrize(
+    "args, msg",
+    [
+        (["shard_frames=0"], "shard_frames: a positive number of grid frames, got 0"),
+        (["shards=maybe"], "shards: true or false"),
+        ([], "already holds shards; give a new out_dir"),
+    ],
+)
+def test_bad_rollout_settings_are_refused_before_a_trial_runs(tmp_path, args, msg):
+    out = tmp_path / "run"
+    (out / "shards" / "none").mkdir(parents=True)
+    (out / "shards" / "none" / "shard-00000.parquet").write_bytes(b"an earlier run's")
+    argv = [cli("supervise"), "shards=true", "baseline=false", "supervisor=none", f"out_dir={out}", *args]
+    r = run_here([*argv, "progress=false", "trials=1"])
+    assert r.returncode == 2 and msg in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert not (out / "log.jsonl").exists()
+
+
+@pytest.mark.parametrize(
+    "args, msg",
+    [
+        (["extra_train={b}"], "extra_train: a list of dataset folders"),
+        (["extra_train=[nowhere]"], "extra_train: 'nowhere' is not a dataset"),
+        (["extra_train=[{b}]", "extra_repeat=2.5"], "extra_repeat: a positive integer"),
+        (["extra_train=[{b}]", "extra_repeat=2", "packing=false"], "above 1 only with packing=true"),
+        (["extra_train=[{b}]", "augment.enabled=true"], "extra_train: not with grounding.weight > 0 or augment"),
+    ],
+)
+def test_bad_extra_train_settings_are_one_line_errors_before_a_model_is_made(tmp_path, args, msg):
+    grid = {"width": 64, "max_frames": 4}
+    _dataset(tmp_path / "a", "seen-ep1", grid)
+    _dataset(tmp_path / "b", "seen-act-pour-s1-none", grid)
+    args = [a.format(b=tmp_path / "b") for a in args]
+    r = run_here(
+        [cli("train"), "preset=tiny", f"dataset_dir={tmp_path / 'a'}", f"output_dir={tmp_path / 'out'}", *args]
+    )
+    assert r.returncode == 2 and msg in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert not (tmp_path / "out").exists()

@@ -22,7 +22,7 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from labrobfail_vlm.config import ConfigError, cli_main, is_int, load_config
 from labrobfail_vlm.io import atomic_write_json
 
 
@@ -38,10 +38,27 @@ def dataset_stats(dataset_dir: Any) -> Path:
     return stats
 
 
+def _extra_train(cfg: Any) -> list[str]:
+    """extra_train's dataset folders, after checking them and extra_repeat against the run (before anything loads)."""
+    extra = cfg.extra_train or []
+    if isinstance(extra, str) or not all(isinstance(d, str) for d in extra):
+        raise ConfigError(f"extra_train: a list of dataset folders ('extra_train=[DIR,...]'), got {extra!r}")
+    repeat = cfg.extra_repeat
+    if not is_int(repeat, 1) or (repeat > 1 and not cfg.packing):
+        raise ConfigError(f"extra_repeat: a positive integer, above 1 only with packing=true; got {repeat!r}")
+    if extra and (float(cfg.grounding.weight) > 0 or cfg.augment.enabled):
+        # both read per-trajectory data (frame targets, view counts) from dataset_dir's trajectories.json alone
+        raise ConfigError("extra_train: not with grounding.weight > 0 or augment.enabled (they read dataset_dir only)")
+    for d in extra:
+        if not (Path(d) / "stats.json").is_file():
+            raise ConfigError(f"extra_train: {d!r} is not a dataset built by labrobfail-build-dataset")
+    return list(extra)
+
+
 def _check_dataset(cfg: Any) -> dict[str, Any]:
     """The dataset's grid config, after checking it matches the run."""
     grid = json.loads(dataset_stats(cfg.dataset_dir).read_text()).get("grid", {})
-    for d in cfg.extra_train or []:  # one grid for every record the run trains on
+    for d in _extra_train(cfg):  # one grid for every record the run trains on
         other = json.loads(dataset_stats(d).read_text()).get("grid", {})
         if other != grid:
             raise ConfigError(f"extra_train: {d} was built with grid {other}, {cfg.dataset_dir} with {grid}")
@@ -273,16 +290,14 @@ def _build_trainer(
     pairs, warm, detect = curriculum
     # packing: a trajectory's records share one row and one image encoding (labrobfail_vlm/train/packing.py);
     # per_device_batch and global_batch then count trajectories
-    extra, repeat = list(cfg.extra_train or []), int(cfg.extra_repeat)
-    if repeat < 1 or (repeat > 1 and not cfg.packing):
-        raise ConfigError(f"extra_repeat: a positive integer, above 1 only with packing=true; got {repeat}")
+    extra, repeat = _extra_train(cfg), int(cfg.extra_repeat)
     train = (
         TrajectoryDataset(cfg.dataset_dir, "train", extra, repeat)
         if cfg.packing
         else VQADataset(cfg.dataset_dir, "train", extra)
     )
     rewording = Rewording(train.group_of, pairs) if pairs or warm > 0 or detect > 0 else None
-    records_per_item = len(train.records) / len(train) if cfg.packing else 1.0
+    records_per_item = sum(map(len, train.items)) / len(train) if cfg.packing else 1.0
     progress_log = ProgressLog(Path(cfg.output_dir), records_per_item)
     callbacks = [
         progress_log,

@@ -103,12 +103,19 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 def rollout_sinks(cfg: DictConfig, tasks: list[TaskFamily], sups: list[str], out: Path) -> dict[str, Any]:
     """`shards=true`: per supervisor run, the trials' episodes as shards in out_dir/shards/<supervisor>/."""
-    if not cfg.get("shards", False):
+    if cfg.shards not in (True, False):
+        raise ConfigError(f"shards: true or false, got {cfg.shards!r}")
+    if not cfg.shards:
         return {}
     from sim_backends.supervision.rollouts import RolloutShards, check_family
 
+    if not is_int(cfg.shard_frames, 1):
+        raise ConfigError(f"shard_frames: a positive number of grid frames, got {cfg.shard_frames!r}")
     for fam in tasks:
         check_family(fam)
+    for n in sups:  # numbering starts at shard-00000: an earlier run's shards would be overwritten or mixed in
+        if any((out / "shards" / n).glob("shard-*.parquet")):
+            raise ConfigError(f"shards: {out / 'shards' / n} already holds shards; give a new out_dir")
     return {n: RolloutShards(out / "shards" / n, int(cfg.shard_frames), str(cfg.policy)) for n in sups}
 
 
@@ -182,12 +189,14 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                 outcomes = [[bool(r["success"]) for r in per[n]] for n in sups]
                 results[fam.name]["paired"] = paired_cell(*outcomes).summary()
         bar.close()
-    finally:
-        log.close()
-        for sink in sinks.values():
-            sink.close()
-        src.close()
-        policy.close()
+    finally:  # the shards first (what the run made), then the rest whatever a sink raised
+        try:
+            for sink in sinks.values():
+                sink.close()
+        finally:
+            log.close()
+            src.close()
+            policy.close()
     return {"config": OmegaConf.to_container(cfg, resolve=True), "tasks": results}
 
 

@@ -38,8 +38,6 @@ class RolloutShards:
     """Buffers trials' episodes and writes them `per_shard` at a time under `out_dir` (shard-00000.parquet, ...)."""
 
     def __init__(self, out_dir: Path, frames: int, policy: str, per_shard: int = 20):
-        if frames < 1:
-            raise ConfigError(f"shard_frames: a positive number of grid frames, got {frames!r}")
         self.dir, self.frames, self.policy, self.per_shard = Path(out_dir), frames, policy, per_shard
         self.dir.mkdir(parents=True, exist_ok=True)
         self.rows: list[dict] = []
