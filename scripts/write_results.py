@@ -62,7 +62,9 @@ SECTIONS = {
         "## Supervision",
         "`make reproduce-online`: the model above taught to read prefix grids (a third stage: the first k keyframes, "
         "later cells blank), so that it can be asked at every keyframe. `make recovery`: the scripted and ACT policies "
-        "with and without a VLM supervisor; the line above its table names the model and when it was asked.",
+        "with and without a VLM supervisor; the line above its table names the model and when it was asked (`actft`: "
+        "the model above taught one more epoch with the pour ACT's own rollouts, labeled by the labeler, for the ACT "
+        "pour cell; chosen on the development block, docs/EXPERIMENTS.md 2 Dec).",
         ("online", "recovery"),
     ),
 }
