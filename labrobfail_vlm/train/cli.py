@@ -290,7 +290,7 @@ def _build_trainer(
     pairs, warm, detect = curriculum
     # packing: a trajectory's records share one row and one image encoding (labrobfail_vlm/train/packing.py);
     # per_device_batch and global_batch then count trajectories
-    extra, repeat = _extra_train(cfg), int(cfg.extra_repeat)
+    extra, repeat = list(cfg.extra_train or []), int(cfg.extra_repeat)  # checked by _check_dataset (run's first step)
     train = (
         TrajectoryDataset(cfg.dataset_dir, "train", extra, repeat)
         if cfg.packing
