@@ -58,6 +58,38 @@ def min_calibration(alpha: float) -> int:
     return math.ceil((1 - alpha) / alpha)
 
 
+def false_alarm_pvalue(n_calibration: int, alpha: float, false_alarms: int, successes: int, monitors: int = 1) -> float:
+    """How surprising `false_alarms` of `successes` new successes are if the guarantee holds: an upper bound on
+    P(at least that many) for an alarm set at alpha on `n_calibration` exchangeable successes.
+
+    One monitor: conditional on the calibration draw, the rate at which a new success raises the alarm is
+    Beta(n + 1 - r, r) (r: the threshold's rank, continuous scores), so the count over the new successes is
+    beta-binomial, exact, with the calibration's luck and the test's both in it; ties among scores only lower the
+    rate. m monitors each set at alpha / m (AnyAlarm): the pair's count is at most the sum of theirs, and the sum
+    reaches k only if monitor 1 reaches j or the others reach k - j + 1, so P <= min over j of the two tails, for any
+    dependence between the monitors (conservative). A small value (under 0.05) says the new successes are not
+    exchangeable with the calibration ones (a new scene, for one), not that the bound is wrong; a large one says
+    the count is what the bound allows, also when it reads above alpha."""
+    from scipy.stats import betabinom
+
+    if not 0 <= false_alarms <= successes or n_calibration < 1 or monitors < 1:
+        got = f"{false_alarms}, {successes}, {n_calibration}, {monitors}"
+        raise ValueError(f"alarm: need 0 <= false alarms <= successes, n >= 1 and monitors >= 1 (got {got})")
+    rank = math.ceil((n_calibration + 1) * (1 - alpha / monitors))
+    if rank > n_calibration:  # every threshold is +inf: the alarm never fires
+        return 1.0 if false_alarms == 0 else 0.0
+    tail = betabinom.sf(np.arange(-1, successes + 1), successes, n_calibration + 1 - rank, rank)  # P(X >= i)
+
+    def bound(k: int, m: int) -> float:  # an upper bound on P(m monitors' counts sum to at least k)
+        if k <= 0:
+            return 1.0
+        if m == 1:
+            return float(tail[min(k, successes + 1)])
+        return min(1.0, *(float(tail[min(j, successes + 1)]) + bound(k - j + 1, m - 1) for j in range(1, k + 1)))
+
+    return bound(false_alarms, monitors)
+
+
 def first_alarm(scores: Sequence[float], threshold: float) -> int | None:
     """0-based keyframe of the first score above the threshold, or None."""
     hits = np.flatnonzero(np.asarray(scores, np.float64) > threshold)

@@ -263,7 +263,10 @@ ONLINE_GUARANTEE = (
     "the failure's onset in simulator state (negative: the alarm came first); an irreversible event is a spill, "
     "a fall, glassware moving fast enough to break or, in data generated from 1 Dec, an object pushed out of the "
     "arm's reach. The row pairing the model with the robot-signal MLP alarms when either does, each set at "
-    "alpha / 2 on the same successes: the pair keeps the same bound (a union bound)."
+    'alpha / 2 on the same successes: the pair keeps the same bound (a union bound). "bound p" is the chance of '
+    "at least that many false alarms if the guarantee holds (beta-binomial over the calibration draw and the "
+    "scored successes; for the pair, a union bound on it): a rate above alpha with a large p is what the bound "
+    "allows, one under 0.05 says the scored successes are not exchangeable with the calibration ones."
 )
 
 

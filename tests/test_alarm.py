@@ -6,7 +6,14 @@ import math
 import numpy as np
 import pytest
 
-from labrobfail_vlm.alarm import Alarm, AnyAlarm, conformal_threshold, first_alarm, min_calibration
+from labrobfail_vlm.alarm import (
+    Alarm,
+    AnyAlarm,
+    conformal_threshold,
+    false_alarm_pvalue,
+    first_alarm,
+    min_calibration,
+)
 from sim_backends.supervision.paired import difference_ci, mcnemar_exact, paired_cell
 
 
@@ -40,6 +47,43 @@ def test_false_alarm_rate_on_new_successes_is_within_the_bound(alpha):
         rates.append(np.mean([alarm.fires(s) is not None for s in _successes(rng, 100)]))
     mean, se = float(np.mean(rates)), float(np.std(rates) / np.sqrt(len(rates)))
     assert alpha - 1 / (n + 1) - 3 * se <= mean <= alpha + 3 * se, (alpha, n, mean, se)
+
+
+def test_the_bound_check_is_exact_on_known_cases_and_valid_under_exchangeability():
+    """false_alarm_pvalue: one new success raises an alarm set at 0.1 on 19 successes with probability 2/20 exactly;
+    a threshold too high to be finite never fires. On synthetic draws: with exchangeable successes the p-values are
+    (super-)uniform, so p < 0.05 comes up at most 5 % of the time, and P(at least k false alarms) matches the count's
+    frequency; with new successes scored higher (a shift: a new scene), the check flags them. A pair's union bound
+    is valid too."""
+    assert false_alarm_pvalue(19, 0.1, 1, 1) == pytest.approx(0.1)
+    assert false_alarm_pvalue(19, 0.1, 0, 50) == 1.0
+    assert false_alarm_pvalue(18, 0.05, 0, 30) == 1.0 and false_alarm_pvalue(18, 0.05, 1, 30) == 0.0
+    with pytest.raises(ValueError, match="false alarms"):
+        false_alarm_pvalue(19, 0.1, 5, 4)
+    rng = np.random.default_rng(3)
+    n, m, alpha, reps = 40, 60, 0.1, 2000
+    counts, shifted = [], []
+    for _ in range(reps):
+        th = Alarm.calibrate([[x] for x in rng.random(n)], alpha).threshold
+        counts.append(int(np.sum(rng.random(m) > th)))
+        shifted.append(int(np.sum(rng.random(m) ** 0.25 > th)))  # scored higher: false alarms ~34 % at alpha 0.1
+    p_of = np.asarray([false_alarm_pvalue(n, alpha, k, m) for k in range(m + 1)])  # per count, once
+    counts_a = np.asarray(counts)
+    assert np.mean(p_of[counts_a] < 0.05) <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / reps)
+    for k in (3, 6, 9, 12):
+        freq = float(np.mean(counts_a >= k))
+        assert abs(freq - p_of[k]) <= 3 * np.sqrt(freq * (1 - freq) / reps) + 1e-3, k
+    assert np.mean(p_of[np.asarray(shifted)] < 0.05) > 0.7
+    # two monitors at alpha / 2 (a pair): a union bound, so valid whatever their dependence (here independent)
+    assert false_alarm_pvalue(19, 0.2, 1, 1, monitors=2) == pytest.approx(0.2)  # 2 x P(one fires) = 2 x 2/20
+    pair_ks = []
+    for _ in range(500):
+        pair = AnyAlarm.calibrate([[[x] for x in rng.random(n)], [[x] for x in rng.random(n)]], alpha)
+        k = sum(pair.fires([[a], [b]]) is not None for a, b in rng.random((m, 2)))
+        pair_ks.append(k)
+    pair_p = np.asarray([false_alarm_pvalue(n, alpha, k, m, monitors=2) for k in range(m + 1)])
+    assert np.mean(pair_p[np.asarray(pair_ks)] < 0.05) <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / 500)
+    assert false_alarm_pvalue(n, alpha, 40, m, monitors=2) < 1e-3  # 40 of 60: flagged
 
 
 def test_two_monitors_share_one_bound_and_the_pair_fires_at_the_earlier_alarm():

@@ -480,6 +480,8 @@ def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, smal
         f"model={tiny}", small_ds, "mode=online", "split=test", "calibration=train", f"out_dir={out}", call=run_here
     )
     assert r.returncode == 0, r.stderr[-2000:]
+    from labrobfail_vlm.bench.online import bound_check
+
     res = json.loads((out / "online.json").read_text())
     # the robot-signal baseline is fitted on the train split: calibrated on it, its row is left out
     assert set(res["rows"]) == {"model", "majority class", "blind (grey grid)", "labeler on live state (ceiling)"}
@@ -491,6 +493,8 @@ def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, smal
     for row in model.values():
         assert row["false_alarm_rate"] is None or 0 <= row["false_alarm_rate"] <= 1
         assert row["n_calibration"] == res["calibration_successes"]
+        if row["successes"]:  # the bound check, stored as the table reads it
+            assert 0 <= row["bound_p"] <= 1 and row["bound_p"] == bound_check(row), row
     assert len(res["auroc_by_keyframe"]["model"]) >= 1 and (out / "auroc_by_keyframe.png").is_file()
     r = evaluate(f"model={tiny}", small_ds, "mode=online", "split=test", "calibration=test", call=run_here)
     assert r.returncode == 2 and "calibration: must be another split" in r.stderr, r.stderr

@@ -10,7 +10,8 @@ first k keyframes shown, k = 1..F; the later cells blank, as labrobfail_data bui
 is the running score. The alarm (labrobfail_vlm/alarm.py) is calibrated per alpha on the calibration split's
 successes only (split conformal: at most alpha of new exchangeable successes raise it), then run on `split`:
 
-- per alpha: the false-alarm rate on successes (against the bound), the detection rate on failures, the latency
+- per alpha: the false-alarm rate on successes and its bound check (alarm.false_alarm_pvalue: how likely at least
+  that many false alarms are if the guarantee holds), the detection rate on failures, the latency
   from the onset in grid frames (median and 90th percentile; the onset frame is the grid frame where the labelled
   failure first shows, from simulator state), the share caught at or before the onset frame;
 - AUROC of the score at each keyframe against the trajectory's outcome (a curve, as SAFE plots it: PNG);
@@ -36,7 +37,7 @@ from typing import Any, Sequence
 import numpy as np
 from PIL import Image
 
-from labrobfail_vlm.alarm import AnyAlarm
+from labrobfail_vlm.alarm import AnyAlarm, false_alarm_pvalue
 from labrobfail_vlm.bench import robot_baseline
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import BLANK, GridConfig
@@ -126,7 +127,20 @@ def alarm_rows(
             }
             | timing(fired, ev_trajs)
         )
+        out[str(alpha)]["bound_p"] = bound_check(out[str(alpha)])
     return out
+
+
+def bound_check(row: dict[str, Any]) -> float | None:
+    """A row's false alarms against its bound (alarm.false_alarm_pvalue; for a pair of monitors, its union bound),
+    from the row's own fields so that a bench JSON written before the check reads the same; None for a row without
+    successes or one that never alarms (the majority class)."""
+    if not row.get("successes") or "n_calibration" not in row:
+        return None
+    k = round(row["false_alarm_rate"] * row["successes"])  # the rate is rounded to 4 digits: exact under 10,000
+    m = len(row.get("thresholds", [None]))
+    p = false_alarm_pvalue(int(row["n_calibration"]), float(row["alpha"]), k, int(row["successes"]), m)
+    return float(f"{p:.3g}")
 
 
 def timing(fired: Sequence[int | None], trajs: Sequence[dict[str, Any]]) -> dict[str, Any]:
@@ -182,6 +196,10 @@ def _pct(x: float | None) -> str:
     return "-" if x is None else f"{100 * x:.1f}"
 
 
+def _p(x: float | None) -> str:
+    return "-" if x is None else f"{x:.2g}"
+
+
 def _num(x: float | None) -> str:
     return "-" if x is None else f"{x:g}"
 
@@ -189,14 +207,15 @@ def _num(x: float | None) -> str:
 def online_md(res: dict[str, Any]) -> list[str]:
     """The bench's table: per row and alpha, false alarms on successes against alpha, detection, latency from the
     onset (grid frames and sim seconds: median / 90th percentile), caught at the onset frame and before an
-    irreversible event (of how many such failures)."""
+    irreversible event (of how many such failures). "bound p": the false alarms' bound check (under 0.05: these
+    successes are not exchangeable with the calibration ones)."""
     out = [
         f"Online bench, split {res['split']} ({res['trajectories']} trajectories), alarm calibrated on "
         f"{res['calibration_successes']} successes of {res['calibration']}; CPU per check {res['cpu_s_per_check']} s.",
         "",
-        "| row | alpha | false alarms (%) | detection (%) | latency frames (median / p90) | latency s (median / p90) "
-        "| caught by onset (%) | before an irreversible event (%) |",
-        "|---|---|---|---|---|---|---|---|",
+        "| row | alpha | false alarms (%) | bound p | detection (%) | latency frames (median / p90) "
+        "| latency s (median / p90) | caught by onset (%) | before an irreversible event (%) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for name, per in res["rows"].items():
         for alpha, r in per.items() if name != LABELER else [("-", per)]:
@@ -206,7 +225,8 @@ def online_md(res: dict[str, Any]) -> list[str]:
                 alpha = "any"
             grave = "" if r.get("irreversible_failures") is None else f" (of {r['irreversible_failures']})"
             out.append(
-                f"| {name} | {alpha} | {_pct(r['false_alarm_rate'])} | {_pct(r['detection_rate'])} | "
+                f"| {name} | {alpha} | {_pct(r['false_alarm_rate'])} | {_p(bound_check(r))} | "
+                f"{_pct(r['detection_rate'])} | "
                 f"{_num(r.get('latency_frames_median'))} / {_num(r.get('latency_frames_p90'))} | "
                 f"{_num(r.get('latency_s_median'))} / {_num(r.get('latency_s_p90'))} | "
                 f"{_pct(r.get('caught_by_onset'))} | {_pct(r.get('caught_before_irreversible'))}{grave} |"
