@@ -30,6 +30,7 @@ from labrobfail_data.frame_targets import CELL_TARGETS, MAX_POINTS, TOKEN_TARGET
 from labrobfail_data.splits import assign
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.io import atomic_write_json
+from sim_backends.shards import write_shard
 
 READ = [*READ_COLUMNS, "cameras"]  # the dataset's columns and the camera matrices (token targets)
 SCHEMA = pa.schema(
@@ -91,9 +92,7 @@ def build(cfg: DictConfig) -> dict[str, Any]:
         target = out / name
         if not target.is_file():
             recs = [_record(r, max_frames, size) for r in _rows([f], READ)]
-            tmp = target.with_name(name + ".tmp")
-            pq.write_table(pa.Table.from_pylist(recs, schema=SCHEMA), tmp, compression="zstd")
-            tmp.replace(target)
+            write_shard(target, recs, SCHEMA)
         written.append(name)
     meta = [
         r

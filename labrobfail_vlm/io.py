@@ -58,13 +58,15 @@ def load_resume_state(folder: Path, marker: str) -> tuple[dict[str, Any], dict[s
 
 def save_figure(fig: Any, path: Path, dpi: int = 110) -> None:
     """Save a matplotlib figure as PNG atomically and close it."""
+    import io
+
     import matplotlib.pyplot as plt
 
-    tmp = path.with_name(path.stem + ".tmp.png")
+    buf = io.BytesIO()
     fig.tight_layout()
-    fig.savefig(tmp, dpi=dpi)
+    fig.savefig(buf, dpi=dpi, format="png")
     plt.close(fig)
-    tmp.replace(path)
+    atomic_write_bytes(Path(path), buf.getvalue())
 
 
 def write_report(path: str | Path, obj: Any) -> int:

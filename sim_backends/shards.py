@@ -8,7 +8,6 @@ and keyframes are JSON strings so the schema stays fixed across tasks.
 from __future__ import annotations
 
 import json
-import os
 from collections import Counter
 from pathlib import Path
 from typing import Any, Iterable
@@ -16,6 +15,7 @@ from typing import Any, Iterable
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from labrobfail_vlm.io import atomic_write_bytes
 from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, FAILURE_TYPE_NAMES, HORIZONS, Category
 from sim_backends.types import Episode
 
@@ -98,13 +98,12 @@ def episode_row(ep: Episode) -> dict[str, Any]:
     }
 
 
-def write_shard(path: Path, rows: list[dict[str, Any]]) -> None:
-    """Write a shard as `<name>.tmp` then rename: a killed run never leaves a truncated shard."""
-    tmp = path.with_name(path.name + ".tmp")
-    pq.write_table(pa.Table.from_pylist(rows, schema=SCHEMA), tmp, compression="zstd")
-    with open(tmp, "rb") as f:
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+def write_shard(path: Path, rows: list[dict[str, Any]], schema: pa.Schema = SCHEMA) -> None:
+    """Write rows as one zstd Parquet file whole or not at all (labrobfail_vlm.io.atomic_write_bytes): a killed run
+    never leaves a truncated shard, only a '*.tmp' file, which generate.py's resume deletes."""
+    sink = pa.BufferOutputStream()
+    pq.write_table(pa.Table.from_pylist(rows, schema=schema), sink, compression="zstd")
+    atomic_write_bytes(path, sink.getvalue().to_pybytes())
 
 
 def read_labels(paths: Iterable[Path]) -> list[dict[str, Any]]:

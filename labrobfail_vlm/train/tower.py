@@ -292,14 +292,14 @@ def sha256(path: Path) -> str:
 
 def export(tower: nn.Module, out: Path, card: dict[str, Any]) -> dict[str, Any]:
     """tower.safetensors (the vision tower and merger, float32, keys as in `model.visual`) and tower.json."""
-    from safetensors.torch import save_file
+    from safetensors.torch import save
 
-    from labrobfail_vlm.io import atomic_write_json
+    from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
 
     out.mkdir(parents=True, exist_ok=True)
-    tmp = out / (TOWER_FILE + ".tmp")
-    save_file({k: v.detach().float().contiguous() for k, v in tower.state_dict().items()}, str(tmp))
-    tmp.replace(out / TOWER_FILE)
+    atomic_write_bytes(
+        out / TOWER_FILE, save({k: v.detach().float().contiguous() for k, v in tower.state_dict().items()})
+    )
     card = {
         **card,
         "file": TOWER_FILE,

@@ -7,7 +7,6 @@ read back with weights_only=True) and `train_state.json` (written last: a checkp
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any
 
@@ -18,13 +17,13 @@ TRAIN_STATE = "train_state.json"  # written last into checkpoints/step-N, beside
 
 
 def save_checkpoint(model: Any, cfg: ACTConfig, out: str | Path) -> Path:
-    from safetensors.torch import save_file
+    from safetensors.torch import save
+
+    from labrobfail_vlm.io import atomic_write_bytes
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    tmp = out / (WEIGHTS + ".tmp")
-    save_file({k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}, str(tmp))
-    os.replace(tmp, out / WEIGHTS)
+    atomic_write_bytes(out / WEIGHTS, save({k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}))
     cfg.save(out / CONFIG)
     return out
 
