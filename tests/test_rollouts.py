@@ -48,13 +48,13 @@ def test_a_rollout_shard_builds_the_grid_the_supervisor_was_shown(tmp_path):
         src.close()
     assert len(ep.executed_keyframes) == 2 * len(plan) and len(shown.keyframes) == 8
     assert all(k % 2 == 1 for k in shown.keyframes)  # each name's last tick
-    sink = RolloutShards(tmp_path / "shards", 8, "act")
-    sink.add(ep, "place", "none")
-    sink.close()
+    sink = RolloutShards(tmp_path / "shards", 8, "act", "none")
+    sink.add(ep, "place", 0)
+    sink.close([{"labels": ep.labels.to_dict()}])
 
     import pyarrow.parquet as pq
 
-    row = pq.read_table(tmp_path / "shards" / "shard-00000.parquet").to_pylist()[0]
+    row = pq.read_table(tmp_path / "shards" / "shard-place-00000.parquet").to_pylist()[0]
     assert row["episode_id"] == "act-place-s0-none" and row["pair_id"] == "act-place-s0" and row["role"] == "rollout"
     assert [i for i, png in enumerate(row["images"][0]) if png] == shown.keyframes
     assert row["success"] == ep.labels.success and row["failure_type"] == ep.labels.failure_type
@@ -73,10 +73,10 @@ def test_an_unexplained_failure_is_left_out_and_a_family_with_goals_of_its_own_i
     from sim_backends.supervision.rollouts import RolloutShards, check_family
     from sim_backends.types import Labels
 
-    sink = RolloutShards(tmp_path / "s", 8, "act")
+    sink = RolloutShards(tmp_path / "s", 8, "act", "none")
     ep = type("Ep", (), {"labels": Labels(False, evidence="unexplained: no detector fired")})()
-    sink.add(ep, "pour", "none")  # type: ignore[arg-type]
-    sink.close()
+    sink.add(ep, "pour", 0)  # type: ignore[arg-type]
+    sink.close([{"labels": ep.labels.to_dict()}, {"labels": Labels(True).to_dict()}])
     assert json.loads((tmp_path / "s" / "run.json").read_text())["unexplained"] == 1
     assert not list((tmp_path / "s").glob("shard-*"))
     check_family(TaskFamily("pour", ["pour_beaker"]))
@@ -133,12 +133,30 @@ def test_extra_repeat_draws_each_rollout_several_times_an_epoch_never_twice_in_o
     assert sorted(sampler) == [0, 1, 2, 3]
 
 
+def test_a_resumed_rollout_run_adds_its_trials_shards_beside_the_first_runs(tmp_path):
+    """shards=true, 1 trial, then the same command with 2: one shard per trial named after it, the manifest and
+    run.json over both trials (the first not run again: its shard's bytes are the first run's)."""
+    out = tmp_path / "run"
+    argv = [cli("supervise"), "shards=true", "baseline=false", "supervisor=none", "task=pick_place_beaker_small"]
+    argv += [f"out_dir={out}", "progress=false", "image_size=48", "cameras=[front]"]
+    assert run_here([*argv, "trials=1"]).returncode == 0
+    d = out / "shards" / "none"
+    first = {p.name: p.read_bytes() for p in d.glob("shard-*.parquet")}
+    r = run_here([*argv, "trials=2"])
+    assert r.returncode == 0, r.stderr
+    shards = {p.name: p.read_bytes() for p in d.glob("shard-*.parquet")}
+    unexplained = json.loads((d / "run.json").read_text())["unexplained"]
+    assert set(shards) <= {"shard-pick_place_beaker_small-00000.parquet", "shard-pick_place_beaker_small-00001.parquet"}
+    assert len(shards) + unexplained == 2 and all(shards[n] == b for n, b in first.items())
+    assert json.loads((d / "manifest.json").read_text())["episodes"] == len(shards)
+
+
 @pytest.mark.parametrize(
     "args, msg",
     [
         (["shard_frames=0"], "shard_frames: a positive number of grid frames, got 0"),
         (["shards=maybe"], "shards: true or false"),
-        ([], "already holds shards; give a new out_dir"),
+        ([], "holds trials of a run without run_config.json; give a new out_dir"),
     ],
 )
 def test_bad_rollout_settings_are_refused_before_a_trial_runs(tmp_path, args, msg):

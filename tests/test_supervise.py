@@ -66,6 +66,38 @@ def test_supervision_helps_and_runs_repeat_exactly(tmp_path):
     assert ra["improvement"] == ra["oracle"]["rate"] - ra["none"]["rate"]
 
 
+def test_a_stopped_run_goes_on_where_it_stopped_and_another_runs_settings_are_refused(tmp_path):
+    """A run of 1 trial per arm, then the lines a kill leaves in its log (a query of the next trial, half a line),
+    then the same command with 3 trials: each trial's log records and the table equal a run of 3 from nothing
+    (latencies aside), the
+    finished trial was not run again (its record, latency included, is the first run's), and the kill's lines are
+    gone. The same out_dir with another budget is a one-line error naming it, and nothing there changes."""
+    whole, part = tmp_path / "whole", tmp_path / "part"
+    args = ["supervisor=oracle", "task=pick_place_beaker_small"]
+    supervise(*args, "trials=3", f"out_dir={whole}")
+    supervise(*args, "trials=1", f"out_dir={part}")
+    first = [x for x in records(part) if x["event"] == "episode"]
+    with open(part / "log.jsonl", "a") as f:
+        f.write(json.dumps({"event": "query", "trial": "pick_place_beaker_small-none-001"}) + '\n{"event": "epi')
+    supervise(*args, "trials=3", f"out_dir={part}")
+
+    def by_trial(out):  # each trial's records in order (a resumed run logs the arms' later trials after the first)
+        recs = [{k: v for k, v in x.items() if k != "latency_s"} for x in records(out)]
+        return {t: [x for x in recs if x["trial"] == t] for t in sorted({x["trial"] for x in recs})}
+
+    assert by_trial(part) == by_trial(whole) and len(by_trial(part)) == 6
+    assert [x for x in records(part) if x["event"] == "episode" and x["trial"].endswith("-000")] == first
+    res = [json.loads((o / "results.json").read_text())["tasks"] for o in (whole, part)]
+    assert [{k: v for k, v in r["pick_place_beaker_small"]["oracle"].items() if "latency" not in k} for r in res] == [
+        {k: v for k, v in res[0]["pick_place_beaker_small"]["oracle"].items() if "latency" not in k}
+    ] * 2
+    before = (part / "log.jsonl").read_bytes()
+    r = supervise(*args, "trials=3", "loop.budget=1", f"out_dir={part}", check=False)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "holds trials of another run (config.loop.budget differs)" in r.stderr
+    assert (part / "log.jsonl").read_bytes() == before
+
+
 def test_vlm_supervisor_queries_the_analyzer_on_prefix_grids(tmp_path, tiny):  # noqa: F811
     out = tmp_path / "vlm"
     supervise(

@@ -9,13 +9,13 @@ and `tower=DIR` takes another one. A real Qwen3-VL checkpoint keeps its own towe
 
 from __future__ import annotations
 
-import hashlib
 import json
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
 from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.io import sha256_file
 
 TOWER_FILE, CARD_FILE = "tower.safetensors", "tower.json"
 CHOICES = ("shipped", "scratch")
@@ -46,11 +46,7 @@ def read_card(folder: Path) -> dict[str, Any]:
         card["vision_config"]["depth"]
     except (OSError, ValueError, KeyError, TypeError):
         raise ConfigError(f"tower: {card_f} is not a tower card (vision_config, sha256)") from None
-    h = hashlib.sha256()
-    with open(weights, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    if h.hexdigest() != want:
+    if sha256_file(weights) != want:
         raise ConfigError(f"tower: {weights} does not match the sha256 in {card_f} (a different or damaged file)")
     return card
 

@@ -18,7 +18,6 @@ which labrobfail_vlm/model/tower.py loads into the tiny Qwen3-VL."""
 
 from __future__ import annotations
 
-import hashlib
 import io
 import json
 import math
@@ -36,6 +35,7 @@ from PIL import Image
 from labrobfail_vlm.augment import Augment, augment_views
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import GridConfig, build_grid
+from labrobfail_vlm.io import sha256_file
 from labrobfail_vlm.train.grounding import TOKEN_PX, cell_gather, merged_tokens
 
 TOWER_FILE, CARD_FILE, CARD_MD = "tower.safetensors", "tower.json", "TOWER_CARD.md"
@@ -282,14 +282,6 @@ def evaluate(
 
 
 # ---- export ---------------------------------------------------------------------------------------------------
-def sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def export(tower: nn.Module, out: Path, card: dict[str, Any]) -> dict[str, Any]:
     """tower.safetensors (the vision tower and merger, float32, keys as in `model.visual`) and tower.json."""
     from safetensors.torch import save
@@ -305,7 +297,7 @@ def export(tower: nn.Module, out: Path, card: dict[str, Any]) -> dict[str, Any]:
         "file": TOWER_FILE,
         "bytes": (out / TOWER_FILE).stat().st_size,
         "parameters": sum(p.numel() for p in tower.parameters()),
-        "sha256": sha256(out / TOWER_FILE),
+        "sha256": sha256_file(out / TOWER_FILE),
     }
     atomic_write_json(out / CARD_FILE, card)
     return card

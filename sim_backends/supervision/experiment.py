@@ -5,7 +5,8 @@ baseline, when `baseline` is on) and once under the chosen supervisor, on identi
 failure injections. results.json holds per-task success counts and rates, the difference, the supervisor's
 query latency (p50/p95), intervention counts and the trials that ended on a policy error (`policy_errors`:
 trial and one-line reason; such a trial counts as run, its success judged on the state it left); results.md
-is the paper's table.
+is the paper's table. A stopped run goes on where it stopped when run again with the same settings
+(sim_backends/supervision/resume.py).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from sim_backends.policies.base import POLICIES, Policy, make_policy
 from sim_backends.supervision.base import SUPERVISORS, Supervisor, make_supervisor
 from sim_backends.supervision.loop import LoopConfig, RunLog, TaskFamily, run_trial
 from sim_backends.supervision.paired import paired_cell, paired_md
+from sim_backends.supervision.resume import fingerprint, finished_trials
 
 
 def families(cfg: DictConfig, templates: dict[str, str]) -> dict[str, TaskFamily]:
@@ -102,7 +104,8 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def rollout_sinks(cfg: DictConfig, tasks: list[TaskFamily], sups: list[str], out: Path) -> dict[str, Any]:
-    """`shards=true`: per supervisor run, the trials' episodes as shards in out_dir/shards/<supervisor>/."""
+    """`shards=true`: per supervisor run, the trials' episodes as shards in out_dir/shards/<supervisor>/ (one per
+    trial, named after it: a resumed run's trials add theirs beside the earlier ones)."""
     if cfg.shards not in (True, False):
         raise ConfigError(f"shards: true or false, got {cfg.shards!r}")
     if not cfg.shards:
@@ -113,10 +116,7 @@ def rollout_sinks(cfg: DictConfig, tasks: list[TaskFamily], sups: list[str], out
         raise ConfigError(f"shard_frames: a positive number of grid frames, got {cfg.shard_frames!r}")
     for fam in tasks:
         check_family(fam)
-    for n in sups:  # numbering starts at shard-00000: an earlier run's shards would be overwritten or mixed in
-        if any((out / "shards" / n).glob("shard-*.parquet")):
-            raise ConfigError(f"shards: {out / 'shards' / n} already holds shards; give a new out_dir")
-    return {n: RolloutShards(out / "shards" / n, int(cfg.shard_frames), str(cfg.policy)) for n in sups}
+    return {n: RolloutShards(out / "shards" / n, int(cfg.shard_frames), str(cfg.policy), n) for n in sups}
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
@@ -149,6 +149,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         except OSError as e:
             raise ConfigError(f"out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
         sinks = rollout_sinks(cfg, tasks, sups, out)
+        done = finished_trials(out, fingerprint(cfg, [*POLICIES.names(), *SUPERVISORS.names()]))
     except BaseException:
         src.close()
         raise
@@ -162,24 +163,15 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             for name in sups:
                 rows = per.setdefault(name, [])
                 for i in range(cfg.trials):
-                    scenario = fam.scenarios[i % len(fam.scenarios)]
-                    rows.append(
-                        run_trial(
-                            src,
-                            policy,
-                            supervisors[name],
-                            fam,
-                            scenario,
-                            int(cfg.seed) + i,
-                            cfg.variant,
-                            loop,
-                            log,
-                            f"{fam.name}-{name}-{i:03d}",
-                            keep=None if name not in sinks else lambda ep, n=name, f=fam.name: sinks[n].add(ep, f, n),
-                        )
-                    )
-                    if rows[-1]["outcome"] == "policy_error":  # said once per trial; the run goes on
-                        tqdm.write(f"trial {rows[-1]['trial']}: policy error: {rows[-1]['error']}", file=sys.stderr)
+                    trial = f"{fam.name}-{name}-{i:03d}"
+                    if trial not in done:
+                        keep = None if name not in sinks else lambda ep, n=name, f=fam.name, i=i: sinks[n].add(ep, f, i)
+                        scenario = fam.scenarios[i % len(fam.scenarios)]
+                        args = (fam, scenario, int(cfg.seed) + i, cfg.variant, loop, log, trial)
+                        done[trial] = run_trial(src, policy, supervisors[name], *args, keep=keep)
+                        if done[trial]["outcome"] == "policy_error":  # said once per trial; the run goes on
+                            tqdm.write(f"trial {trial}: policy error: {done[trial]['error']}", file=sys.stderr)
+                    rows.append(done[trial])
                     bar.update(1)
             results[fam.name] = {"policy": cfg.policy, **{n: summarize(r) for n, r in per.items()}}
             if len(sups) == 2:
@@ -191,8 +183,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         bar.close()
     finally:  # the shards first (what the run made), then the rest whatever a sink raised
         try:
-            for sink in sinks.values():
-                sink.close()
+            for n, sink in sinks.items():
+                sink.close([r for r in done.values() if r["supervisor"] == n])
         finally:
             log.close()
             src.close()

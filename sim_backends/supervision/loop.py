@@ -130,12 +130,13 @@ class PhaseTracker:
 
 
 class RunLog:
-    """JSONL records, one line each, flushed as they come (a killed run keeps what it logged), and grids."""
+    """JSONL records, one line each, flushed as they come (a killed run keeps what it logged), and grids. Appends:
+    a resumed run's log goes on from the earlier run's (sim_backends/supervision/resume.py cut it first)."""
 
     def __init__(self, out_dir: str | Path, name: str = "log.jsonl"):
         self.dir = Path(out_dir)
         (self.dir / "grids").mkdir(parents=True, exist_ok=True)
-        self.f: TextIO = open(self.dir / name, "w", encoding="utf-8")
+        self.f: TextIO = open(self.dir / name, "a", encoding="utf-8")
 
     def write(self, rec: dict[str, Any]) -> None:
         self.f.write(json.dumps(rec, default=str) + "\n")

@@ -21,9 +21,9 @@ from pathlib import Path
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import whole_grid_picks
 from labrobfail_vlm.io import atomic_write_json
-from sim_backends.shards import episode_row, manifest, write_shard
+from sim_backends.shards import episode_row, manifest, read_labels, write_shard
 from sim_backends.supervision.loop import TaskFamily
-from sim_backends.types import Episode
+from sim_backends.types import Episode, Labels
 
 
 def check_family(family: TaskFamily) -> None:
@@ -35,39 +35,28 @@ def check_family(family: TaskFamily) -> None:
 
 
 class RolloutShards:
-    """Buffers trials' episodes and writes them `per_shard` at a time under `out_dir` (shard-00000.parquet, ...)."""
+    """One supervisor's trials' episodes under `out_dir`, each written as its trial ends (shard-<task>-<trial>.parquet),
+    so that a trial the run log records as finished has its shard (sim_backends/supervision/resume.py)."""
 
-    def __init__(self, out_dir: Path, frames: int, policy: str, per_shard: int = 20):
-        self.dir, self.frames, self.policy, self.per_shard = Path(out_dir), frames, policy, per_shard
+    def __init__(self, out_dir: Path, frames: int, policy: str, supervisor: str):
+        self.dir, self.frames, self.policy, self.supervisor = Path(out_dir), frames, policy, supervisor
         self.dir.mkdir(parents=True, exist_ok=True)
-        self.rows: list[dict] = []
-        self.buffer: list[dict] = []
-        self.shards = self.unexplained = 0
 
-    def add(self, ep: Episode, family: str, supervisor: str) -> None:
-        if not ep.labels.success and ep.labels.failure_type is None:
-            self.unexplained += 1
+    def add(self, ep: Episode, family: str, trial: int) -> None:
+        if not ep.labels.explained:  # no label is guessed: left out, counted at close
             return
         ep.pair_id = f"{self.policy}-{family}-s{ep.seed}"
-        ep.episode_id = f"{ep.pair_id}-{supervisor}"
+        ep.episode_id = f"{ep.pair_id}-{self.supervisor}"
         ep.role = "rollout"
         kfs = ep.executed_keyframes
         keep = set(whole_grid_picks([k.name for k in kfs], [k.segment for k in kfs], self.frames))
         ep.images = [[png if i in keep else b"" for i, png in enumerate(view)] for view in ep.images]
-        row = episode_row(ep)
-        self.buffer.append(row)
-        self.rows.append({k: v for k, v in row.items() if k not in ("images", "state_trace")})
-        if len(self.buffer) >= self.per_shard:
-            self.flush()
+        write_shard(self.dir / f"shard-{family}-{trial:05d}.parquet", [episode_row(ep)])
 
-    def flush(self) -> None:
-        if self.buffer:
-            write_shard(self.dir / f"shard-{self.shards:05d}.parquet", self.buffer)
-            self.shards, self.buffer = self.shards + 1, []
-
-    def close(self) -> None:
-        self.flush()
+    def close(self, trials: list[dict]) -> None:
+        """run.json and manifest.json over every shard in the folder; `trials`: the run log's episode records of
+        this supervisor's trials (this run's and a resumed run's earlier ones), whose unexplained failures it counts."""
         run = {"source": "rollouts", "policy": self.policy, "render_frames": self.frames}
-        run["unexplained"] = self.unexplained
+        run["unexplained"] = sum(not Labels(**t["labels"]).explained for t in trials)
         atomic_write_json(self.dir / "run.json", run)
-        atomic_write_json(self.dir / "manifest.json", manifest(self.rows, run))
+        atomic_write_json(self.dir / "manifest.json", manifest(read_labels(self.dir.glob("shard-*.parquet")), run))

@@ -1,0 +1,99 @@
+"""A stopped `labrobfail-supervise` run goes on where it stopped: run it again with the same settings.
+
+Trial i of a task runs from seed `seed + i` whatever ran before it (the backend, the policy's injection and the
+supervisor are all reset from that seed), so a trial that finished need not run again. Its record is log.jsonl's
+"episode" line, written when the trial ends (after its rollout shard, when `shards=true`). On a second run into an
+out_dir, the trials with such a line are taken from it and the rest run (appending to the log); the lines a killed
+trial left (its queries, a half-written line) are cut from the log first, so each trial's records are one run's.
+More trials than before extend the run (trial i is the same trial whatever `trials` says).
+
+What must match: out_dir/run_config.json, written before the first trial, holds the settings that decide a trial's
+outcome (the config less trials, progress, out_dir and the sections of policies and supervisors not in use) and the
+content digest of every file or folder they name (a model retrained in place is another run). Any difference, or an
+out_dir holding trials of a version without run_config.json, is a one-line error: nothing there is overwritten.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json, sha256_file
+
+RUN_CONFIG = "run_config.json"
+LOG = "log.jsonl"
+PER_RUN = ("trials", "progress", "out_dir")  # settings that do not change what any one trial does
+
+
+def content_digest(path: Path) -> str:
+    """A file's sha256, or a folder's over its top-level files (names and contents; subfolders such as a model's
+    eval_* outputs are not the model)."""
+    if path.is_file():
+        return sha256_file(path)
+    h = hashlib.sha256()
+    for f in sorted(p for p in path.iterdir() if p.is_file()):
+        h.update(f"{f.name}\0{sha256_file(f)}\n".encode())
+    return h.hexdigest()
+
+
+def fingerprint(cfg: DictConfig, sections: list[str]) -> dict[str, Any]:
+    """What decides a trial's outcome: the config less PER_RUN and the unused policy and supervisor sections
+    (`sections`: every such section name; those of the run's policy and supervisors stay), and the digests of the
+    files the kept sections name."""
+    conf: dict[str, Any] = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
+    used = {str(cfg.policy), str(cfg.supervisor)}
+    for k in [*PER_RUN, *(s for s in sections if s not in used)]:
+        conf.pop(k, None)
+    digests = {}
+    for sec in sorted(used):
+        for k, v in (conf.get(sec) or {}).items():
+            if isinstance(v, str) and v and Path(v).exists():
+                digests[f"{sec}.{k}"] = content_digest(Path(v))
+    return {"config": conf, "digests": digests}
+
+
+def first_difference(a: Any, b: Any, at: str = "") -> str | None:
+    """The dotted key where two JSON values first differ, or None."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in sorted(set(a) | set(b), key=str):
+            if k not in a or k not in b:
+                return f"{at}{k}"
+            if (d := first_difference(a[k], b[k], f"{at}{k}.")) is not None:
+                return d
+        return None
+    return None if a == b else at.rstrip(".") or "(the whole config)"
+
+
+def finished_trials(out: Path, fp: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """The trials an earlier run of these settings finished in `out` (trial id -> its episode record); log.jsonl cut
+    back to the last of them. {} for a new out_dir, after writing its run_config.json."""
+    conf_f, log_f = out / RUN_CONFIG, out / LOG
+    if not conf_f.is_file():
+        if (log_f.is_file() and log_f.stat().st_size) or any((out / "shards").glob("*/shard-*.parquet")):
+            raise ConfigError(f"out_dir: {out} holds trials of a run without {RUN_CONFIG}; give a new out_dir")
+        atomic_write_json(conf_f, fp)
+        return {}
+    try:
+        old = json.loads(conf_f.read_text())
+    except (OSError, ValueError) as e:
+        raise ConfigError(f"out_dir: cannot read {conf_f} ({e})") from None
+    if (key := first_difference(old, json.loads(json.dumps(fp)))) is not None:
+        raise ConfigError(f"out_dir: {out} holds trials of another run ({key} differs); give a new out_dir")
+    lines = log_f.read_text(encoding="utf-8").splitlines() if log_f.is_file() else []
+    done: dict[str, dict[str, Any]] = {}
+    kept = 0
+    for i, line in enumerate(lines):
+        try:
+            rec = json.loads(line)
+        except ValueError:  # the line a kill cut short: nothing after it was written
+            break
+        if rec.get("event") == "episode":
+            done[rec["trial"]], kept = rec, i + 1
+    if kept < len(lines):
+        atomic_write_bytes(log_f, "".join(f"{line}\n" for line in lines[:kept]).encode())
+    return done
