@@ -198,7 +198,8 @@ reproduce-online: $(STAMP)
 # about 3.75 min per 1,000 steps on one thread alone and 11.5 beside a training, so its cap is 300 min, a safety like
 # pick's; kept when it exists; a run stopped part-way goes on from its newest checkpoint), then 100 pairs per task:
 # about 6 min for pick and 27 for place alone (29 Nov), 57 for pour (2 Dec: its ACT wanders to the 400-tick cap
-# in most trials); out: $(R)/recovery/<policy>/, results.md is the table.
+# in most trials); out: $(R)/recovery/<policy>/, results.md is the table. A stopped cell goes on from its last
+# finished trial when run again; after a new model, remove its out folder (a run with other settings is refused).
 RECOVERY_TRIALS ?= 100
 RECOVERY_SEED ?= 20000
 RECOVERY_RUN = trials=$(RECOVERY_TRIALS) seed=$(RECOVERY_SEED) progress=false loop.query_every=-1
