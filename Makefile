@@ -83,6 +83,7 @@ demo-bench: $(STAMP)
 	OMP_NUM_THREADS=$(DEMO_THREADS) $(BIN)/labrobfail-evaluate model=outputs/demo_train/final \
 	  dataset_dir=outputs/demo_dataset split=test progress=false
 demo-supervise: $(STAMP)
+	rm -rf outputs/demo_supervise  # the model may be new: a run into the old folder would be refused (resume.py)
 	OMP_NUM_THREADS=$(DEMO_THREADS) $(BIN)/labrobfail-supervise policy=scripted supervisor=vlm \
 	  vlm.model=outputs/demo_train/final task=place trials=25 loop.query_every=-1 out_dir=outputs/demo_supervise \
 	  progress=false $(DEMO_WORLD)
@@ -102,6 +103,7 @@ demo-online: $(STAMP)
 	  model.path=outputs/demo_train/final $(ONLINE_STAGE)
 	for s in test prefix; do $(BIN)/labrobfail-evaluate model=outputs/demo_online_train/final \
 	  dataset_dir=outputs/demo_online_dataset split=$$s progress=false || exit 1; done
+	rm -rf outputs/demo_online_supervise
 	$(BIN)/labrobfail-supervise policy=scripted supervisor=vlm vlm.model=outputs/demo_online_train/final task=place \
 	  trials=25 out_dir=outputs/demo_online_supervise progress=false $(DEMO_WORLD)
 

@@ -72,9 +72,9 @@ def false_alarm_pvalue(n_calibration: int, alpha: float, false_alarms: int, succ
     the count is what the bound allows, also when it reads above alpha."""
     from scipy.stats import betabinom
 
-    if not 0 <= false_alarms <= successes or n_calibration < 1 or monitors < 1:
+    if not 0 <= false_alarms <= successes or n_calibration < 0 or monitors < 1:
         got = f"{false_alarms}, {successes}, {n_calibration}, {monitors}"
-        raise ValueError(f"alarm: need 0 <= false alarms <= successes, n >= 1 and monitors >= 1 (got {got})")
+        raise ValueError(f"alarm: need 0 <= false alarms <= successes, n >= 0 and monitors >= 1 (got {got})")
     rank = math.ceil((n_calibration + 1) * (1 - alpha / monitors))
     if rank > n_calibration:  # every threshold is +inf: the alarm never fires
         return 1.0 if false_alarms == 0 else 0.0

@@ -266,7 +266,8 @@ ONLINE_GUARANTEE = (
     'alpha / 2 on the same successes: the pair keeps the same bound (a union bound). "bound p" is the chance of '
     "at least that many false alarms if the guarantee holds (beta-binomial over the calibration draw and the "
     "scored successes; for the pair, a union bound on it): a rate above alpha with a large p is what the bound "
-    "allows, one under 0.05 says the scored successes are not exchangeable with the calibration ones."
+    "allows; under 0.05 (a test per row: among a table's rows one may fall there by chance) it says the scored "
+    "successes are not exchangeable with the calibration ones."
 )
 
 

@@ -58,6 +58,7 @@ def test_the_bound_check_is_exact_on_known_cases_and_valid_under_exchangeability
     assert false_alarm_pvalue(19, 0.1, 1, 1) == pytest.approx(0.1)
     assert false_alarm_pvalue(19, 0.1, 0, 50) == 1.0
     assert false_alarm_pvalue(18, 0.05, 0, 30) == 1.0 and false_alarm_pvalue(18, 0.05, 1, 30) == 0.0
+    assert false_alarm_pvalue(0, 0.05, 0, 30) == 1.0  # no calibration success: the alarm never fires
     with pytest.raises(ValueError, match="false alarms"):
         false_alarm_pvalue(19, 0.1, 5, 4)
     rng = np.random.default_rng(3)

@@ -96,6 +96,13 @@ def test_a_stopped_run_goes_on_where_it_stopped_and_another_runs_settings_are_re
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "holds trials of another run (config.loop.budget differs)" in r.stderr
     assert (part / "log.jsonl").read_bytes() == before
+    # a run stopped before its first trial ended left nothing to keep: other settings are taken
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    (cut / "run_config.json").write_text('{"config": {"seed": 7}}')
+    (cut / "log.jsonl").write_text('{"event": "query", "trial": "x-none-000"}\n{"eve')
+    supervise(*args, "trials=1", "baseline=false", f"out_dir={cut}")
+    assert [x["event"] for x in records(cut)][-1] == "episode" and "x-none-000" not in (cut / "log.jsonl").read_text()
 
 
 def test_vlm_supervisor_queries_the_analyzer_on_prefix_grids(tmp_path, tiny):  # noqa: F811

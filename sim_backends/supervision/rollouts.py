@@ -57,6 +57,7 @@ class RolloutShards:
         """run.json and manifest.json over every shard in the folder; `trials`: the run log's episode records of
         this supervisor's trials (this run's and a resumed run's earlier ones), whose unexplained failures it counts."""
         run = {"source": "rollouts", "policy": self.policy, "render_frames": self.frames}
-        run["unexplained"] = sum(not Labels(**t["labels"]).explained for t in trials)
+        labels = [Labels(t["labels"]["success"], t["labels"]["failure_type"]) for t in trials]
+        run["unexplained"] = sum(not x.explained for x in labels)
         atomic_write_json(self.dir / "run.json", run)
         atomic_write_json(self.dir / "manifest.json", manifest(read_labels(self.dir.glob("shard-*.parquet")), run))
