@@ -18,7 +18,7 @@ import numpy as np
 from PIL import Image
 
 from labrobfail_data.facts import aux_records, frame_facts
-from labrobfail_data.robot_signals import frame_times, irreversible, robot_signals
+from labrobfail_data.robot_signals import dense_table, frame_times, irreversible, robot_signals
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.corrections import Context, correction
@@ -44,6 +44,7 @@ class Annotated:
     meta: dict[str, Any] = field(default_factory=dict)  # what the review page and stats show
     prefixes: list["Annotated"] = field(default_factory=list)  # prefix grids of the first k keyframes
     aux: list[dict[str, Any]] = field(default_factory=list)  # per-frame fact records (training split only)
+    dense: np.ndarray | None = None  # the robot's signals at every trace sample (robot_signals.dense_table)
 
 
 def q6_keep(ctx: Context | None, text: str) -> list[str]:
@@ -200,6 +201,7 @@ def annotate(
     info |= onset(row, trace, meta) | irreversible(trace, meta)
     info |= {"frame_times_s": frame_times(trace, picks), "robot_signals": robot_signals(trace, row["keyframes"], picks)}
     ann = Annotated(traj, info["group"], row["variant"], image, grid, records, info)
+    ann.dense = dense_table(trace, row["keyframes"])
     if prefix_cuts > 0:
 
         def context_at(k: int) -> Context:  # the failure as it stands once grid frame k has been shown

@@ -5,6 +5,7 @@ Output layout (out_dir):
   train.json val.json test.json      ShareGPT/LLaVA records (and val_*.json, test_*.json for held-out variants)
   dataset_info.json                  LLaMA-Factory's description of those files (sharegpt formatting)
   trajectories.json                  per-trajectory metadata (labels, split, sampled keyframes, strategy)
+  robot_signals.parquet              the robot's own signals at every trace sample (the online bench's 40 Hz monitor)
   stats.json                         counts, filter report (drops by reason), split sizes
   plots/*.png                        horizon distribution, success/failure per task, types by category
   review.html                        the human-sampling page (labrobfail_data/review.py)
@@ -30,6 +31,7 @@ from labrobfail_data.annotate import PREFIX_QUESTIONS, Annotated, annotate, chec
 from labrobfail_data.paraphrase import Paraphraser
 from labrobfail_data.splits import assign
 from labrobfail_vlm import questions as Q
+from labrobfail_vlm.bench import robot_baseline
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import GridConfig
 from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
@@ -347,6 +349,8 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     _write_splits(out, splits)
     trajectories = [a.meta for a in kept]
     atomic_write_json(out / "trajectories.json", trajectories + [p.meta for a in kept for p in a.prefixes])
+    dense = robot_baseline.dense_bytes([a.trajectory for a in kept], [a.dense for a in kept])
+    atomic_write_bytes(out / robot_baseline.DENSE_FILE, dense)
     stats = dataset_stats(trajectories, splits, res.total_rows, res.drops, res.para_stats, gcfg)
     stats["prefix"] = {
         "cuts": int(cfg.prefix.cuts),

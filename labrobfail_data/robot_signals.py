@@ -56,27 +56,35 @@ def irreversible(trace: dict[str, Any], meta: dict[str, Any]) -> dict[str, Any]:
     )
 
 
-def robot_signals(trace: dict[str, Any], keyframes_json: str, picks: list[int]) -> list[list[float]]:
-    """Per grid frame, the SIGNALS at its keyframe's end (rounded to 0.1 mm: the file stays small)."""
+def dense_table(trace: dict[str, Any], keyframes_json: str) -> np.ndarray:
+    """One row per trace sample (the trace's rate, 40 Hz for PyBullet): its sim time (s since the trace began), the
+    commanded keyframe it belongs to, the SIGNALS then: what a monitor checked at the robot's own rate sees
+    (labrobfail_vlm/bench/robot_baseline.py DENSE_FILE). A sample belongs to the keyframe whose segment it ends or
+    lies in (kf_end[p - 1] < j <= kf_end[p]; samples past the last keyframe's end to the last); `segment_error_max`
+    is the running maximum over the keyframe's samples so far, so every row reads only the past."""
     kfs = json.loads(keyframes_json)
-    ends = trace["kf_end"]
+    ends = np.asarray(trace["kf_end"], int)
     ee = np.asarray(trace["ee_pos"], float)
-    out = []
-    for p in picks:
-        p = min(p, len(ends) - 1, len(kfs) - 1)
-        j, j0 = ends[p], (ends[p - 1] + 1 if p > 0 else 0)
-        target = np.asarray(kfs[p]["pos"], float)
-        seg = np.linalg.norm(ee[j0 : j + 1] - target, axis=1)
-        grip = float(trace["grip_cmd"][j])
-        row = [
-            *ee[j],
-            float(trace["width"][j]),
-            grip,
-            *target,
-            float(kfs[p]["gripper"]),
-            float(np.linalg.norm(ee[j] - target)),
-            float(seg.max()),
-            float(trace["width"][j]) * grip,
-        ]
-        out.append([round(float(x), 4) for x in row])
-    return out
+    n = len(ee)
+    p = np.minimum(np.searchsorted(ends, np.arange(n)), min(len(ends), len(kfs)) - 1)
+    target = np.asarray([k["pos"] for k in kfs], float)[p]
+    err = np.linalg.norm(ee - target, axis=1)
+    seg = err.copy()
+    for j in range(1, n):  # a running maximum that restarts at each keyframe's first sample
+        if p[j] == p[j - 1]:
+            seg[j] = max(seg[j], seg[j - 1])
+    width = np.asarray(trace["width"], float)
+    grip = np.asarray(trace["grip_cmd"], float)
+    gripper = np.asarray([float(k["gripper"]) for k in kfs])[p]
+    t = np.asarray(trace["t"], float)
+    return np.column_stack([t - t[0], p, ee, width, grip, target, gripper, err, seg, width * grip])
+
+
+def robot_signals(trace: dict[str, Any], keyframes_json: str, picks: list[int]) -> list[list[float]]:
+    """Per grid frame, the SIGNALS at its keyframe's end (rounded to 0.1 mm: the file stays small): the dense rows
+    (dense_table) at the frames' samples."""
+    dense = dense_table(trace, keyframes_json)[:, 2:]
+    ends = trace["kf_end"]
+    n_kf = len(json.loads(keyframes_json))
+    rows = [dense[ends[min(p, len(ends) - 1, n_kf - 1)]] for p in picks]
+    return [[round(float(x), 4) for x in row] for row in rows]

@@ -112,6 +112,43 @@ def test_two_monitors_share_one_bound_and_the_pair_fires_at_the_earlier_alarm():
         AnyAlarm.calibrate([one, one[:-1]], alpha)
 
 
+def test_a_monitor_checked_between_frames_sounds_before_an_event_the_frames_miss():
+    """Hand-made trajectories with grid frames at 1, 2 and 3 s: a failure whose onset (1.4 s) comes 0.2 s before an
+    irreversible event (1.6 s). A per-frame monitor can sound at 2 s at the earliest, after the event; one checked
+    every 0.1 s sounds at 1.5 s, before it. The model's per-frame score placed on the trace's times stands from
+    one frame to the next and keeps its calibration (same maxima)."""
+    from labrobfail_vlm.bench.online import alarm_rows, on_axis, sounded
+
+    frames = [1.0, 2.0, 3.0]
+    axis = np.round(np.arange(1, 31) / 10, 4)  # 0.1 .. 3.0 s
+    succ = {"success": True, "frame": None, "frame_times_s": frames, "onset_s": None, "irreversible_s": None}
+    fail = {**succ, "success": False, "frame": 2, "onset_s": 1.4, "irreversible_s": 1.6}
+    cal_t = [succ] * 40
+    rng = np.random.default_rng(0)
+    cal_dense = [rng.uniform(0, 0.5, len(axis)) for _ in cal_t]  # every threshold under 0.5
+    ramp = np.where(axis >= 1.45, 0.9, 0.1)  # the failure's dense score rises at 1.5 s
+    ev_t = [fail, succ]
+    dense = alarm_rows([cal_dense], cal_t, [[ramp, np.full(len(axis), 0.2)]], ev_t, [axis, axis])["0.1"]
+    assert dense["detection_rate"] == 1.0 and dense["false_alarm_rate"] == 0.0
+    assert dense["latency_s_median"] == pytest.approx(0.1) and dense["latency_frames_median"] == 0  # by frame 2
+    assert dense["caught_before_irreversible"] == 1.0 and dense["irreversible_failures"] == 1
+    per_frame = alarm_rows([[[0.1] * 3] * 40], cal_t, [[[0.1, 0.9, 0.9], [0.1] * 3]], ev_t)["0.1"]
+    assert per_frame["latency_s_median"] == pytest.approx(0.6) and per_frame["caught_before_irreversible"] == 0.0
+    stand = on_axis([0.1, 0.9, 0.3], frames, axis)
+    assert np.all(np.isinf(stand[:9])) and stand[9] == 0.1 and stand[19] == 0.9 and stand[-1] == 0.3
+    assert stand.max() == 0.9 and set(np.unique(stand[np.isfinite(stand)])) == {0.1, 0.3, 0.9}
+    assert sounded(14, fail, axis) == (1, 1.5) and sounded(0, fail, None) == (0, 1.0)
+    assert sounded(29, fail, axis) == (2, 3.0) and sounded(None, fail, axis) == (None, None)
+    pair = alarm_rows(
+        [[on_axis([0.1] * 3, frames, axis)] * 40, cal_dense],
+        cal_t,
+        [[on_axis([0.1, 0.9, 0.9], frames, axis), on_axis([0.1] * 3, frames, axis)], [ramp, np.full(len(axis), 0.2)]],
+        ev_t,
+        [axis, axis],
+    )["0.1"]
+    assert pair["caught_before_irreversible"] == 1.0 and len(pair["thresholds"]) == 2
+
+
 def test_mcnemar_and_the_difference_interval_on_known_tables():
     assert mcnemar_exact(1, 9) == pytest.approx(22 / 1024)  # 2 * (C(10,0) + C(10,1)) / 2^10
     assert mcnemar_exact(0, 6) == pytest.approx(2 / 64)

@@ -1,12 +1,13 @@
 """infer.py, the structured decoder (one pass == six prompts), bad inputs, and the bench evaluator."""
 
 import json
+import shutil
 import sys
 
 import numpy as np
 import pytest
 import torch
-from conftest import evaluate, run, run_here
+from conftest import cli, evaluate, run, run_here
 from PIL import Image
 from test_train import small_ds, tiny  # noqa: F401  (session fixtures)
 
@@ -498,6 +499,34 @@ def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, smal
     assert len(res["auroc_by_keyframe"]["model"]) >= 1 and (out / "auroc_by_keyframe.png").is_file()
     r = evaluate(f"model={tiny}", small_ds, "mode=online", "split=test", "calibration=test", call=run_here)
     assert r.returncode == 2 and "calibration: must be another split" in r.stderr, r.stderr
+    # calibrated on another split than train, the robot-signal MLP (fitted on train) runs per grid frame and at every
+    # trace sample; the small dataset has no val pair, so a copy names its test trajectories val as well (plumbing)
+    from labrobfail_vlm.bench.online import DENSE, DENSE_EITHER, EITHER, ROBOT
+
+    ds = tmp_path / "ds"
+    shutil.copytree(small_ds, ds)
+    trajs = json.loads((ds / "trajectories.json").read_text())
+    trajs += [{**t, "split": "val"} for t in trajs if t["split"] == "test" and "prefix_of" not in t]
+    (ds / "trajectories.json").write_text(json.dumps(trajs))
+    out = tmp_path / "online_val"
+    r = evaluate(f"model={tiny}", ds, "mode=online", "split=test", "calibration=val", f"out_dir={out}", call=run_here)
+    assert r.returncode == 0, r.stderr[-2000:]
+    res = json.loads((out / "online.json").read_text())
+    assert {ROBOT, EITHER, DENSE, DENSE_EITHER} <= set(res["rows"]) and res["cpu_s_per_dense_check"] > 0
+    assert len(res["rows"][DENSE_EITHER]["0.05"]["thresholds"]) == 2 and "latency_s_median" in res["rows"][DENSE]["0.2"]
+    assert len(res["auroc_by_keyframe"][DENSE]) == len(res["auroc_by_keyframe"][ROBOT])
+    assert DENSE in (out / "online.md").read_text()
+    # without a model: the robot-signal monitors, the majority class and the labeler, the same figures as beside it
+    alone = tmp_path / "online_robot"
+    argv = [cli("evaluate"), f"dataset_dir={ds}", "mode=online", "split=test", "calibration=val"]
+    assert run_here([*argv, f"out_dir={alone}"]).returncode == 0
+    robot = json.loads((alone / "online.json").read_text())
+    assert list(robot["rows"]) == ["majority class", ROBOT, DENSE, "labeler on live state (ceiling)"]
+    assert robot["rows"][DENSE] == res["rows"][DENSE] and robot["cpu_s_per_check"] is None
+    r = run_here(argv)
+    assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].endswith(
+        "give out_dir= (the robot-signal monitors alone)"
+    )
 
 
 def test_robot_signal_baseline_reads_each_prefix_and_scores_held_out_trajectories(small_ds):  # noqa: F811
@@ -517,3 +546,13 @@ def test_robot_signal_baseline_reads_each_prefix_and_scores_held_out_trajectorie
     test = [t for t in trajs if t["split"] == "test"]
     scores = robot_baseline.score(robot_baseline.fit(train), test)
     assert [len(s) for s in scores] == [t["frames"] for t in test] and all(0 <= p <= 1 for s in scores for p in s)
+    # every trace sample's signals (robot_signals.parquet): at each grid frame's time, the frame's signals
+    tables = robot_baseline.read_dense(small_ds, [t["trajectory"] for t in trajs])
+    for t in trajs:
+        tab = tables[t["trajectory"]]
+        assert tab.shape[1] == 14 and np.all(np.diff(tab[:, 0]) >= 0) and np.all(np.diff(tab[:, 1]) >= 0)
+        at = np.searchsorted(np.round(tab[:, 0], 4), t["frame_times_s"])
+        assert np.allclose(tab[at, 2:], t["robot_signals"], atol=2e-4), t["trajectory"]
+    dense = robot_baseline.score_dense(robot_baseline.fit_dense(train, tables), test, tables)
+    assert [len(d) for d in dense] == [len(tables[t["trajectory"]]) for t in test]
+    assert robot_baseline.read_dense(small_ds, ["no-such-trajectory"]) is None

@@ -31,12 +31,13 @@ from labrobfail_vlm.config import ConfigError, cli_main, load_config
 
 def _check_args(cfg: Any) -> None:
     """Refuse a bad command line before anything is read or written."""
-    if sum(x is not None for x in (cfg.model, cfg.predictions, cfg.endpoint)) != 1:
+    if cfg.mode not in ("offline", "online"):
+        raise ConfigError(f"mode: expected offline or online, got {cfg.mode!r}")
+    given = sum(x is not None for x in (cfg.model, cfg.predictions, cfg.endpoint))
+    if given != 1 and not (given == 0 and cfg.mode == "online"):  # online without one: the robot's monitors alone
         raise ConfigError("model/predictions/endpoint: give exactly one of model=DIR, predictions=FILE or endpoint=URL")
     if cfg.dataset_dir is None:
         raise ConfigError("dataset_dir: required")
-    if cfg.mode not in ("offline", "online"):
-        raise ConfigError(f"mode: expected offline or online, got {cfg.mode!r}")
     if not isinstance(cfg.batch_size, int) or cfg.batch_size < 1:
         raise ConfigError(f"batch_size: expected a positive integer, got {cfg.batch_size!r}")
     if cfg.threshold != 0.5:
@@ -335,18 +336,20 @@ def main(argv: list[str]) -> int:
 
 
 def _online(cfg: Any) -> int:
-    """mode=online (labrobfail_vlm/bench/online.py): a local model's alarm on prefix grids, per keyframe."""
-    from labrobfail_vlm.bench.online import run_online
+    """mode=online (labrobfail_vlm/bench/online.py): a local model's alarm on prefix grids, per keyframe, beside the
+    robot-signal monitors; without model=, the robot-signal monitors alone (out_dir= then required)."""
+    from labrobfail_vlm.bench.online import online_md, run_online
 
-    if cfg.model is None:
-        raise ConfigError("mode=online: give model=DIR (the alarm reads the model's P(failure) on prefix grids)")
+    if cfg.predictions is not None or cfg.endpoint is not None:
+        raise ConfigError("mode=online: give model=DIR (the alarm reads a local model's P(failure) on prefix grids)")
+    if cfg.model is None and cfg.out_dir is None:
+        raise ConfigError("mode=online: without model=, give out_dir= (the robot-signal monitors alone)")
     if cfg.max_trajectories is not None and (not isinstance(cfg.max_trajectories, int) or cfg.max_trajectories < 1):
         raise ConfigError(f"max_trajectories: expected a positive integer or null, got {cfg.max_trajectories!r}")
-    fa, _ = _load_analyzer(cfg)
+    fa = _load_analyzer(cfg)[0] if cfg.model is not None else None
     out = Path(cfg.out_dir or Path(cfg.model) / f"eval_online_{cfg.split}")
     res = run_online(cfg, fa, out)
-    print(json.dumps({k: res[k] for k in ("split", "calibration", "trajectories", "cpu_s_per_check")}))
-    print(json.dumps(res["rows"]["model"], indent=1))
+    print("\n".join(online_md(res)))
     return 0
 
 

@@ -23,6 +23,10 @@ successes only (split conformal: at most alpha of new exchangeable successes rai
   the model or the MLP (Sentinel's pairing of a cheap detector with a VLM: either alarm, each calibrated at
   alpha / 2, so the pair keeps the bound; alarm.AnyAlarm), and the labeler on live state (the ceiling: it alarms
   at the onset frame, never on a success);
+- the same MLP checked at every sample of the state trace (40 Hz in PyBullet; datasets built from 3 Dec), alone
+  and paired with the model, whose score stands from one grid frame to the next: an alarm between two frames can
+  sound before an event that follows its onset within a keyframe (SAFE checks at every step); its latency in
+  frames counts to the first grid frame taken once it sounded;
 - the CPU time of one alarm check (one prefix grid's Q2).
 Writes out_dir/online.json and out_dir/auroc_by_keyframe.png (out_dir: MODEL/eval_online_SPLIT by default).
 """
@@ -46,6 +50,8 @@ ALPHAS = (0.01, 0.05, 0.1, 0.2)
 LABELER = "labeler on live state (ceiling)"
 ROBOT = "robot signals (MLP)"
 EITHER = "model or robot signals (alpha/2 each)"
+DENSE = "robot signals, every trace sample (MLP)"
+DENSE_EITHER = "model or robot signals, every sample (alpha/2 each)"
 
 
 def prefix_grid(grid: Image.Image, cfg: GridConfig, views: int, k: int) -> Image.Image:
@@ -99,20 +105,25 @@ def score_prefixes(
 
 
 def alarm_rows(
-    cal: Sequence[list[list[float]]],
+    cal: Sequence[Sequence[Sequence[float]]],
     cal_trajs: Sequence[dict[str, Any]],
-    ev: Sequence[list[list[float]]],
+    ev: Sequence[Sequence[Sequence[float]]],
     ev_trajs: Sequence[dict],
+    axes: Sequence[np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Per alpha: the calibrated threshold(s), false alarms on successes, detection and latency on failures.
-    `cal`, `ev`: one or more monitors' running scores per trajectory; several share alpha (alarm.AnyAlarm)."""
+    `cal`, `ev`: one or more monitors' running scores per trajectory; several share alpha (alarm.AnyAlarm).
+    `axes`: per scored trajectory, the sim time of each score, for monitors checked at the trace's rate (None: one
+    score per grid frame); latency in frames then counts to the first grid frame taken once the alarm sounded."""
     succ = [[s for s, t in zip(c, cal_trajs) if t["success"]] for c in cal]
     out: dict[str, Any] = {}
     for alpha in ALPHAS:
         alarm = AnyAlarm.calibrate(succ, alpha)
         fired = [alarm.fires(s) for s in zip(*ev)]
-        ok = [f for f, t in zip(fired, ev_trajs) if t["success"]]
-        lat = [f + 1 - int(t["frame"]) for f, t in zip(fired, ev_trajs) if not t["success"] and f is not None]
+        when = [sounded(f, t, None if axes is None else axes[i]) for i, (f, t) in enumerate(zip(fired, ev_trajs))]
+        frames = [w[0] for w in when]
+        ok = [f for f, t in zip(frames, ev_trajs) if t["success"]]
+        lat = [f + 1 - int(t["frame"]) for f, t in zip(frames, ev_trajs) if not t["success"] and f is not None]
         fails = sum(not t["success"] for t in ev_trajs)
         out[str(alpha)] = (
             alarm.to_dict()
@@ -125,10 +136,30 @@ def alarm_rows(
                 "latency_frames_p90": float(np.percentile(lat, 90)) if lat else None,
                 "caught_by_onset": _share(sum(x <= 0 for x in lat), fails),
             }
-            | timing(fired, ev_trajs)
+            | timing([w[1] for w in when], ev_trajs)
         )
         out[str(alpha)]["bound_p"] = bound_check(out[str(alpha)])
     return out
+
+
+def sounded(f: int | None, traj: dict[str, Any], axis: np.ndarray | None) -> tuple[int | None, float | None]:
+    """An alarm that fired at score f: the grid frame (0-based) by whose images it has sounded, and its sim time
+    (None without the dataset's frame times). At the trace's rate (`axis`), the frame is the first one taken at or
+    after the alarm (the last, if it sounded after every frame)."""
+    times = traj.get("frame_times_s")
+    if f is None:
+        return None, None
+    if axis is None:
+        return f, (float(times[f]) if times else None)
+    t = round(float(axis[f]), 4)
+    return min(int(np.searchsorted(times, t)), len(times) - 1), t
+
+
+def on_axis(scores: Sequence[float], times: Sequence[float], axis: np.ndarray) -> np.ndarray:
+    """A per-grid-frame score as it stands at each time of `axis`: the latest frame's score, -inf before the first
+    frame (the same maximum, so the same calibration; it fires at its frame's time)."""
+    idx = np.searchsorted(np.asarray(times, np.float64), axis, side="right") - 1
+    return np.where(idx >= 0, np.asarray(scores, np.float64)[np.maximum(idx, 0)], -np.inf)
 
 
 def bound_check(row: dict[str, Any]) -> float | None:
@@ -143,16 +174,16 @@ def bound_check(row: dict[str, Any]) -> float | None:
     return float(f"{p:.3g}")
 
 
-def timing(fired: Sequence[int | None], trajs: Sequence[dict[str, Any]]) -> dict[str, Any]:
-    """Latency from the onset in sim seconds (the alarm sounds when its frame's images are taken: frame_times_s),
-    and the share of the failures with an irreversible event (spill, fall, breakage, out of reach) whose alarm
-    sounded before it. Empty for a dataset built before 29 Nov (no frame times, onsets or events)."""
+def timing(fired_s: Sequence[float | None], trajs: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Latency from the onset in sim seconds (`fired_s`: when each alarm sounded, None if never), and the share of the
+    failures with an irreversible event (spill, fall, breakage, out of reach) whose alarm sounded before it. Empty
+    for a dataset built before 29 Nov (no frame times, onsets or events)."""
     if not all(t.get("frame_times_s") and "irreversible_s" in t for t in trajs):
         return {}
-    fails = [(f, t) for f, t in zip(fired, trajs) if not t["success"]]
-    lat = [t["frame_times_s"][f] - t["onset_s"] for f, t in fails if f is not None and t.get("onset_s") is not None]
-    grave = [(f, t) for f, t in fails if t["irreversible_s"] is not None]
-    early = sum(f is not None and t["frame_times_s"][f] < t["irreversible_s"] for f, t in grave)
+    fails = [(s, t) for s, t in zip(fired_s, trajs) if not t["success"]]
+    lat = [s - t["onset_s"] for s, t in fails if s is not None and t.get("onset_s") is not None]
+    grave = [(s, t) for s, t in fails if t["irreversible_s"] is not None]
+    early = sum(s is not None and s < t["irreversible_s"] for s, t in grave)
     return {
         "latency_s_median": round(float(np.median(lat)), 3) if lat else None,
         "latency_s_p90": round(float(np.percentile(lat, 90)), 3) if lat else None,
@@ -211,7 +242,8 @@ def online_md(res: dict[str, Any]) -> list[str]:
     successes are not exchangeable with the calibration ones)."""
     out = [
         f"Online bench, split {res['split']} ({res['trajectories']} trajectories), alarm calibrated on "
-        f"{res['calibration_successes']} successes of {res['calibration']}; CPU per check {res['cpu_s_per_check']} s.",
+        f"{res['calibration_successes']} successes of {res['calibration']}; CPU per check: "
+        f"{_checks(res)}.",
         "",
         "| row | alpha | false alarms (%) | bound p | detection (%) | latency frames (median / p90) "
         "| latency s (median / p90) | caught by onset (%) | before an irreversible event (%) |",
@@ -232,6 +264,14 @@ def online_md(res: dict[str, Any]) -> list[str]:
                 f"{_pct(r.get('caught_by_onset'))} | {_pct(r.get('caught_before_irreversible'))}{grave} |"
             )
     return out
+
+
+def _checks(res: dict[str, Any]) -> str:
+    """The CPU time of one check per monitor that ran (a bench JSON of 2 Dec or before has the model's only)."""
+    out = [f"model {res['cpu_s_per_check']} s"] if res.get("cpu_s_per_check") is not None else []
+    if res.get("cpu_s_per_dense_check") is not None:
+        out.append(f"robot signals per sample {res['cpu_s_per_dense_check']} s")
+    return ", ".join(out) or "-"
 
 
 def _share(k: int, n: int) -> float | None:
@@ -256,8 +296,54 @@ def auroc_png(curves: dict[str, list[float | None]], title: str, path: Path) -> 
     save_figure(fig, path)
 
 
-def run_online(cfg: Any, fa: Any, out_dir: Path) -> dict[str, Any]:
-    """The online bench of `cfg.split`, calibrated on `cfg.calibration`; writes online.json and the AUROC PNG."""
+def dense_rows(
+    dataset: Path,
+    train_t: Sequence[dict[str, Any]],
+    cal: tuple[Sequence[dict[str, Any]], Sequence[list[float]] | None],
+    ev: tuple[Sequence[dict[str, Any]], Sequence[list[float]] | None],
+    rows: dict[str, Any],
+    curves: dict[str, Any],
+) -> dict[str, Any]:
+    """The robot-signal MLP checked at every trace sample (robot_baseline.DENSE_FILE), alone and paired with the
+    model when there is one (its score stands from one grid frame to the next): adds their rows and curve, returns
+    the CPU seconds of one dense check. Nothing for a dataset built without the dense file (before 3 Dec)."""
+    (cal_t, cal_s), (ev_t, ev_s) = cal, ev
+    tables = robot_baseline.read_dense(dataset, [t["trajectory"] for t in (*train_t, *cal_t, *ev_t)])
+    if tables is None or not all(t.get("frame_times_s") for t in (*cal_t, *ev_t)):
+        return {}
+    fitted = robot_baseline.fit_dense(train_t, tables)
+    c0 = time.process_time()
+    dev = robot_baseline.score_dense(fitted, ev_t, tables)
+    cpu = (time.process_time() - c0) / max(sum(len(d) for d in dev), 1)
+    dcal = robot_baseline.score_dense(fitted, cal_t, tables)
+    cal_ax = [np.round(tables[t["trajectory"]][:, 0], 4) for t in cal_t]
+    ev_ax = [np.round(tables[t["trajectory"]][:, 0], 4) for t in ev_t]
+    rows[DENSE] = alarm_rows([dcal], cal_t, [dev], ev_t, ev_ax)
+    if cal_s is not None and ev_s is not None:
+        mcal = [on_axis(s, t["frame_times_s"], a) for s, t, a in zip(cal_s, cal_t, cal_ax)]
+        mev = [on_axis(s, t["frame_times_s"], a) for s, t, a in zip(ev_s, ev_t, ev_ax)]
+        rows[DENSE_EITHER] = alarm_rows([mcal, dcal], cal_t, [mev, dev], ev_t, ev_ax)
+    at_frames = [d[np.searchsorted(a, t["frame_times_s"])] for d, a, t in zip(dev, ev_ax, ev_t)]
+    curves[DENSE] = auroc_by_keyframe([list(map(float, x)) for x in at_frames], ev_t)
+    return {"cpu_s_per_dense_check": float(f"{cpu:.3g}")}
+
+
+def model_rows(fa: Any, dataset: Path, grid: GridConfig, cal_t: list, ev_t: list, rows: dict, curves: dict) -> tuple:
+    """The model's and the blind model's rows and curves (added to `rows`, `curves`); returns the model's running
+    scores of the calibration and scored trajectories and the CPU seconds of one check."""
+    cal, _ = score_prefixes(fa, dataset, cal_t, grid)
+    ev, cpu = score_prefixes(fa, dataset, ev_t, grid)
+    bcal, _ = score_prefixes(fa, dataset, cal_t, grid, blind=True)
+    bev, _ = score_prefixes(fa, dataset, ev_t, grid, blind=True)
+    rows["model"] = alarm_rows([cal], cal_t, [ev], ev_t)
+    rows["blind (grey grid)"] = alarm_rows([bcal], cal_t, [bev], ev_t)
+    curves |= {"model": auroc_by_keyframe(ev, ev_t), "blind (grey grid)": auroc_by_keyframe(bev, ev_t)}
+    return cal, ev, cpu
+
+
+def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
+    """The online bench of `cfg.split`, calibrated on `cfg.calibration`; writes online.json and the AUROC PNG.
+    Without a model (`fa` None), the robot-signal monitors, the majority class and the labeler only."""
     from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
 
     dataset = Path(str(cfg.dataset_dir))
@@ -267,35 +353,36 @@ def run_online(cfg: Any, fa: Any, out_dir: Path) -> dict[str, Any]:
         raise ConfigError("calibration: must be another split than the one scored (split conformal)")
     limit = cfg.get("max_trajectories")
     cal_t, ev_t = trajectories(dataset, str(cfg.calibration), limit), trajectories(dataset, str(cfg.split), limit)
-    cal, _ = score_prefixes(fa, dataset, cal_t, grid)
-    ev, cpu = score_prefixes(fa, dataset, ev_t, grid)
-    bcal, _ = score_prefixes(fa, dataset, cal_t, grid, blind=True)
-    bev, _ = score_prefixes(fa, dataset, ev_t, grid, blind=True)
-    never = [[0.0] * len(s) for s in ev]
-    rows = {
-        "model": alarm_rows([cal], cal_t, [ev], ev_t),
-        "majority class": {str(a): {"false_alarm_rate": 0.0, "detection_rate": 0.0} for a in ALPHAS},
-        "blind (grey grid)": alarm_rows([bcal], cal_t, [bev], ev_t),
+    rows: dict[str, Any] = {
+        "majority class": {str(a): {"false_alarm_rate": 0.0, "detection_rate": 0.0} for a in ALPHAS}
     }
-    curves = {"model": auroc_by_keyframe(ev, ev_t), "blind (grey grid)": auroc_by_keyframe(bev, ev_t)}
+    curves: dict[str, Any] = {}
+    cal = ev = None
+    extra: dict[str, Any] = {"cpu_s_per_check": None}
+    if fa is not None:
+        cal, ev, cpu = model_rows(fa, dataset, grid, cal_t, ev_t, rows, curves)
+        rows = {"model": rows.pop("model"), **rows}  # the model's rows first, as the page reads them
+        extra["cpu_s_per_check"] = round(cpu, 4)
     train_t = [t for t in json.loads((dataset / "trajectories.json").read_text()) if t.get("split") == "train"]
     # fitted on the train split, so it is calibrated and scored on others only
     if "train" not in (cfg.calibration, cfg.split) and robot_baseline.has_signals([*train_t, *cal_t, *ev_t]):
         fitted = robot_baseline.fit(train_t)
         rcal, rev = robot_baseline.score(fitted, cal_t), robot_baseline.score(fitted, ev_t)
         rows[ROBOT] = alarm_rows([rcal], cal_t, [rev], ev_t)
-        rows[EITHER] = alarm_rows([cal, rcal], cal_t, [ev, rev], ev_t)  # Sentinel's pairing, one shared bound
+        if cal is not None and ev is not None:  # Sentinel's pairing, one shared bound
+            rows[EITHER] = alarm_rows([cal, rcal], cal_t, [ev, rev], ev_t)
         curves[ROBOT] = auroc_by_keyframe(rev, ev_t)
+        extra |= dense_rows(dataset, train_t, (cal_t, cal), (ev_t, ev), rows, curves)
     rows[LABELER] = ceiling(ev_t)
     res = {
         "split": str(cfg.split),
         "calibration": str(cfg.calibration),
         "trajectories": len(ev_t),
         "calibration_successes": sum(t["success"] for t in cal_t),
-        "cpu_s_per_check": round(cpu, 4),
+        **extra,
         "rows": rows,
         "auroc_by_keyframe": curves,
-        "auroc_majority": auroc_by_keyframe(never, ev_t)[:1],
+        "auroc_majority": auroc_by_keyframe([[0.0] * int(t["frames"]) for t in ev_t], ev_t)[:1],
     }
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out_dir / "online.json", res)

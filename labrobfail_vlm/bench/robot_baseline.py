@@ -11,11 +11,19 @@ the model's.
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+import io
+from pathlib import Path
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
 RUNNING = (9, 10, 11)  # tracking_error, segment_error_max, closed_width (labrobfail_data/robot_signals.SIGNALS)
+# The same signals at every sample of the state trace (40 Hz), per whole trajectory, beside trajectories.json: what a
+# monitor checked at the robot's own rate sees between two grid frames. Columns: trajectory, t (s since the trace
+# began), keyframe (0-based: the commanded keyframe the sample belongs to), signals (the SIGNALS, row after row).
+DENSE_FILE = "robot_signals.parquet"
+# The dense MLP is fitted on every FIT_EVERY-th sample (10 Hz): neighbouring samples at 40 Hz add little but time.
+FIT_EVERY = 4
 
 
 def prefix_features(signals: Sequence[Sequence[float]]) -> np.ndarray:
@@ -44,11 +52,14 @@ def has_signals(trajs: Sequence[dict[str, Any]]) -> bool:
 def fit(train: Sequence[dict[str, Any]], seed: int = 0) -> Any:
     """The baseline fitted on `train`'s prefixes: scaling, then an MLP (32, 32), with early stopping on a tenth of
     them when there are enough (a test's handful of prefixes has too few to hold any out)."""
+    return _mlp(*_xy(train), seed)
+
+
+def _mlp(x: np.ndarray, y: np.ndarray, seed: int) -> Any:
     from sklearn.neural_network import MLPClassifier
     from sklearn.pipeline import make_pipeline
     from sklearn.preprocessing import StandardScaler
 
-    x, y = _xy(train)
     mlp = MLPClassifier(hidden_layer_sizes=(32, 32), max_iter=300, early_stopping=len(y) >= 200, random_state=seed)
     return make_pipeline(StandardScaler(), mlp).fit(x, y)
 
@@ -56,3 +67,73 @@ def fit(train: Sequence[dict[str, Any]], seed: int = 0) -> Any:
 def score(model: Any, trajs: Sequence[dict[str, Any]]) -> list[list[float]]:
     """Per trajectory, the baseline's P(failure) on each of its prefixes."""
     return [[float(p) for p in model.predict_proba(prefix_features(t["robot_signals"]))[:, 1]] for t in trajs]
+
+
+# -- the same baseline at the trace's rate ---------------------------------------------------------------------------
+
+
+def dense_bytes(trajectories: Sequence[str], tables: Sequence[np.ndarray]) -> bytes:
+    """DENSE_FILE's bytes: per trajectory its dense table (rows [t, keyframe, *signals], one per trace sample)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    cols = {
+        "trajectory": pa.array(list(trajectories), pa.string()),
+        "t": pa.array([np.asarray(x[:, 0], np.float32) for x in tables], pa.list_(pa.float32())),
+        "keyframe": pa.array([np.asarray(x[:, 1], np.int16) for x in tables], pa.list_(pa.int16())),
+        "signals": pa.array([np.asarray(x[:, 2:], np.float32).ravel() for x in tables], pa.list_(pa.float32())),
+    }
+    buf = io.BytesIO()
+    pq.write_table(pa.table(cols), buf)
+    return buf.getvalue()
+
+
+def read_dense(dataset: Path, names: Iterable[str]) -> dict[str, np.ndarray] | None:
+    """The dense tables of `names` (trajectory -> rows [t, keyframe, *signals]); None for a dataset without the file
+    (built before 3 Dec) or one missing any of them."""
+    import pyarrow.compute as pc
+    import pyarrow.parquet as pq
+
+    path = Path(dataset) / DENSE_FILE
+    if not path.is_file():
+        return None
+    want = list(dict.fromkeys(names))
+    table = pq.read_table(path, filters=pc.field("trajectory").isin(want))
+    if table.num_rows == 0:
+        return None
+    t, kf, sig = (table.column(c).combine_chunks() for c in ("t", "keyframe", "signals"))  # list arrays, read flat
+    cuts = t.offsets.to_numpy() - t.offsets[0].as_py()
+    flat_t, flat_kf, flat_sig = (a.flatten().to_numpy() for a in (t, kf, sig))
+    flat_sig = flat_sig.reshape(len(flat_t), -1)
+    out: dict[str, np.ndarray] = {}
+    for i, name in enumerate(table.column("trajectory").to_pylist()):
+        a, b = cuts[i], cuts[i + 1]
+        out[name] = np.column_stack([flat_t[a:b], flat_kf[a:b], flat_sig[a:b]]).astype(np.float64)
+    return out if all(n in out for n in want) else None
+
+
+def dense_features(table: np.ndarray) -> np.ndarray:
+    """One row per trace sample: its signals, the running maxima so far, its keyframe's place in the plan."""
+    x = table[:, 2:]
+    run = np.maximum.accumulate(x[:, RUNNING], axis=0)
+    kf = table[:, 1]
+    pos = ((kf + 1) / (kf.max() + 1))[:, None]
+    return np.hstack([x, run, pos])
+
+
+def fit_dense(train: Sequence[dict[str, Any]], tables: dict[str, np.ndarray], seed: int = 0) -> Any:
+    """The baseline fitted on `train`'s samples (every FIT_EVERY-th): the label is whether the failure's onset
+    (onset_s, from simulator state) has passed; failures without an onset are left out."""
+    xs, ys = [], []
+    for t in train:
+        if not t["success"] and t.get("onset_s") is None:
+            continue
+        tab = tables[t["trajectory"]][::FIT_EVERY]
+        xs.append(dense_features(tables[t["trajectory"]])[::FIT_EVERY])
+        ys.append(np.zeros(len(tab), bool) if t["success"] else tab[:, 0] >= float(t["onset_s"]))
+    return _mlp(np.vstack(xs), np.concatenate(ys), seed)
+
+
+def score_dense(model: Any, trajs: Sequence[dict[str, Any]], tables: dict[str, np.ndarray]) -> list[np.ndarray]:
+    """Per trajectory, the baseline's P(failure) at each trace sample."""
+    return [model.predict_proba(dense_features(tables[t["trajectory"]]))[:, 1] for t in trajs]
