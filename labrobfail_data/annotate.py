@@ -199,9 +199,13 @@ def annotate(
     records = _main_records(traj, image, task_name, answers, success, grid_cfg, rng)
     info = _trajectory_info(row, meta, traj, task_name, frame, picks, views, strategy, q6_keep(ctx, answers["Q6"]))
     info |= onset(row, trace, meta) | irreversible(trace, meta)
-    info |= {"frame_times_s": frame_times(trace, picks), "robot_signals": robot_signals(trace, row["keyframes"], picks)}
+    dense = dense_table(trace, row["keyframes"])
+    info |= {
+        "frame_times_s": frame_times(trace, picks),
+        "robot_signals": robot_signals(trace, row["keyframes"], picks, dense),
+    }
     ann = Annotated(traj, info["group"], row["variant"], image, grid, records, info)
-    ann.dense = dense_table(trace, row["keyframes"])
+    ann.dense = dense.astype(np.float32)  # as the file stores it; a full dataset's tables held until it is written
     if prefix_cuts > 0:
 
         def context_at(k: int) -> Context:  # the failure as it stands once grid frame k has been shown

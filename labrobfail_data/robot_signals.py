@@ -80,10 +80,12 @@ def dense_table(trace: dict[str, Any], keyframes_json: str) -> np.ndarray:
     return np.column_stack([t - t[0], p, ee, width, grip, target, gripper, err, seg, width * grip])
 
 
-def robot_signals(trace: dict[str, Any], keyframes_json: str, picks: list[int]) -> list[list[float]]:
+def robot_signals(
+    trace: dict[str, Any], keyframes_json: str, picks: list[int], dense: np.ndarray | None = None
+) -> list[list[float]]:
     """Per grid frame, the SIGNALS at its keyframe's end (rounded to 0.1 mm: the file stays small): the dense rows
-    (dense_table) at the frames' samples."""
-    dense = dense_table(trace, keyframes_json)[:, 2:]
+    (`dense`: dense_table's, computed here when not given) at the frames' samples."""
+    dense = (dense_table(trace, keyframes_json) if dense is None else dense)[:, 2:]
     ends = trace["kf_end"]
     n_kf = len(json.loads(keyframes_json))
     rows = [dense[ends[min(p, len(ends) - 1, n_kf - 1)]] for p in picks]

@@ -527,6 +527,13 @@ def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, smal
     assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].endswith(
         "give out_dir= (the robot-signal monitors alone)"
     )
+    (ds / "robot_signals.parquet").write_bytes(b"not a parquet file")  # a damaged file: one line, nothing written
+    r = run_here([*argv, f"out_dir={tmp_path / 'damaged'}"])
+    last = r.stderr.strip().splitlines()[-1]
+    assert (
+        r.returncode == 2 and "cannot read" in last and "robot_signals.parquet" in last and "Traceback" not in r.stderr
+    )
+    assert not (tmp_path / "damaged" / "online.json").exists()
 
 
 def test_robot_signal_baseline_reads_each_prefix_and_scores_held_out_trajectories(small_ds):  # noqa: F811

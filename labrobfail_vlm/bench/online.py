@@ -145,14 +145,14 @@ def alarm_rows(
 def sounded(f: int | None, traj: dict[str, Any], axis: np.ndarray | None) -> tuple[int | None, float | None]:
     """An alarm that fired at score f: the grid frame (0-based) by whose images it has sounded, and its sim time
     (None without the dataset's frame times). At the trace's rate (`axis`), the frame is the first one taken at or
-    after the alarm (the last, if it sounded after every frame)."""
+    after the alarm (one past the last, if it sounded after every frame)."""
     times = traj.get("frame_times_s")
     if f is None:
         return None, None
     if axis is None:
         return f, (float(times[f]) if times else None)
     t = round(float(axis[f]), 4)
-    return min(int(np.searchsorted(times, t)), len(times) - 1), t
+    return int(np.searchsorted(times, t)), t
 
 
 def on_axis(scores: Sequence[float], times: Sequence[float], axis: np.ndarray) -> np.ndarray:
@@ -312,10 +312,11 @@ def dense_rows(
     if tables is None or not all(t.get("frame_times_s") for t in (*cal_t, *ev_t)):
         return {}
     fitted = robot_baseline.fit_dense(train_t, tables)
-    c0 = time.process_time()
+    if fitted is None:
+        return {}
     dev = robot_baseline.score_dense(fitted, ev_t, tables)
-    cpu = (time.process_time() - c0) / max(sum(len(d) for d in dev), 1)
     dcal = robot_baseline.score_dense(fitted, cal_t, tables)
+    cpu = robot_baseline.check_seconds(fitted, tables[ev_t[0]["trajectory"]])
     cal_ax = [np.round(tables[t["trajectory"]][:, 0], 4) for t in cal_t]
     ev_ax = [np.round(tables[t["trajectory"]][:, 0], 4) for t in ev_t]
     rows[DENSE] = alarm_rows([dcal], cal_t, [dev], ev_t, ev_ax)
@@ -363,7 +364,8 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
         cal, ev, cpu = model_rows(fa, dataset, grid, cal_t, ev_t, rows, curves)
         rows = {"model": rows.pop("model"), **rows}  # the model's rows first, as the page reads them
         extra["cpu_s_per_check"] = round(cpu, 4)
-    train_t = [t for t in json.loads((dataset / "trajectories.json").read_text()) if t.get("split") == "train"]
+    everything = json.loads((dataset / "trajectories.json").read_text())
+    train_t = [t for t in everything if t.get("split") == "train" and "prefix_of" not in t]
     # fitted on the train split, so it is calibrated and scored on others only
     if "train" not in (cfg.calibration, cfg.split) and robot_baseline.has_signals([*train_t, *cal_t, *ev_t]):
         fitted = robot_baseline.fit(train_t)
@@ -373,6 +375,11 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
             rows[EITHER] = alarm_rows([cal, rcal], cal_t, [ev, rev], ev_t)
         curves[ROBOT] = auroc_by_keyframe(rev, ev_t)
         extra |= dense_rows(dataset, train_t, (cal_t, cal), (ev_t, ev), rows, curves)
+    if fa is None and ROBOT not in rows:
+        raise ConfigError(
+            "mode=online without model=: the dataset has no robot signals to fit on the train split (built before "
+            "29 Nov), or calibration/split is train"
+        )
     rows[LABELER] = ceiling(ev_t)
     res = {
         "split": str(cfg.split),

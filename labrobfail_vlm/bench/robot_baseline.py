@@ -17,6 +17,8 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from labrobfail_vlm.config import ConfigError
+
 RUNNING = (9, 10, 11)  # tracking_error, segment_error_max, closed_width (labrobfail_data/robot_signals.SIGNALS)
 # The same signals at every sample of the state trace (40 Hz), per whole trajectory, beside trajectories.json: what a
 # monitor checked at the robot's own rate sees between two grid frames. Columns: trajectory, t (s since the trace
@@ -91,6 +93,7 @@ def dense_bytes(trajectories: Sequence[str], tables: Sequence[np.ndarray]) -> by
 def read_dense(dataset: Path, names: Iterable[str]) -> dict[str, np.ndarray] | None:
     """The dense tables of `names` (trajectory -> rows [t, keyframe, *signals]); None for a dataset without the file
     (built before 3 Dec) or one missing any of them."""
+    import pyarrow as pa
     import pyarrow.compute as pc
     import pyarrow.parquet as pq
 
@@ -98,13 +101,17 @@ def read_dense(dataset: Path, names: Iterable[str]) -> dict[str, np.ndarray] | N
     if not path.is_file():
         return None
     want = list(dict.fromkeys(names))
-    table = pq.read_table(path, filters=pc.field("trajectory").isin(want))
-    if table.num_rows == 0:
-        return None
-    t, kf, sig = (table.column(c).combine_chunks() for c in ("t", "keyframe", "signals"))  # list arrays, read flat
-    cuts = t.offsets.to_numpy() - t.offsets[0].as_py()
-    flat_t, flat_kf, flat_sig = (a.flatten().to_numpy() for a in (t, kf, sig))
-    flat_sig = flat_sig.reshape(len(flat_t), -1)
+    try:
+        table = pq.read_table(path, columns=["trajectory", "t", "keyframe", "signals"])
+        table = table.filter(pc.field("trajectory").isin(want))
+        if table.num_rows == 0:
+            return None
+        t, kf, sig = (table.column(c).combine_chunks() for c in ("t", "keyframe", "signals"))  # list arrays, flat
+        cuts = t.offsets.to_numpy() - t.offsets[0].as_py()
+        flat_t, flat_kf, flat_sig = (a.flatten().to_numpy() for a in (t, kf, sig))
+        flat_sig = flat_sig.reshape(len(flat_t), -1)
+    except (pa.ArrowException, AttributeError, ValueError) as e:
+        raise ConfigError(f"dataset_dir: cannot read {path} ({type(e).__name__}: {e}); rebuild the dataset") from None
     out: dict[str, np.ndarray] = {}
     for i, name in enumerate(table.column("trajectory").to_pylist()):
         a, b = cuts[i], cuts[i + 1]
@@ -113,25 +120,39 @@ def read_dense(dataset: Path, names: Iterable[str]) -> dict[str, np.ndarray] | N
 
 
 def dense_features(table: np.ndarray) -> np.ndarray:
-    """One row per trace sample: its signals, the running maxima so far, its keyframe's place in the plan."""
+    """One row per trace sample: its signals, the running maxima so far, its keyframe's index and its time. Each row
+    reads samples up to its own only (no share of a whole, whose length a failure can change)."""
     x = table[:, 2:]
     run = np.maximum.accumulate(x[:, RUNNING], axis=0)
-    kf = table[:, 1]
-    pos = ((kf + 1) / (kf.max() + 1))[:, None]
-    return np.hstack([x, run, pos])
+    return np.hstack([x, run, table[:, 1:2], table[:, 0:1]])
 
 
-def fit_dense(train: Sequence[dict[str, Any]], tables: dict[str, np.ndarray], seed: int = 0) -> Any:
+def fit_dense(train: Sequence[dict[str, Any]], tables: dict[str, np.ndarray], seed: int = 0) -> Any | None:
     """The baseline fitted on `train`'s samples (every FIT_EVERY-th): the label is whether the failure's onset
-    (onset_s, from simulator state) has passed; failures without an onset are left out."""
+    (onset_s, from simulator state, to 0.1 ms as the sample times are read) has passed; failures without an onset
+    are left out. None when the samples hold one class only (no failure with an onset, or no success)."""
     xs, ys = [], []
     for t in train:
         if not t["success"] and t.get("onset_s") is None:
             continue
-        tab = tables[t["trajectory"]][::FIT_EVERY]
-        xs.append(dense_features(tables[t["trajectory"]])[::FIT_EVERY])
-        ys.append(np.zeros(len(tab), bool) if t["success"] else tab[:, 0] >= float(t["onset_s"]))
-    return _mlp(np.vstack(xs), np.concatenate(ys), seed)
+        tab = tables[t["trajectory"]]
+        xs.append(dense_features(tab)[::FIT_EVERY])
+        when = np.round(tab[::FIT_EVERY, 0], 4)
+        ys.append(np.zeros(len(when), bool) if t["success"] else when >= float(t["onset_s"]))
+    y = np.concatenate(ys) if ys else np.zeros(0, bool)
+    return _mlp(np.vstack(xs), y, seed) if 0 < y.sum() < len(y) else None
+
+
+def check_seconds(model: Any, table: np.ndarray, n: int = 200) -> float:
+    """CPU seconds of one online check: the MLP on one sample's features, as a robot stack would call it each tick
+    (the mean over up to n samples of `table`)."""
+    import time
+
+    x = dense_features(table)[:n]
+    c0 = time.process_time()
+    for row in x:
+        model.predict_proba(row[None, :])
+    return (time.process_time() - c0) / max(len(x), 1)
 
 
 def score_dense(model: Any, trajs: Sequence[dict[str, Any]], tables: dict[str, np.ndarray]) -> list[np.ndarray]:
