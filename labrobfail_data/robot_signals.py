@@ -69,10 +69,8 @@ def dense_table(trace: dict[str, Any], keyframes_json: str) -> np.ndarray:
     p = np.minimum(np.searchsorted(ends, np.arange(n)), min(len(ends), len(kfs)) - 1)
     target = np.asarray([k["pos"] for k in kfs], float)[p]
     err = np.linalg.norm(ee - target, axis=1)
-    seg = err.copy()
-    for j in range(1, n):  # a running maximum that restarts at each keyframe's first sample
-        if p[j] == p[j - 1]:
-            seg[j] = max(seg[j], seg[j - 1])
+    # a running maximum that restarts at each keyframe's first sample (p never decreases: one run per keyframe)
+    seg = np.concatenate([np.maximum.accumulate(s) for s in np.split(err, np.flatnonzero(np.diff(p)) + 1)])
     width = np.asarray(trace["width"], float)
     grip = np.asarray(trace["grip_cmd"], float)
     gripper = np.asarray([float(k["gripper"]) for k in kfs])[p]
