@@ -4,20 +4,23 @@ Run as:
     python scripts/write_results.py run=outputs/reproduce out=docs/RESULTS.md
 
 Reads <run>/dataset/stats.json, <run>/timeline.txt (one "<step> <unix seconds>" line per step), the main model's
-<run>/train/{train_summary,progress}.json and final/eval_<split>/results.json, the tower card it started from, and
-the optional rows <run>/rows/{scratch,wrist}/ and ablations <run>/ablate/{frozen,tuned,no_index}/ (same layout),
-`make reproduce-online`'s model <run>/online/ and `make recovery`'s tables <run>/recovery/{scripted,act/<task>}/.
-Sections: the issue's targets, the tower and sensor rows, the paper's ablation table, supervision (the online model
+<run>/train/{train_summary,progress}.json and final/eval_<split>/results.json, the tower card it started from,
+`make reproduce-tuned`'s model <run>/tuned/, the optional rows <run>/rows/{scratch,wrist}/ and ablations
+<run>/ablate/{frozen,tuned,no_index}/ (same layout), `make reproduce-online`'s model <run>/online/ and `make
+recovery`'s tables <run>/recovery/{scripted,act/<task>}/. Sections: the issue's targets, the tuned model's section,
+the tower and sensor rows, the paper's ablation table, supervision (the online model
 on whole and prefix grids, the recovery table), the paper-comparable tables
 (Q3-Q6 over failed trajectories) with 95 % intervals, failure detection as a score, the all-trajectory tables,
 Q2 recall per failure type, the learning curve.
 
-With `sections=[rows]`, `[ablation]` or `[supervision]` it replaces only those sections of the existing page, from a
-run that holds just those folders (a fresh machine's regeneration with the same seed, say): it checks first that the
-run's data are the page's (the same trajectories and splits line). What such a run lacks is carried from the page and
-said so: the ablation's frozen row is the page's shipped front + side row (the recipe's model is the frozen one), and
-the online model's table and the online bench stay when the run has only recovery tables, and so do the page's
-recovery rows for cells the run did not re-measure (the table's lead line names them as carried).
+With `sections=[tuned]`, `[rows]`, `[ablation]` or `[supervision]` it replaces only those sections of the existing
+page, from a run that holds just those folders (a fresh machine's regeneration with the same seed, say): it checks
+first that the run's data are the page's (the same trajectories and splits line); a run that ran sealed splits brings
+its dataset's ledger of sealed runs, which must still hold every run the page lists. What such a run lacks is
+carried from the page and said so: the ablation's frozen row is the page's shipped front + side row (the recipe's
+model is the frozen one), and the online model's table and the online bench stay when the run has only recovery
+tables, and so do the page's recovery rows for cells the run did not re-measure (the table's lead line names them as
+carried).
 """
 
 from __future__ import annotations
@@ -33,9 +36,11 @@ from labrobfail_vlm.bench.page import (
     SPLIT_TITLES,
     all_trajectory_tables,
     ci_cell,
+    model_section,
     named_rows,
     paper_tables,
     per_type,
+    sealed_section,
     targets,
 )
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
@@ -44,10 +49,18 @@ from sim_backends.supervision.report import LEAD, block, page_recovery, recovery
 DEFAULTS = """
 run: outputs/reproduce     # the make reproduce run folder
 out: docs/RESULTS.md       # the page to write
-sections: null             # null: the whole page; any of [rows, ablation, supervision]: replace only those
+sections: null             # null: the whole page; any of [tuned, rows, ablation, supervision]: replace only those
 """
 # the sections a run beside the main one can add: heading, opening sentence, the run folders that feed it
 SECTIONS = {
+    "tuned": (
+        "## The tuned continuation (make reproduce-tuned)",
+        "`make reproduce-tuned`: the model above taught more one-epoch stages with the vision tower and merger tuned "
+        "(3e-5 each), each from the one before, the stage count chosen on the validation splits (docs/EXPERIMENTS.md); "
+        "`make report-tuned` ran the seen test and the sealed splits once for this section. The principal issue's "
+        "targets for this model, then its scores on every split it ran (95 % intervals by pair).",
+        ("tuned",),
+    ),
     "rows": (
         "## Tower and sensor rows",
         "The same data and bench; only the tower or the views differ. 95 % intervals: bootstrap over pairs.",
@@ -161,6 +174,7 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
         # the shipped row's seen Q2, Q3, Q5 and ROUGE-L cells
         "ablation": lambda: ablation_table(run, [cells[1], cells[3], cells[4], cells[5]] if cells else None),
         "supervision": lambda: supervision(run, old_sv),
+        "tuned": lambda: tuned_table(run),
     }
     for name in names:
         heading, _, folders = SECTIONS[name]
@@ -175,11 +189,30 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
         else:
             kept = _absent_line(parts[at])
             parts[at] = new + ([*kept, ""] if kept else [])
+    _splice_ledger(run, parts)
     from labrobfail_vlm.io import atomic_write_bytes
 
     atomic_write_bytes(out, ("\n".join(line for p in parts for line in p) + "\n").encode())
     print(out)
     return 0
+
+
+def _splice_ledger(run: Path, parts: list[list[str]]) -> None:
+    """A run that ran sealed splits brings its dataset's ledger: it replaces the page's "Sealed test runs" section,
+    which must not lose a run the page lists (a run on other data, or a ledger started afresh, is refused)."""
+    new = sealed_section(run / "dataset")
+    at = next((i for i, p in enumerate(parts) if p[0] == new[0]), None)
+    if at is None or not any(line.startswith("| 20") for line in new):
+        return
+    lost = [line for line in parts[at] if line.startswith("| 20") and line not in new]
+    if lost:
+        raise ConfigError(f"sections: {run}'s sealed-run ledger lacks {len(lost)} run(s) the page lists: {lost[0]}")
+    parts[at] = new
+
+
+def tuned_table(run: Path) -> list[str]:
+    """`make reproduce-tuned`'s model: the principal issue's targets again, then its scores on every split it ran."""
+    return model_section(_evals(run / "tuned", ("val", *SPLIT_TITLES)) or {})
 
 
 def rows_table(run: Path, shipped: str | None = None) -> list[str]:
@@ -431,32 +464,6 @@ def detection_section(run: Path, out: Path, evals: dict[str, Any]) -> list[str]:
     return lines
 
 
-def sealed_section(run: Path) -> list[str]:
-    """Every bench run on a sealed split of this run's dataset (the bench's ledger), so a reader can count them."""
-    from labrobfail_vlm.bench.evaluate import sealed_runs
-
-    entries = sealed_runs(run / "dataset")
-    lines = [
-        "## Sealed test runs",
-        "",
-        f"Every bench run on a sealed split of this dataset, oldest first ({len(entries)} in all; the bench appends "
-        "one line per run to the dataset's `sealed_runs.jsonl`). Figures: Q2 over all trajectories, the rest over "
-        "failed ones.",
-        "",
-    ]
-    if not entries:
-        return lines + ["None yet.", ""]
-    lines += ["| date | split | model | Q2 | Q3 | Q4 | Q5 | ROUGE-L |", "|---|---|---|---|---|---|---|---|"]
-    for e in entries:
-        cells = [e.get(k) for k in ("q2", "q3_failures", "q4_failures", "q5_failures", "rougeL_failures")]
-        lines.append(
-            f"| {e['date']} | {e['split']} | `{e['source']}` | "
-            + " | ".join("–" if c is None else str(c) for c in cells)
-            + " |"
-        )
-    return lines + [""]
-
-
 def main(argv: list[str]) -> int:
     cfg = load_config(DEFAULTS, argv)
     run, out = Path(str(cfg.run)), Path(str(cfg.out))
@@ -469,14 +476,15 @@ def main(argv: list[str]) -> int:
     lines = _header(run, stats, stamps)
     lines += ["## Targets of the principal issue (main row: front + side)", "", *targets(evals), ""]
     absent = []
-    for name, body in (("rows", rows_table(run)), ("ablation", ablation_table(run)), ("supervision", supervision(run))):
+    bodies = (("tuned", tuned_table(run) if _ran(run, "tuned") else []), ("rows", rows_table(run)))
+    for name, body in (*bodies, ("ablation", ablation_table(run)), ("supervision", supervision(run))):
         if body:
             lines += _section(name, body)
         else:
             absent.append(_absent(name))
     if absent:  # say what this page lacks rather than leave a reader to notice a missing section
         lines += [NOT_RUN + "; ".join(absent) + ".", ""]
-    lines += sealed_section(run)
+    lines += sealed_section(run / "dataset")
     lines += paper_tables(evals)
     lines += detection_section(run, out, evals)
     lines += all_trajectory_tables(evals)

@@ -275,3 +275,46 @@ def test_a_rerun_of_some_cells_keeps_the_pages_other_cells_and_online_bench(tmp_
     assert f"scripted pick: {setting} (rows carried from the page, not re-run)" in lead
     assert main([f"run={run}", f"out={page}", "sections=[supervision]"]) == 0
     assert page.read_text() == text
+
+
+def test_the_tuned_model_is_spliced_with_its_sealed_runs_and_a_ledger_that_drops_one_is_refused(tmp_path: Path) -> None:
+    """`sections=[tuned]`: the tuned model's targets and per-split scores go before the tower rows, and the run's
+    ledger replaces the page's "Sealed test runs" list only when it still holds every run the page lists."""
+    import pytest
+
+    from labrobfail_vlm.bench.evaluate import SEALED_LEDGER, count_sealed_run
+    from labrobfail_vlm.config import ConfigError
+    from scripts.write_results import main
+
+    old_run = "| 2026-11-29 02:18 UTC | test_both | `outputs/r14/train/final` | 76.67 | 56.9 | 68.97 | 56.9 | 0.6267 |"
+    sealed = ["## Sealed test runs", "", "| date | split | model | Q2 | Q3 | Q4 | Q5 | ROUGE-L |", "|---|", old_run, ""]
+    page_text = PAGE.replace("## Paper-comparable tables", "\n".join([*sealed, "## Paper-comparable tables"]))
+    page, run = tmp_path / "RESULTS.md", tmp_path / "run"
+    page.write_text(page_text)
+    (run / "dataset").mkdir(parents=True)
+    (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
+    tuned = run / "tuned" / "final"
+    majority, blind = _scores(64.0, 60.0, 74.0, 30.0, 0.43), _scores(50.0, 25.0, 45.0, 13.0, 0.36)
+    bases = {"majority class": majority, "blind (grey grid)": blind}
+    for split, q2 in (("val", 80.9), ("test", 84.0), ("test_both", 77.0)):
+        (tuned / f"eval_{split}").mkdir(parents=True)
+        res = {**_scores(q2, 60.0, 67.0, 58.0, 0.62), "baselines": bases, "detection": {"auroc": 0.9}}
+        (tuned / f"eval_{split}" / "results.json").write_text(json.dumps(res))
+    # the run's ledger lacks the page's run: refused, the page as it was
+    count_sealed_run(run / "dataset", "test_both", str(tuned), _scores(77.0, 60.0, 67.0, 58.0, 0.62))
+    with pytest.raises(ConfigError, match="ledger lacks 1 run"):
+        main([f"run={run}", f"out={page}", "sections=[tuned]"])
+    assert page.read_text() == page_text
+    ledger = run / "dataset" / SEALED_LEDGER
+    carried = {"date": "2026-11-29 02:18 UTC", "split": "test_both", "source": "outputs/r14/train/final", "q2": 76.67}
+    carried |= {"q3_failures": 56.9, "q4_failures": 68.97, "q5_failures": 56.9, "rougeL_failures": 0.6267}
+    ledger.write_text(json.dumps(carried) + "\n" + ledger.read_text())
+    assert main([f"run={run}", f"out={page}", "sections=[tuned]"]) == 0
+    text = page.read_text()
+    head, rest = text.split("## The tuned continuation (make reproduce-tuned)\n")
+    section, tail = rest.split("## Tower and sensor rows\n")
+    assert "| seen Q2 | 84.0 | >= 90.8 | no |" in section and "| sealed unseen objects and scene Q2 | 77.0 |" in section
+    assert "| val | 80.9 | 0.9 | 60.0 | 67.0 | 58.0 | 0.62 |" in section
+    assert old_run in tail and f"| test_both | `{tuned}` | 77.0 | 60.0 | 67.0 | 58.0 | 0.62 |" in tail
+    assert "(2 in all;" in tail
+    assert head == page_text.split("## Tower and sensor rows\n")[0]

@@ -1,13 +1,15 @@
 """The results page's tables from bench results (one `results.json` dict per split): the principal issue's targets,
-the paper-comparable tables, the all-trajectory tables and Q2 recall per failure type. scripts/write_results.py lays
-them out with the run's other sections (rows, ablation, supervision, the sealed-split ledger) into docs/RESULTS.md.
+the paper-comparable tables, the all-trajectory tables, Q2 recall per failure type, a second model's section and the
+sealed-split ledger. scripts/write_results.py lays them out with the run's other sections (rows, ablation,
+supervision) into docs/RESULTS.md.
 """
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
-from labrobfail_vlm.bench.evaluate import BLIND, MAJORITY
+from labrobfail_vlm.bench.evaluate import BLIND, MAJORITY, sealed_runs
 
 # the paper tables' heading (scripts/write_results.py inserts a spliced section that the page lacks before it)
 PAPER_TABLES = "## Paper-comparable tables"
@@ -169,3 +171,42 @@ def all_trajectory_tables(evals: dict[str, Any]) -> list[str]:
         title = f"{SPLIT_TITLES[split]}: {res['records']} records, all trajectories"
         lines += [markdown({k: row(v) for k, v in named_rows(res).items()}, title), ""]
     return lines
+
+
+def model_section(evals: dict[str, Any]) -> list[str]:
+    """A model beside the page's main one: the principal issue's targets for it, then its scores on every split."""
+    lines = [
+        *targets(evals),
+        "",
+        "| split | Q2 | AUROC | Q3 (failures) | Q4 (failures) | Q5 (failures) | ROUGE-L (failures) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for s, r in evals.items():
+        cells = [ci_cell(r, "q2"), str((r.get("detection") or {}).get("auroc", "–"))]
+        cells += [ci_cell(r, k, True) for k in ("q3", "q4", "q5", "rougeL")]
+        lines.append(f"| {s} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def sealed_section(dataset_dir: Path) -> list[str]:
+    """Every bench run on a sealed split of this run's dataset (the bench's ledger), so a reader can count them."""
+    entries = sealed_runs(dataset_dir)
+    lines = [
+        "## Sealed test runs",
+        "",
+        f"Every bench run on a sealed split of this dataset, oldest first ({len(entries)} in all; the bench appends "
+        "one line per run to the dataset's `sealed_runs.jsonl`). Figures: Q2 over all trajectories, the rest over "
+        "failed ones.",
+        "",
+    ]
+    if not entries:
+        return lines + ["None yet.", ""]
+    lines += ["| date | split | model | Q2 | Q3 | Q4 | Q5 | ROUGE-L |", "|---|---|---|---|---|---|---|---|"]
+    for e in entries:
+        cells = [e.get(k) for k in ("q2", "q3_failures", "q4_failures", "q5_failures", "rougeL_failures")]
+        lines.append(
+            f"| {e['date']} | {e['split']} | `{e['source']}` | "
+            + " | ".join("–" if c is None else str(c) for c in cells)
+            + " |"
+        )
+    return lines + [""]
