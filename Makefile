@@ -190,21 +190,24 @@ reproduce-online: $(STAMP)
 # validation splits only. The count was chosen there (outputs/r14, 2 Dec: a second stage raised seen-val Q2 by +2.37
 # [+0.25, +4.25] by pair over the model it started from and every validation split; docs/EXPERIMENTS.md). About 34
 # min a stage on 2 cores; a finished stage is kept. `make report-tuned` then runs the seen test and the sealed splits
-# once and splices the model's section into docs/RESULTS.md (each sealed run is counted in the page's ledger).
+# once (a split already benched is not run again) and splices the model's section into docs/RESULTS.md (each sealed
+# run is counted in the page's ledger, under the stage's own path).
 TUNE_STAGE   := lr.vision=3e-5 lr.merger=3e-5
 TUNED_STAGES ?= 2
 reproduce-tuned: $(STAMP)
 	@test -d $(R)/train/final || { echo "reproduce-tuned: run make reproduce first (no $(R)/train/final)" >&2; exit 2; }
 	prev=$(R)/train/final; for k in $$(seq 1 $(TUNED_STAGES)); do \
-	  test -f $(R)/tuned/stage$$k/final/model.safetensors || $(BIN)/labrobfail-train $(REPRO_TRAIN) epochs=1 \
+	  test -f $(R)/tuned/stage$$k/train_summary.json || $(BIN)/labrobfail-train $(REPRO_TRAIN) epochs=1 \
 	    dataset_dir=$(R)/dataset output_dir=$(R)/tuned/stage$$k model.path=$$prev $(ONLINE_STAGE) $(TUNE_STAGE) || exit 1; \
 	  prev=$(R)/tuned/stage$$k/final; done
-	ln -sfn stage$(TUNED_STAGES)/final $(R)/tuned/final
+	ln -sfnT stage$(TUNED_STAGES)/final $(R)/tuned/final
 	$(call bench,$(R)/tuned,val val_object val_scene val_both,$(R)/dataset)
 
 report-tuned: $(STAMP)
-	@test -d $(R)/tuned/final || { echo "report-tuned: run make reproduce-tuned first (no $(R)/tuned/final)" >&2; exit 2; }
-	$(call bench,$(R)/tuned,test test_object test_scene test_both,$(R)/dataset)
+	@test -L $(R)/tuned/final || { echo "report-tuned: run make reproduce-tuned first (no link $(R)/tuned/final)" >&2; exit 2; }
+	for s in test test_object test_scene test_both; do test -f $(R)/tuned/final/eval_$$s/results.json || \
+	  $(BIN)/labrobfail-evaluate model=$(R)/tuned/$$(readlink $(R)/tuned/final) dataset_dir=$(R)/dataset split=$$s batch_size=8 \
+	  progress=false || exit 1; done
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS) 'sections=[tuned]'
 
 # The paper's recovery table in the wide world, with statistical power: per task, RECOVERY_TRIALS trials run from

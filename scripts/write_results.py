@@ -189,6 +189,7 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
         else:
             kept = _absent_line(parts[at])
             parts[at] = new + ([*kept, ""] if kept else [])
+    _drop_absent(parts, names)
     _splice_ledger(run, parts)
     from labrobfail_vlm.io import atomic_write_bytes
 
@@ -197,13 +198,27 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
     return 0
 
 
+def _drop_absent(parts: list[list[str]], names: list[str]) -> None:
+    """Strike the spliced sections from the page's "Not run for this page" line (the line goes when none is left)."""
+    for p in parts:
+        for i, line in enumerate(p):
+            if line.startswith(NOT_RUN):
+                left = [a for a in line.removeprefix(NOT_RUN).removesuffix(".").split("; ") if a]
+                left = [a for a in left if a not in {_absent(n) for n in names}]
+                p[i] = NOT_RUN + "; ".join(left) + "." if left else ""
+
+
 def _splice_ledger(run: Path, parts: list[list[str]]) -> None:
-    """A run that ran sealed splits brings its dataset's ledger: it replaces the page's "Sealed test runs" section,
-    which must not lose a run the page lists (a run on other data, or a ledger started afresh, is refused)."""
+    """A run that ran sealed splits brings its dataset's ledger: it replaces the page's "Sealed test runs" section
+    (or comes before the paper tables on a page without one), which must not lose a run the page lists (a run on
+    other data, or a ledger started afresh, is refused)."""
     new = sealed_section(run / "dataset")
-    at = next((i for i, p in enumerate(parts) if p[0] == new[0]), None)
-    if at is None or not any(line.startswith("| 20") for line in new):
+    if not any(line.startswith("| 20") for line in new):
         return
+    at = next((i for i, p in enumerate(parts) if p[0] == new[0]), None)
+    if at is None:
+        at = next((i for i, p in enumerate(parts) if p[0].startswith(PAPER_TABLES)), len(parts))
+        parts.insert(at, [])
     lost = [line for line in parts[at] if line.startswith("| 20") and line not in new]
     if lost:
         raise ConfigError(f"sections: {run}'s sealed-run ledger lacks {len(lost)} run(s) the page lists: {lost[0]}")
@@ -212,7 +227,7 @@ def _splice_ledger(run: Path, parts: list[list[str]]) -> None:
 
 def tuned_table(run: Path) -> list[str]:
     """`make reproduce-tuned`'s model: the principal issue's targets again, then its scores on every split it ran."""
-    return model_section(_evals(run / "tuned", ("val", *SPLIT_TITLES)) or {})
+    return model_section(_evals(run / "tuned", ("val", *SPLIT_TITLES)) or {})  # val: a row, not a target split
 
 
 def rows_table(run: Path, shipped: str | None = None) -> list[str]:

@@ -318,3 +318,26 @@ def test_the_tuned_model_is_spliced_with_its_sealed_runs_and_a_ledger_that_drops
     assert old_run in tail and f"| test_both | `{tuned}` | 77.0 | 60.0 | 67.0 | 58.0 | 0.62 |" in tail
     assert "(2 in all;" in tail
     assert head == page_text.split("## Tower and sensor rows\n")[0]
+
+
+def test_a_spliced_section_leaves_the_not_run_line_and_brings_a_sealed_list_the_page_lacked(tmp_path: Path) -> None:
+    from labrobfail_vlm.bench.evaluate import count_sealed_run
+    from scripts.write_results import NOT_RUN, _absent, main
+
+    not_run = NOT_RUN + _absent("tuned") + "; " + _absent("ablation") + "."
+    page_text = PAGE.replace("## Paper-comparable tables", not_run + "\n\n## Paper-comparable tables")
+    page, run = tmp_path / "RESULTS.md", tmp_path / "run"
+    page.write_text(page_text)
+    (run / "dataset").mkdir(parents=True)
+    (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
+    bases = {"majority class": _scores(64.0, 60.0, 74.0, 30.0, 0.43)}
+    (run / "tuned" / "final" / "eval_test").mkdir(parents=True)
+    res = {**_scores(84.0, 60.0, 67.0, 58.0, 0.62), "baselines": bases}
+    (run / "tuned" / "final" / "eval_test" / "results.json").write_text(json.dumps(res))
+    count_sealed_run(run / "dataset", "test_scene", "outputs/r/tuned/stage2/final", res)
+    assert main([f"run={run}", f"out={page}", "sections=[tuned]"]) == 0
+    text = page.read_text()
+    assert NOT_RUN + _absent("ablation") + "." in text and _absent("tuned") not in text
+    sealed = text.split("## Sealed test runs\n")[1].split("## Paper-comparable tables")[0]
+    assert "(1 in all;" in sealed and "| test_scene | `outputs/r/tuned/stage2/final` | 84.0 |" in sealed
+    assert "| test | 84.0 | – |" in text  # no AUROC in this result: a dash, not "None"

@@ -174,15 +174,17 @@ def all_trajectory_tables(evals: dict[str, Any]) -> list[str]:
 
 
 def model_section(evals: dict[str, Any]) -> list[str]:
-    """A model beside the page's main one: the principal issue's targets for it, then its scores on every split."""
+    """A model beside the page's main one: the principal issue's targets for it (on the page's splits, as the main
+    model's), then its scores on every split it ran (seen val too)."""
     lines = [
-        *targets(evals),
+        *targets({s: r for s, r in evals.items() if s in SPLIT_TITLES}),
         "",
         "| split | Q2 | AUROC | Q3 (failures) | Q4 (failures) | Q5 (failures) | ROUGE-L (failures) |",
         "|---|---|---|---|---|---|---|",
     ]
     for s, r in evals.items():
-        cells = [ci_cell(r, "q2"), str((r.get("detection") or {}).get("auroc", "–"))]
+        auroc = (r.get("detection") or {}).get("auroc")
+        cells = [ci_cell(r, "q2"), "–" if auroc is None else str(auroc)]
         cells += [ci_cell(r, k, True) for k in ("q3", "q4", "q5", "rougeL")]
         lines.append(f"| {s} | " + " | ".join(cells) + " |")
     return lines
