@@ -198,6 +198,11 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
     return 0
 
 
+def _datasets(run: Path) -> list[Path]:
+    """The run's dataset folders: `dataset` and the rows' (`dataset_wrist`, `dataset_noindex`), each with its ledger."""
+    return [d for d in sorted(run.glob("dataset*")) if d.is_dir()]
+
+
 def _drop_absent(parts: list[list[str]], names: list[str]) -> None:
     """Strike the spliced sections from the page's "Not run for this page" line (the line goes when none is left)."""
     for p in parts:
@@ -212,7 +217,7 @@ def _splice_ledger(run: Path, parts: list[list[str]]) -> None:
     """A run that ran sealed splits brings its dataset's ledger: it replaces the page's "Sealed test runs" section
     (or comes before the paper tables on a page without one), which must not lose a run the page lists (a run on
     other data, or a ledger started afresh, is refused)."""
-    new = sealed_section(run / "dataset")
+    new = sealed_section(_datasets(run))
     if not any(line.startswith("| 20") for line in new):
         return
     at = next((i for i, p in enumerate(parts) if p[0] == new[0]), None)
@@ -499,7 +504,7 @@ def main(argv: list[str]) -> int:
             absent.append(_absent(name))
     if absent:  # say what this page lacks rather than leave a reader to notice a missing section
         lines += [NOT_RUN + "; ".join(absent) + ".", ""]
-    lines += sealed_section(run / "dataset")
+    lines += sealed_section(_datasets(run))
     lines += paper_tables(evals)
     lines += detection_section(run, out, evals)
     lines += all_trajectory_tables(evals)

@@ -309,14 +309,17 @@ def test_the_tuned_model_is_spliced_with_its_sealed_runs_and_a_ledger_that_drops
     carried = {"date": "2026-11-29 02:18 UTC", "split": "test_both", "source": "outputs/r14/train/final", "q2": 76.67}
     carried |= {"q3_failures": 56.9, "q4_failures": 68.97, "q5_failures": 56.9, "rougeL_failures": 0.6267}
     ledger.write_text(json.dumps(carried) + "\n" + ledger.read_text())
+    (run / "dataset_wrist").mkdir()
+    count_sealed_run(run / "dataset_wrist", "test_scene", "outputs/r/rows/wrist/final", _scores(70, 50, 60, 50, 0.5))
     assert main([f"run={run}", f"out={page}", "sections=[tuned]"]) == 0
     text = page.read_text()
+    assert "| test_scene | `outputs/r/rows/wrist/final` | 70 |" in text  # a sensor row's dataset keeps its own ledger
     head, rest = text.split("## The tuned continuation (make reproduce-tuned)\n")
     section, tail = rest.split("## Tower and sensor rows\n")
     assert "| seen Q2 | 84.0 | >= 90.8 | no |" in section and "| sealed unseen objects and scene Q2 | 77.0 |" in section
     assert "| val | 80.9 | 0.9 | 60.0 | 67.0 | 58.0 | 0.62 |" in section
     assert old_run in tail and f"| test_both | `{tuned}` | 77.0 | 60.0 | 67.0 | 58.0 | 0.62 |" in tail
-    assert "(2 in all;" in tail
+    assert "(3 in all;" in tail
     assert head == page_text.split("## Tower and sensor rows\n")[0]
 
 

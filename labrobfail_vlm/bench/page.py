@@ -7,7 +7,7 @@ supervision) into docs/RESULTS.md.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 from labrobfail_vlm.bench.evaluate import BLIND, MAJORITY, sealed_runs
 
@@ -190,15 +190,16 @@ def model_section(evals: dict[str, Any]) -> list[str]:
     return lines
 
 
-def sealed_section(dataset_dir: Path) -> list[str]:
-    """Every bench run on a sealed split of this run's dataset (the bench's ledger), so a reader can count them."""
-    entries = sealed_runs(dataset_dir)
+def sealed_section(dataset_dirs: Sequence[Path]) -> list[str]:
+    """Every bench run on a sealed split of the run's datasets (the bench's ledgers: the main dataset and those of the
+    rows built from the same episodes with other views), oldest first, so a reader can count them."""
+    entries = sorted((e for d in dataset_dirs for e in sealed_runs(d)), key=lambda e: e["date"])
     lines = [
         "## Sealed test runs",
         "",
-        f"Every bench run on a sealed split of this dataset, oldest first ({len(entries)} in all; the bench appends "
-        "one line per run to the dataset's `sealed_runs.jsonl`). Figures: Q2 over all trajectories, the rest over "
-        "failed ones.",
+        f"Every bench run on a sealed split of these episodes, oldest first ({len(entries)} in all; the bench appends "
+        "one line per run to its dataset's `sealed_runs.jsonl`; a sensor row's dataset has its own). Figures: Q2 over "
+        "all trajectories, the rest over failed ones.",
         "",
     ]
     if not entries:
