@@ -226,7 +226,10 @@ def test_the_targets_table_needs_the_margin_over_both_baselines_and_says_what_wa
         **_scores(80.0, 50.0, 70.0, 50.0, 0.5),
         "baselines": {"majority class": _scores(60.0, 40.0, 76.0, 30.0, 0.4)},
     }
+    sealed = {**_scores(79.33, 70.0, 70.0, 60.0, 0.6), "baselines": {}, "ci95": {"q2": [73.3, 85.3]}}
     rows = {line.split(" | ")[0].strip("| "): line for line in targets({"test": test, "val_both": val})}
+    got = {line.split(" | ")[0].strip("| "): line for line in targets({"test": test, "test_object": sealed})}
+    assert "| no: within its interval |" in got["sealed unseen objects Q2"]  # 79.33 >= 79.2, but 73.3 is under it
     assert "| yes |" in rows["seen Q2"] and "| yes |" in rows["seen failure-only Q4"]
     assert "| no |" in rows["seen failure-only Q3"]  # 80 is 9 points over the blind model's 71: under the margin
     assert "not run" in rows["sealed unseen objects and scene Q2"] and "| no |" in rows["sealed unseen scene Q2"]
