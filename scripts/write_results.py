@@ -16,7 +16,7 @@ Q2 recall per failure type, the learning curve.
 With `sections=[tuned]`, `[rows]`, `[ablation]` or `[supervision]` it replaces only those sections of the existing
 page, from a run that holds just those folders (a fresh machine's regeneration with the same seed, say): it checks
 first that the run's data are the page's (the same trajectories and splits line); a run that ran sealed splits brings
-its dataset's ledger of sealed runs, which must still hold every run the page lists. What such a run lacks is
+its datasets' ledgers of sealed runs, which must still hold every run the page lists. What such a run lacks is
 carried from the page and said so: the ablation's frozen row is the page's shipped front + side row (the recipe's
 model is the frozen one), and the online model's table and the online bench stay when the run has only recovery
 tables, and so do the page's recovery rows for cells the run did not re-measure (the table's lead line names them as
@@ -214,7 +214,7 @@ def _drop_absent(parts: list[list[str]], names: list[str]) -> None:
 
 
 def _splice_ledger(run: Path, parts: list[list[str]]) -> None:
-    """A run that ran sealed splits brings its dataset's ledger: it replaces the page's "Sealed test runs" section
+    """A run that ran sealed splits brings its datasets' ledgers: they replace the page's "Sealed test runs" section
     (or comes before the paper tables on a page without one), which must not lose a run the page lists (a run on
     other data, or a ledger started afresh, is refused)."""
     new = sealed_section(_datasets(run))
