@@ -205,12 +205,17 @@ def _datasets(run: Path) -> list[Path]:
 
 def _drop_absent(parts: list[list[str]], names: list[str]) -> None:
     """Strike the spliced sections from the page's "Not run for this page" line (the line goes when none is left)."""
+    spliced = {_absent(n) for n in names}
     for p in parts:
         for i, line in enumerate(p):
             if line.startswith(NOT_RUN):
-                left = [a for a in line.removeprefix(NOT_RUN).removesuffix(".").split("; ") if a]
-                left = [a for a in left if a not in {_absent(n) for n in names}]
+                left = [a for a in line.removeprefix(NOT_RUN).removesuffix(".").split("; ") if a and a not in spliced]
                 p[i] = NOT_RUN + "; ".join(left) + "." if left else ""
+
+
+def _dated_rows(lines: list[str]) -> list[str]:
+    """The sealed-run table's rows (each opens with its run's date), without its heading and rules."""
+    return [line for line in lines if line.startswith("| 20")]
 
 
 def _splice_ledger(run: Path, parts: list[list[str]]) -> None:
@@ -218,13 +223,13 @@ def _splice_ledger(run: Path, parts: list[list[str]]) -> None:
     (or comes before the paper tables on a page without one), which must not lose a run the page lists (a run on
     other data, or a ledger started afresh, is refused)."""
     new = sealed_section(_datasets(run))
-    if not any(line.startswith("| 20") for line in new):
+    if not _dated_rows(new):
         return
     at = next((i for i, p in enumerate(parts) if p[0] == new[0]), None)
     if at is None:
         at = next((i for i, p in enumerate(parts) if p[0].startswith(PAPER_TABLES)), len(parts))
         parts.insert(at, [])
-    lost = [line for line in parts[at] if line.startswith("| 20") and line not in new]
+    lost = [line for line in _dated_rows(parts[at]) if line not in new]
     if lost:
         raise ConfigError(f"sections: {run}'s sealed-run ledger lacks {len(lost)} run(s) the page lists: {lost[0]}")
     parts[at] = new
