@@ -32,16 +32,21 @@ from typing import Any
 
 from labrobfail_vlm.bench.online import online_md
 from labrobfail_vlm.bench.page import (
+    NOT_RUN,
     PAPER_TABLES,
+    ROWS,
     SPLIT_TITLES,
+    ablation_table,
     all_trajectory_tables,
     ci_cell,
-    model_section,
     named_rows,
     paper_tables,
     per_type,
+    rows_table,
+    run_evals,
     sealed_section,
     targets,
+    tuned_table,
 )
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
 from sim_backends.supervision.report import LEAD, block, page_recovery, recovery_files, recovery_md
@@ -81,30 +86,12 @@ SECTIONS = {
         ("online", "recovery"),
     ),
 }
-HELD_OUT_COLUMNS = ("val_object", "val_scene", "val_both", "test_object", "test_scene", "test_both")
-# optional training runs beside the main one: folder under the run -> row title
-ROWS = {
-    "rows/scratch": "scratch tower (random init, stage A grounding: the pre-tower recipe)",
-    "train": "sim-pretrained tower (shipped), front + side",
-    "rows/wrist": "sim-pretrained tower, front + wrist (sensor ablation, not the paper's views)",
-}
-ABLATIONS = {
-    "ablate/tuned": "tuned tower and merger",
-    "ablate/frozen": "frozen tower and merger",
-    "ablate/no_index": "no temporal index (no labels drawn, none mentioned)",
-}
 
 
 def _load(path: Path) -> Any:
     if not path.is_file():
         raise ConfigError(f"results: {path} is missing (run `make reproduce` first)")
     return json.loads(path.read_text())
-
-
-def _evals(folder: Path, splits: tuple[str, ...] = tuple(SPLIT_TITLES)) -> dict[str, Any] | None:
-    """A training folder's bench results per split, or None when it has not been run."""
-    files = {s: folder / "final" / f"eval_{s}" / "results.json" for s in splits}
-    return {s: json.loads(f.read_text()) for s, f in files.items() if f.is_file()} or None
 
 
 def _data_line(stats: dict[str, Any]) -> str:
@@ -139,9 +126,6 @@ def _section(name: str, body: list[str], made_on: Path | None = None) -> list[st
         *body,
         "",
     ]
-
-
-NOT_RUN = "Not run for this page: "
 
 
 def _absent(name: str) -> str:
@@ -235,77 +219,9 @@ def _splice_ledger(run: Path, parts: list[list[str]]) -> None:
     parts[at] = new
 
 
-def tuned_table(run: Path) -> list[str]:
-    """`make reproduce-tuned`'s model: the principal issue's targets again, then its scores on every split it ran."""
-    return model_section(_evals(run / "tuned", ("val", *SPLIT_TITLES)) or {})  # val: a row, not a target split
-
-
-def rows_table(run: Path, shipped: str | None = None) -> list[str]:
-    """Tower and sensor rows side by side: seen Q2 and AUROC, failure-only Q3/Q5/ROUGE-L, Q2 on each held-out split
-    (validation, then sealed). `shipped` (the page's own row) stands in for a run without the main model."""
-    head = [
-        "| row | seen Q2 | seen AUROC | seen Q3 (failures) | seen Q5 (failures) | ROUGE-L (failures) | "
-        + " | ".join(f"{s.replace('_', ' ')} Q2" for s in HELD_OUT_COLUMNS)
-        + " |",
-        "|---|---|---|---|---|---|" + "---|" * len(HELD_OUT_COLUMNS),
-    ]
-    lines, missing = [], []
-    for folder, title in ROWS.items():
-        ev = _evals(run / folder)
-        if folder == "train" and shipped and not ev:
-            lines.append(shipped)
-            continue
-        if not ev or "test" not in ev:
-            missing.append(f"{title} (`{folder}`)")
-            continue
-        t = ev["test"]
-        det = (t.get("detection") or {}).get("auroc")
-        lines.append(
-            f"| {title} | {ci_cell(t, 'q2')} | {det} | {ci_cell(t, 'q3', True)} | {ci_cell(t, 'q5', True)} | "
-            f"{ci_cell(t, 'rougeL', True)} | "
-            + " | ".join(ci_cell(ev[s], "q2") if s in ev else "–" for s in HELD_OUT_COLUMNS)
-            + " |"
-        )
-    return head + lines + _not_run(missing) if lines else []
-
-
-def _not_run(missing: list[str]) -> list[str]:
-    """The closing line of a table that names the runs it lacks (`make reproduce-rows` / `make ablate` steps)."""
-    return ["", NOT_RUN + "; ".join(missing) + "."] if missing else []
-
-
-def ablation_table(run: Path, frozen_cells: list[str] | None = None) -> list[str]:
-    """The paper's ablation table (seen split: Q2, Q3, Q5, Q6 ROUGE-L) for the runs `make ablate` made.
-    `frozen_cells` (Q2, Q3, Q5, ROUGE-L as the page shows them) stand in for a run without `ablate/frozen`."""
-    from labrobfail_vlm.bench.report import PAPER_ABLATION
-
-    lines, missing = [], []
-    for folder, title in ABLATIONS.items():
-        ev = _evals(run / folder, ("test",))
-        if not ev and folder == "ablate/frozen" and frozen_cells:
-            lines.append(f"| {title} (this page's `make reproduce` model) | " + " | ".join(frozen_cells) + " |")
-        elif ev:
-            t = ev["test"]
-            lines.append(
-                f"| {title} | {ci_cell(t, 'q2')} | {ci_cell(t, 'q3', True)} | {ci_cell(t, 'q5', True)} | "
-                f"{ci_cell(t, 'rougeL', True)} |"
-            )
-        else:
-            missing.append(f"{title} (`{folder}`)")
-    if not lines:
-        return []
-    return [
-        "| variant | Q2 | Q3 (failures) | Q5 (failures) | Q6 ROUGE-L (failures) |",
-        "|---|---|---|---|---|",
-        *lines,
-        *(f"| {k} | {v[0]} | {v[1]} | {v[2]} | {v[3]} |" for k, v in PAPER_ABLATION.items()),
-        *_not_run(missing),
-    ]
-
-
 def _ran(run: Path, folder: str) -> bool:
     """Whether a section's run folder holds results: `make recovery`'s tables, or a bench of the seen test split."""
-    return bool(recovery_files(run)) if folder == "recovery" else bool(_evals(run / folder, ("test",)))
+    return bool(recovery_files(run)) if folder == "recovery" else bool(run_evals(run / folder, ("test",)))
 
 
 def _online_table(section: list[str]) -> list[str]:
@@ -352,7 +268,7 @@ def supervision(run: Path, page: list[str] | None = None) -> list[str]:
     online model's table, the online bench, recovery cells not re-run), and the section says so."""
     lines = []
     online_stand_in = _online_table(page or [])
-    ev = _evals(run / "online", ("test", "prefix", "val_both"))
+    ev = run_evals(run / "online", ("test", "prefix", "val_both"))
     titles = {"test": "seen, whole", "prefix": "seen, prefix (first k keyframes)", "val_both": "val both, whole"}
     if not ev and online_stand_in:
         lines += ["The online model as the page had it (this run has none):", "", *online_stand_in, ""]
@@ -496,7 +412,7 @@ def main(argv: list[str]) -> int:
         return splice(run, out, [str(n) for n in cfg.sections])
     stats = _load(run / "dataset" / "stats.json")
     _load(run / "train" / "final" / "eval_test" / "results.json")  # the seen test split is the page's least
-    evals = _evals(run / "train") or {}
+    evals = run_evals(run / "train") or {}
     stamps = [line.split() for line in (run / "timeline.txt").read_text().splitlines() if line.strip()]
     lines = _header(run, stats, stamps)
     lines += ["## Targets of the principal issue (main row: front + side)", "", *targets(evals), ""]

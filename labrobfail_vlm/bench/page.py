@@ -1,11 +1,12 @@
 """The results page's tables from bench results (one `results.json` dict per split): the principal issue's targets,
-the paper-comparable tables, the all-trajectory tables, Q2 recall per failure type, a second model's section and the
-sealed-split ledger. scripts/write_results.py lays them out with the run's other sections (rows, ablation,
-supervision) into docs/RESULTS.md.
+the paper-comparable tables, the all-trajectory tables, Q2 recall per failure type, a second model's section, the
+sealed-split ledger, and the tables of a run's other models (the tuned continuation, the tower and sensor rows, the
+ablation). scripts/write_results.py lays them out with the supervision section into docs/RESULTS.md.
 """
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -223,3 +224,94 @@ def sealed_section(dataset_dirs: Sequence[Path]) -> list[str]:
             + " |"
         )
     return lines + [""]
+
+
+# -- a run's model rows (scripts/write_results.py lays them out as the page's sections) --------------------
+
+HELD_OUT_COLUMNS = ("val_object", "val_scene", "val_both", "test_object", "test_scene", "test_both")
+# optional training runs beside the main one: folder under the run -> row title
+ROWS = {
+    "rows/scratch": "scratch tower (random init, stage A grounding: the pre-tower recipe)",
+    "train": "sim-pretrained tower (shipped), front + side",
+    "rows/wrist": "sim-pretrained tower, front + wrist (sensor ablation, not the paper's views)",
+}
+ABLATIONS = {
+    "ablate/tuned": "tuned tower and merger",
+    "ablate/frozen": "frozen tower and merger",
+    "ablate/no_index": "no temporal index (no labels drawn, none mentioned)",
+}
+NOT_RUN = "Not run for this page: "  # how a table or the page names the runs it lacks
+
+
+def run_evals(folder: Path, splits: tuple[str, ...] = tuple(SPLIT_TITLES)) -> dict[str, Any] | None:
+    """A training folder's bench results per split, or None when it has not been run."""
+    files = {s: folder / "final" / f"eval_{s}" / "results.json" for s in splits}
+    return {s: json.loads(f.read_text()) for s, f in files.items() if f.is_file()} or None
+
+
+def tuned_table(run: Path) -> list[str]:
+    """`make reproduce-tuned`'s model: the principal issue's targets again, then its scores on every split it ran."""
+    return model_section(run_evals(run / "tuned", ("val", *SPLIT_TITLES)) or {})  # val: a row, not a target split
+
+
+def rows_table(run: Path, shipped: str | None = None) -> list[str]:
+    """Tower and sensor rows side by side: seen Q2 and AUROC, failure-only Q3/Q5/ROUGE-L, Q2 on each held-out split
+    (validation, then sealed). `shipped` (the page's own row) stands in for a run without the main model."""
+    head = [
+        "| row | seen Q2 | seen AUROC | seen Q3 (failures) | seen Q5 (failures) | ROUGE-L (failures) | "
+        + " | ".join(f"{s.replace('_', ' ')} Q2" for s in HELD_OUT_COLUMNS)
+        + " |",
+        "|---|---|---|---|---|---|" + "---|" * len(HELD_OUT_COLUMNS),
+    ]
+    lines, missing = [], []
+    for folder, title in ROWS.items():
+        ev = run_evals(run / folder)
+        if folder == "train" and shipped and not ev:
+            lines.append(shipped)
+            continue
+        if not ev or "test" not in ev:
+            missing.append(f"{title} (`{folder}`)")
+            continue
+        t = ev["test"]
+        det = (t.get("detection") or {}).get("auroc")
+        lines.append(
+            f"| {title} | {ci_cell(t, 'q2')} | {det} | {ci_cell(t, 'q3', True)} | {ci_cell(t, 'q5', True)} | "
+            f"{ci_cell(t, 'rougeL', True)} | "
+            + " | ".join(ci_cell(ev[s], "q2") if s in ev else "–" for s in HELD_OUT_COLUMNS)
+            + " |"
+        )
+    return head + lines + _not_run(missing) if lines else []
+
+
+def _not_run(missing: list[str]) -> list[str]:
+    """The closing line of a table that names the runs it lacks (`make reproduce-rows` / `make ablate` steps)."""
+    return ["", NOT_RUN + "; ".join(missing) + "."] if missing else []
+
+
+def ablation_table(run: Path, frozen_cells: list[str] | None = None) -> list[str]:
+    """The paper's ablation table (seen split: Q2, Q3, Q5, Q6 ROUGE-L) for the runs `make ablate` made.
+    `frozen_cells` (Q2, Q3, Q5, ROUGE-L as the page shows them) stand in for a run without `ablate/frozen`."""
+    from labrobfail_vlm.bench.report import PAPER_ABLATION
+
+    lines, missing = [], []
+    for folder, title in ABLATIONS.items():
+        ev = run_evals(run / folder, ("test",))
+        if not ev and folder == "ablate/frozen" and frozen_cells:
+            lines.append(f"| {title} (this page's `make reproduce` model) | " + " | ".join(frozen_cells) + " |")
+        elif ev:
+            t = ev["test"]
+            lines.append(
+                f"| {title} | {ci_cell(t, 'q2')} | {ci_cell(t, 'q3', True)} | {ci_cell(t, 'q5', True)} | "
+                f"{ci_cell(t, 'rougeL', True)} |"
+            )
+        else:
+            missing.append(f"{title} (`{folder}`)")
+    if not lines:
+        return []
+    return [
+        "| variant | Q2 | Q3 (failures) | Q5 (failures) | Q6 ROUGE-L (failures) |",
+        "|---|---|---|---|---|",
+        *lines,
+        *(f"| {k} | {v[0]} | {v[1]} | {v[2]} | {v[3]} |" for k, v in PAPER_ABLATION.items()),
+        *_not_run(missing),
+    ]
