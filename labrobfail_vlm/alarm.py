@@ -19,9 +19,10 @@ new policy, another camera: recalibrate there), any detection rate or latency on
 nor a per-keyframe rate: the bound is per trajectory.
 
 Several monitors (the VLM and a detector on the robot's own signals, as Sentinel pairs a cheap statistical
-detector with a VLM) share one bound through `AnyAlarm`: each is calibrated at alpha / m on the same successes and
-the pair fires at the first keyframe either fires, so by the union bound P(it fires on a new success) <= alpha
-(Bonferroni; conservative where the monitors fire on the same successes).
+detector with a VLM) share one bound through `AnyAlarm`: monitor i is calibrated at alpha * share_i on the same
+successes (the shares sum to 1: alpha / m each by default) and the pair fires at the first keyframe either fires, so
+by the union bound P(it fires on a new success) <= sum_i alpha * share_i = alpha (Bonferroni, which holds for any
+split fixed before the calibration draw; conservative where the monitors fire on the same successes).
 """
 
 from __future__ import annotations
@@ -49,8 +50,14 @@ def conformal_threshold(success_maxima: Sequence[float], alpha: float) -> float:
     if s.ndim != 1 or not np.all(np.isfinite(s)):
         raise ValueError("alarm: calibration scores must be a list of finite numbers")
     n = len(s)
-    rank = math.ceil((n + 1) * (1 - alpha))
+    rank = conformal_rank(n, alpha)
     return math.inf if rank > n else float(s[rank - 1])
+
+
+def conformal_rank(n: int, alpha: float) -> int:
+    """The threshold's rank among n calibration maxima at alpha (over n: the threshold is +inf). One function for the
+    threshold and its bound check, so that both read the same rank from the same float."""
+    return math.ceil((n + 1) * (1 - alpha))
 
 
 def min_calibration(alpha: float) -> int:
@@ -58,36 +65,62 @@ def min_calibration(alpha: float) -> int:
     return math.ceil((1 - alpha) / alpha)
 
 
-def false_alarm_pvalue(n_calibration: int, alpha: float, false_alarms: int, successes: int, monitors: int = 1) -> float:
+def monitor_alphas(alpha: float, monitors: int, shares: Sequence[float] | None = None) -> tuple[float, ...]:
+    """Each monitor's level: alpha * shares[i] (shares positive, one per monitor, summing to 1), or alpha / m each
+    when `shares` is None."""
+    if shares is None:
+        return (alpha / monitors,) * monitors
+    out = tuple(float(x) for x in shares)
+    if len(out) != monitors or not all(0 < x <= 1 for x in out) or abs(sum(out) - 1) > 1e-9:
+        raise ValueError(f"alarm: shares must be {monitors} positive numbers that sum to 1, got {list(shares)!r}")
+    return tuple(alpha * x for x in out)
+
+
+def false_alarm_pvalue(
+    n_calibration: int,
+    alpha: float,
+    false_alarms: int,
+    successes: int,
+    monitors: int = 1,
+    alphas: Sequence[float] | None = None,
+) -> float:
     """How surprising `false_alarms` of `successes` new successes are if the guarantee holds: an upper bound on
     P(at least that many) for an alarm set at alpha on `n_calibration` exchangeable successes.
 
     One monitor: conditional on the calibration draw, the rate at which a new success raises the alarm is
     Beta(n + 1 - r, r) (r: the threshold's rank, continuous scores), so the count over the new successes is
     beta-binomial, exact, with the calibration's luck and the test's both in it; ties among scores only lower the
-    rate. m monitors each set at alpha / m (AnyAlarm): the pair's count is at most the sum of theirs, and the sum
-    reaches k only if monitor 1 reaches j or the others reach k - j + 1, so P <= min over j of the two tails, for any
-    dependence between the monitors (conservative). A small value (under 0.05) says the new successes are not
-    exchangeable with the calibration ones (a new scene, for one), not that the bound is wrong; a large one says
-    the count is what the bound allows, also when it reads above alpha."""
+    rate. m monitors, monitor i set at alphas[i] (AnyAlarm's levels, exactly as it set them; alpha / m each when
+    None): the pair's count is at most the sum of theirs, and the sum reaches k only if monitor 1 reaches j or the
+    others reach k - j + 1, so P <= min over j of the two tails, for any dependence between the monitors
+    (conservative; a monitor that can never fire adds nothing). A small value (under 0.05) says the new successes
+    are not exchangeable with the calibration ones (a new scene, for one), not that the bound is wrong; a large one
+    says the count is what the bound allows, also when it reads above alpha."""
     from scipy.stats import betabinom
 
     if not 0 <= false_alarms <= successes or n_calibration < 0 or monitors < 1:
         got = f"{false_alarms}, {successes}, {n_calibration}, {monitors}"
         raise ValueError(f"alarm: need 0 <= false alarms <= successes, n >= 0 and monitors >= 1 (got {got})")
-    rank = math.ceil((n_calibration + 1) * (1 - alpha / monitors))
-    if rank > n_calibration:  # every threshold is +inf: the alarm never fires
+    levels = monitor_alphas(alpha, monitors) if alphas is None else tuple(alphas)
+    if len(levels) != monitors:
+        raise ValueError(f"alarm: {monitors} monitors need as many levels, got {list(levels)!r}")
+    tails = []  # per monitor that can fire: P(its count >= i), i = -1..successes
+    for level in levels:
+        rank = conformal_rank(n_calibration, level)
+        if rank <= n_calibration:  # otherwise its threshold is +inf: it never fires and adds nothing
+            tails.append(betabinom.sf(np.arange(-1, successes + 1), successes, n_calibration + 1 - rank, rank))
+    if not tails:  # every threshold is +inf: the alarm never fires
         return 1.0 if false_alarms == 0 else 0.0
-    tail = betabinom.sf(np.arange(-1, successes + 1), successes, n_calibration + 1 - rank, rank)  # P(X >= i)
 
-    def bound(k: int, m: int) -> float:  # an upper bound on P(m monitors' counts sum to at least k)
+    def bound(k: int, m: int) -> float:  # an upper bound on P(the last m monitors' counts sum to at least k)
+        tail = tails[len(tails) - m]
         if k <= 0:
             return 1.0
         if m == 1:
             return float(tail[min(k, successes + 1)])
         return min(1.0, *(float(tail[min(j, successes + 1)]) + bound(k - j + 1, m - 1) for j in range(1, k + 1)))
 
-    return bound(false_alarms, monitors)
+    return bound(false_alarms, len(tails))
 
 
 def first_alarm(scores: Sequence[float], threshold: float) -> int | None:
@@ -123,17 +156,22 @@ class Alarm:
 
 @dataclass(frozen=True)
 class AnyAlarm:
-    """m monitors' alarms, each calibrated at alpha / m: `fires(per_monitor_scores)` gives the first keyframe at which
-    any of them fires, or None. With one monitor it is that monitor's Alarm at alpha."""
+    """m monitors' alarms, monitor i calibrated at alpha * shares[i] (alpha / m each by default): `fires(per_monitor_
+    scores)` gives the first keyframe at which any of them fires, or None. With one monitor it is that monitor's Alarm
+    at alpha."""
 
     alarms: tuple[Alarm, ...]
 
     @classmethod
-    def calibrate(cls, success_scores: Sequence[Sequence[Sequence[float]]], alpha: float) -> "AnyAlarm":
-        """`success_scores[i]`: monitor i's per-keyframe scores of the calibration successes (the same successes)."""
+    def calibrate(
+        cls, success_scores: Sequence[Sequence[Sequence[float]]], alpha: float, shares: Sequence[float] | None = None
+    ) -> "AnyAlarm":
+        """`success_scores[i]`: monitor i's per-keyframe scores of the calibration successes (the same successes);
+        `shares[i]`: its share of alpha (monitor_alphas)."""
         if not success_scores or len({len(s) for s in success_scores}) != 1:
             raise ValueError("alarm: every monitor needs the scores of the same calibration successes")
-        return cls(tuple(Alarm.calibrate(s, alpha / len(success_scores)) for s in success_scores))
+        levels = monitor_alphas(alpha, len(success_scores), shares)
+        return cls(tuple(Alarm.calibrate(s, a) for s, a in zip(success_scores, levels)))
 
     def fires(self, scores: Sequence[Sequence[float]]) -> int | None:
         hits = [f for a, s in zip(self.alarms, scores, strict=True) if (f := a.fires(s)) is not None]
@@ -144,4 +182,5 @@ class AnyAlarm:
             return self.alarms[0].to_dict()
         ths = [a.to_dict()["threshold"] for a in self.alarms]
         n = self.alarms[0].n_calibration
-        return {"alpha": sum(a.alpha for a in self.alarms), "thresholds": ths, "n_calibration": n}
+        alphas = [a.alpha for a in self.alarms]  # exact: the bound check reads the ranks the thresholds were set at
+        return {"alpha": round(sum(alphas), 12), "thresholds": ths, "n_calibration": n, "alphas": alphas}

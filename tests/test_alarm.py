@@ -9,6 +9,7 @@ import pytest
 from labrobfail_vlm.alarm import (
     Alarm,
     AnyAlarm,
+    conformal_rank,
     conformal_threshold,
     false_alarm_pvalue,
     first_alarm,
@@ -105,7 +106,7 @@ def test_two_monitors_share_one_bound_and_the_pair_fires_at_the_earlier_alarm():
     assert pair.fires([[0.1, 0.2, 0.6, 0.9], [0.1, 0.9, 0.1, 0.1]]) == 1  # the second monitor fires first
     assert pair.fires([[0.1, 0.2, 0.6, 0.9], [0.1, 0.1, 0.1, 0.1]]) == 2
     assert pair.fires([[0.1, 0.2], [0.3, 0.4]]) is None
-    assert pair.to_dict() == {"alpha": 0.1, "thresholds": [0.5, 0.8], "n_calibration": 40}
+    assert pair.to_dict() == {"alpha": 0.1, "thresholds": [0.5, 0.8], "n_calibration": 40, "alphas": [0.05, 0.05]}
     one = _successes(rng, n)
     assert AnyAlarm.calibrate([one], alpha).alarms == (Alarm.calibrate(one, alpha),)
     with pytest.raises(ValueError, match="same calibration successes"):
@@ -177,3 +178,37 @@ def test_a_prefix_grid_cut_from_the_whole_grid_is_the_one_the_dataset_builds(k):
     frames = [[rng.integers(0, 255, (64, 64, 3), dtype=np.uint8) for _ in range(8)] for _ in range(2)]
     got = prefix_grid(build_grid(frames, cfg), cfg, 2, k)
     assert np.array_equal(np.asarray(got), np.asarray(build_grid(frames, cfg, visible=k)))
+
+
+def test_a_pair_may_split_alpha_unevenly_and_keeps_the_bound():
+    """Monitor i at alpha * shares[i]: the thresholds follow the shares, the pair's false-alarm rate on new
+    successes stays within alpha, and the bound check reads each monitor's own level (one that can never fire adds
+    nothing), the rank its threshold was set at. Bad shares are refused."""
+    rng = np.random.default_rng(11)
+    alpha, n = 0.1, 60
+    rates = []
+    for _ in range(300):
+        pair = AnyAlarm.calibrate([_successes(rng, n), _successes(rng, n)], alpha, shares=(0.8, 0.2))
+        assert [a.alpha for a in pair.alarms] == pytest.approx([0.08, 0.02])
+        new = zip(_successes(rng, 100), _successes(rng, 100))
+        rates.append(np.mean([pair.fires(s) is not None for s in new]))
+    mean, se = float(np.mean(rates)), float(np.std(rates) / np.sqrt(len(rates)))
+    assert alpha - 2 / (n + 1) - 3 * se <= mean <= alpha + 3 * se, (mean, se)
+    # n = 19, alpha 0.2 split 0.18 / 0.02: the first monitor's threshold is the 17th of 19 (P(fire) = 3/20); the
+    # second needs 49 successes (+inf), so it adds nothing; halves read 2/20 + 2/20
+    p = false_alarm_pvalue(19, 0.2, 1, 1, monitors=2, alphas=(0.18, 0.02))
+    assert p == pytest.approx(0.15) and false_alarm_pvalue(19, 0.2, 1, 1, monitors=2) == pytest.approx(0.2)
+    assert false_alarm_pvalue(19, 0.2, 1, 1, monitors=2, alphas=(0.15, 0.05)) == pytest.approx(0.2)  # 3/20 + 1/20
+    # two false alarms of two: either the first fires on both (P = C(2,2) tail) or each once (3/20 + 1/20 bound)
+    both = false_alarm_pvalue(19, 0.2, 2, 2, monitors=2, alphas=(0.15, 0.05))
+    assert 0 < both < false_alarm_pvalue(19, 0.2, 1, 2, monitors=2, alphas=(0.15, 0.05)) <= 1
+    # the levels a pair was set at read back the ranks of its thresholds, even where alpha * share is not exact
+    maxima = [_successes(rng, 999), _successes(rng, 999)]
+    pair = AnyAlarm.calibrate(maxima, 0.1, shares=(0.41, 0.59))
+    row = pair.to_dict()
+    for i, (a, s) in enumerate(zip(pair.alarms, maxima)):
+        assert a.threshold == np.sort([max(x) for x in s])[conformal_rank(999, row["alphas"][i]) - 1]
+    assert false_alarm_pvalue(999, row["alpha"], 0, 50, monitors=2, alphas=row["alphas"]) == 1.0
+    for bad in ((0.5, 0.6), (1.0,), (-0.2, 1.2), (0.0, 1.0)):
+        with pytest.raises(ValueError, match="shares"):
+            AnyAlarm.calibrate([_successes(rng, n), _successes(rng, n)], alpha, shares=bad)

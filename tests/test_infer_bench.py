@@ -501,7 +501,7 @@ def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, smal
     assert r.returncode == 2 and "calibration: must be another split" in r.stderr, r.stderr
     # calibrated on another split than train, the robot-signal MLP (fitted on train) runs per grid frame and at every
     # trace sample; the small dataset has no val pair, so a copy names its test trajectories val as well (plumbing)
-    from labrobfail_vlm.bench.online import DENSE, DENSE_EITHER, EITHER, ROBOT
+    from labrobfail_vlm.bench.online import DENSE, DENSE_EITHER, EITHER, ROBOT, pair_name
 
     ds = tmp_path / "ds"
     shutil.copytree(small_ds, ds)
@@ -509,11 +509,20 @@ def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, smal
     trajs += [{**t, "split": "val"} for t in trajs if t["split"] == "test" and "prefix_of" not in t]
     (ds / "trajectories.json").write_text(json.dumps(trajs))
     out = tmp_path / "online_val"
-    r = evaluate(f"model={tiny}", ds, "mode=online", "split=test", "calibration=val", f"out_dir={out}", call=run_here)
+    online = [f"model={tiny}", ds, "mode=online", "split=test", "calibration=val"]
+    r = evaluate(*online, f"out_dir={out}", "pair_shares=[0.2,0.5]", call=run_here)
     assert r.returncode == 0, r.stderr[-2000:]
     res = json.loads((out / "online.json").read_text())
-    assert {ROBOT, EITHER, DENSE, DENSE_EITHER} <= set(res["rows"]) and res["cpu_s_per_dense_check"] > 0
+    assert {ROBOT, EITHER, DENSE, DENSE_EITHER, pair_name(0.2)} <= set(res["rows"]) and res["cpu_s_per_dense_check"] > 0
     assert len(res["rows"][DENSE_EITHER]["0.05"]["thresholds"]) == 2 and "latency_s_median" in res["rows"][DENSE]["0.2"]
+    # the every-sample pair once per model's share of alpha, each with its own split and bound check
+    for share in (0.2, 0.5):
+        row = res["rows"][pair_name(share)]["0.1"]
+        assert row["alphas"] == [0.1 * share, 0.1 * (1 - share)] and row["bound_p"] == bound_check(row)
+    for bad in ("[0]", "[1.5]", "0.3", "[]", "[0.2,0.2]"):  # refused in one line before the model is loaded
+        r = evaluate(*online, f"out_dir={tmp_path / 'bad'}", f"pair_shares={bad}", call=run_here)
+        assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].startswith("error: pair_shares:"), r.stderr
+    assert not (tmp_path / "bad").exists()
     assert len(res["auroc_by_keyframe"][DENSE]) == len(res["auroc_by_keyframe"][ROBOT])
     assert DENSE in (out / "online.md").read_text()
     # without a model: the robot-signal monitors, the majority class and the labeler, the same figures as beside it

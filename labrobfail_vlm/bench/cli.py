@@ -338,7 +338,7 @@ def main(argv: list[str]) -> int:
 def _online(cfg: Any) -> int:
     """mode=online (labrobfail_vlm/bench/online.py): a local model's alarm on prefix grids, per keyframe, beside the
     robot-signal monitors; without model=, the robot-signal monitors alone (out_dir= then required)."""
-    from labrobfail_vlm.bench.online import online_md, run_online
+    from labrobfail_vlm.bench.online import check_pair_shares, online_md, run_online
 
     if cfg.predictions is not None or cfg.endpoint is not None:
         raise ConfigError("mode=online: give model=DIR (the alarm reads a local model's P(failure) on prefix grids)")
@@ -346,6 +346,8 @@ def _online(cfg: Any) -> int:
         raise ConfigError("mode=online: without model=, give out_dir= (the robot-signal monitors alone)")
     if cfg.max_trajectories is not None and (not isinstance(cfg.max_trajectories, int) or cfg.max_trajectories < 1):
         raise ConfigError(f"max_trajectories: expected a positive integer or null, got {cfg.max_trajectories!r}")
+    if cfg.pair_shares is not None:
+        check_pair_shares(cfg.pair_shares)
     fa = _load_analyzer(cfg)[0] if cfg.model is not None else None
     out = Path(cfg.out_dir or Path(cfg.model) / f"eval_online_{cfg.split}")
     res = run_online(cfg, fa, out)

@@ -54,6 +54,22 @@ DENSE = "robot signals, every trace sample (MLP)"
 DENSE_EITHER = "model or robot signals, every sample (alpha/2 each)"
 
 
+def pair_name(share: float) -> str:
+    """The every-sample pair's row at the model's `share` of alpha (the robot-signal MLP has the rest)."""
+    return DENSE_EITHER if share == 0.5 else f"model or robot signals, every sample (alpha x {share:g} to the model)"
+
+
+def check_pair_shares(shares: Any) -> list[float]:
+    """`pair_shares`: the model's share(s) of alpha in the every-sample pair, each in (0, 1); one row per share."""
+    ok = isinstance(shares, Sequence) and not isinstance(shares, str) and len(shares) > 0
+    if not ok or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and 0 < x < 1 for x in shares):
+        raise ConfigError(f"pair_shares: expected a non-empty list of numbers in (0, 1), got {shares!r}")
+    out = [float(x) for x in shares]
+    if len({pair_name(x) for x in out}) < len(out):  # two shares would write one row
+        raise ConfigError(f"pair_shares: each share once, got {list(shares)!r}")
+    return out
+
+
 def prefix_grid(grid: Image.Image, cfg: GridConfig, views: int, k: int) -> Image.Image:
     """The grid as a prefix grid of its first k keyframes: every later cell blank (build_grid(visible=k) draws
     neither the frame nor its index tag there, so blanking the cell gives the same pixels)."""
@@ -110,15 +126,17 @@ def alarm_rows(
     ev: Sequence[Sequence[Sequence[float]]],
     ev_trajs: Sequence[dict],
     axes: Sequence[np.ndarray] | None = None,
+    shares: Sequence[float] | None = None,
 ) -> dict[str, Any]:
     """Per alpha: the calibrated threshold(s), false alarms on successes, detection and latency on failures.
     `cal`, `ev`: one or more monitors' running scores per trajectory; several share alpha (alarm.AnyAlarm).
     `axes`: per scored trajectory, the sim time of each score, for monitors checked at the trace's rate (None: one
-    score per grid frame); latency in frames then counts to the first grid frame taken once the alarm sounded."""
+    score per grid frame); latency in frames then counts to the first grid frame taken once the alarm sounded.
+    `shares`: each monitor's share of alpha (alarm.check_shares; equal when None)."""
     succ = [[s for s, t in zip(c, cal_trajs) if t["success"]] for c in cal]
     out: dict[str, Any] = {}
     for alpha in ALPHAS:
-        alarm = AnyAlarm.calibrate(succ, alpha)
+        alarm = AnyAlarm.calibrate(succ, alpha, shares)
         fired = [alarm.fires(s) for s in zip(*ev)]
         when = [sounded(f, t, None if axes is None else axes[i]) for i, (f, t) in enumerate(zip(fired, ev_trajs))]
         frames = [w[0] for w in when]
@@ -170,7 +188,8 @@ def bound_check(row: dict[str, Any]) -> float | None:
         return None
     k = round(row["false_alarm_rate"] * row["successes"])  # the rate is rounded to 4 digits: exact under 10,000
     m = len(row.get("thresholds", [None]))
-    p = false_alarm_pvalue(int(row["n_calibration"]), float(row["alpha"]), k, int(row["successes"]), m)
+    alphas = row.get("alphas")  # a pair's levels as its thresholds were set (a bench JSON of 3 Dec or before: halves)
+    p = false_alarm_pvalue(int(row["n_calibration"]), float(row["alpha"]), k, int(row["successes"]), m, alphas)
     return float(f"{p:.3g}")
 
 
@@ -303,10 +322,12 @@ def dense_rows(
     ev: tuple[Sequence[dict[str, Any]], Sequence[list[float]] | None],
     rows: dict[str, Any],
     curves: dict[str, Any],
+    shares: Sequence[float] = (0.5,),
 ) -> dict[str, Any]:
     """The robot-signal MLP checked at every trace sample (robot_baseline.DENSE_FILE), alone and paired with the
-    model when there is one (its score stands from one grid frame to the next): adds their rows and curve, returns
-    the CPU seconds of one dense check. Nothing for a dataset built without the dense file (before 3 Dec)."""
+    model when there is one (its score stands from one grid frame to the next; one pair row per model's share of
+    alpha in `shares`): adds their rows and curve, returns the CPU seconds of one dense check. Nothing for a dataset
+    built without the dense file (before 3 Dec)."""
     (cal_t, cal_s), (ev_t, ev_s) = cal, ev
     tables = robot_baseline.read_dense(dataset, [t["trajectory"] for t in (*train_t, *cal_t, *ev_t)])
     if tables is None or not all(t.get("frame_times_s") for t in (*cal_t, *ev_t)):
@@ -323,7 +344,8 @@ def dense_rows(
     if cal_s is not None and ev_s is not None:
         mcal = [on_axis(s, t["frame_times_s"], a) for s, t, a in zip(cal_s, cal_t, cal_ax)]
         mev = [on_axis(s, t["frame_times_s"], a) for s, t, a in zip(ev_s, ev_t, ev_ax)]
-        rows[DENSE_EITHER] = alarm_rows([mcal, dcal], cal_t, [mev, dev], ev_t, ev_ax)
+        for share in shares:
+            rows[pair_name(share)] = alarm_rows([mcal, dcal], cal_t, [mev, dev], ev_t, ev_ax, (share, 1 - share))
     at_frames = [d[np.searchsorted(a, t["frame_times_s"])] for d, a, t in zip(dev, ev_ax, ev_t)]
     curves[DENSE] = auroc_by_keyframe([list(map(float, x)) for x in at_frames], ev_t)
     return {"cpu_s_per_dense_check": float(f"{cpu:.3g}")}
@@ -374,7 +396,8 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
         if cal is not None and ev is not None:  # Sentinel's pairing, one shared bound
             rows[EITHER] = alarm_rows([cal, rcal], cal_t, [ev, rev], ev_t)
         curves[ROBOT] = auroc_by_keyframe(rev, ev_t)
-        extra |= dense_rows(dataset, train_t, (cal_t, cal), (ev_t, ev), rows, curves)
+        shares = check_pair_shares(cfg.get("pair_shares") if cfg.get("pair_shares") is not None else [0.5])
+        extra |= dense_rows(dataset, train_t, (cal_t, cal), (ev_t, ev), rows, curves, shares)
     if fa is None and ROBOT not in rows:
         raise ConfigError(
             "mode=online without model=: the dataset has no robot signals to fit on the train split (built before "
