@@ -236,8 +236,9 @@ ONLINE_GUARANTEE = (
     "object set (val_both below is one), and no detection rate or latency: those are measured. Latency is from "
     "the failure's onset in simulator state (negative: the alarm came first); an irreversible event is a spill, "
     "a fall, glassware moving fast enough to break or, in data generated from 1 Dec, an object pushed out of the "
-    "arm's reach. The row pairing the model with the robot-signal MLP alarms when either does, each set at "
-    'alpha / 2 on the same successes: the pair keeps the same bound (a union bound). "bound p" is the chance of '
+    "arm's reach. A row pairing the model with a robot-signal MLP alarms when either does, on the same successes, "
+    "the model set at its share of alpha (a half unless the row names another, a share chosen on validation) and "
+    'the MLP at the rest: the pair keeps the same bound (a union bound). "bound p" is the chance of '
     "at least that many false alarms if the guarantee holds (beta-binomial over the calibration draw and the "
     "scored successes; for the pair, a union bound on it): a rate above alpha with a large p is what the bound "
     "allows; under 0.05 (a test per row: among a table's rows one may fall there by chance) it says the scored "
