@@ -120,40 +120,12 @@ def read_dense(dataset: Path, names: Iterable[str]) -> dict[str, np.ndarray] | N
     return out if all(n in out for n in want) else None
 
 
-SLIP_WINDOW_S = 0.1  # s: the look-back of the slip features (4 samples of PyBullet's 40 Hz trace)
-
-
 def dense_features(table: np.ndarray) -> np.ndarray:
-    """One row per trace sample: its signals, the running maxima so far, its keyframe's index and its time, then the
-    slip features (slip_features). Each row reads samples up to its own only (no share of a whole, whose length a
-    failure can change)."""
+    """One row per trace sample: its signals, the running maxima so far, its keyframe's index and its time. Each row
+    reads samples up to its own only (no share of a whole, whose length a failure can change)."""
     x = table[:, 2:]
     run = np.maximum.accumulate(x[:, RUNNING], axis=0)
-    return np.hstack([x, run, table[:, 1:2], table[:, 0:1], slip_features(table)])
-
-
-def _ago(x: np.ndarray, k: int) -> np.ndarray:
-    """x as it stood k samples before each sample (the first sample's value before the trace began)."""
-    out = np.empty_like(x)
-    out[k:], out[:k] = x[: len(x) - k], x[:1]
-    return out
-
-
-def slip_features(table: np.ndarray) -> np.ndarray:
-    """What a grasp losing its object does to the fingers and the hand, over the last SLIP_WINDOW_S: the change of
-    the finger opening and of the closed-finger opening, how far the closed opening has fallen from its largest
-    value in this keyframe (a held object sliding out lets the fingers close further) and that fall's running
-    maximum, and the hand's speed. Chosen on seen validation (3 Dec, docs/EXPERIMENTS.md: the every-sample monitor
-    caught 17 of 21 failures before their irreversible event against 15 without them, detection 80.4 against
-    82.0 %)."""
-    t, x = table[:, 0], table[:, 2:]
-    dt = float(np.median(np.diff(t))) if len(t) > 1 else SLIP_WINDOW_S  # the trace's sample period
-    k = max(1, round(SLIP_WINDOW_S / dt))
-    width, closed, hand = x[:, 3], x[:, 11], x[:, 0:3]
-    cuts = np.flatnonzero(np.diff(table[:, 1])) + 1  # a keyframe's samples are one run (keyframes never go back)
-    fall = np.concatenate([np.maximum.accumulate(c) for c in np.split(closed, cuts)]) - closed
-    speed = np.linalg.norm(hand - _ago(hand, k), axis=1) / (k * dt)
-    return np.column_stack([width - _ago(width, k), closed - _ago(closed, k), fall, speed, np.maximum.accumulate(fall)])
+    return np.hstack([x, run, table[:, 1:2], table[:, 0:1]])
 
 
 def fit_dense(train: Sequence[dict[str, Any]], tables: dict[str, np.ndarray], seed: int = 0) -> Any | None:
