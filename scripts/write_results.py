@@ -83,7 +83,7 @@ SECTIONS = {
         "with and without a VLM supervisor; the line above its table names the model and when it was asked (`actft`: "
         "the model above taught one more epoch with the pour ACT's own rollouts, labeled by the labeler, for the ACT "
         "pour cell; chosen on the development block, docs/EXPERIMENTS.md 2 Dec).",
-        ("online", "recovery"),
+        ("online", "recovery", "train/final/eval_online_*"),
     ),
 }
 
@@ -220,8 +220,13 @@ def _splice_ledger(run: Path, parts: list[list[str]]) -> None:
 
 
 def _ran(run: Path, folder: str) -> bool:
-    """Whether a section's run folder holds results: `make recovery`'s tables, or a bench of the seen test split."""
-    return bool(recovery_files(run)) if folder == "recovery" else bool(run_evals(run / folder, ("test",)))
+    """Whether a section's run folder holds results: `make recovery`'s tables, an online bench of the main model
+    (`make online-bench`), or a bench of the seen test split."""
+    if folder == "recovery":
+        return bool(recovery_files(run))
+    if "*" in folder:
+        return any(run.glob(f"{folder}/online.json"))
+    return bool(run_evals(run / folder, ("test",)))
 
 
 def _online_table(section: list[str]) -> list[str]:

@@ -280,6 +280,54 @@ def test_a_rerun_of_some_cells_keeps_the_pages_other_cells_and_online_bench(tmp_
     assert page.read_text() == text
 
 
+def test_an_online_bench_alone_replaces_the_pages_and_carries_the_rest(tmp_path: Path) -> None:
+    """`sections=[supervision]` from a run that ran only `make online-bench` (the main model's online bench): its
+    tables replace the page's, the online model's table and every recovery cell are carried and named as carried."""
+    import pytest
+
+    from labrobfail_vlm.config import ConfigError
+    from scripts.write_results import ONLINE_GUARANTEE, main
+    from sim_backends.supervision.report import HEADER, LEAD
+
+    old = [
+        "## Supervision",
+        "",
+        "| grids | Q2 | majority Q2 | AUROC | Q3 (failures) | Q5 (failures) |",
+        "|---|---|---|---|---|---|",
+        "| seen, whole | 80.0 | 60.0 | 0.8 | 50.0 | 50.0 |",
+        "",
+        ONLINE_GUARANTEE,
+        "",
+        "| row | alpha | false alarms (%) | the old bench |",
+        "",
+        f"{LEAD}25 trials per cell, variant seen, supervisor vlm (`m`) asked only when the policy stops, budget 2.",
+        "",
+        HEADER,
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| pick | scripted | 6/25 | 23/25 | +68 | yes | - | - | - | 19 | 0 |",
+        "",
+    ]
+    page, run = tmp_path / "RESULTS.md", tmp_path / "run"
+    head, tail = PAGE.split("## Supervision\n")[0], PAGE.split("\n\n## Paper-comparable tables")[1]
+    page.write_text(head + "\n".join(old) + "\n## Paper-comparable tables" + tail)
+    (run / "dataset").mkdir(parents=True)
+    (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
+    bench = run / "train" / "final" / "eval_online_test" / "online.json"
+    with pytest.raises(ConfigError, match="no results under online, recovery, train/final/eval_online_"):
+        main([f"run={run}", f"out={page}", "sections=[supervision]"])  # nothing to splice yet
+    bench.parent.mkdir(parents=True)
+    majority = {"false_alarm_rate": 0.0, "detection_rate": 0.0}
+    res = {"split": "test", "calibration": "val", "trajectories": 3, "calibration_successes": 2}
+    bench.write_text(json.dumps(res | {"rows": {"majority class": {a: majority for a in ("0.01", "0.05")}}}))
+    assert main([f"run={run}", f"out={page}", "sections=[supervision]"]) == 0
+    section = page.read_text().split("## Supervision\n")[1].split("## Paper-comparable tables")[0]
+    assert "The online model as the page had it (this run has none):" in section and "| seen, whole |" in section
+    assert "`train/final`, eval_online_test:" in section and "| majority class | any | 0.0 |" in section
+    assert "the old bench" not in section and "Made on `" in section
+    assert "| pick | scripted | 6/25 | 23/25 | +68 | yes |" in section
+    assert "(rows carried from the page, not re-run)" in next(x for x in section.splitlines() if x.startswith(LEAD))
+
+
 def test_the_tuned_model_is_spliced_with_its_sealed_runs_and_a_ledger_that_drops_one_is_refused(tmp_path: Path) -> None:
     """`sections=[tuned]`: the tuned model's targets and per-split scores go before the tower rows, and the run's
     ledger replaces the page's "Sealed test runs" list only when it still holds every run the page lists."""
