@@ -237,6 +237,16 @@ def test_the_targets_table_needs_the_margin_over_both_baselines_and_says_what_wa
     assert "object_slippage 75" in rows["seen Q2 recall >= 80 % for each failure type with >= 20 test failures"]
 
 
+def _supervision_page(tmp_path: Path, section: list[str]) -> tuple[Path, Path]:
+    """A page whose Supervision section is `section`, and a run folder of the page's data (nothing else yet)."""
+    page, run = tmp_path / "RESULTS.md", tmp_path / "run"
+    head, tail = PAGE.split("## Supervision\n")[0], PAGE.split("\n\n## Paper-comparable tables")[1]
+    page.write_text(head + "\n".join(section) + "\n## Paper-comparable tables" + tail)
+    (run / "dataset").mkdir(parents=True)
+    (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
+    return page, run
+
+
 def test_a_rerun_of_some_cells_keeps_the_pages_other_cells_and_online_bench(tmp_path: Path) -> None:
     """`sections=[supervision]` from a run that re-measured one ACT cell only (a fresh machine): that row is the run's,
     the page's scripted rows and online bench are carried and named as carried; splicing again changes nothing."""
@@ -259,11 +269,7 @@ def test_a_rerun_of_some_cells_keeps_the_pages_other_cells_and_online_bench(tmp_
         "| pick | act | 1/25 | 2/25 | +4 | yes | - | - | - | 3 | 0 |",
         "",
     ]
-    page, run = tmp_path / "RESULTS.md", tmp_path / "run"
-    head, tail = PAGE.split("## Supervision\n")[0], PAGE.split("\n\n## Paper-comparable tables")[1]
-    page.write_text(head + "\n".join(old) + "\n## Paper-comparable tables" + tail)
-    (run / "dataset").mkdir(parents=True)
-    (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
+    page, run = _supervision_page(tmp_path, old)
     _results(run / "recovery" / "act" / "pick" / "results.json", "act", {"pick": (2, 12)}, "m", -1)
     assert main([f"run={run}", f"out={page}", "sections=[supervision]"]) == 0
     text = page.read_text()
@@ -307,11 +313,7 @@ def test_an_online_bench_alone_replaces_the_pages_and_carries_the_rest(tmp_path:
         "| pick | scripted | 6/25 | 23/25 | +68 | yes | - | - | - | 19 | 0 |",
         "",
     ]
-    page, run = tmp_path / "RESULTS.md", tmp_path / "run"
-    head, tail = PAGE.split("## Supervision\n")[0], PAGE.split("\n\n## Paper-comparable tables")[1]
-    page.write_text(head + "\n".join(old) + "\n## Paper-comparable tables" + tail)
-    (run / "dataset").mkdir(parents=True)
-    (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
+    page, run = _supervision_page(tmp_path, old)
     bench = run / "train" / "final" / "eval_online_test" / "online.json"
     with pytest.raises(ConfigError, match="no results under online, recovery, train/final/eval_online_"):
         main([f"run={run}", f"out={page}", "sections=[supervision]"])  # nothing to splice yet
