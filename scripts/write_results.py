@@ -6,10 +6,11 @@ Run as:
 Reads <run>/dataset/stats.json, <run>/timeline.txt (one "<step> <unix seconds>" line per step), the main model's
 <run>/train/{train_summary,progress}.json and final/eval_<split>/results.json, the tower card it started from,
 `make reproduce-tuned`'s model <run>/tuned/, the optional rows <run>/rows/{scratch,wrist}/ and ablations
-<run>/ablate/{frozen,tuned,no_index}/ (same layout), `make reproduce-online`'s model <run>/online/ and `make
-recovery`'s tables <run>/recovery/{scripted,act/<task>}/. Sections: the issue's targets, the tuned model's section,
-the tower and sensor rows, the paper's ablation table, supervision (the online model
-on whole and prefix grids, the recovery table), the paper-comparable tables
+<run>/ablate/{frozen,tuned,no_index}/ (same layout), `make reproduce-online`'s model <run>/online/, `make
+online-bench`'s <run>/train/final/eval_online_*/online.json and `make recovery`'s tables
+<run>/recovery/{scripted,act/<task>}/. Sections: the issue's targets, the tuned model's section, the tower and
+sensor rows, the paper's ablation table, supervision (the online model on whole and prefix grids, the online bench,
+the recovery table), the paper-comparable tables
 (Q3-Q6 over failed trajectories) with 95 % intervals, failure detection as a score, the all-trajectory tables,
 Q2 recall per failure type, the learning curve.
 
@@ -18,9 +19,9 @@ page, from a run that holds just those folders (a fresh machine's regeneration w
 first that the run's data are the page's (the same trajectories and splits line); a run that ran sealed splits brings
 its datasets' ledgers of sealed runs, which must still hold every run the page lists. What such a run lacks is
 carried from the page and said so: the ablation's frozen row is the page's shipped front + side row (the recipe's
-model is the frozen one), and the online model's table and the online bench stay when the run has only recovery
-tables, and so do the page's recovery rows for cells the run did not re-measure (the table's lead line names them as
-carried).
+model is the frozen one), the online model's table and the online bench stay when the run has only recovery
+tables, the online model's table and every recovery row stay when it has only the online bench, and the page's
+recovery rows stay for cells the run did not re-measure (the table's lead line names them as carried).
 """
 
 from __future__ import annotations
@@ -243,7 +244,9 @@ ONLINE_GUARANTEE = (
     "a fall, glassware moving fast enough to break or, in data generated from 1 Dec, an object pushed out of the "
     "arm's reach. A row pairing the model with a robot-signal MLP alarms when either does, on the same successes, "
     "the model set at its share of alpha (a half unless the row names another, a share chosen on validation) and "
-    'the MLP at the rest: the pair keeps the same bound (a union bound). "bound p" is the chance of '
+    "the MLP at the rest: the pair keeps the same bound (a union bound). A share whose level is under 1 / (n + 1) "
+    "of the n calibration successes leaves the model out (its threshold is +inf): under 199 successes, the 0.1 "
+    'share at alpha 0.05 and 0.01 is the MLP alone. "bound p" is the chance of '
     "at least that many false alarms if the guarantee holds (beta-binomial over the calibration draw and the "
     "scored successes; for the pair, a union bound on it): a rate above alpha with a large p is what the bound "
     "allows; under 0.05 (a test per row: among a table's rows one may fall there by chance) it says the scored "

@@ -26,7 +26,9 @@ successes only (split conformal: at most alpha of new exchangeable successes rai
 - the same MLP checked at every sample of the state trace (40 Hz in PyBullet; datasets built from 3 Dec), alone
   and paired with the model, whose score stands from one grid frame to the next: an alarm between two frames can
   sound before an event that follows its onset within a keyframe (SAFE checks at every step); its latency in
-  frames counts to the first grid frame taken once it sounded;
+  frames counts to the first grid frame taken once it sounded; one pair row per model's share of alpha in
+  `pair_shares` (the MLP has the rest; a level under 1 / (n + 1) of the n calibration successes leaves its monitor
+  out: its threshold is +inf, written null);
 - the CPU time of one alarm check (one prefix grid's Q2).
 Writes out_dir/online.json and out_dir/auroc_by_keyframe.png (out_dir: MODEL/eval_online_SPLIT by default).
 """
@@ -132,7 +134,7 @@ def alarm_rows(
     `cal`, `ev`: one or more monitors' running scores per trajectory; several share alpha (alarm.AnyAlarm).
     `axes`: per scored trajectory, the sim time of each score, for monitors checked at the trace's rate (None: one
     score per grid frame); latency in frames then counts to the first grid frame taken once the alarm sounded.
-    `shares`: each monitor's share of alpha (alarm.check_shares; equal when None)."""
+    `shares`: each monitor's share of alpha (alarm.monitor_alphas; equal when None)."""
     succ = [[s for s, t in zip(c, cal_trajs) if t["success"]] for c in cal]
     out: dict[str, Any] = {}
     for alpha in ALPHAS:
@@ -188,7 +190,7 @@ def bound_check(row: dict[str, Any]) -> float | None:
         return None
     k = round(row["false_alarm_rate"] * row["successes"])  # the rate is rounded to 4 digits: exact under 10,000
     m = len(row.get("thresholds", [None]))
-    alphas = row.get("alphas")  # a pair's levels as its thresholds were set (a bench JSON of 3 Dec or before: halves)
+    alphas = row.get("alphas")  # a pair's levels as its thresholds were set (a JSON from before pair_shares: halves)
     p = false_alarm_pvalue(int(row["n_calibration"]), float(row["alpha"]), k, int(row["successes"]), m, alphas)
     return float(f"{p:.3g}")
 
