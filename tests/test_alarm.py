@@ -212,3 +212,27 @@ def test_a_pair_may_split_alpha_unevenly_and_keeps_the_bound():
     for bad in ((0.5, 0.6), (1.0,), (-0.2, 1.2), (0.0, 1.0)):
         with pytest.raises(ValueError, match="shares"):
             AnyAlarm.calibrate([_successes(rng, n), _successes(rng, n)], alpha, shares=bad)
+
+
+def test_the_online_table_names_the_monitors_that_cannot_fire():
+    """A monitor whose level is too small for its calibration set has a +inf threshold (null in the JSON): the
+    table says so under it, naming which of a pair's monitors, rather than let the row read as a weak monitor."""
+    from labrobfail_vlm.bench.online import online_md
+
+    def row(**kw):
+        return {"false_alarm_rate": 0.0, "detection_rate": 0.5, "latency_frames_median": 0.0, "n_calibration": 192} | kw
+
+    rows = {
+        "model": {"0.01": row(threshold=0.9, alpha=0.01), "0.05": row(threshold=0.8, alpha=0.05)},
+        "pair": {
+            "0.01": row(thresholds=[None, None], alpha=0.01),
+            "0.05": row(thresholds=[None, 0.7], alpha=0.05),
+            "0.1": row(thresholds=[0.6, 0.7], alpha=0.1),
+        },
+        "labeler on live state (ceiling)": {"false_alarm_rate": 0.0, "detection_rate": 1.0},
+    }
+    res = {"split": "test", "trajectories": 3, "calibration_successes": 192, "calibration": "val", "rows": rows}
+    last = online_md(res)[-1]
+    assert last.startswith("Never fires") and last.endswith(": pair at alpha 0.01 (both), 0.05 (the model).")
+    rows["pair"] = {"0.1": row(thresholds=[0.6, 0.7], alpha=0.1)}
+    assert not any(line.startswith("Never fires") for line in online_md(res))  # nothing to say: no line

@@ -284,7 +284,30 @@ def online_md(res: dict[str, Any]) -> list[str]:
                 f"{_num(r.get('latency_s_median'))} / {_num(r.get('latency_s_p90'))} | "
                 f"{_pct(r.get('caught_by_onset'))} | {_pct(r.get('caught_before_irreversible'))}{grave} |"
             )
+    left_out = _left_out(res["rows"])
+    if left_out:  # a row whose monitor cannot fire reads like a weak one: say which
+        out += [
+            "",
+            "Never fires (a level under 1 / (n + 1) of the n calibration successes: threshold +inf): " + left_out,
+        ]
     return out
+
+
+def _left_out(rows: dict[str, Any]) -> str:
+    """The rows and alphas at which a monitor's threshold is +inf (written null), naming which of a pair's two
+    monitors (the model first, as the bench pairs them)."""
+    who = {(0,): " (the model)", (1,): " (the MLP)", (0, 1): " (both)"}
+    parts = []
+    for name, per in rows.items():
+        at = []
+        for alpha, r in per.items() if name != LABELER else []:
+            ths = r.get("thresholds", [r["threshold"]] if "threshold" in r else [])
+            dead = tuple(i for i, th in enumerate(ths) if th is None)
+            if dead:
+                at.append(alpha + (who.get(dead, "") if len(ths) > 1 else ""))
+        if at:
+            parts.append(f"{name} at alpha {', '.join(at)}")
+    return "; ".join(parts) + "." if parts else ""
 
 
 def _checks(res: dict[str, Any]) -> str:
