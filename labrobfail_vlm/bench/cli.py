@@ -346,8 +346,7 @@ def _online(cfg: Any) -> int:
         raise ConfigError("mode=online: without model=, give out_dir= (the robot-signal monitors alone)")
     if cfg.max_trajectories is not None and (not isinstance(cfg.max_trajectories, int) or cfg.max_trajectories < 1):
         raise ConfigError(f"max_trajectories: expected a positive integer or null, got {cfg.max_trajectories!r}")
-    if cfg.pair_shares is not None:
-        check_pair_shares(cfg.pair_shares)
+    check_pair_shares(cfg.pair_shares)  # before the model loads
     fa = _load_analyzer(cfg)[0] if cfg.model is not None else None
     out = Path(cfg.out_dir or Path(cfg.model) / f"eval_online_{cfg.split}")
     res = run_online(cfg, fa, out)

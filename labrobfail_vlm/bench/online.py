@@ -62,7 +62,10 @@ def pair_name(share: float) -> str:
 
 
 def check_pair_shares(shares: Any) -> list[float]:
-    """`pair_shares`: the model's share(s) of alpha in the every-sample pair, each in (0, 1); one row per share."""
+    """`pair_shares`: the model's share(s) of alpha in the every-sample pair, each in (0, 1); one row per share
+    (None: the halves alone)."""
+    if shares is None:
+        return [0.5]
     ok = isinstance(shares, Sequence) and not isinstance(shares, str) and len(shares) > 0
     if not ok or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and 0 < x < 1 for x in shares):
         raise ConfigError(f"pair_shares: expected a non-empty list of numbers in (0, 1), got {shares!r}")
@@ -421,7 +424,7 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
         if cal is not None and ev is not None:  # Sentinel's pairing, one shared bound
             rows[EITHER] = alarm_rows([cal, rcal], cal_t, [ev, rev], ev_t)
         curves[ROBOT] = auroc_by_keyframe(rev, ev_t)
-        shares = check_pair_shares(cfg.get("pair_shares") if cfg.get("pair_shares") is not None else [0.5])
+        shares = check_pair_shares(cfg.get("pair_shares"))
         extra |= dense_rows(dataset, train_t, (cal_t, cal), (ev_t, ev), rows, curves, shares)
     if fa is None and ROBOT not in rows:
         raise ConfigError(

@@ -25,9 +25,14 @@ SPLIT_TITLES = {
 }
 
 
+def _scores(res: dict[str, Any], fo: bool) -> dict[str, Any]:
+    """A split's scores over all its trajectories, or over the failed ones (`fo`: the paper-comparable scores)."""
+    return res["failure_only"] if fo else res
+
+
 def ci_cell(res: dict[str, Any], key: str, fo: bool = False) -> str:
     """'value [lo, hi]' for an accuracy (or ROUGE-L) with its 95 % interval."""
-    src = res["failure_only"] if fo else res
+    src = _scores(res, fo)
     v = src["q6"]["rougeL"] if key == "rougeL" else src[key]
     ci = (src.get("ci95") or {}).get(key)
     if v is None:
@@ -58,13 +63,13 @@ MARGIN_BASELINES = (MAJORITY, BLIND)  # a target is met only with both baselines
 
 
 def _value(res: dict[str, Any], key: str, fo: bool) -> float | None:
-    src = res["failure_only"] if fo else res
+    src = _scores(res, fo)
     return (src.get("q6") or {}).get("rougeL") if key == "rougeL" else src.get(key)
 
 
 def _lower(res: dict[str, Any], key: str, fo: bool) -> float | None:
     """The lower end of a score's 95 % interval (by pair), None when the bench gave none."""
-    ci = ((res["failure_only"] if fo else res).get("ci95") or {}).get(key)
+    ci = (_scores(res, fo).get("ci95") or {}).get(key)
     return float(ci[0]) if ci else None
 
 
