@@ -81,7 +81,9 @@ SECTIONS = {
         "## Supervision",
         "`make reproduce-online`: the model above taught to read prefix grids (a third stage: the first k keyframes, "
         "later cells blank), so that it can be asked at every keyframe. `make recovery`: the scripted and ACT policies "
-        "with and without a VLM supervisor; the line above its table names the model and when it was asked (`actft`: "
+        "with and without a VLM supervisor, each trial from the same seed both ways, on the reporting seed block "
+        "(`RECOVERY_SEED`, 20000-20099 for 100 trials) that no choice saw (choices: seeds 0-49 and the development "
+        "block 10000-10099); the line above its table names the model and when it was asked (`actft`: "
         "the model above taught one more epoch with the pour ACT's own rollouts, labeled by the labeler, for the ACT "
         "pour cell; chosen on the development block, docs/EXPERIMENTS.md 2 Dec).",
         ("online", "recovery", "train/final/eval_online_*"),
