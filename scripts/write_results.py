@@ -79,8 +79,11 @@ SECTIONS = {
     ),
     "supervision": (
         "## Supervision",
-        "`make reproduce-online`: the model above taught to read prefix grids (a third stage: the first k keyframes, "
-        "later cells blank), so that it can be asked at every keyframe. `make recovery`: the scripted and ACT policies "
+        "The online bench asks the model above (`train/final`, never taught prefix grids) on each prefix grid (the "
+        "first k keyframes, later cells blank); `make reproduce-online`'s model, taught them in a third stage, has no "
+        "table here (one epoch of that stage was benched on 2 Dec and not adopted, docs/EXPERIMENTS.md). `make "
+        "recovery`: the "
+        "scripted and ACT policies "
         "with and without a VLM supervisor, each trial from the same seed both ways, on the reporting seed block "
         "(`RECOVERY_SEED`, 20000-20099 for 100 trials) that no choice saw (choices: seeds 0-49 and the development "
         "block 10000-10099); the line above its table names the model and when it was asked (`actft`: "

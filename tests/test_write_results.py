@@ -11,7 +11,12 @@ from sim_backends.supervision.paired import paired_cell
 
 
 def _results(
-    path: Path, policy: str, tasks: dict[str, tuple[int, int]], model: str = "outputs/online/final", every: int = 0
+    path: Path,
+    policy: str,
+    tasks: dict[str, tuple[int, int]],
+    model: str = "outputs/online/final",
+    every: int = 0,
+    seed: int | None = None,
 ) -> None:
     """A results.json as labrobfail-supervise writes it: per task, the baseline and the VLM's summaries."""
 
@@ -29,6 +34,7 @@ def _results(
                     "variant": "seen",
                     "vlm": {"model": model},
                     "loop": {"query_every": every, "final_query": True, "budget": 2, "on_manual": "stop"},
+                    **({} if seed is None else {"seed": seed}),
                 },
                 "tasks": {
                     t: {
@@ -65,11 +71,12 @@ def test_a_cell_with_its_own_supervisor_setting_is_named_with_it(tmp_path: Path)
     """The ACT pour cell is reviewed by another model when the policy stops: the page says which cells ran how."""
     _results(tmp_path / "recovery" / "scripted" / "results.json", "scripted", {"pick": (6, 6), "place": (8, 16)})
     pour = tmp_path / "recovery" / "act" / "pour" / "results.json"
-    _results(pour, "act", {"pour": (1, 2)}, "outputs/train/final", -1)
+    _results(pour, "act", {"pour": (1, 2)}, "outputs/train/final", -1, seed=20000)
     head = supervision(tmp_path)[0]
-    assert "scripted pick, scripted place: 25 trials per cell" in head
+    assert "scripted pick, scripted place: 25 trials per cell, variant seen" in head  # no seed recorded: none named
     assert "asked at every keyframe and once more when the policy stops" in head
-    assert "act pour: 25 trials per cell, variant seen, supervisor vlm (`outputs/train/final`) asked only when" in head
+    # The seed block the cell ran on, so that a reader can check it is the reporting block no choice saw.
+    assert "act pour: 25 trials per cell (seeds 20000-20024), variant seen, supervisor vlm (`outputs/train" in head
 
 
 def _eval(path: Path, q2: float) -> None:

@@ -37,8 +37,9 @@ def setting(cfg: dict[str, Any]) -> str:
     asked = {0: "at every keyframe", -1: "only when the policy stops"}.get(
         loop["query_every"], f"every {loop['query_every']} policy steps"
     )
+    seeds = f" (seeds {cfg['seed']}-{cfg['seed'] + cfg['trials'] - 1})" if isinstance(cfg.get("seed"), int) else ""
     return (
-        f"{cfg['trials']} trials per cell, variant {cfg['variant']}, supervisor {sup} "
+        f"{cfg['trials']} trials per cell{seeds}, variant {cfg['variant']}, supervisor {sup} "
         f"(`{(cfg.get(sup) or {}).get('model', '')}`) asked {asked}"
         + (" and once more when the policy stops" if loop["final_query"] and loop["query_every"] >= 0 else "")
         + f", budget {loop['budget']}, a manual correction: {loop['on_manual']}"
