@@ -70,7 +70,7 @@ SECTIONS = {
     "rows": (
         "## Tower and sensor rows",
         "The same data and bench; only the tower or the views differ. 95 % intervals: bootstrap over pairs.",
-        ("rows/scratch", "rows/wrist"),
+        ("rows/scratch", "rows/wrist", "rows/deep4"),
     ),
     "ablation": (
         "## Ablation (the paper's table, seen split)",

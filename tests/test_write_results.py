@@ -149,6 +149,26 @@ def test_a_run_of_the_same_data_replaces_only_its_section(tmp_path: Path) -> Non
     assert page.read_text() == text
 
 
+def test_a_rows_splice_keeps_the_pages_main_row_when_the_run_benched_its_model_on_validation_only(
+    tmp_path: Path,
+) -> None:
+    """A run whose main model has validation benches but no seen test one (a lever's baseline) has no main row of its
+    own: the page's row stays, the new row is added, and the main row is not called "not run"."""
+    from scripts.write_results import main
+
+    page, run = tmp_path / "RESULTS.md", tmp_path / "run"
+    page.write_text(PAGE)
+    (run / "dataset").mkdir(parents=True)
+    (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
+    _eval(run / "train" / "final" / "eval_val_object", 82.6)
+    _eval(run / "rows" / "deep4" / "final" / "eval_test", 82.0)
+    assert main([f"run={run}", f"out={page}", "sections=[rows]"]) == 0
+    table = page.read_text().split("## Tower and sensor rows\n")[1].split("## Supervision\n")[0]
+    assert SHIPPED in table
+    assert "| sim-pretrained tower, front + side, 4-layer decoder (chosen on validation" in table
+    assert "(`train`)" not in table and "Not run for this page: scratch tower" in table
+
+
 def test_a_run_of_other_data_or_without_the_section_is_refused(tmp_path: Path) -> None:
     import pytest
 
