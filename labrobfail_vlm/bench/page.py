@@ -234,14 +234,16 @@ def sealed_section(dataset_dirs: Sequence[Path]) -> list[str]:
 # -- a run's model rows (scripts/write_results.py lays them out as the page's sections) --------------------
 
 HELD_OUT_COLUMNS = ("val_object", "val_scene", "val_both", "test_object", "test_scene", "test_both")
-# optional training runs beside the main one: folder under the run -> row title
+# optional training runs beside the main one: folder under the run -> row title. rows/deep4: the 4-layer decoder beside
+# the page's 2-layer main row on the same data (chosen on validation, 3 Dec; the recipe's REPRO_LAYERS since, so a
+# page made by a later `make reproduce` has it as its main row).
 ROWS = {
     "rows/scratch": "scratch tower (random init, stage A grounding: the pre-tower recipe)",
     "train": "sim-pretrained tower (shipped), front + side",
     "rows/wrist": "sim-pretrained tower, front + wrist (sensor ablation, not the paper's views)",
-    # The 4-layer decoder beside the page's 2-layer main row on the same data (chosen on validation, 3 Dec; the
-    # recipe's REPRO_LAYERS since, so a page made by a later `make reproduce` has it as its main row).
-    "rows/deep4": "sim-pretrained tower, front + side, 4-layer decoder (chosen on validation; the recipe since 3 Dec)",
+    "rows/deep4": (
+        "sim-pretrained tower, front + side, 4-layer decoder (chosen on validation; the recipe since 3 Dec)"
+    ),
 }
 ABLATIONS = {
     "ablate/tuned": "tuned tower and merger",
