@@ -113,8 +113,8 @@ demo-online: $(STAMP)
 # trajectories and 150 per held-out split (seen: two generation runs of REPRO_SEEN episodes, the second's pairs
 # numbered after the first's, so a larger recipe extends the smaller one's data instead of redrawing it). Each
 # held-out variant draws episodes of its own; the sealed test_* splits are benched once here, for the page's rows. Resumable: generation resumes its
-# shards; delete outputs/reproduce to start over. About 120 min on 2 cores (105 measured with the 2-layer decoder; the
-# 4-layer one adds about 16 min of training, estimated). Then, on the same data: make
+# shards; delete outputs/reproduce to start over. About 125 min on 2 cores (105 measured with the 2-layer decoder; the
+# 4-layer one adds about 16 min of training and 3-4 of benches, estimated). Then, on the same data: make
 # reproduce-rows (the scratch-tower and front + wrist rows) and make ablate (the paper's ablation table); each
 # rewrites docs/RESULTS.md with what exists.
 R              ?= outputs/reproduce
@@ -131,6 +131,10 @@ space          := $(subst ,, )
 REPRO_SHARDS   := 'shards=[$(subst $(space),$(comma),$(strip $(addprefix $(R)/shards/,seen seen2 $(HELD_OUT))))]'
 REPRO_TRAIN    := preset=tiny epochs=$(REPRO_EPOCHS) tiny_arch.text.num_hidden_layers=$(REPRO_LAYERS) save_steps=1600 \
   save_total_limit=null progress=false
+# Rows and ablations beside $(R)/train are only comparable with its decoder: a run made before 3 Dec has 2 layers.
+same_layers = @$(PY) -c "import json, sys; n = json.load(open('$(R)/train/final/config.json'))['text_config'] \
+  ['num_hidden_layers']; sys.exit(0 if n == $(REPRO_LAYERS) else '$(1): $(R)/train has %d decoder layers, REPRO_LAYERS \
+  is $(REPRO_LAYERS); set REPRO_LAYERS=%d to match it' % (n, n))"
 stamp           = echo "$(1) $$(date +%s)" >> $(R)/timeline.txt
 bench          = for s in $(2); do $(BIN)/labrobfail-evaluate model=$(1)/final dataset_dir=$(3) split=$$s batch_size=8 \
   progress=false || exit 1; done
@@ -155,6 +159,7 @@ reproduce: $(STAMP)
 # After make reproduce, on its data: the scratch tower (the pre-tower recipe) and the front + wrist sensor row.
 reproduce-rows: $(STAMP)
 	@test -f $(R)/train/final/eval_test/results.json || { echo "reproduce-rows: run make reproduce first" >&2; exit 2; }
+	$(call same_layers,reproduce-rows)
 	$(BIN)/labrobfail-train $(REPRO_TRAIN) tower=scratch dataset_dir=$(R)/dataset output_dir=$(R)/rows/scratch
 	$(call bench,$(R)/rows/scratch,test $(HELD_OUT),$(R)/dataset)
 	$(BIN)/labrobfail-build-dataset $(REPRO_SHARDS) out_dir=$(R)/dataset_wrist $(DEMO_GRID) 'views=[front,wrist]' progress=false
@@ -166,6 +171,7 @@ reproduce-rows: $(STAMP)
 # merger tuned (at 3e-5) against frozen (the recipe's default), and no temporal index (no labels drawn, none named).
 ablate: $(STAMP)
 	@test -f $(R)/train/final/eval_test/results.json || { echo "ablate: run make reproduce first" >&2; exit 2; }
+	$(call same_layers,ablate)
 	mkdir -p $(R)/ablate && ln -sfn ../train $(R)/ablate/frozen
 	$(BIN)/labrobfail-train $(REPRO_TRAIN) lr.vision=3e-5 lr.merger=3e-5 dataset_dir=$(R)/dataset output_dir=$(R)/ablate/tuned
 	$(call bench,$(R)/ablate/tuned,test,$(R)/dataset)

@@ -79,12 +79,10 @@ SECTIONS = {
     ),
     "supervision": (
         "## Supervision",
-        "The online bench asks the model above (`train/final`, never taught prefix grids) on each prefix grid (the "
-        "first k keyframes, later cells blank); `make reproduce-online`'s model, taught them in a third stage, has no "
-        "table here (one epoch of that stage was benched on 2 Dec and not adopted, docs/EXPERIMENTS.md). `make "
-        "recovery`: the "
-        "scripted and ACT policies "
-        "with and without a VLM supervisor, each trial from the same seed both ways, on the reporting seed block "
+        "The online bench asks a model on each prefix grid (the first k keyframes, later cells blank); each table "
+        "names its model: `train/final` is `make reproduce`'s, never taught prefix grids, `online/final` is `make "
+        "reproduce-online`'s, taught them in a third stage. `make recovery`: the scripted and ACT policies with and "
+        "without a VLM supervisor, each trial from the same seed both ways, on the reporting seed block "
         "(`RECOVERY_SEED`, 20000-20099 for 100 trials) that no choice saw (choices: seeds 0-49 and the development "
         "block 10000-10099); the line above its table names the model and when it was asked (`actft`: "
         "the model above taught one more epoch with the pour ACT's own rollouts, labeled by the labeler, for the ACT "
@@ -356,6 +354,8 @@ def _header(run: Path, stats: dict[str, Any], stamps: list[list[str]]) -> list[s
     lines += timing(stamps)
     params = sum(v for k, v in summary["trainable_parameters"].items() if k != "frozen")
     frozen = summary["trainable_parameters"].get("frozen", 0)
+    conf = run / "train" / "final" / "config.json"
+    layers = json.loads(conf.read_text()).get("text_config", {}).get("num_hidden_layers") if conf.is_file() else None
     man_file = run / "shards" / "seen" / "manifest.json"
     inj = json.loads(man_file.read_text()).get("injection") if man_file.is_file() else None
     lines += [
@@ -366,7 +366,9 @@ def _header(run: Path, stats: dict[str, Any], stamps: list[list[str]]) -> list[s
         f"- Grid: {grid['width']}x{grid['height']} px, {grid['max_frames']} keyframes x 2 views "
         f"({', '.join(stats.get('views') or ['every view'])}), {grid['columns']} time steps per band "
         f"({(grid['width'] // 32) * (grid['height'] // 32)} visual tokens).",
-        f"- Model: Qwen3-VL architecture at tiny size, {params / 1e6:.2f} M parameters trained"
+        "- Model: Qwen3-VL architecture at tiny size"
+        + (f" ({layers} decoder layers)" if layers else "")
+        + f", {params / 1e6:.2f} M parameters trained"
         + (f", {frozen / 1e6:.2f} M frozen" if frozen else "")
         + f"; {summary['global_step']} optimizer steps, "
         f"{progress[-1]['examples'] if progress else '?'} training records, "

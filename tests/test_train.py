@@ -215,6 +215,17 @@ def test_bad_train_config_is_one_line(small_ds, tmp_path):
         r = call([sys.executable, "train.py", f"output_dir={tmp_path}/o", *args])
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
         assert field in r.stderr.strip().splitlines()[-1]
+    # A run's random base left by an earlier run with another decoder size is refused, not trained unseen.
+    base = tmp_path / "re" / "tiny_base"
+    base.mkdir(parents=True)
+    (base / "config.json").write_text(json.dumps({"text_config": {"num_hidden_layers": 2, "hidden_size": 128}}))
+    args = ["preset=tiny", "tiny_arch.text.num_hidden_layers=4", f"dataset_dir={small_ds}"]
+    r = run_here([sys.executable, "train.py", f"output_dir={tmp_path}/re", *args])
+    last = r.stderr.strip().splitlines()[-1]
+    assert r.returncode == 2 and "num_hidden_layers 2 (tiny_arch.text asks 4)" in last, r.stderr
+    from labrobfail_vlm.model.tiny import check_built
+
+    check_built(base, {"num_hidden_layers": 2, "hidden_size": 128, "intermediate_size": 256})  # the same size: kept
 
 
 @pytest.mark.skipif(

@@ -4,6 +4,7 @@ on the page's data spliced into it section by section."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 from scripts.write_results import supervision
@@ -167,6 +168,12 @@ def test_a_rows_splice_keeps_the_pages_main_row_when_the_run_benched_its_model_o
     assert SHIPPED in table
     assert "| sim-pretrained tower, front + side, 4-layer decoder (chosen on validation" in table
     assert "(`train`)" not in table and "Not run for this page: scratch tower" in table
+    # A row no make target makes (rows/deep4) is never called "not run" by a run without it.
+    shutil.rmtree(run / "rows" / "deep4")
+    _eval(run / "rows" / "wrist" / "final" / "eval_test", 92.0)
+    assert main([f"run={run}", f"out={page}", "sections=[rows]"]) == 0
+    table = page.read_text().split("## Tower and sensor rows\n")[1].split("## Supervision\n")[0]
+    assert "front + wrist" in table and "Not run for this page: scratch tower" in table and "deep4" not in table
 
 
 def test_a_run_of_other_data_or_without_the_section_is_refused(tmp_path: Path) -> None:

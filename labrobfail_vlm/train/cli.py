@@ -160,6 +160,16 @@ def _prepare_model_dir(cfg: Any) -> dict[str, Any]:
     if tower_dir is not None and not Path(cfg.model.path).is_dir():
         card = read_card(tower_dir)  # before anything is built (a model.path that exists already has its tower)
         tower_info = {"path": str(cfg.tower), "sha256": card["sha256"], "parameters": card.get("parameters")}
+    if (
+        cfg.preset == "tiny"
+        and Path(cfg.model.path) == Path(cfg.output_dir) / "tiny_base"
+        and Path(cfg.model.path).is_dir()
+    ):
+        from labrobfail_vlm.model.tiny import check_built
+
+        # The run's own random base, built by an earlier (or killed) run; a model.path named on the command line is
+        # a trained model whose size tiny_arch does not describe.
+        check_built(cfg.model.path, OmegaConf.to_container(cfg.tiny_arch.text))  # type: ignore[arg-type]
     if cfg.preset == "tiny" and not Path(cfg.model.path).is_dir():
         from labrobfail_vlm.model.tiny import build_tiny, dataset_texts
 
