@@ -132,9 +132,9 @@ REPRO_SHARDS   := 'shards=[$(subst $(space),$(comma),$(strip $(addprefix $(R)/sh
 REPRO_TRAIN    := preset=tiny epochs=$(REPRO_EPOCHS) tiny_arch.text.num_hidden_layers=$(REPRO_LAYERS) save_steps=1600 \
   save_total_limit=null progress=false
 # Rows and ablations beside $(R)/train are only comparable with its decoder: a run made before 3 Dec has 2 layers.
-same_layers = @$(PY) -c "import json, sys; n = json.load(open('$(R)/train/final/config.json'))['text_config'] \
-  ['num_hidden_layers']; sys.exit(0 if n == $(REPRO_LAYERS) else '$(1): $(R)/train has %d decoder layers, REPRO_LAYERS \
-  is $(REPRO_LAYERS); set REPRO_LAYERS=%d to match it' % (n, n))"
+same_layers = @$(PY) -c "from labrobfail_vlm.config import cli_main; from labrobfail_vlm.model.tiny import check_built; \
+  cli_main(lambda _: check_built('$(R)/train/final', {'num_hidden_layers': $(REPRO_LAYERS)}, 'REPRO_LAYERS', \
+  '$(1) needs the main model\'s size: set REPRO_LAYERS to it') or 0)"
 stamp           = echo "$(1) $$(date +%s)" >> $(R)/timeline.txt
 bench          = for s in $(2); do $(BIN)/labrobfail-evaluate model=$(1)/final dataset_dir=$(3) split=$$s batch_size=8 \
   progress=false || exit 1; done

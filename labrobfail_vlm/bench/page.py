@@ -278,12 +278,12 @@ def rows_table(run: Path, shipped: str | None = None) -> list[str]:
     ]
     lines, missing = [], []
     for folder, title in ROWS.items():
-        ev = run_evals(run / folder)
-        if folder == "train" and shipped and "test" not in (ev or {}):
-            lines.append(shipped)
-            continue
-        if not ev or "test" not in ev:
-            missing += [] if folder in BY_HAND else [f"{title} (`{folder}`)"]
+        ev = run_evals(run / folder) or {}
+        if "test" not in ev:
+            if folder == "train" and shipped:
+                lines.append(shipped)
+            elif folder not in BY_HAND:
+                missing.append(f"{title} (`{folder}`)")
             continue
         t = ev["test"]
         det = (t.get("detection") or {}).get("auroc")

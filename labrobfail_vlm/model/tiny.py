@@ -122,14 +122,17 @@ def train_tokenizer(texts: Iterable[str] = (), vocab_size: int = 1024):
     return fast
 
 
-def check_built(path: str | Path, text: dict[str, Any]) -> None:
+def check_built(
+    path: str | Path, text: dict[str, Any], asked_by: str = "tiny_arch.text", fix: str = "delete it to build anew"
+) -> None:
     """A tiny model already at `path` (a re-run or a resumed one reuses it) must have the decoder `text` asks for:
-    otherwise a recipe that changed its size (make reproduce's REPRO_LAYERS) would train the old one unseen."""
+    otherwise a recipe that changed its size (make reproduce's REPRO_LAYERS) would train the old one unseen. Also
+    `make reproduce-rows` / `make ablate`: rows beside a main model of another size would not compare."""
     built = json.loads((Path(path) / "config.json").read_text()).get("text_config", {})
     wrong = {k: (built.get(k), v) for k, v in text.items() if k in built and built[k] != v}
     if wrong:
-        said = ", ".join(f"{k} {a} (tiny_arch.text asks {b})" for k, (a, b) in sorted(wrong.items()))
-        raise ConfigError(f"model.path: {path} was built with another decoder: {said}; delete it to build anew")
+        said = ", ".join(f"{k} {a} ({asked_by} asks {b})" for k, (a, b) in sorted(wrong.items()))
+        raise ConfigError(f"model.path: {path} was built with another decoder: {said}; {fix}")
 
 
 def build_tiny(
