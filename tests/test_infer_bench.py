@@ -226,6 +226,27 @@ def test_evaluate_model_and_predictions_file(tiny, small_ds, tmp_path):  # noqa:
     assert r.returncode == 2 and "no such directory" in r.stderr and not (tmp_path / "gone").exists()
 
 
+def test_evaluate_on_the_first_trajectories_of_the_train_split(tiny, small_ds, tmp_path):  # noqa: F811
+    # the fit diagnostic: the model on its own training data, cut to the split's first N trajectories
+    from labrobfail_vlm import questions as Q
+
+    model = tmp_path / "m"  # the tiny model, its bench folder written beside it here
+    model.mkdir()
+    for f in tiny.iterdir():
+        (model / f.name).symlink_to(f)
+    fast = ("baselines=[]", "q6_template=false", "progress=false")
+    r = evaluate(f"model={model}", small_ds, "split=train", "max_trajectories=2", *fast, call=run_here)
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = model / "eval_train_first2"  # named apart from a whole-split bench
+    ids = [json.loads(line)["id"] for line in (out / "predictions.jsonl").read_text().splitlines()]
+    train = json.loads((small_ds / "train.json").read_text())
+    first = list(dict.fromkeys(Q.traj_of(r["id"]) for r in train))[:2]
+    assert len(first) == 2 and sorted(ids) == sorted(r["id"] for r in train if Q.traj_of(r["id"]) in first)
+    assert json.loads((out / "results.json").read_text())["failure_only"]["trajectories"] <= 2
+    r = evaluate(f"model={tiny}", small_ds, "max_trajectories=0", call=run_here)
+    assert r.returncode == 2 and "max_trajectories: expected a positive integer" in r.stderr
+
+
 def test_accuracy_threshold_is_the_best_cut_and_ties_go_to_one_half():
     from labrobfail_vlm.bench.detection import accuracy_threshold
 

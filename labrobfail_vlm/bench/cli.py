@@ -8,6 +8,7 @@ Run as:
     labrobfail-evaluate endpoint=http://127.0.0.1:8000/v1 dataset_dir=outputs/dataset split=test
     labrobfail-evaluate model=DIR dataset_dir=DIR batch_size=16      # grids decoded together
     labrobfail-evaluate model=DIR dataset_dir=DIR split=val_both threshold=val   # Q2's operating point chosen on val
+    labrobfail-evaluate model=DIR dataset_dir=DIR split=train max_trajectories=800   # how well it fits its own data
     labrobfail-evaluate model=DIR dataset_dir=DIR executable.enabled=true executable.shards=SHARDS_DIR
 
 results.json: q1..q5 (top-1 %, Q1 exact ordered list, Q3 exact frame), q3_within1, q6 {bleu1..bleu4
@@ -38,6 +39,8 @@ def _check_args(cfg: Any) -> None:
         raise ConfigError("model/predictions/endpoint: give exactly one of model=DIR, predictions=FILE or endpoint=URL")
     if cfg.dataset_dir is None:
         raise ConfigError("dataset_dir: required")
+    if cfg.max_trajectories is not None and (not isinstance(cfg.max_trajectories, int) or cfg.max_trajectories < 1):
+        raise ConfigError(f"max_trajectories: expected a positive integer or null, got {cfg.max_trajectories!r}")
     if not isinstance(cfg.batch_size, int) or cfg.batch_size < 1:
         raise ConfigError(f"batch_size: expected a positive integer, got {cfg.batch_size!r}")
     if cfg.threshold != 0.5:
@@ -80,8 +83,10 @@ def val_threshold(model: str | Path, dataset_dir: str | Path) -> float:
 
 def _out_dir(cfg: Any) -> Path:
     """The output folder (made): out_dir, or eval_<split> beside the model or predictions file (eval_<split>_opval
-    at the operating point chosen on val, eval_<split>_t<threshold> at another given one)."""
+    at the operating point chosen on val, eval_<split>_t<threshold> at another given one; _first<N> added for a run
+    on the split's first N trajectories)."""
     op = "" if cfg.threshold == 0.5 else "_opval" if cfg.threshold == "val" else f"_t{cfg.threshold}"
+    op += f"_first{cfg.max_trajectories}" if cfg.max_trajectories else ""  # never over the whole split's bench
     if cfg.endpoint is not None:
         out = Path(cfg.out_dir or Path("outputs") / f"eval_endpoint_{cfg.split}{op}")
     else:
@@ -292,7 +297,7 @@ def main(argv: list[str]) -> int:
     _check_args(cfg)
     if cfg.mode == "online":
         return _online(cfg)
-    recs, traj = ev.load_split(cfg.dataset_dir, cfg.split)
+    recs, traj = ev.load_split(cfg.dataset_dir, cfg.split, cfg.max_trajectories)
     threshold = val_threshold(cfg.model, cfg.dataset_dir) if cfg.threshold == "val" else float(cfg.threshold)
     out = _out_dir(cfg)
     log_lines: list[str] = []
@@ -344,8 +349,6 @@ def _online(cfg: Any) -> int:
         raise ConfigError("mode=online: give model=DIR (the alarm reads a local model's P(failure) on prefix grids)")
     if cfg.model is None and cfg.out_dir is None:
         raise ConfigError("mode=online: without model=, give out_dir= (the robot-signal monitors alone)")
-    if cfg.max_trajectories is not None and (not isinstance(cfg.max_trajectories, int) or cfg.max_trajectories < 1):
-        raise ConfigError(f"max_trajectories: expected a positive integer or null, got {cfg.max_trajectories!r}")
     check_pair_shares(cfg.pair_shares)  # before the model loads
     fa = _load_analyzer(cfg)[0] if cfg.model is not None else None
     out = Path(cfg.out_dir or Path(cfg.model) / f"eval_online_{cfg.split}")

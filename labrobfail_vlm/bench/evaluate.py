@@ -74,7 +74,9 @@ def q2_as_asked(question: str, failed: bool) -> str:
     return Q.q2_answer(Q.q2_variant(question) or 0, success=not failed)
 
 
-def load_split(dataset_dir: str | Path, split: str) -> tuple[list[dict], dict[str, dict]]:
+def load_split(dataset_dir: str | Path, split: str, limit: int | None = None) -> tuple[list[dict], dict[str, dict]]:
+    """The split's records and every trajectory's metadata; with `limit`, only the records of the split's first
+    `limit` trajectories in file order (e.g. split=train limit=800: how well a model fits its own training data)."""
     root = Path(dataset_dir)
     if split not in SPLITS:
         raise ConfigError(f"split: expected one of {', '.join(SPLITS)}, got {split!r}")
@@ -86,6 +88,9 @@ def load_split(dataset_dir: str | Path, split: str) -> tuple[list[dict], dict[st
         traj = {t["trajectory"]: t for t in json.loads((root / "trajectories.json").read_text())}
     except (OSError, ValueError, KeyError) as e:
         raise ConfigError(f"dataset_dir: cannot read {root} ({type(e).__name__})") from None
+    if limit:
+        first = set(list(dict.fromkeys(Q.traj_of(r["id"]) for r in recs))[:limit])
+        recs = [r for r in recs if Q.traj_of(r["id"]) in first]
     return recs, traj
 
 
