@@ -121,7 +121,7 @@ R              ?= outputs/reproduce
 REPRO_SEEN     ?= 4000
 REPRO_UNSEEN   ?= 150
 REPRO_EPOCHS   ?= 6
-# The tiny decoder's layers: 4 chosen over 2 on the validation splits (docs/EXPERIMENTS.md, 3 Dec).
+# The tiny decoder's layers: 4 chosen over 2 and 6 on the validation splits (docs/EXPERIMENTS.md, 3 Dec).
 REPRO_LAYERS   ?= 4
 RESULTS        ?= docs/RESULTS.md
 REPRO_GEN      := backend=pybullet seed=0 workers=2 image_size=128 render_frames=8 backend_kwargs.wrist=true progress=false
