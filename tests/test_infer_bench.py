@@ -245,6 +245,9 @@ def test_evaluate_on_the_first_trajectories_of_the_train_split(tiny, small_ds, t
     assert json.loads((out / "results.json").read_text())["failure_only"]["trajectories"] <= 2
     r = evaluate(f"model={tiny}", small_ds, "max_trajectories=0", call=run_here)
     assert r.returncode == 2 and "max_trajectories: expected a positive integer" in r.stderr
+    # a sealed split is never benched in part (its ledger line would show a subset's figures as the split's)
+    r = evaluate(f"model={tiny}", small_ds, "split=test_both", "max_trajectories=2", call=run_here)
+    assert r.returncode == 2 and "test_both is a sealed split" in r.stderr.strip().splitlines()[-1]
 
 
 def test_accuracy_threshold_is_the_best_cut_and_ties_go_to_one_half():

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from labrobfail_vlm.taxonomy import SEALED_SPLITS
 
 
 def _check_args(cfg: Any) -> None:
@@ -41,6 +42,9 @@ def _check_args(cfg: Any) -> None:
         raise ConfigError("dataset_dir: required")
     if cfg.max_trajectories is not None and (not isinstance(cfg.max_trajectories, int) or cfg.max_trajectories < 1):
         raise ConfigError(f"max_trajectories: expected a positive integer or null, got {cfg.max_trajectories!r}")
+    if cfg.max_trajectories is not None and cfg.mode == "offline" and cfg.split in SEALED_SPLITS:
+        # a sealed split runs whole, for a reported row, and its ledger line carries whole-split figures
+        raise ConfigError(f"max_trajectories: {cfg.split} is a sealed split; it is benched whole or not at all")
     if not isinstance(cfg.batch_size, int) or cfg.batch_size < 1:
         raise ConfigError(f"batch_size: expected a positive integer, got {cfg.batch_size!r}")
     if cfg.threshold != 0.5:
