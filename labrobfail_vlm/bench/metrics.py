@@ -58,9 +58,16 @@ def pair_bootstrap(
     names, idx = np.unique(np.asarray(groups, dtype=object).astype(str), return_inverse=True)
     sums = np.bincount(idx, weights=np.asarray(values, float), minlength=len(names))
     counts = np.bincount(idx, minlength=len(names)).astype(float)
-    draw = np.random.default_rng(seed).integers(0, len(names), (resamples, len(names)))
-    stats = sums[draw].sum(1) / counts[draw].sum(1)
+    drawn = group_draws(len(names), resamples, seed)
+    stats = (drawn @ sums) / (drawn @ counts)
     return float(np.percentile(stats, 2.5)), float(np.percentile(stats, 97.5))
+
+
+def group_draws(n_groups: int, resamples: int = 1000, seed: int = 0) -> np.ndarray:
+    """A resamples x n_groups matrix: how often each group is drawn in each bootstrap resample (n_groups draws with
+    replacement). Scoring two models on the same matrix pairs their intervals (bench/compare.py)."""
+    draw = np.random.default_rng(seed).integers(0, n_groups, (resamples, n_groups))
+    return np.stack([np.bincount(row, minlength=n_groups) for row in draw]).astype(float)
 
 
 def accuracy(pairs: Sequence[tuple[str | None, str]]) -> float:

@@ -1,0 +1,96 @@
+"""labrobfail-compare: two models' benches compared by pair, on a hand-made split whose differences are known."""
+
+import json
+
+from conftest import cli, run_here
+
+Q2 = "Task: pick up the beaker. Is there any anomaly or failure observed in this trajectory? (Yes/No)"
+GOLD_FAILED = {"Q2": "Yes", "Q3": "3", "Q4": "2", "Q5": "1", "Q6": "Regrasp the beaker and place it again."}
+GOLD_OK = {"Q2": "No", "Q3": "None", "Q4": "None", "Q5": "None", "Q6": "No correction is needed."}
+PAIRS = 4
+
+
+def _dataset(root):
+    """PAIRS success/failure pairs in split val: trajectory p<i>-ok and p<i>-fail, pair p<i>."""
+    traj, recs = [], []
+    for i in range(PAIRS):
+        for kind, gold in (("ok", GOLD_OK), ("fail", GOLD_FAILED)):
+            t = f"p{i}-{kind}"
+            traj.append({"trajectory": t, "group": f"p{i}", "success": kind == "ok", "split": "val"})
+            for d, ans in gold.items():
+                q = Q2 if d == "Q2" else f"Task: pick up the beaker. Question {d}."
+                recs.append({"id": f"{t}_{d}", "conversations": [{"value": q}, {"value": ans}]})
+    root.mkdir(parents=True)
+    (root / "trajectories.json").write_text(json.dumps(traj))
+    (root / "val.json").write_text(json.dumps(recs))
+    return recs
+
+
+def _write(model, recs, reply, p_failure):
+    out = model / "eval_val"
+    out.mkdir(parents=True)
+    with open(out / "predictions.jsonl", "w") as f:
+        for r in recs:
+            t, d = r["id"].rsplit("_", 1)
+            f.write(json.dumps({"id": r["id"], "prediction": reply(t, d, r), "p_failure": p_failure(t)}) + "\n")
+
+
+def compare(tmp_path, *extra):
+    return run_here(
+        [
+            cli("compare"),
+            f"a={tmp_path / 'a'}",
+            f"b={tmp_path / 'b'}",
+            f"dataset_dir={tmp_path / 'ds'}",
+            "splits=[val]",
+            "resamples=500",
+            *extra,
+        ]
+    )
+
+
+def test_differences_and_paired_intervals_on_a_known_split(tmp_path):
+    recs = _dataset(tmp_path / "ds")
+    gold = lambda t, d, r: r["conversations"][1]["value"]  # noqa: E731
+    fails = lambda t: 0.9 if t.endswith("fail") else 0.1  # noqa: E731
+
+    def a_reply(t, d, r):  # pair p0 inverted on Q2 (its failure missed, its success right); Q3 never answered
+        if t == "p0-fail" and d == "Q2":
+            return "No"
+        return "None" if d == "Q3" else gold(t, d, r)
+
+    def b_reply(t, d, r):  # the same Q2 count as a, but in pair p0 the other twin wrong: a false alarm instead
+        return "Yes" if t == "p0-ok" and d == "Q2" else gold(t, d, r)
+
+    _write(tmp_path / "a", recs, a_reply, fails)
+    _write(tmp_path / "b", recs, b_reply, lambda t: 1 - fails(t))  # b ranks every trajectory backwards
+    r = compare(tmp_path, f"out={tmp_path / 'cmp.json'}")
+    assert r.returncode == 0, r.stderr
+    res = json.loads((tmp_path / "cmp.json").read_text())["splits"]["val"]
+    assert res["pairs"] == PAIRS and res["trajectories"] == 2 * PAIRS
+    # Q2: both models miss one trajectory of the same pair; drawn together, the difference is 0 in every resample
+    assert res["Q2"] == {"a": 87.5, "b": 87.5, "diff": 0.0, "ci95": [0.0, 0.0]}
+    assert res["recall"]["diff"] == 25.0 and res["false_alarms"]["diff"] == 25.0
+    assert res["recall"]["ci95"][0] == 0.0 and res["recall"]["ci95"][1] > 25.0  # p0 drawn 0 or 2+ times
+    assert res["Q3"] == {"a": 0.0, "b": 100.0, "diff": 100.0, "ci95": [100.0, 100.0]}
+    assert res["Q4"]["diff"] == 0.0 and res["rougeL"]["a"] == res["rougeL"]["b"] == 1.0
+    assert res["auroc"] == {"a": 1.0, "b": 0.0, "diff": -1.0, "ci95": [-1.0, -1.0]}
+    assert "| val | Q3 | 0.0 | 100.0 | +100.0 [+100.0, +100.0] |" in r.stdout
+
+
+def test_a_missing_bench_or_reply_is_one_line(tmp_path):
+    recs = _dataset(tmp_path / "ds")
+    gold = lambda t, d, r: r["conversations"][1]["value"]  # noqa: E731
+    _write(tmp_path / "a", recs, gold, lambda t: 0.5)
+    r = compare(tmp_path)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines() == [
+        f"error: b: {tmp_path / 'b' / 'eval_val' / 'predictions.jsonl'} not found (bench it first: "
+        f"labrobfail-evaluate model={tmp_path / 'b'} split=val)"
+    ]
+    _write(tmp_path / "b", recs[:-3], gold, lambda t: 0.5)
+    r = compare(tmp_path, f"out={tmp_path / 'cmp.json'}")
+    assert r.returncode == 2 and "has no reply for 3 of the split's 40 records" in r.stderr
+    assert not (tmp_path / "cmp.json").exists()
+    r = compare(tmp_path, "resamples=0")
+    assert r.returncode == 2 and r.stderr.startswith("error: resamples: expected an integer >= 1")
