@@ -2,7 +2,8 @@
 
 import json
 
-from conftest import cli, run_here
+import numpy as np
+from conftest import cli, evaluate, run, run_here
 
 Q2 = "Task: pick up the beaker. Is there any anomaly or failure observed in this trajectory? (Yes/No)"
 GOLD_FAILED = {"Q2": "Yes", "Q3": "3", "Q4": "2", "Q5": "1", "Q6": "Regrasp the beaker and place it again."}
@@ -74,7 +75,13 @@ def test_differences_and_paired_intervals_on_a_known_split(tmp_path):
     assert res["recall"]["ci95"][0] == 0.0 and res["recall"]["ci95"][1] > 25.0  # p0 drawn 0 or 2+ times
     assert res["Q3"] == {"a": 0.0, "b": 100.0, "diff": 100.0, "ci95": [100.0, 100.0]}
     assert res["Q4"]["diff"] == 0.0 and res["rougeL"]["a"] == res["rougeL"]["b"] == 1.0
-    assert res["auroc"] == {"a": 1.0, "b": 0.0, "diff": -1.0, "ci95": [-1.0, -1.0]}
+    assert res["auroc"] == {
+        "a": 1.0,
+        "b": 0.0,
+        "diff": -1.0,
+        "ci95": [-1.0, -1.0],
+        "score": {"a": "probability", "b": "probability"},
+    }
     assert "| val | Q3 | 0.0 | 100.0 | +100.0 [+100.0, +100.0] |" in r.stdout
 
 
@@ -86,7 +93,7 @@ def test_a_missing_bench_or_reply_is_one_line(tmp_path):
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip().splitlines() == [
         f"error: b: {tmp_path / 'b' / 'eval_val' / 'predictions.jsonl'} not found (bench it first: "
-        f"labrobfail-evaluate model={tmp_path / 'b'} split=val)"
+        f"labrobfail-evaluate model={tmp_path / 'b'} dataset_dir={tmp_path / 'ds'} split=val)"
     ]
     _write(tmp_path / "b", recs[:-3], gold, lambda t: 0.5)
     r = compare(tmp_path, f"out={tmp_path / 'cmp.json'}")
@@ -94,3 +101,90 @@ def test_a_missing_bench_or_reply_is_one_line(tmp_path):
     assert not (tmp_path / "cmp.json").exists()
     r = compare(tmp_path, "resamples=0")
     assert r.returncode == 2 and r.stderr.startswith("error: resamples: expected an integer >= 1")
+
+
+def test_the_a_side_equals_the_bench_of_the_same_replies(tmp_path):
+    """labrobfail-evaluate's figures of a predictions file and compare's for the same replies agree (a real process
+    each), with errors scattered over both twins of several pairs."""
+    recs = _dataset(tmp_path / "ds")
+    rng = np.random.default_rng(1)
+    wrong = {"Q2": "No", "Q3": "5", "Q4": "4", "Q5": "3", "Q6": "Close the oven door."}
+
+    def noisy(t, d, r):
+        return wrong[d] if rng.random() < 0.4 else r["conversations"][1]["value"]
+
+    (tmp_path / "p").mkdir()
+    _write(tmp_path / "p", recs, noisy, lambda t: float(rng.random()))
+    preds = tmp_path / "p" / "eval_val" / "predictions.jsonl"
+    r = evaluate(
+        f"predictions={preds}",
+        tmp_path / "ds",
+        "split=val",
+        "baselines=[]",
+        "q6_template=false",
+        f"out_dir={tmp_path / 'a' / 'eval_val'}",
+        "progress=false",
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    bench = json.loads((tmp_path / "a" / "eval_val" / "results.json").read_text())
+    _write(tmp_path / "b", recs, lambda t, d, r: r["conversations"][1]["value"], lambda t: 0.5)
+    r = run(
+        [
+            cli("compare"),
+            f"a={tmp_path / 'a'}",
+            f"b={tmp_path / 'b'}",
+            f"dataset_dir={tmp_path / 'ds'}",
+            "splits=[val]",
+            f"out={tmp_path / 'cmp.json'}",
+        ],
+        300,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    a = {
+        k: v["a"]
+        for k, v in json.loads((tmp_path / "cmp.json").read_text())["splits"]["val"].items()
+        if isinstance(v, dict)
+    }
+    fo = bench["failure_only"]
+    assert (a["Q2"], a["Q3"], a["Q4"], a["Q5"]) == (bench["q2"], fo["q3"], fo["q4"], fo["q5"])
+    assert a["rougeL"] == fo["q6"]["rougeL"] and a["auroc"] == bench["detection"]["auroc"]
+    assert 0 < a["Q2"] < 100
+
+
+def test_weighted_auroc_is_the_auroc_of_the_resample():
+    """A record drawn k times weighs k: the same AUROC as the resample written out, ties and all."""
+    from sklearn.metrics import roc_auc_score
+
+    from labrobfail_vlm.bench.compare import auroc_row
+
+    y = np.array([1, 0, 1, 0, 1, 0, 0, 1], bool)
+    sa = np.array([0.9, 0.9, 0.4, 0.2, 0.4, 0.6, 0.1, 0.3])
+    sb = np.array([0.5, 0.5, 0.5, 0.2, 0.7, 0.2, 0.6, 0.8])
+    w = np.random.default_rng(0).integers(0, 3, (200, len(y))).astype(float)
+    res = auroc_row(y, sa, sb, w)
+    reps = [np.repeat(np.arange(len(y)), wt.astype(int)) for wt in w]
+    diffs = [roc_auc_score(y[i], sb[i]) - roc_auc_score(y[i], sa[i]) for i in reps if 0 < y[i].sum() < len(i)]
+    assert res["ci95"] == [round(float(np.percentile(diffs, q)), 4) for q in (2.5, 97.5)]
+    assert res["diff"] == round(roc_auc_score(y, sb) - roc_auc_score(y, sa), 4) != 0
+
+
+def test_bad_settings_are_one_line(tmp_path):
+    recs = _dataset(tmp_path / "ds")
+    for side in ("a", "b"):
+        _write(tmp_path / side, recs, lambda t, d, r: r["conversations"][1]["value"], lambda t: 0.5)
+    cases = {
+        "seed=abc": "error: seed: expected an integer >= 0",
+        "splits=val": "error: splits: expected a list of split names",
+        "splits=[val,test_both]": "error: splits: test_both is a sealed split",
+        f"out={tmp_path / 'no' / 'c.json'}": "error: out: no such folder",
+        "splits=[val,val_both]": f"error: a: {tmp_path / 'a' / 'eval_val_both' / 'predictions.jsonl'} not found",
+    }
+    for arg, start in cases.items():
+        r = compare(tmp_path, arg)
+        assert r.returncode == 2 and r.stderr.startswith(start) and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    traj = json.loads((tmp_path / "ds" / "trajectories.json").read_text())
+    (tmp_path / "ds" / "trajectories.json").write_text(json.dumps(traj[1:]))
+    r = compare(tmp_path)
+    assert r.returncode == 2 and r.stderr.strip() == (
+        "error: dataset_dir: trajectory p0-ok is asked about but not in trajectories.json"
+    )
