@@ -104,8 +104,8 @@ def test_a_missing_bench_or_reply_is_one_line(tmp_path):
 
 
 def test_the_a_side_equals_the_bench_of_the_same_replies(tmp_path):
-    """labrobfail-evaluate's figures of a predictions file and compare's for the same replies agree (a real process
-    each), with errors scattered over both twins of several pairs."""
+    """labrobfail-evaluate's figures of a predictions file and compare's (a real process) for the same replies
+    agree, with errors scattered over both twins of several pairs."""
     recs = _dataset(tmp_path / "ds")
     rng = np.random.default_rng(1)
     wrong = {"Q2": "No", "Q3": "5", "Q4": "4", "Q5": "3", "Q6": "Close the oven door."}
@@ -124,6 +124,7 @@ def test_the_a_side_equals_the_bench_of_the_same_replies(tmp_path):
         "q6_template=false",
         f"out_dir={tmp_path / 'a' / 'eval_val'}",
         "progress=false",
+        call=run_here,  # the bench as a process is tested elsewhere; compare runs as one below
     )
     assert r.returncode == 0, r.stderr[-2000:]
     bench = json.loads((tmp_path / "a" / "eval_val" / "results.json").read_text())
