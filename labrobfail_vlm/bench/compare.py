@@ -31,16 +31,10 @@ from labrobfail_vlm.bench.parse import parse
 from labrobfail_vlm.config import ConfigError, cli_main, load_config, require_ints
 from labrobfail_vlm.taxonomy import SEALED_SPLITS
 
-# name -> (question, over which trajectories); each a mean over records, in percent (ROUGE-L as a fraction)
-SCORES = {
-    "Q2": ("Q2", "all"),
-    "recall": ("Q2", "failures"),
-    "false_alarms": ("Q2", "successes"),
-    "Q3": ("Q3", "failures"),
-    "Q4": ("Q4", "failures"),
-    "Q5": ("Q5", "failures"),
-    "rougeL": ("Q6", "failures"),
-}
+# name -> (question, over which trajectories); each a mean over records, in percent (ROUGE-L as a fraction): Q2
+# three ways, then the bench's failure-only scores (Q6 as its ROUGE-L)
+SCORES = {"Q2": ("Q2", "all"), "recall": ("Q2", "failures"), "false_alarms": ("Q2", "successes")}
+SCORES |= {("rougeL" if d == "Q6" else d): (d, "failures") for d in ev.FAILURE_ONLY_DIMS}
 
 DEFAULTS = """\
 a: null                    # the model compared against: its folder (or its predictions file), holding eval_<split>/
