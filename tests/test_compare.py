@@ -27,8 +27,8 @@ def _dataset(root):
     return recs
 
 
-def _write(model, recs, reply, p_failure):
-    out = model / "eval_val"
+def _write(model, recs, reply, p_failure, split="val"):
+    out = model / f"eval_{split}"
     out.mkdir(parents=True)
     with open(out / "predictions.jsonl", "w") as f:
         for r in recs:
@@ -183,6 +183,11 @@ def test_bad_settings_are_one_line(tmp_path):
     for arg, start in cases.items():
         r = compare(tmp_path, arg)
         assert r.returncode == 2 and r.stderr.startswith(start) and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    (tmp_path / "ds" / "val_both.json").write_text("[]")
+    for side in ("a", "b"):
+        _write(tmp_path / side, [], None, None, split="val_both")
+    r = compare(tmp_path, "splits=[val_both]")
+    assert r.returncode == 2 and r.stderr.strip() == f"error: splits: val_both has no records in {tmp_path / 'ds'}"
     traj = json.loads((tmp_path / "ds" / "trajectories.json").read_text())
     (tmp_path / "ds" / "trajectories.json").write_text(json.dumps(traj[1:]))
     r = compare(tmp_path)

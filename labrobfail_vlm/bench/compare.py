@@ -207,6 +207,8 @@ def main(argv: list[str]) -> int:
     }
     for split in cfg.splits:
         recs, traj = ev.load_split(cfg.dataset_dir, split, cfg.max_trajectories)
+        if not recs:
+            raise ConfigError(f"splits: {split} has no records in {cfg.dataset_dir}")
         a, b = (read_replies(k, str(cfg[k]), split, cfg.max_trajectories, recs) for k in ("a", "b"))
         res["splits"][split] = compare_split(recs, traj, a, b, cfg.resamples, cfg.seed)
     print(markdown(res))
