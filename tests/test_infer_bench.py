@@ -560,6 +560,21 @@ def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, smal
     assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].endswith(
         "give out_dir= (the robot-signal monitors alone)"
     )
+    # an online run on a sealed split, scored or calibrated on, is counted in the ledger like an offline one
+    from labrobfail_vlm.bench.evaluate import sealed_runs
+
+    trajs += [{**t, "split": "test_both"} for t in trajs if t["split"] == "test" and "prefix_of" not in t]
+    (ds / "trajectories.json").write_text(json.dumps(trajs))
+    assert sealed_runs(ds) == []  # the runs above scored test and calibrated on val
+    for split, cal in (("test_both", "val"), ("test", "test_both")):
+        assert (
+            run_here([*argv[:3], f"split={split}", f"calibration={cal}", f"out_dir={tmp_path / split}"]).returncode == 0
+        )
+    runs = sealed_runs(ds)
+    assert [(e["split"], e["source"]) for e in runs] == [
+        ("test_both", "online, scored: robot-signal monitors"),
+        ("test_both", "online, calibration: robot-signal monitors"),
+    ]
     (ds / "robot_signals.parquet").write_bytes(b"not a parquet file")  # a damaged file: one line, nothing written
     r = run_here([*argv, f"out_dir={tmp_path / 'damaged'}"])
     last = r.stderr.strip().splitlines()[-1]

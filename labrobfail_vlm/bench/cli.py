@@ -357,6 +357,13 @@ def _online(cfg: Any) -> int:
     fa = _load_analyzer(cfg)[0] if cfg.model is not None else None
     out = Path(cfg.out_dir or Path(cfg.model) / f"eval_online_{cfg.split}")
     res = run_online(cfg, fa, out)
+    # a sealed split scored or calibrated on is a look at it like an offline bench: counted in the ledger the page
+    # lists (no offline figures to carry, so its cells read "-")
+    from labrobfail_vlm.bench.evaluate import count_sealed_run
+
+    who = cfg.model or "robot-signal monitors"
+    for role, split in (("scored", cfg.split), ("calibration", cfg.calibration)):
+        count_sealed_run(cfg.dataset_dir, str(split), f"online, {role}: {who}", {})
     print("\n".join(online_md(res)))
     return 0
 
