@@ -167,6 +167,8 @@ def test_a_rows_splice_keeps_the_pages_main_row_when_the_run_benched_its_model_o
     table = page.read_text().split("## Tower and sensor rows\n")[1].split("## Supervision\n")[0]
     assert SHIPPED in table
     assert "| sim-pretrained tower, front + side, 4-layer decoder (chosen on validation" in table
+    row = next(line for line in table.splitlines() if "4-layer decoder" in line)  # its own bench's figures
+    assert "| 82.0 [79.0, 85.0] |" in row and "| 61.0 [55.0, 66.0] |" in row and "0.6000 [0.550, 0.650]" in row
     assert "(`train`)" not in table and "Not run for this page: scratch tower" in table
     # A row no make target makes (rows/deep4) is never called "not run" by a run without it.
     shutil.rmtree(run / "rows" / "deep4")
