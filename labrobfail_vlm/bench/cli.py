@@ -74,7 +74,7 @@ def val_threshold(model: str | Path, dataset_dir: str | Path) -> float:
     from labrobfail_vlm.bench import evaluate as ev
     from labrobfail_vlm.bench.detection import accuracy_threshold
 
-    f = Path(model) / "eval_val" / "predictions.jsonl"
+    f = ev.bench_dir(model, "val") / "predictions.jsonl"
     if not f.is_file():
         raise ConfigError(f"threshold=val: {f} not found (run labrobfail-evaluate split=val with threshold=0.5 first)")
     p = ev.read_predictions(f).p_failure
@@ -94,8 +94,9 @@ def _out_dir(cfg: Any) -> Path:
     if cfg.endpoint is not None:
         out = Path(cfg.out_dir or Path("outputs") / f"eval_endpoint_{cfg.split}{op}")
     else:
-        src = Path(cfg.model or cfg.predictions)
-        out = Path(cfg.out_dir or (src if src.is_dir() else src.parent) / f"eval_{cfg.split}{op}")
+        from labrobfail_vlm.bench.evaluate import bench_dir
+
+        out = Path(cfg.out_dir or bench_dir(cfg.model or cfg.predictions, cfg.split, op))
     out.mkdir(parents=True, exist_ok=True)
     return out
 

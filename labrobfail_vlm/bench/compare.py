@@ -50,8 +50,7 @@ out: null                  # also write the figures as JSON here
 
 def eval_dir(root: str | Path, split: str, limit: int | None) -> Path:
     """Where labrobfail-evaluate wrote `root`'s bench of `split` (a partial run: eval_<split>_first<N>)."""
-    src = Path(root)
-    return (src if not src.is_file() else src.parent) / (f"eval_{split}_first{limit}" if limit else f"eval_{split}")
+    return ev.bench_dir(root, split, f"_first{limit}" if limit else "")
 
 
 def _check_args(cfg: Any) -> None:
@@ -119,13 +118,6 @@ def values(rs: list[dict], preds: ev.Predictions, dim: str, who: str) -> np.ndar
     return np.array([parse(dim, preds[r["id"]]) == ref for r, ref in zip(rs, refs)], float)
 
 
-def p_failure(q2: list[dict], preds: ev.Predictions) -> tuple[np.ndarray, str]:
-    """P(failure) per Q2 record, and "probability", or "hard" where some reply has none (then its 1 or 0)."""
-    probs = [preds.p_failure.get(Q.traj_of(r["id"])) for r in q2]
-    kind = "probability" if all(p is not None for p in probs) else "hard"
-    return np.array([float(ev.says_failed(r, preds)) if p is None else p for r, p in zip(q2, probs)]), kind
-
-
 def row(a: float, b: float, diffs: np.ndarray, scale: float, digits: int) -> dict[str, Any]:
     """Both figures, b - a and its interval (None when no resample could be scored), scaled and rounded."""
 
@@ -159,8 +151,8 @@ def compare_split(
     q2 = select(recs, info, "Q2", "all")
     y = np.array([info[Q.traj_of(r["id"])][0] for r in q2], bool)
     if 0 < y.sum() < len(y):
-        (sa, ka), (sb, kb) = p_failure(q2, a), p_failure(q2, b)
-        out["auroc"] = {**auroc_row(y, sa, sb, weights(q2)), "score": {"a": ka, "b": kb}}
+        (sa, ka), (sb, kb) = ev.failure_scores(q2, a), ev.failure_scores(q2, b)
+        out["auroc"] = {**auroc_row(y, np.array(sa), np.array(sb), weights(q2)), "score": {"a": ka, "b": kb}}
     return out
 
 

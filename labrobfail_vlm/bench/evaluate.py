@@ -69,6 +69,13 @@ def sealed_runs(dataset_dir: str | Path) -> list[dict[str, Any]]:
     return [json.loads(line) for line in ledger.read_text().splitlines() if line.strip()] if ledger.is_file() else []
 
 
+def bench_dir(source: str | Path, split: str, suffix: str = "") -> Path:
+    """Where a bench of `source` (a model's folder, or a predictions file: its folder) on `split` is written:
+    eval_<split><suffix> (the suffix names a non-default operating point or a first-N run)."""
+    src = Path(source)
+    return (src.parent if src.is_file() else src) / f"eval_{split}{suffix}"
+
+
 def q2_as_asked(question: str, failed: bool) -> str:
     """The Q2 reply meaning `failed`, for the variant the record asks (variant 0 when unrecognised)."""
     return Q.q2_answer(Q.q2_variant(question) or 0, success=not failed)
@@ -228,24 +235,23 @@ def called_failed(recs: list[dict], preds: dict[str, str]) -> set[str]:
     return {Q.traj_of(r["id"]) for r in recs if Q.dim_of(r["id"]) == "Q2" and says_failed(r, preds)}
 
 
+def failure_scores(q2: list[dict], preds: dict[str, str]) -> tuple[list[float], str]:
+    """P(failure) per Q2 record, and "probability"; or "hard" where some trajectory has no probability, whose hard
+    Q2 reply is then its score (1 for failed, 0 otherwise)."""
+    probs = getattr(preds, "p_failure", {})
+    ps = [probs.get(Q.traj_of(r["id"])) for r in q2]
+    kind = "probability" if all(p is not None for p in ps) else "hard"
+    return [float(says_failed(r, preds)) if p is None else p for r, p in zip(q2, ps)], kind
+
+
 def detection(recs: list[dict], preds: dict[str, str], traj: dict[str, dict]) -> dict[str, Any] | None:
     """AUROC/AUPRC/ECE of P(failure) over the split's trajectories that are asked Q2 (None when none are).
     Without a probability for a trajectory, its hard Q2 reply is the score (0 or 1)."""
     from labrobfail_vlm.bench.detection import detection_metrics
 
-    probs = getattr(preds, "p_failure", {})
-    ys, ps, hard = [], [], False
-    for r in recs:
-        if Q.dim_of(r["id"]) != "Q2":
-            continue
-        t = Q.traj_of(r["id"])
-        ys.append(not traj.get(t, {}).get("success", True))
-        if t in probs:
-            ps.append(probs[t])
-        else:
-            hard = True
-            ps.append(1.0 if says_failed(r, preds) else 0.0)
-    return detection_metrics(ys, ps, "hard" if hard else "probability") if ys else None
+    q2 = [r for r in recs if Q.dim_of(r["id"]) == "Q2"]
+    ys = [not traj.get(Q.traj_of(r["id"]), {}).get("success", True) for r in q2]
+    return detection_metrics(ys, *failure_scores(q2, preds)) if ys else None
 
 
 def score(
