@@ -15,7 +15,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 # Every YAML default ships inside the package (the repository's top-level configs/ links here): entry points and
 # backends find them through importlib.resources, from a checkout or an installed wheel alike.
@@ -106,6 +106,7 @@ def load_config(defaults: str | Path, argv: list[str]) -> DictConfig:
             if name not in base.presets:
                 raise ConfigError(f"preset: unknown preset {name!r}; known: {', '.join(base.presets)}")
             layers.append(base.presets[name])
+        _check_lists(OmegaConf.merge(*layers), cli, base)
         cfg = OmegaConf.merge(*layers, cli)
     except ConfigError:
         raise
@@ -114,6 +115,22 @@ def load_config(defaults: str | Path, argv: list[str]) -> DictConfig:
         raise ConfigError(f"{key}: not a valid setting ({type(e).__name__})") from None
     assert isinstance(cfg, DictConfig)
     return cfg
+
+
+def _check_lists(defaults: Any, cli: DictConfig, base: Any, prefix: str = "") -> None:
+    """A command-line scalar or null where the default is a list (`baselines=false`) is a one-line error: OmegaConf
+    would take it, and its reader would then iterate a bool or a string's letters. `base`: the defaults before any
+    preset; a key that is null there (`scenarios`, a list only in preset demo) may be set back to null."""
+    for key in cli:
+        given = cli[key]
+        default = defaults.get(key) if isinstance(defaults, DictConfig) else None
+        plain = base.get(key) if isinstance(base, DictConfig) else None
+        name = f"{prefix}{key}"
+        if isinstance(given, DictConfig):
+            _check_lists(default, given, plain, f"{name}.")
+        elif isinstance(default, ListConfig) and not isinstance(given, ListConfig) and (given, plain) != (None, None):
+            example = ",".join(map(str, default)) if len(default) else "a,b"
+            raise ConfigError(f"{name}: expected a list (e.g. '{name}=[{example}]' or '{name}=[]'), got {given!r}")
 
 
 def cli_main(fn: Callable[[list[str]], int], doc: str | None = None) -> None:
