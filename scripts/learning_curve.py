@@ -27,6 +27,7 @@ def main(argv: list[str]) -> int:
     from labrobfail_vlm.analyzer import FailureAnalyzer
     from labrobfail_vlm.bench import evaluate as ev
     from labrobfail_vlm.io import atomic_write_json, save_figure
+    from labrobfail_vlm.train.tower_cache import shared_tower
 
     cfg = load_config("learning_curve.yaml", argv)
     run = Path(str(cfg.run_dir))
@@ -42,13 +43,12 @@ def main(argv: list[str]) -> int:
         raise ConfigError(f"run_dir: no checkpoint-N in {run} matches progress.json (train with save_total_limit=null)")
     recs, traj = ev.load_split(cfg.dataset_dir, cfg.split)
     recs = [r for r in recs if Q.dim_of(r["id"]) in DIMS]
-    points = []
+    points, cache = [], None
     for step, path in tqdm(ckpts, desc="checkpoints", disable=not cfg.progress):
-        res = ev.score(
-            recs,
-            ev.model_predictions(FailureAnalyzer.from_pretrained(path), cfg.dataset_dir, recs, traj, progress=False),
-            traj,
-        )
+        analyzer = FailureAnalyzer.from_pretrained(path)
+        # a frozen tower's checkpoints share its weights: each grid is encoded once for all of them
+        cache = shared_tower(analyzer.model, cache)
+        res = ev.score(recs, ev.model_predictions(analyzer, cfg.dataset_dir, recs, traj, progress=False), traj)
         points.append({**rows[step], **{d.lower(): res[d.lower()] for d in DIMS}})
     out = Path(str(cfg.out or run / "learning_curve.png"))
     atomic_write_json(out.with_suffix(".json"), {"split": cfg.split, "run_dir": str(run), "points": points})

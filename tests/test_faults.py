@@ -57,7 +57,16 @@ def test_training_killed_mid_run_resumes_to_the_final_step_and_evaluates(tiny, s
     no_baselines = ("split=test", "baselines=[]", "q6_template=false", f"out_dir={tmp_path / 'eval'}", "progress=false")
     r = evaluate(f"model={out / 'final'}", small_ds, *no_baselines, call=run_here)
     assert r.returncode == 0, r.stderr[-3000:]
-    assert json.loads((tmp_path / "eval" / "results.json").read_text())["detection"]["trajectories"] > 0
+    results = json.loads((tmp_path / "eval" / "results.json").read_text())
+    assert results["detection"]["trajectories"] > 0
+    # the learning curve reads the resumed run: one point per checkpoint in progress.json (the cut-short one is not),
+    # and its last point (checkpoint-8, the final weights) scores as the bench of final
+    curve = tmp_path / "curve.png"
+    r = run_here(["scripts/learning_curve.py", f"run_dir={out}", f"dataset_dir={small_ds}", "split=test", f"out={curve}"])
+    assert r.returncode == 0, r.stderr[-3000:]
+    points = json.loads(curve.with_suffix(".json").read_text())["points"]
+    assert [p["step"] for p in points] == steps and curve.is_file()
+    assert points[-1]["q2"] == results["q2"]
     # nothing to resume from is one line
     r = run_here([*common[:-3], f"output_dir={tmp_path / 'empty'}", "resume=true", "progress=false"])
     assert r.returncode == 2 and "no complete checkpoint" in r.stderr.strip().splitlines()[-1], r.stderr

@@ -8,7 +8,7 @@ import torch
 from conftest import run_here
 from test_train import small_ds, tiny, tiny_train  # noqa: F401 - session fixtures
 
-from labrobfail_vlm.train.tower_cache import TowerCache, cache_frozen_tower
+from labrobfail_vlm.train.tower_cache import TowerCache, cache_frozen_tower, shared_tower
 
 
 def _frozen(tiny):  # noqa: F811
@@ -77,6 +77,27 @@ def test_the_memory_bound_holds_and_a_training_tower_is_never_cached(tiny, small
     assert cache_frozen_tower(model, 64) is None
     with pytest.raises(ValueError, match="trains"):
         TowerCache(model.model.visual, 64)
+
+
+def test_checkpoints_with_one_tower_share_its_outputs_and_another_tower_does_not(tiny, small_ds):  # noqa: F811
+    """The learning curve's models (shared_tower): a second model with the same tower weights serves the first's
+    outputs without encoding; a tower whose weights differ by one value starts empty."""
+    from labrobfail_vlm.model.loading import load_model
+
+    px, thw = _grids(tiny, small_ds, 2)
+    want = _features(_frozen(tiny), px, thw)  # the tower itself, no cache
+    a = load_model(tiny).eval()
+    cache_a = shared_tower(a, None)
+    torch.testing.assert_close(_features(a, px, thw), want, rtol=1e-5, atol=1e-6)
+    b = load_model(tiny).eval()
+    cache_b = shared_tower(b, cache_a)
+    assert torch.equal(_features(b, px, thw), _features(a, px, thw))
+    assert (cache_b.misses, cache_b.hits) == (0, 2) and not any(p.requires_grad for p in b.parameters())
+    c = load_model(tiny).eval()
+    with torch.no_grad():
+        c.model.visual.merger.linear_fc2.bias[0] += 1.0
+    cache_c = shared_tower(c, cache_b)
+    assert not torch.equal(_features(c, px, thw), want) and (cache_c.misses, cache_c.hits) == (2, 0)
 
 
 def test_a_frozen_tower_run_encodes_each_grid_once_and_trains_as_without_the_cache(tiny, small_ds, tmp_path):  # noqa: F811

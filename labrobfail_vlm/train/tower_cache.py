@@ -42,6 +42,7 @@ class TowerCache:
         self.max_bytes, self.bytes = int(max_mb * 2**20), 0
         self.store: dict[bytes, tuple[torch.Tensor, list[torch.Tensor]]] = {}
         self.hits = self.misses = 0
+        self.weights: bytes | None = None  # a digest of the tower's weights (shared_tower), when known
         self.given: list[bytes] | None = None  # file keys of the next call's images, set by the trainer
         visual.forward = self  # an instance attribute: nn.Module.__call__ (and its hooks) now call this
 
@@ -99,6 +100,25 @@ def cache_frozen_tower(model: nn.Module, max_mb: float) -> TowerCache | None:
     if max_mb <= 0 or any(p.requires_grad for p in visual.parameters()):
         return None
     return TowerCache(visual, max_mb)
+
+
+def shared_tower(model: nn.Module, previous: TowerCache | None, max_mb: float = 4096) -> TowerCache:
+    """An inference model's tower behind a TowerCache that takes over `previous`'s outputs when both towers hold the
+    same weights, byte for byte: the checkpoints of one frozen-tower run encode each grid once between them (the
+    learning curve benches every checkpoint on the same split). The model's parameters stop requiring gradients."""
+    from labrobfail_vlm.train.grounding import vision_module
+
+    model.requires_grad_(False)
+    visual = vision_module(model)
+    h = hashlib.blake2b(digest_size=16)
+    for name, t in sorted(visual.state_dict().items()):
+        h.update(name.encode())
+        h.update(t.detach().contiguous().view(torch.uint8).cpu().numpy())
+    cache = TowerCache(visual, max_mb)
+    cache.weights = h.digest()
+    if previous is not None and getattr(previous, "weights", None) == cache.weights:
+        cache.store, cache.bytes = previous.store, previous.bytes
+    return cache
 
 
 def file_key(path: str) -> bytes:
