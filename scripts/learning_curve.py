@@ -27,7 +27,7 @@ def main(argv: list[str]) -> int:
     from labrobfail_vlm.analyzer import FailureAnalyzer
     from labrobfail_vlm.bench import evaluate as ev
     from labrobfail_vlm.io import atomic_write_json, save_figure
-    from labrobfail_vlm.train.tower_cache import shared_tower
+    from labrobfail_vlm.train.tower_cache import inference_cache
 
     cfg = load_config("learning_curve.yaml", argv)
     run = Path(str(cfg.run_dir))
@@ -47,7 +47,7 @@ def main(argv: list[str]) -> int:
     for step, path in tqdm(ckpts, desc="checkpoints", disable=not cfg.progress):
         analyzer = FailureAnalyzer.from_pretrained(path)
         # a frozen tower's checkpoints share its weights: each grid is encoded once for all of them
-        cache = shared_tower(analyzer.model, cache)
+        cache = inference_cache(analyzer.model, 4096, previous=cache)
         res = ev.score(recs, ev.model_predictions(analyzer, cfg.dataset_dir, recs, traj, progress=False), traj)
         points.append({**rows[step], **{d.lower(): res[d.lower()] for d in DIMS}})
     out = Path(str(cfg.out or run / "learning_curve.png"))

@@ -165,16 +165,20 @@ def test_evaluate_through_the_endpoint_matches_the_local_model(fake, mixed_model
 def test_evaluate_batch_size_gives_the_same_predictions(mixed_model, small_ds, tmp_path):  # noqa: F811
     common = [f"model={mixed_model}", f"dataset_dir={small_ds}", "split=test", "progress=false", "baselines=[blind]"]
     outs, probs = [], []
-    for b in (1, 5):
-        r = _run("labrobfail-evaluate", f"out_dir={tmp_path / str(b)}", f"batch_size={b}", *common, here=True)
+    # batches of 1 and 5 with the tower's outputs cached across the bench's passes (the default), and 5 without
+    for b, mb in ((1, 1024), (5, 1024), (5, 0)):
+        out = tmp_path / f"{b}_{mb}"
+        r = _run("labrobfail-evaluate", f"out_dir={out}", f"batch_size={b}", f"tower_cache_mb={mb}", *common, here=True)
         assert r.returncode == 0, r.stderr[-2000:]
-        lines = [json.loads(x) for x in (tmp_path / str(b) / "predictions.jsonl").read_text().splitlines()]
+        lines = [json.loads(x) for x in (out / "predictions.jsonl").read_text().splitlines()]
         probs.append([x.pop("p_failure", None) for x in lines])  # float sums over padded rows: equal to rounding
         outs.append(json.dumps(lines))
-        res = json.loads((tmp_path / str(b) / "results.json").read_text())
+        res = json.loads((out / "results.json").read_text())
         outs.append(json.dumps({k: res["baselines"][k]["q2"] for k in res["baselines"]}))
-    assert outs[0] == outs[2] and outs[1] == outs[3]
+    assert outs[0] == outs[2] == outs[4] and outs[1] == outs[3] == outs[5]
     assert [p is None for p in probs[0]] == [p is None for p in probs[1]] and any(p is not None for p in probs[0])
-    assert [p or 0 for p in probs[0]] == pytest.approx([p or 0 for p in probs[1]], abs=1e-4)
-    r = _run("labrobfail-evaluate", "batch_size=0", *common, here=True)
-    assert r.returncode == 2 and "batch_size" in r.stderr
+    for other in probs[1:]:
+        assert [p or 0 for p in probs[0]] == pytest.approx([p or 0 for p in other], abs=1e-4)
+    for bad in ("batch_size=0", "tower_cache_mb=lots"):
+        r = _run("labrobfail-evaluate", bad, *common, here=True)
+        assert r.returncode == 2 and bad.split("=")[0] in r.stderr

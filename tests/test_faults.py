@@ -62,7 +62,8 @@ def test_training_killed_mid_run_resumes_to_the_final_step_and_evaluates(tiny, s
     # the learning curve reads the resumed run: one point per checkpoint in progress.json (the cut-short one is not),
     # and its last point (checkpoint-8, the final weights) scores as the bench of final
     curve = tmp_path / "curve.png"
-    r = run_here(["scripts/learning_curve.py", f"run_dir={out}", f"dataset_dir={small_ds}", "split=test", f"out={curve}"])
+    curve_args = [f"run_dir={out}", f"dataset_dir={small_ds}", "split=test", f"out={curve}"]
+    r = run_here(["scripts/learning_curve.py", *curve_args])
     assert r.returncode == 0, r.stderr[-3000:]
     points = json.loads(curve.with_suffix(".json").read_text())["points"]
     assert [p["step"] for p in points] == steps and curve.is_file()

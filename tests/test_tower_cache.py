@@ -8,7 +8,7 @@ import torch
 from conftest import run_here
 from test_train import small_ds, tiny, tiny_train  # noqa: F401 - session fixtures
 
-from labrobfail_vlm.train.tower_cache import TowerCache, cache_frozen_tower, shared_tower
+from labrobfail_vlm.train.tower_cache import TowerCache, cache_frozen_tower, inference_cache
 
 
 def _frozen(tiny):  # noqa: F811
@@ -80,23 +80,23 @@ def test_the_memory_bound_holds_and_a_training_tower_is_never_cached(tiny, small
 
 
 def test_checkpoints_with_one_tower_share_its_outputs_and_another_tower_does_not(tiny, small_ds):  # noqa: F811
-    """The learning curve's models (shared_tower): a second model with the same tower weights serves the first's
+    """The learning curve's models (inference_cache): a second model with the same tower weights serves the first's
     outputs without encoding; a tower whose weights differ by one value starts empty."""
     from labrobfail_vlm.model.loading import load_model
 
     px, thw = _grids(tiny, small_ds, 2)
     want = _features(_frozen(tiny), px, thw)  # the tower itself, no cache
     a = load_model(tiny).eval()
-    cache_a = shared_tower(a, None)
+    cache_a = inference_cache(a, 64)
     torch.testing.assert_close(_features(a, px, thw), want, rtol=1e-5, atol=1e-6)
     b = load_model(tiny).eval()
-    cache_b = shared_tower(b, cache_a)
+    cache_b = inference_cache(b, 64, previous=cache_a)
     assert torch.equal(_features(b, px, thw), _features(a, px, thw))
     assert (cache_b.misses, cache_b.hits) == (0, 2) and not any(p.requires_grad for p in b.parameters())
     c = load_model(tiny).eval()
     with torch.no_grad():
         c.model.visual.merger.linear_fc2.bias[0] += 1.0
-    cache_c = shared_tower(c, cache_b)
+    cache_c = inference_cache(c, 64, previous=cache_b)
     assert not torch.equal(_features(c, px, thw), want) and (cache_c.misses, cache_c.hits) == (2, 0)
 
 

@@ -47,6 +47,8 @@ def _check_args(cfg: Any) -> None:
         raise ConfigError(f"max_trajectories: {cfg.split} is a sealed split; it is benched whole or not at all")
     if not isinstance(cfg.batch_size, int) or cfg.batch_size < 1:
         raise ConfigError(f"batch_size: expected a positive integer, got {cfg.batch_size!r}")
+    if isinstance(cfg.tower_cache_mb, bool) or not isinstance(cfg.tower_cache_mb, (int, float)):
+        raise ConfigError(f"tower_cache_mb: expected a number of MB (0: off), got {cfg.tower_cache_mb!r}")
     if cfg.threshold != 0.5:
         from labrobfail_vlm.analyzer import check_threshold
 
@@ -115,8 +117,10 @@ def _load_analyzer(cfg: Any, threshold: float = 0.5) -> tuple[Any, str]:
         )
         return analyzer, f"LabRobFail-VLM endpoint ({analyzer.client.model})"
     from labrobfail_vlm.analyzer import FailureAnalyzer
+    from labrobfail_vlm.train.tower_cache import inference_cache
 
     analyzer = FailureAnalyzer.from_pretrained(cfg.model, threshold=threshold)
+    inference_cache(analyzer.model, float(cfg.tower_cache_mb))
     return analyzer, "LabRobFail-VLM (" + Path(cfg.model).name + ")"
 
 

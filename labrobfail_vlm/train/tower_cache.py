@@ -42,9 +42,19 @@ class TowerCache:
         self.max_bytes, self.bytes = int(max_mb * 2**20), 0
         self.store: dict[bytes, tuple[torch.Tensor, list[torch.Tensor]]] = {}
         self.hits = self.misses = 0
-        self.weights: bytes | None = None  # a digest of the tower's weights (shared_tower), when known
+        self.visual, self.weights = visual, None  # the tower, and a digest of its weights once asked for
         self.given: list[bytes] | None = None  # file keys of the next call's images, set by the trainer
         visual.forward = self  # an instance attribute: nn.Module.__call__ (and its hooks) now call this
+
+    def weights_digest(self) -> bytes:
+        """A digest of the tower's weights (computed once: a cached tower does not train)."""
+        if self.weights is None:
+            h = hashlib.blake2b(digest_size=16)
+            for name, t in sorted(self.visual.state_dict().items()):
+                h.update(name.encode())
+                h.update(t.detach().contiguous().view(torch.uint8).cpu().numpy())
+            self.weights = h.digest()
+        return self.weights
 
     def stats(self) -> dict[str, float]:
         return {"hits": self.hits, "misses": self.misses, "stored": len(self.store), "mb": round(self.bytes / 2**20, 1)}
@@ -102,21 +112,19 @@ def cache_frozen_tower(model: nn.Module, max_mb: float) -> TowerCache | None:
     return TowerCache(visual, max_mb)
 
 
-def shared_tower(model: nn.Module, previous: TowerCache | None, max_mb: float = 4096) -> TowerCache:
-    """An inference model's tower behind a TowerCache that takes over `previous`'s outputs when both towers hold the
-    same weights, byte for byte: the checkpoints of one frozen-tower run encode each grid once between them (the
-    learning curve benches every checkpoint on the same split). The model's parameters stop requiring gradients."""
+def inference_cache(model: nn.Module, max_mb: float, previous: TowerCache | None = None) -> TowerCache | None:
+    """An inference model's tower behind a TowerCache (None when `max_mb` <= 0); the model's parameters stop
+    requiring gradients. Passes over the same grids then encode each grid once (the bench's model, Q6-template and
+    blind passes: the blind grey grid is one image). `previous`: another model's cache, whose outputs this one takes
+    over when both towers hold the same weights, byte for byte (the learning curve's checkpoints of a frozen-tower
+    run)."""
     from labrobfail_vlm.train.grounding import vision_module
 
+    if max_mb <= 0:
+        return None
     model.requires_grad_(False)
-    visual = vision_module(model)
-    h = hashlib.blake2b(digest_size=16)
-    for name, t in sorted(visual.state_dict().items()):
-        h.update(name.encode())
-        h.update(t.detach().contiguous().view(torch.uint8).cpu().numpy())
-    cache = TowerCache(visual, max_mb)
-    cache.weights = h.digest()
-    if previous is not None and getattr(previous, "weights", None) == cache.weights:
+    cache = TowerCache(vision_module(model), max_mb)
+    if previous is not None and previous.weights_digest() == cache.weights_digest():
         cache.store, cache.bytes = previous.store, previous.bytes
     return cache
 
