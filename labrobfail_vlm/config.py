@@ -106,7 +106,7 @@ def load_config(defaults: str | Path, argv: list[str]) -> DictConfig:
             if name not in base.presets:
                 raise ConfigError(f"preset: unknown preset {name!r}; known: {', '.join(base.presets)}")
             layers.append(base.presets[name])
-        _check_lists(OmegaConf.merge(*layers), cli, base)
+        _check_lists(OmegaConf.merge(*layers), OmegaConf.to_container(cli, resolve=False))
         cfg = OmegaConf.merge(*layers, cli)
     except ConfigError:
         raise
@@ -117,20 +117,19 @@ def load_config(defaults: str | Path, argv: list[str]) -> DictConfig:
     return cfg
 
 
-def _check_lists(defaults: Any, cli: DictConfig, base: Any, prefix: str = "") -> None:
-    """A command-line scalar or null where the default is a list (`baselines=false`) is a one-line error: OmegaConf
-    would take it, and its reader would then iterate a bool or a string's letters. `base`: the defaults before any
-    preset; a key that is null there (`scenarios`, a list only in preset demo) may be set back to null."""
-    for key in cli:
-        given = cli[key]
+def _check_lists(defaults: Any, given: Any, prefix: str = "") -> None:
+    """A command-line true/false or number where the default is a list (`baselines=false`) is a one-line error:
+    OmegaConf would take it, and its reader would then iterate a bool. A string or null is left to the reader, which
+    may take it on purpose (`backends=pybullet,maniskill`, `pair_shares=null`). `given`: the command line as plain
+    containers, interpolations unresolved."""
+    for key, value in given.items():
         default = defaults.get(key) if isinstance(defaults, DictConfig) else None
-        plain = base.get(key) if isinstance(base, DictConfig) else None
         name = f"{prefix}{key}"
-        if isinstance(given, DictConfig):
-            _check_lists(default, given, plain, f"{name}.")
-        elif isinstance(default, ListConfig) and not isinstance(given, ListConfig) and (given, plain) != (None, None):
+        if isinstance(value, dict):
+            _check_lists(default, value, f"{name}.")
+        elif isinstance(default, ListConfig) and isinstance(value, (bool, int, float)):
             example = ",".join(map(str, default)) if len(default) else "a,b"
-            raise ConfigError(f"{name}: expected a list (e.g. '{name}=[{example}]' or '{name}=[]'), got {given!r}")
+            raise ConfigError(f"{name}: expected a list (e.g. '{name}=[{example}]' or '{name}=[]'), got {value!r}")
 
 
 def cli_main(fn: Callable[[list[str]], int], doc: str | None = None) -> None:

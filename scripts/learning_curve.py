@@ -11,6 +11,7 @@ configs/learning_curve.yaml.
 
 from __future__ import annotations
 
+import gc
 import json
 import re
 from pathlib import Path
@@ -31,6 +32,8 @@ def main(argv: list[str]) -> int:
 
     cfg = load_config("learning_curve.yaml", argv)
     run = Path(str(cfg.run_dir))
+    if isinstance(cfg.tower_cache_mb, bool) or not isinstance(cfg.tower_cache_mb, (int, float)):
+        raise ConfigError(f"tower_cache_mb: expected a number of MB (0: off), got {cfg.tower_cache_mb!r}")
     progress = run / "progress.json"
     if not progress.is_file():
         raise ConfigError(f"run_dir: {run} has no progress.json (a run of train.py with checkpoints)")
@@ -47,8 +50,10 @@ def main(argv: list[str]) -> int:
     for step, path in tqdm(ckpts, desc="checkpoints", disable=not cfg.progress):
         analyzer = FailureAnalyzer.from_pretrained(path)
         # a frozen tower's checkpoints share its weights: each grid is encoded once for all of them
-        cache = inference_cache(analyzer.model, 4096, previous=cache)
+        cache = inference_cache(analyzer.model, float(cfg.tower_cache_mb), previous=cache)
         res = ev.score(recs, ev.model_predictions(analyzer, cfg.dataset_dir, recs, traj, progress=False), traj)
+        del analyzer
+        gc.collect()  # a cached tower and its model refer to each other: free the checkpoint before the next loads
         points.append({**rows[step], **{d.lower(): res[d.lower()] for d in DIMS}})
     out = Path(str(cfg.out or run / "learning_curve.png"))
     atomic_write_json(out.with_suffix(".json"), {"split": cfg.split, "run_dir": str(run), "points": points})

@@ -91,13 +91,43 @@ def test_checkpoints_with_one_tower_share_its_outputs_and_another_tower_does_not
     torch.testing.assert_close(_features(a, px, thw), want, rtol=1e-5, atol=1e-6)
     b = load_model(tiny).eval()
     cache_b = inference_cache(b, 64, previous=cache_a)
-    assert torch.equal(_features(b, px, thw), _features(a, px, thw))
+    with torch.no_grad():  # the merged tokens and the DeepStack features alike
+        got, ref = b.model.get_image_features(px, thw), a.model.get_image_features(px, thw)
+    assert torch.equal(torch.cat(got.pooler_output), torch.cat(ref.pooler_output))
+    levels = [(torch.cat(list(g)), torch.cat(list(r))) for g, r in zip(got.deepstack_features, ref.deepstack_features)]
+    assert levels and all(torch.equal(g, r) for g, r in levels)
     assert (cache_b.misses, cache_b.hits) == (0, 2) and not any(p.requires_grad for p in b.parameters())
     c = load_model(tiny).eval()
     with torch.no_grad():
         c.model.visual.merger.linear_fc2.bias[0] += 1.0
     cache_c = inference_cache(c, 64, previous=cache_b)
     assert not torch.equal(_features(c, px, thw), want) and (cache_c.misses, cache_c.hits) == (2, 0)
+
+
+def test_the_bench_encodes_each_grid_once_across_its_passes(tiny, small_ds):  # noqa: F811
+    """The bench's model (labrobfail-evaluate's loader, tower_cache_mb=auto on CPU): its Q6-template pass reads the
+    grids it already encoded, and its blind baseline encodes the one grey grid once; tower_cache_mb=0 caches nothing."""
+    from labrobfail_vlm import questions as Q
+    from labrobfail_vlm.bench import evaluate as ev
+    from labrobfail_vlm.bench.cli import _load_analyzer
+    from labrobfail_vlm.config import load_config
+    from labrobfail_vlm.train.grounding import vision_module
+
+    args = [f"model={tiny}", f"dataset_dir={small_ds}"]
+    analyzer = _load_analyzer(load_config("evaluate.yaml", args))[0]
+    cache = vision_module(analyzer.model).forward
+    assert isinstance(cache, TowerCache)
+    recs, traj = ev.load_split(small_ds, "test")
+    n = len({Q.traj_of(r["id"]) for r in recs})
+    first = ev.model_predictions(analyzer, small_ds, recs, traj, progress=False, batch_size=4)
+    encoded = cache.misses
+    assert 0 < encoded <= n and cache.misses + cache.hits == n
+    assert ev.model_predictions(analyzer, small_ds, recs, traj, progress=False, batch_size=4) == first
+    assert cache.misses == encoded and cache.hits == 2 * n - encoded
+    ev.model_predictions(analyzer, small_ds, recs, traj, blind=True, progress=False, batch_size=4)
+    assert cache.misses == encoded + 1
+    off = _load_analyzer(load_config("evaluate.yaml", [*args, "tower_cache_mb=0"]))[0]
+    assert not isinstance(vision_module(off.model).forward, TowerCache)
 
 
 def test_a_frozen_tower_run_encodes_each_grid_once_and_trains_as_without_the_cache(tiny, small_ds, tmp_path):  # noqa: F811

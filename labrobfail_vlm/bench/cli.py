@@ -47,8 +47,11 @@ def _check_args(cfg: Any) -> None:
         raise ConfigError(f"max_trajectories: {cfg.split} is a sealed split; it is benched whole or not at all")
     if not isinstance(cfg.batch_size, int) or cfg.batch_size < 1:
         raise ConfigError(f"batch_size: expected a positive integer, got {cfg.batch_size!r}")
-    if isinstance(cfg.tower_cache_mb, bool) or not isinstance(cfg.tower_cache_mb, (int, float)):
-        raise ConfigError(f"tower_cache_mb: expected a number of MB (0: off), got {cfg.tower_cache_mb!r}")
+    mb = cfg.tower_cache_mb
+    if mb != "auto" and (isinstance(mb, bool) or not isinstance(mb, (int, float))):
+        raise ConfigError(f"tower_cache_mb: expected auto or a number of MB (0: off), got {mb!r}")
+    if isinstance(cfg.baselines, str) or any(b not in ("majority", "blind") for b in cfg.baselines or []):
+        raise ConfigError(f"baselines: a list of majority and blind ('baselines=[majority]'), got {cfg.baselines!r}")
     if cfg.threshold != 0.5:
         from labrobfail_vlm.analyzer import check_threshold
 
@@ -103,8 +106,9 @@ def _out_dir(cfg: Any) -> Path:
     return out
 
 
-def _load_analyzer(cfg: Any, threshold: float = 0.5) -> tuple[Any, str]:
-    """The endpoint or local model (at the Q2 operating point `threshold`) that answers, and its row name."""
+def _load_analyzer(cfg: Any, threshold: float = 0.5, cache: bool = True) -> tuple[Any, str]:
+    """The endpoint or local model (at the Q2 operating point `threshold`) that answers, and its row name. `cache`: a
+    local model's tower outputs are kept for the bench's later passes over the same grids (tower_cache_mb)."""
     if cfg.endpoint is not None:
         from labrobfail_vlm.endpoint import EndpointAnalyzer
 
@@ -120,7 +124,11 @@ def _load_analyzer(cfg: Any, threshold: float = 0.5) -> tuple[Any, str]:
     from labrobfail_vlm.train.tower_cache import inference_cache
 
     analyzer = FailureAnalyzer.from_pretrained(cfg.model, threshold=threshold)
-    inference_cache(analyzer.model, float(cfg.tower_cache_mb))
+    mb = cfg.tower_cache_mb
+    if mb == "auto":  # on CPU the tower is most of a pass; on a GPU it is cheap and the memory is the model's
+        mb = 1024 if next(analyzer.model.parameters()).device.type == "cpu" else 0
+    if cache:
+        inference_cache(analyzer.model, float(mb))
     return analyzer, "LabRobFail-VLM (" + Path(cfg.model).name + ")"
 
 
@@ -186,7 +194,7 @@ def _score_baselines(
     """Score the configured baselines (majority, blind) into `results`."""
     from labrobfail_vlm.bench import evaluate as ev
 
-    for b in cfg.baselines:
+    for b in cfg.baselines or []:  # checked by _check_args: majority and blind only
         if b == "majority":  # needs training answers: this dataset's train split, or majority_train=DIR's
             train_dir = cfg.majority_train or cfg.dataset_dir
             try:
@@ -211,8 +219,6 @@ def _score_baselines(
                 ),
                 traj,
             )
-        else:
-            raise ConfigError(f"baselines: unknown baseline {b!r}; known: majority, blind")
 
 
 def _score_external(
@@ -359,7 +365,7 @@ def _online(cfg: Any) -> int:
     if cfg.model is None and cfg.out_dir is None:
         raise ConfigError("mode=online: without model=, give out_dir= (the robot-signal monitors alone)")
     check_pair_shares(cfg.pair_shares)  # before the model loads
-    fa = _load_analyzer(cfg)[0] if cfg.model is not None else None
+    fa = _load_analyzer(cfg, cache=False)[0] if cfg.model is not None else None  # prefix grids all differ
     out = Path(cfg.out_dir or Path(cfg.model) / f"eval_online_{cfg.split}")
     res = run_online(cfg, fa, out)
     # a sealed split scored or calibrated on is a look at it like an offline bench: counted in the ledger the page
