@@ -113,8 +113,9 @@ demo-online: $(STAMP)
 # trajectories and 150 per held-out split (seen: two generation runs of REPRO_SEEN episodes, the second's pairs
 # numbered after the first's, so a larger recipe extends the smaller one's data instead of redrawing it). Each
 # held-out variant draws episodes of its own; the sealed test_* splits are benched once here, for the page's rows. Resumable: generation resumes its
-# shards; delete outputs/reproduce to start over. About 125 min on 2 cores (105 measured with the 2-layer decoder; the
-# 4-layer one adds about 16 min of training and 3-4 of benches, estimated). Then, on the same data: make
+# shards; delete outputs/reproduce to start over. About 120 min on 2 cores (105 measured with the 2-layer decoder; the
+# 4-layer one adds about 16 min of training and 3-4 of benches, and the benches' and learning curve's tower cache
+# takes about 5 off; estimated, docs/EXPERIMENTS.md 4 Dec). Then, on the same data: make
 # reproduce-rows (the scratch-tower and front + wrist rows) and make ablate (the paper's ablation table); each
 # rewrites docs/RESULTS.md with what exists.
 R              ?= outputs/reproduce

@@ -69,8 +69,9 @@ SECTIONS = {
     ),
     "rows": (
         "## Tower and sensor rows",
-        "The same data and bench; only the tower or the views differ. 95 % intervals: bootstrap over pairs.",
-        ("rows/scratch", "rows/wrist", "rows/deep4"),
+        "The same bench on the same validation and test trajectories; each row names what differs (the tower, the "
+        "views, the decoder's depth, the training episodes). 95 % intervals: bootstrap over pairs.",
+        ("rows/scratch", "rows/wrist", "rows/deep4", "rows/more"),
     ),
     "ablation": (
         "## Ablation (the paper's table, seen split)",
