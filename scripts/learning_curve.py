@@ -28,12 +28,11 @@ def main(argv: list[str]) -> int:
     from labrobfail_vlm.analyzer import FailureAnalyzer
     from labrobfail_vlm.bench import evaluate as ev
     from labrobfail_vlm.io import atomic_write_json, save_figure
-    from labrobfail_vlm.train.tower_cache import inference_cache
+    from labrobfail_vlm.train.tower_cache import check_cache_mb, inference_cache
 
     cfg = load_config("learning_curve.yaml", argv)
     run = Path(str(cfg.run_dir))
-    if isinstance(cfg.tower_cache_mb, bool) or not isinstance(cfg.tower_cache_mb, (int, float)):
-        raise ConfigError(f"tower_cache_mb: expected a number of MB (0: off), got {cfg.tower_cache_mb!r}")
+    check_cache_mb(cfg.tower_cache_mb)
     progress = run / "progress.json"
     if not progress.is_file():
         raise ConfigError(f"run_dir: {run} has no progress.json (a run of train.py with checkpoints)")

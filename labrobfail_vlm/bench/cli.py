@@ -47,9 +47,9 @@ def _check_args(cfg: Any) -> None:
         raise ConfigError(f"max_trajectories: {cfg.split} is a sealed split; it is benched whole or not at all")
     if not isinstance(cfg.batch_size, int) or cfg.batch_size < 1:
         raise ConfigError(f"batch_size: expected a positive integer, got {cfg.batch_size!r}")
-    mb = cfg.tower_cache_mb
-    if mb != "auto" and (isinstance(mb, bool) or not isinstance(mb, (int, float))):
-        raise ConfigError(f"tower_cache_mb: expected auto or a number of MB (0: off), got {mb!r}")
+    from labrobfail_vlm.train.tower_cache import check_cache_mb
+
+    check_cache_mb(cfg.tower_cache_mb, auto=True)
     if isinstance(cfg.baselines, str) or any(b not in ("majority", "blind") for b in cfg.baselines or []):
         raise ConfigError(f"baselines: a list of majority and blind ('baselines=[majority]'), got {cfg.baselines!r}")
     if cfg.threshold != 0.5:
@@ -124,10 +124,10 @@ def _load_analyzer(cfg: Any, threshold: float = 0.5, cache: bool = True) -> tupl
     from labrobfail_vlm.train.tower_cache import inference_cache
 
     analyzer = FailureAnalyzer.from_pretrained(cfg.model, threshold=threshold)
-    mb = cfg.tower_cache_mb
-    if mb == "auto":  # on CPU the tower is most of a pass; on a GPU it is cheap and the memory is the model's
-        mb = 1024 if next(analyzer.model.parameters()).device.type == "cpu" else 0
     if cache:
+        mb = cfg.tower_cache_mb
+        if mb == "auto":  # on CPU the tower is most of a pass; on a GPU it is cheap and the memory is the model's
+            mb = 1024 if next(analyzer.model.parameters()).device.type == "cpu" else 0
         inference_cache(analyzer.model, float(mb))
     return analyzer, "LabRobFail-VLM (" + Path(cfg.model).name + ")"
 

@@ -123,10 +123,10 @@ def _check_settings(cfg: Any, detect: float) -> int:
     for key in ("weight", "rank", "lr", "pretrain_epochs"):
         if float(cfg.grounding[key]) < 0:
             raise ConfigError(f"grounding.{key}: must be >= 0, got {cfg.grounding[key]}")
-    mb = cfg.tower_cache_mb
-    if isinstance(mb, bool) or not isinstance(mb, (int, float)) or mb < 0:
-        raise ConfigError(f"tower_cache_mb: expected a number of MB >= 0 (0: off), got {mb!r}")
     from labrobfail_vlm.train.grounding import check_head
+    from labrobfail_vlm.train.tower_cache import check_cache_mb
+
+    check_cache_mb(cfg.tower_cache_mb)
 
     check_head(str(cfg.grounding.head))  # before the model loads
     pre_epochs = int(cfg.grounding.pretrain_epochs)

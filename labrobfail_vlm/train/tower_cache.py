@@ -112,6 +112,18 @@ def cache_frozen_tower(model: nn.Module, max_mb: float) -> TowerCache | None:
     return TowerCache(visual, max_mb)
 
 
+def check_cache_mb(value: object, auto: bool = False) -> None:
+    """A `tower_cache_mb` setting: a number of MB >= 0 (0: off), or "auto" where the caller resolves it (`auto`);
+    else a one-line ConfigError (the training's, the bench's and the learning curve's alike)."""
+    from labrobfail_vlm.config import ConfigError
+
+    if auto and value == "auto":
+        return
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+        words = "auto or a number" if auto else "a number"
+        raise ConfigError(f"tower_cache_mb: expected {words} of MB >= 0 (0: off), got {value!r}")
+
+
 def inference_cache(model: nn.Module, max_mb: float, previous: TowerCache | None = None) -> TowerCache | None:
     """An inference model's tower behind a TowerCache (None when `max_mb` <= 0); the model's parameters stop
     requiring gradients. Passes over the same grids then encode each grid once (the bench's model, Q6-template and
