@@ -237,8 +237,8 @@ HELD_OUT_COLUMNS = ("val_object", "val_scene", "val_both", "test_object", "test_
 # optional training runs beside the main one: folder under the run -> row title. rows/deep4: the 4-layer decoder beside
 # the page's 2-layer main row on the same data (chosen on validation, 3 Dec; the recipe's REPRO_LAYERS since, so a
 # page made by a later `make reproduce` has it as its main row); rows/more: the 4-layer recipe with 1.6x the seen
-# training episodes at the same steps (chosen on validation, 4 Dec; docs/EXPERIMENTS.md gives its commands). No make
-# target makes either, so a page never lists them as not run (BY_HAND).
+# training episodes at the same steps (chosen on validation, 4 Dec; `make reproduce-more`). No make target makes
+# rows/deep4, so a page never lists it as not run (BY_HAND).
 ROWS = {
     "rows/scratch": "scratch tower (random init, stage A grounding: the pre-tower recipe)",
     "train": "sim-pretrained tower (shipped), front + side",
@@ -251,7 +251,7 @@ ROWS = {
         "(chosen on validation, 4 Dec)"
     ),
 }
-BY_HAND = ("rows/deep4", "rows/more")
+BY_HAND = ("rows/deep4",)
 ABLATIONS = {
     "ablate/tuned": "tuned tower and merger",
     "ablate/frozen": "frozen tower and merger",
