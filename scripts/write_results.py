@@ -17,7 +17,8 @@ Q2 recall per failure type, the learning curve.
 With `sections=[tuned]`, `[rows]`, `[ablation]` or `[supervision]` it replaces only those sections of the existing
 page, from a run that holds just those folders (a fresh machine's regeneration with the same seed, say): it checks
 first that the run's data are the page's (the same trajectories and splits line); a run that ran sealed splits brings
-its datasets' ledgers of sealed runs, which must still hold every run the page lists. What such a run lacks is
+its datasets' ledgers of sealed runs, whose runs join the page's list (which keeps every run it had; `sealed` alone
+splices nothing else, for a regeneration that re-ran only the recipe's sealed benches). What such a run lacks is
 carried from the page and said so: the ablation's frozen row is the page's shipped front + side row (the recipe's
 model is the frozen one), the online model's table and the online bench stay when the run has only recovery
 tables, the online model's table and every recovery row stay when it has only the online bench, and the page's
@@ -55,7 +56,7 @@ from sim_backends.supervision.report import LEAD, block, page_recovery, recovery
 DEFAULTS = """
 run: outputs/reproduce     # the make reproduce run folder
 out: docs/RESULTS.md       # the page to write
-sections: null             # null: the whole page; any of [tuned, rows, ablation, supervision]: replace only those
+sections: null             # null: the whole page; any of [tuned, rows, ablation, supervision, sealed]: only those
 """
 # the sections a run beside the main one can add: heading, opening sentence, the run folders that feed it
 SECTIONS = {
@@ -147,9 +148,9 @@ def _absent_line(part: list[str]) -> list[str]:
 
 def splice(run: Path, out: Path, names: list[str]) -> int:
     """Replace the named sections of the existing page with this run's, leaving every other line as it was."""
-    unknown = sorted(set(names) - set(SECTIONS))
+    unknown = sorted(set(names) - set(SECTIONS) - {"sealed"})
     if unknown:
-        raise ConfigError(f"sections: unknown {unknown}; choose from {sorted(SECTIONS)}")
+        raise ConfigError(f"sections: unknown {unknown}; choose from {sorted(SECTIONS) + ['sealed']}")
     if not out.is_file():
         raise ConfigError(f"sections: {out} does not exist; write the whole page first (sections=null)")
     parts = _sections(out.read_text())
@@ -165,7 +166,7 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
         "supervision": lambda: supervision(run, old_sv),
         "tuned": lambda: tuned_table(run),
     }
-    for name in names:
+    for name in (n for n in names if n != "sealed"):  # sealed: the ledgers alone, spliced below
         heading, _, folders = SECTIONS[name]
         if not any(_ran(run, f) for f in folders):
             raise ConfigError(f"sections: {run} has no results under {', '.join(folders)}")
@@ -178,8 +179,9 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
         else:
             kept = _absent_line(parts[at])
             parts[at] = new + ([*kept, ""] if kept else [])
-    _drop_absent(parts, names)
-    _splice_ledger(run, parts)
+    _drop_absent(parts, [n for n in names if n != "sealed"])
+    if not _splice_ledger(run, parts) and "sealed" in names:
+        raise ConfigError(f"sections: {run} has no sealed runs in its datasets' ledgers")
     from labrobfail_vlm.io import atomic_write_bytes
 
     atomic_write_bytes(out, ("\n".join(line for p in parts for line in p) + "\n").encode())
@@ -207,21 +209,19 @@ def _dated_rows(lines: list[str]) -> list[str]:
     return [line for line in lines if line.startswith("| 20")]
 
 
-def _splice_ledger(run: Path, parts: list[list[str]]) -> None:
-    """A run that ran sealed splits brings its datasets' ledgers: they replace the page's "Sealed test runs" section
-    (or comes before the paper tables on a page without one), which must not lose a run the page lists (a run on
-    other data, or a ledger started afresh, is refused)."""
-    new = sealed_section(_datasets(run))
-    if not _dated_rows(new):
-        return
-    at = next((i for i, p in enumerate(parts) if p[0] == new[0]), None)
+def _splice_ledger(run: Path, parts: list[list[str]]) -> bool:
+    """A run that ran sealed splits brings its datasets' ledgers: their runs join the page's "Sealed test runs" list
+    (made before the paper tables on a page without one), which keeps every run it listed (a ledger started afresh,
+    a fresh machine's regeneration of the same episodes, brings only its own). Whether the run had any."""
+    if not _dated_rows(sealed_section(_datasets(run))):
+        return False
+    heading = sealed_section([])[0]
+    at = next((i for i, p in enumerate(parts) if p[0] == heading), None)
     if at is None:
         at = next((i for i, p in enumerate(parts) if p[0].startswith(PAPER_TABLES)), len(parts))
         parts.insert(at, [])
-    lost = [line for line in _dated_rows(parts[at]) if line not in new]
-    if lost:
-        raise ConfigError(f"sections: {run}'s sealed-run ledger lacks {len(lost)} run(s) the page lists: {lost[0]}")
-    parts[at] = new
+    parts[at] = sealed_section(_datasets(run), kept=_dated_rows(parts[at]))
+    return True
 
 
 def _ran(run: Path, folder: str) -> bool:

@@ -206,29 +206,41 @@ def model_section(evals: dict[str, Any]) -> list[str]:
     return lines
 
 
-def sealed_section(dataset_dirs: Sequence[Path]) -> list[str]:
+def sealed_section(dataset_dirs: Sequence[Path], kept: Sequence[str] = ()) -> list[str]:
     """Every bench run on a sealed split of the run's datasets (the bench's ledgers: the main dataset and those of the
-    rows built from the same episodes with other views), oldest first, so a reader can count them."""
+    rows built from the same episodes with other views), oldest first, so a reader can count them. `kept`: the table
+    rows a page already lists (a splice keeps them: a regeneration of the same episodes on a fresh machine brings a
+    ledger of its own runs only, and no run the page counted may drop off it)."""
     entries = sorted((e for d in dataset_dirs for e in sealed_runs(d)), key=lambda e: e["date"])
+    rows = list(kept) + [r for r in map(_sealed_row, entries) if r not in kept]
+    rows.sort(key=lambda r: r.split(" | ")[0])  # stable: each row opens with its date; same-minute runs keep order
     lines = [
         "## Sealed test runs",
         "",
-        f"Every bench run on a sealed split of these episodes, oldest first ({len(entries)} in all; the bench appends "
+        f"Every bench run on a sealed split of these episodes, oldest first ({len(rows)} in all; the bench appends "
         "one line per run to its dataset's `sealed_runs.jsonl`; a sensor row's dataset has its own). Figures: Q2 over "
         "all trajectories, the rest over failed ones.",
         "",
     ]
-    if not entries:
+    if not rows:
         return lines + ["None yet.", ""]
-    lines += ["| date | split | model | Q2 | Q3 | Q4 | Q5 | ROUGE-L |", "|---|---|---|---|---|---|---|---|"]
-    for e in entries:
-        cells = [e.get(k) for k in ("q2", "q3_failures", "q4_failures", "q5_failures", "rougeL_failures")]
-        lines.append(
-            f"| {e['date']} | {e['split']} | `{e['source']}` | "
-            + " | ".join("–" if c is None else str(c) for c in cells)
-            + " |"
-        )
-    return lines + [""]
+    return [
+        *lines,
+        "| date | split | model | Q2 | Q3 | Q4 | Q5 | ROUGE-L |",
+        "|---|---|---|---|---|---|---|---|",
+        *rows,
+        "",
+    ]
+
+
+def _sealed_row(e: dict[str, Any]) -> str:
+    """One ledger line as the page's table row."""
+    cells = [e.get(k) for k in ("q2", "q3_failures", "q4_failures", "q5_failures", "rougeL_failures")]
+    return (
+        f"| {e['date']} | {e['split']} | `{e['source']}` | "
+        + " | ".join("–" if c is None else str(c) for c in cells)
+        + " |"
+    )
 
 
 # -- a run's model rows (scripts/write_results.py lays them out as the page's sections) --------------------
