@@ -113,11 +113,10 @@ demo-online: $(STAMP)
 # trajectories and 150 per held-out split (seen: two generation runs of REPRO_SEEN episodes, the second's pairs
 # numbered after the first's, so a larger recipe extends the smaller one's data instead of redrawing it). Each
 # held-out variant draws episodes of its own; the sealed test_* splits are benched once here, for the page's rows. Resumable: generation resumes its
-# shards; delete outputs/reproduce to start over. About 120 min on 2 cores (105 measured with the 2-layer decoder; the
-# 4-layer one adds about 16 min of training and 3-4 of benches, and the benches' and learning curve's tower cache
-# takes about 5 off; estimated, docs/EXPERIMENTS.md 4 Dec). Then, on the same data: make
-# reproduce-rows (the scratch-tower and front + wrist rows) and make ablate (the paper's ablation table); each
-# rewrites docs/RESULTS.md with what exists.
+# shards; delete outputs/reproduce to start over. 115 min on 2 cores from a fresh clone, the install included
+# (docs/EXPERIMENTS.md, 4 Dec: generation 51.5, dataset 3.4, training 46.7, benches 7.9, learning curve 4.5). Then, on
+# the same data: make reproduce-rows (the scratch-tower and front + wrist rows) and make ablate (the paper's ablation
+# table); each rewrites docs/RESULTS.md with what exists.
 R              ?= outputs/reproduce
 REPRO_SEEN     ?= 4000
 REPRO_UNSEEN   ?= 150
