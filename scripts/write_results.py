@@ -344,8 +344,8 @@ def _header(run: Path, stats: dict[str, Any], stamps: list[list[str]]) -> list[s
         "",
         "Splits: seen train / val / test (8:1:1 by pair); `val_object`, `val_scene`, `val_both` (the held-out "
         "catalogue and scene family: from 29 Nov 2026 every recipe, epoch count and threshold is chosen on them and "
-        "on seen val; the recipe on this page is older, chosen on seen test and on these sets' replayed "
-        "predecessors, docs/EXPERIMENTS.md); "
+        "on seen val; the recipe's tower stages and epoch count are older, chosen on seen test and on these sets' "
+        "replayed predecessors, its decoder depth on these (3 Dec), docs/EXPERIMENTS.md); "
         "`test_object`, `test_scene`, `test_both` (the sealed catalogue and scene family, which nothing trained, "
         'pretrained or tuned draws from; run only for the rows reported here, and every run is listed in "Sealed '
         'test runs"). Every variant draws its own episodes. Intervals: 95 %, percentile bootstrap over pairs (both '
