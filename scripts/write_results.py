@@ -166,7 +166,8 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
         "supervision": lambda: supervision(run, old_sv),
         "tuned": lambda: tuned_table(run),
     }
-    for name in (n for n in names if n != "sealed"):  # sealed: the ledgers alone, spliced below
+    tables = [n for n in names if n != "sealed"]  # sealed: the ledgers alone, spliced below
+    for name in tables:
         heading, _, folders = SECTIONS[name]
         if not any(_ran(run, f) for f in folders):
             raise ConfigError(f"sections: {run} has no results under {', '.join(folders)}")
@@ -179,7 +180,7 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
         else:
             kept = _absent_line(parts[at])
             parts[at] = new + ([*kept, ""] if kept else [])
-    _drop_absent(parts, [n for n in names if n != "sealed"])
+    _drop_absent(parts, tables)
     if not _splice_ledger(run, parts) and "sealed" in names:
         raise ConfigError(f"sections: {run} has no sealed runs in its datasets' ledgers")
     from labrobfail_vlm.io import atomic_write_bytes
@@ -213,14 +214,14 @@ def _splice_ledger(run: Path, parts: list[list[str]]) -> bool:
     """A run that ran sealed splits brings its datasets' ledgers: their runs join the page's "Sealed test runs" list
     (made before the paper tables on a page without one), which keeps every run it listed (a ledger started afresh,
     a fresh machine's regeneration of the same episodes, brings only its own). Whether the run had any."""
-    if not _dated_rows(sealed_section(_datasets(run))):
+    new = sealed_section(_datasets(run))
+    if not _dated_rows(new):
         return False
-    heading = sealed_section([])[0]
-    at = next((i for i, p in enumerate(parts) if p[0] == heading), None)
+    at = next((i for i, p in enumerate(parts) if p[0] == new[0]), None)
     if at is None:
         at = next((i for i, p in enumerate(parts) if p[0].startswith(PAPER_TABLES)), len(parts))
         parts.insert(at, [])
-    parts[at] = sealed_section(_datasets(run), kept=_dated_rows(parts[at]))
+    parts[at] = sealed_section([], kept=[*_dated_rows(parts[at]), *_dated_rows(new)])
     return True
 
 

@@ -2,7 +2,7 @@
 
 Importing `sim_backends.maniskill.backend` registers it as `backend=maniskill`. This package sets
 ManiSkill's offline defaults before mani_skill is imported anywhere in the process: assets live in
-a project-local folder (`MS_ASSET_DIR`, default `$XDG_CACHE_HOME/labrobfail/maniskill`) and ManiSkill never prompts;
+a user cache folder (`MS_ASSET_DIR`, default `$XDG_CACHE_HOME/labrobfail/maniskill`) and ManiSkill never prompts;
 a scenario whose environment would need a download is refused with a one-line error instead
 (`envs.check_offline`).
 """
