@@ -172,18 +172,26 @@ reproduce-rows: $(STAMP)
 # the main run's own optimizer steps (its global_step), so a gain is the data's and not more training. Rendered
 # without the wrist view (front + side grids never show it). Benched on seen test and every held-out split (the
 # sealed ones are listed on the page). About 26 min of generation, 56 of training and 5 of benches on 2 cores.
+# MORE_FAMILY=randomised: the same pairs drawn on the randomised scene family (any bench and floor colour, stripe and
+# blotch textures; never the sealed family's), the row rows/rand (docs/EXPERIMENTS.md, 4 Dec evening).
 MORE_SEEN ?= 4000
+MORE_FAMILY ?= seen
+MORE_NAME := $(if $(filter seen,$(MORE_FAMILY)),more,rand)
+MORE_SHARDS := $(if $(filter seen,$(MORE_FAMILY)),seen3,rand)
 reproduce-more: $(STAMP)
+	@case "$(MORE_FAMILY)" in seen|randomised) ;; *) echo "reproduce-more: MORE_FAMILY is seen or randomised \
+	  (never a val or sealed family), not '$(MORE_FAMILY)'" | tr -s ' ' >&2; exit 2;; esac
 	@test -f $(R)/train/train_summary.json || { echo "reproduce-more: run make reproduce first" >&2; exit 2; }
 	$(call same_layers,reproduce-more)
 	$(BIN)/labrobfail-generate $(REPRO_GEN) backend_kwargs.wrist=false num_episodes=$(MORE_SEEN) \
-	  first_pair=$(REPRO_SEEN) out_dir=$(R)/shards/seen3
-	$(BIN)/labrobfail-build-dataset 'shards=[$(R)/shards/seen3]' out_dir=$(R)/dataset_more $(DEMO_GRID) \
-	  'views=[front,side]' 'ratios=[1,0,0]' progress=false
-	$(BIN)/labrobfail-train $(REPRO_TRAIN) dataset_dir=$(R)/dataset 'extra_train=[$(R)/dataset_more]' \
+	  $(if $(filter seen,$(MORE_FAMILY)),,backend_kwargs.scene_family=$(MORE_FAMILY)) \
+	  first_pair=$(REPRO_SEEN) out_dir=$(R)/shards/$(MORE_SHARDS)
+	$(BIN)/labrobfail-build-dataset 'shards=[$(R)/shards/$(MORE_SHARDS)]' out_dir=$(R)/dataset_$(MORE_NAME) \
+	  $(DEMO_GRID) 'views=[front,side]' 'ratios=[1,0,0]' progress=false
+	$(BIN)/labrobfail-train $(REPRO_TRAIN) dataset_dir=$(R)/dataset 'extra_train=[$(R)/dataset_$(MORE_NAME)]' \
 	  max_steps=$$($(PY) -c "import json; print(json.load(open('$(R)/train/train_summary.json'))['global_step'])") \
-	  output_dir=$(R)/rows/more
-	$(call bench,$(R)/rows/more,test $(HELD_OUT),$(R)/dataset)
+	  output_dir=$(R)/rows/$(MORE_NAME)
+	$(call bench,$(R)/rows/$(MORE_NAME),test $(HELD_OUT),$(R)/dataset)
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 
 # After make reproduce, on its data: the paper's ablation table (seen split) with the shipped tower: the tower and

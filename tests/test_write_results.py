@@ -171,13 +171,13 @@ def test_a_rows_splice_keeps_the_pages_main_row_when_the_run_benched_its_model_o
     assert "| 82.0 [79.0, 85.0] |" in row and "| 61.0 [55.0, 66.0] |" in row and "0.6000 [0.550, 0.650]" in row
     assert "(`train`)" not in table and "Not run for this page: scratch tower" in table
     # A row no make target makes (rows/deep4) is never called "not run" by a run without it; one that a target makes
-    # (rows/more: make reproduce-more) is.
+    # (rows/more and rows/rand: make reproduce-more) is.
     shutil.rmtree(run / "rows" / "deep4")
     _eval(run / "rows" / "wrist" / "final" / "eval_test", 92.0)
     assert main([f"run={run}", f"out={page}", "sections=[rows]"]) == 0
     table = page.read_text().split("## Tower and sensor rows\n")[1].split("## Supervision\n")[0]
     assert "front + wrist" in table and "Not run for this page: scratch tower" in table
-    assert "4-layer decoder (chosen" not in table and "(`rows/more`)" in table
+    assert "4-layer decoder (chosen" not in table and "(`rows/more`)" in table and "(`rows/rand`)" in table
     assert not any(line.startswith("| sim-pretrained tower, front + side, 4-layer") for line in table.splitlines())
 
 

@@ -249,7 +249,8 @@ HELD_OUT_COLUMNS = ("val_object", "val_scene", "val_both", "test_object", "test_
 # optional training runs beside the main one: folder under the run -> row title. rows/deep4: the 4-layer decoder beside
 # the page's 2-layer main row on the same data (chosen on validation, 3 Dec; the recipe's REPRO_LAYERS since, so a
 # page made by a later `make reproduce` has it as its main row); rows/more: the 4-layer recipe with 1.6x the seen
-# training episodes at the same steps (chosen on validation, 4 Dec; `make reproduce-more`). No make target makes
+# training episodes at the same steps (chosen on validation, 4 Dec; `make reproduce-more`); rows/rand: the same extra
+# pairs drawn in randomised scenes (4 Dec evening; `make reproduce-more MORE_FAMILY=randomised`). No make target makes
 # rows/deep4, so a page never lists it as not run (BY_HAND).
 ROWS = {
     "rows/scratch": "scratch tower (random init, stage A grounding: the pre-tower recipe)",
@@ -261,6 +262,10 @@ ROWS = {
     "rows/more": (
         "sim-pretrained tower, front + side, 4-layer decoder, 1.6x the seen training episodes at the same steps "
         "(chosen on validation, 4 Dec)"
+    ),
+    "rows/rand": (
+        "sim-pretrained tower, front + side, 4-layer decoder, the more-episodes row's extra pairs drawn in "
+        "randomised scenes at the same steps (chosen on validation, 4 Dec evening)"
     ),
 }
 BY_HAND = ("rows/deep4",)

@@ -104,8 +104,9 @@ SCENE_FAMILIES: dict[str, dict[str, Any]] = {
         "floor_sat": (0.45, 0.75),
         "textures": ("dots", "rings"),
     },
-    # Domain randomisation for the vision tower's pretraining data only (backend_kwargs.scene_family=randomised on
-    # seen episodes; never in a VQA split): any bench and floor colour, and texture kinds that no split uses, so the
+    # Domain randomisation (backend_kwargs.scene_family=randomised on seen episodes) for the vision tower's
+    # pretraining data and train-only extra VQA episodes (make reproduce-more MORE_FAMILY=randomised); never in a
+    # validation or test split: any bench and floor colour, and texture kinds that no split uses, so the
     # tower learns to read the task's objects over backgrounds it must ignore. Its colour range covers the val
     # family's (chosen on val, as the tower's any-hue augmentation on the val glassware); its textures never include
     # the val family's checker or tiles, and neither its colours nor its textures reach the sealed family's.
