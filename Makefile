@@ -176,11 +176,12 @@ reproduce-rows: $(STAMP)
 # blotch textures; never the sealed family's), the row rows/rand (docs/EXPERIMENTS.md, 4 Dec evening).
 MORE_SEEN ?= 4000
 MORE_FAMILY ?= seen
+ifneq ($(words $(filter seen randomised,$(MORE_FAMILY))) $(words $(MORE_FAMILY)),1 1)
+$(error MORE_FAMILY is seen or randomised (never a val or sealed family), not '$(MORE_FAMILY)')
+endif
 MORE_NAME := $(if $(filter seen,$(MORE_FAMILY)),more,rand)
 MORE_SHARDS := $(if $(filter seen,$(MORE_FAMILY)),seen3,rand)
 reproduce-more: $(STAMP)
-	@case "$(MORE_FAMILY)" in seen|randomised) ;; *) echo "reproduce-more: MORE_FAMILY is seen or randomised \
-	  (never a val or sealed family), not '$(MORE_FAMILY)'" | tr -s ' ' >&2; exit 2;; esac
 	@test -f $(R)/train/train_summary.json || { echo "reproduce-more: run make reproduce first" >&2; exit 2; }
 	$(call same_layers,reproduce-more)
 	$(BIN)/labrobfail-generate $(REPRO_GEN) backend_kwargs.wrist=false num_episodes=$(MORE_SEEN) \
