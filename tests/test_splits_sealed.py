@@ -116,6 +116,38 @@ def test_the_sealed_scene_family_is_outside_every_other_family():
         assert not kinds & {a["texture"] for a in app}, name
 
 
+def test_extra_training_episodes_are_drawn_in_seen_or_randomised_scenes_only(tmp_path):
+    """`make reproduce-more`'s MORE_FAMILY, read by make itself (a dry run: nothing is built or installed): the
+    randomised family reaches the generator and names its own shards, dataset and row; a val or sealed family (or
+    none) is refused in one line before any step."""
+    import os
+    import shutil
+    import subprocess
+
+    make = shutil.which("make")
+    if make is None:
+        pytest.skip("make is not installed")
+    root = Path(__file__).resolve().parents[1]
+
+    # the suite itself runs under make test: its MAKEFLAGS and MAKELEVEL would make this one a sub-make
+    env = {k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MFLAGS", "MAKELEVEL")}
+
+    def dry(family: str) -> subprocess.CompletedProcess:
+        cmd = [make, "-n", "--no-print-directory", "reproduce-more", f"R={tmp_path}", f"MORE_FAMILY={family}"]
+        return subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=60)
+
+    plan = dry("randomised")
+    assert plan.returncode == 0, plan.stderr
+    assert "backend_kwargs.scene_family=randomised" in plan.stdout and f"output_dir={tmp_path}/rows/rand" in plan.stdout
+    seen = dry("seen")
+    assert seen.returncode == 0 and "scene_family" not in seen.stdout and f"{tmp_path}/rows/more" in seen.stdout
+    for family in ("val", "sealed", "", "seen val"):
+        got = dry(family)
+        assert got.returncode != 0 and not got.stdout, family
+        (line,) = got.stderr.strip().splitlines()
+        assert "MORE_FAMILY is seen or randomised" in line and f"'{family}'" in line
+
+
 def test_the_sealed_catalogue_has_shapes_sizes_and_colours_of_its_own():
     from sim_backends.pybullet.scene import SEALED_OBJECTS, SEEN_OBJECTS, VAL_OBJECTS
 
