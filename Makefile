@@ -179,14 +179,20 @@ MORE_FAMILY ?= seen
 ifneq ($(words $(filter seen randomised,$(MORE_FAMILY))) $(words $(MORE_FAMILY)),1 1)
 $(error MORE_FAMILY is seen or randomised (never a val or sealed family), not '$(MORE_FAMILY)')
 endif
-MORE_NAME := $(if $(filter seen,$(MORE_FAMILY)),more,rand)
-MORE_SHARDS := $(if $(filter seen,$(MORE_FAMILY)),seen3,rand)
+ifeq ($(MORE_FAMILY),seen)
+MORE_NAME := more
+MORE_SHARDS := seen3
+MORE_SCENE :=
+else
+MORE_NAME := rand
+MORE_SHARDS := rand
+MORE_SCENE := backend_kwargs.scene_family=$(MORE_FAMILY)
+endif
 reproduce-more: $(STAMP)
 	@test -f $(R)/train/train_summary.json || { echo "reproduce-more: run make reproduce first" >&2; exit 2; }
 	$(call same_layers,reproduce-more)
 	$(BIN)/labrobfail-generate $(REPRO_GEN) backend_kwargs.wrist=false num_episodes=$(MORE_SEEN) \
-	  $(if $(filter seen,$(MORE_FAMILY)),,backend_kwargs.scene_family=$(MORE_FAMILY)) \
-	  first_pair=$(REPRO_SEEN) out_dir=$(R)/shards/$(MORE_SHARDS)
+	  $(MORE_SCENE) first_pair=$(REPRO_SEEN) out_dir=$(R)/shards/$(MORE_SHARDS)
 	$(BIN)/labrobfail-build-dataset 'shards=[$(R)/shards/$(MORE_SHARDS)]' out_dir=$(R)/dataset_$(MORE_NAME) \
 	  $(DEMO_GRID) 'views=[front,side]' 'ratios=[1,0,0]' progress=false
 	$(BIN)/labrobfail-train $(REPRO_TRAIN) dataset_dir=$(R)/dataset 'extra_train=[$(R)/dataset_$(MORE_NAME)]' \

@@ -211,7 +211,7 @@ def sealed_section(dataset_dirs: Sequence[Path], kept: Sequence[str] = ()) -> li
     rows built from the same episodes with other views), oldest first, so a reader can count them. `kept`: the table
     rows a page already lists (a splice keeps them: a regeneration of the same episodes on a fresh machine brings a
     ledger of its own runs only, and no run the page counted may drop off it)."""
-    entries = sorted((e for d in dataset_dirs for e in sealed_runs(d)), key=lambda e: e["date"])
+    entries = (e for d in dataset_dirs for e in sealed_runs(d))
     rows = list(dict.fromkeys([*kept, *map(_sealed_row, entries)]))  # a run listed twice counts once
     rows.sort(key=lambda r: r.split(" | ")[0])  # stable: each row opens with its date; same-minute runs keep order
     lines = [
