@@ -103,6 +103,37 @@ def test_a_missing_bench_or_reply_is_one_line(tmp_path):
     assert r.returncode == 2 and r.stderr.startswith("error: resamples: expected an integer >= 1")
 
 
+def test_one_model_at_two_operating_points(tmp_path):
+    """b_threshold=val reads the model's eval_<split>_opval bench (the cut chosen on val), beside its 0.5 bench; a
+    bad operating point or a missing bench at it is one line naming it."""
+    recs = _dataset(tmp_path / "ds")
+    gold = lambda t, d, r: r["conversations"][1]["value"]  # noqa: E731
+    p = lambda t: 0.4 if t in ("p0-fail", "p1-fail") else 0.1  # noqa: E731  two failures under 0.5, over the cut
+
+    def at_half(t, d, r):  # those two failures missed at 0.5: "No", no diagnosis
+        return ("No" if d == "Q2" else GOLD_OK[d]) if t in ("p0-fail", "p1-fail") else gold(t, d, r)
+
+    _write(tmp_path / "a", recs, at_half, p)
+    r = compare(tmp_path, f"b={tmp_path / 'a'}", "b_threshold=val")
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        f"error: b: {tmp_path / 'a' / 'eval_val_opval' / 'predictions.jsonl'} not found (bench it first: "
+        f"labrobfail-evaluate model={tmp_path / 'a'} dataset_dir={tmp_path / 'ds'} split=val threshold=val)"
+    ]
+    _write(tmp_path / "a", recs, gold, p, split="val_opval")  # at the cut 0.3 both are caught and diagnosed
+    r = compare(tmp_path, f"b={tmp_path / 'a'}", "b_threshold=val", f"out={tmp_path / 'cmp.json'}")
+    assert r.returncode == 0, r.stderr
+    out = json.loads((tmp_path / "cmp.json").read_text())
+    assert (out["a_threshold"], out["b_threshold"]) == (0.5, "val")
+    res = out["splits"]["val"]
+    assert res["recall"] == {"a": 50.0, "b": 100.0, "diff": 50.0, "ci95": res["recall"]["ci95"]}
+    assert res["Q3"]["diff"] == 50.0 and res["false_alarms"]["diff"] == 0.0
+    assert f"b = {tmp_path / 'a'} (operating point val)" in r.stdout
+    for bad in ("b_threshold=1.5", "a_threshold=half", "b_threshold=true"):
+        r = compare(tmp_path, f"b={tmp_path / 'a'}", bad)
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert f"{bad.split('=')[0]}: expected val or a number between 0 and 1" in r.stderr
+
+
 def test_the_a_side_equals_the_bench_of_the_same_replies(tmp_path):
     """labrobfail-evaluate's figures of a predictions file and compare's (a real process) for the same replies
     agree, with errors scattered over both twins of several pairs."""

@@ -271,7 +271,7 @@ def test_evaluate_at_the_operating_point_chosen_on_val(tiny, small_ds, tmp_path)
     fast = ("split=test", "baselines=[]", "q6_template=false", "progress=false")
     for arg, needle in (
         ("threshold=val", "eval_val/predictions.jsonl not found"),
-        ("threshold=1.5", "threshold: expected a number between 0 and 1"),
+        ("threshold=1.5", "threshold: expected val or a number between 0 and 1"),
     ):
         r = evaluate(f"model={model}", small_ds, arg, *fast, call=run_here)
         assert r.returncode == 2 and needle in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr

@@ -53,13 +53,9 @@ def _check_args(cfg: Any) -> None:
     if isinstance(cfg.baselines, str) or any(b not in ("majority", "blind") for b in cfg.baselines or []):
         raise ConfigError(f"baselines: a list of majority and blind ('baselines=[majority]'), got {cfg.baselines!r}")
     if cfg.threshold != 0.5:
-        from labrobfail_vlm.analyzer import check_threshold
+        from labrobfail_vlm.bench.evaluate import check_operating_point
 
-        try:
-            if cfg.threshold != "val":
-                check_threshold(cfg.threshold)
-        except ValueError as e:
-            raise ConfigError(f"{e} or val") from None
+        check_operating_point(cfg.threshold)
         if cfg.model is None or cfg.mode == "online":  # an endpoint's or a file's replies are what they are
             raise ConfigError("threshold: only a local model's run (model=, offline mode) has an operating point")
     if cfg.model is not None and not Path(cfg.model).is_dir():  # before anything is written
@@ -94,13 +90,12 @@ def _out_dir(cfg: Any) -> Path:
     """The output folder (made): out_dir, or eval_<split> beside the model or predictions file (eval_<split>_opval
     at the operating point chosen on val, eval_<split>_t<threshold> at another given one; _first<N> added for a run
     on the split's first N trajectories)."""
-    op = "" if cfg.threshold == 0.5 else "_opval" if cfg.threshold == "val" else f"_t{cfg.threshold}"
-    op += f"_first{cfg.max_trajectories}" if cfg.max_trajectories else ""  # never over the whole split's bench
+    from labrobfail_vlm.bench.evaluate import bench_dir, bench_suffix
+
+    op = bench_suffix(cfg.threshold, cfg.max_trajectories)
     if cfg.endpoint is not None:
         out = Path(cfg.out_dir or Path("outputs") / f"eval_endpoint_{cfg.split}{op}")
     else:
-        from labrobfail_vlm.bench.evaluate import bench_dir
-
         out = Path(cfg.out_dir or bench_dir(cfg.model or cfg.predictions, cfg.split, op))
     out.mkdir(parents=True, exist_ok=True)
     return out

@@ -4,9 +4,11 @@ behind the `labrobfail-compare` console script.
 Run as:
     labrobfail-compare a=outputs/r15/rows/deep4/final b=outputs/r15/rows/aux16/final dataset_dir=outputs/r15/dataset
     labrobfail-compare a=A b=B dataset_dir=DIR splits=[train] max_trajectories=800 out=compare_train.json
+    labrobfail-compare a=M b=M b_threshold=val dataset_dir=DIR   # one model at its val-chosen operating point
 
 It reads what `labrobfail-evaluate` wrote for each model (`<model or predictions file's folder>/eval_<split>/
-predictions.jsonl`, at the default operating point) and the split's gold answers, and gives, per split, these
+predictions.jsonl` at the default operating point; `a_threshold`/`b_threshold` name another one, as the bench's
+`threshold=` does: eval_<split>_opval for val) and the split's gold answers, and gives, per split, these
 scores of both models and the difference b - a with a 95 % interval from one seeded bootstrap over pairs: a
 success/failure pair's twins share an initial state, so they are drawn together, and both models are scored on the
 same draws, so the interval is that of the paired difference (narrower than two separate intervals suggest when the
@@ -42,15 +44,18 @@ b: null                    # the candidate; differences are b - a
 dataset_dir: null          # the dataset both were benched on (gold answers, pairs)
 splits: [val, val_object, val_scene, val_both]   # validation: where choices are taken (sealed splits refused)
 max_trajectories: null     # compare partial benches (eval_<split>_first<N>, e.g. splits=[train] with 800)
+a_threshold: 0.5           # the operating point of a's bench, as labrobfail-evaluate's threshold= (val or a number)
+b_threshold: 0.5           # the same for b: a=M b=M b_threshold=val compares a model's cut chosen on val with 0.5
 resamples: 2000            # bootstrap resamples of pairs
 seed: 0
 out: null                  # also write the figures as JSON here
 """
 
 
-def eval_dir(root: str | Path, split: str, limit: int | None) -> Path:
-    """Where labrobfail-evaluate wrote `root`'s bench of `split` (a partial run: eval_<split>_first<N>)."""
-    return ev.bench_dir(root, split, f"_first{limit}" if limit else "")
+def eval_dir(root: str | Path, split: str, limit: int | None, threshold: Any = 0.5) -> Path:
+    """Where labrobfail-evaluate wrote `root`'s bench of `split` at operating point `threshold` (a partial run:
+    eval_<split>_first<N>)."""
+    return ev.bench_dir(root, split, ev.bench_suffix(threshold, limit))
 
 
 def _check_args(cfg: Any) -> None:
@@ -68,20 +73,27 @@ def _check_args(cfg: Any) -> None:
         raise ConfigError(f"splits: {sealed[0]} is a sealed split (reported rows only); compare on validation")
     if cfg.out is not None and not Path(str(cfg.out)).resolve().parent.is_dir():
         raise ConfigError(f"out: no such folder {str(Path(str(cfg.out)).parent)!r}")
+    for side in ("a", "b"):
+        ev.check_operating_point(cfg[f"{side}_threshold"], f"{side}_threshold")
     for split in cfg.splits:
         for side in ("a", "b"):
-            f = eval_dir(str(cfg[side]), split, cfg.max_trajectories) / "predictions.jsonl"
+            op = cfg[f"{side}_threshold"]
+            f = eval_dir(str(cfg[side]), split, cfg.max_trajectories, op) / "predictions.jsonl"
             if not f.is_file():
                 limit = f" max_trajectories={cfg.max_trajectories}" if cfg.max_trajectories else ""
+                limit += f" threshold={op}" if op != 0.5 else ""
                 raise ConfigError(
                     f"{side}: {f} not found (bench it first: labrobfail-evaluate model={cfg[side]} "
                     f"dataset_dir={cfg.dataset_dir} split={split}{limit})"
                 )
 
 
-def read_replies(side: str, root: str, split: str, limit: int | None, recs: list[dict]) -> ev.Predictions:
-    """`root`'s replies to every record of the split, or a one-line error naming what is missing."""
-    f = eval_dir(root, split, limit) / "predictions.jsonl"
+def read_replies(
+    side: str, root: str, split: str, limit: int | None, recs: list[dict], threshold: Any = 0.5
+) -> ev.Predictions:
+    """`root`'s replies (at operating point `threshold`) to every record of the split, or a one-line error naming
+    what is missing."""
+    f = eval_dir(root, split, limit, threshold) / "predictions.jsonl"
     preds = ev.read_predictions(f)
     if missing := sum(r["id"] not in preds for r in recs):
         raise ConfigError(f"{side}: {f} has no reply for {missing} of the split's {len(recs)} records")
@@ -168,8 +180,9 @@ def auroc_row(y: np.ndarray, sa: np.ndarray, sb: np.ndarray, w: np.ndarray) -> d
 
 def markdown(res: dict[str, Any]) -> str:
     """The comparison as one Markdown table, a line per split and score."""
+    at = {k: f" (operating point {res[f'{k}_threshold']})" if res[f"{k}_threshold"] != 0.5 else "" for k in "ab"}
     lines = [
-        f"a = {res['a']}  \nb = {res['b']}  \n95 % intervals: {res['ci_method']}",
+        f"a = {res['a']}{at['a']}  \nb = {res['b']}{at['b']}  \n95 % intervals: {res['ci_method']}",
         "",
         "| split | score | a | b | b - a [95 % CI] |",
         "|---|---|---|---|---|",
@@ -192,6 +205,8 @@ def main(argv: list[str]) -> int:
     res: dict[str, Any] = {
         "a": str(cfg.a),
         "b": str(cfg.b),
+        "a_threshold": cfg.a_threshold,
+        "b_threshold": cfg.b_threshold,
         "dataset_dir": str(cfg.dataset_dir),
         "ci_method": f"percentile bootstrap over pairs (both models on the same draws), {cfg.resamples} resamples, "
         f"seed {cfg.seed}",
@@ -201,7 +216,7 @@ def main(argv: list[str]) -> int:
         recs, traj = ev.load_split(cfg.dataset_dir, split, cfg.max_trajectories)
         if not recs:
             raise ConfigError(f"splits: {split} has no records in {cfg.dataset_dir}")
-        a, b = (read_replies(k, str(cfg[k]), split, cfg.max_trajectories, recs) for k in ("a", "b"))
+        a, b = (read_replies(k, str(cfg[k]), split, cfg.max_trajectories, recs, cfg[f"{k}_threshold"]) for k in "ab")
         res["splits"][split] = compare_split(recs, traj, a, b, cfg.resamples, cfg.seed)
     print(markdown(res))
     if cfg.out is not None:

@@ -69,6 +69,23 @@ def sealed_runs(dataset_dir: str | Path) -> list[dict[str, Any]]:
     return [json.loads(line) for line in ledger.read_text().splitlines() if line.strip()] if ledger.is_file() else []
 
 
+def check_operating_point(value: Any, key: str = "threshold") -> None:
+    """A bench's operating point on P(failure): 0.5 (the decoder's argmax), val (the cut chosen on the model's own
+    seen-val bench) or another number between 0 and 1; anything else a one-line error."""
+    if value == 0.5 or value == "val":
+        return
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < float(value) < 1.0:
+        raise ConfigError(f"{key}: expected val or a number between 0 and 1 (exclusive), got {value!r}")
+
+
+def bench_suffix(threshold: Any = 0.5, limit: int | None = None) -> str:
+    """The folder suffix of a bench at operating point `threshold` on the split's first `limit` trajectories
+    (None: all): _opval for the cut chosen on val, _t<threshold> for another given one, then _first<N>; none for
+    the default bench (0.5, whole split)."""
+    op = "" if threshold == 0.5 else "_opval" if threshold == "val" else f"_t{threshold}"
+    return op + (f"_first{limit}" if limit else "")  # a partial run never lands over the whole split's bench
+
+
 def bench_dir(source: str | Path, split: str, suffix: str = "") -> Path:
     """Where a bench of `source` (a model's folder, or a predictions file: its folder) on `split` is written:
     eval_<split><suffix> (the suffix names a non-default operating point or a first-N run)."""
