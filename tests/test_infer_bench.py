@@ -292,6 +292,16 @@ def test_evaluate_at_the_operating_point_chosen_on_val(tiny, small_ds, tmp_path)
     out = [json.loads(x) for x in (model / "eval_test_opval" / "predictions.jsonl").read_text().splitlines()]
     q2 = [x for x in out if x["id"] in asked]
     assert q2 and all(x["prediction"] == ev.q2_as_asked(asked[x["id"]], x["p_failure"] >= 0.2) for x in q2)
+    # a sealed look at an operating point names it in the ledger (the same records asked as a sealed split)
+    ds2 = tmp_path / "ds2"
+    ds2.mkdir()
+    for f in small_ds.iterdir():
+        (ds2 / f.name).symlink_to(f)
+    (ds2 / "test_both.json").symlink_to(small_ds / "test.json")
+    r = evaluate(f"model={model}", ds2, "split=test_both", "threshold=val", *fast[1:], call=run_here)
+    assert r.returncode == 0, r.stderr[-2000:]
+    (entry,) = ev.sealed_runs(ds2)
+    assert entry["split"] == "test_both" and entry["source"] == f"{model} at P(failure) >= 0.2 (chosen on val)"
 
 
 def _q6_prefix(fa, img, task):

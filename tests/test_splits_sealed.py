@@ -141,6 +141,11 @@ def test_extra_training_episodes_are_drawn_in_seen_or_randomised_scenes_only(tmp
     assert "backend_kwargs.scene_family=randomised" in plan.stdout and f"output_dir={tmp_path}/rows/rand" in plan.stdout
     seen = dry("seen")
     assert seen.returncode == 0 and "scene_family" not in seen.stdout and f"{tmp_path}/rows/more" in seen.stdout
+    # the randomised row is benched again at the cut chosen on its own seen-val bench, which it benches first
+    opval = [line for line in plan.stdout.splitlines() if "threshold=val" in line]
+    assert len(opval) == 1 and "test_both" in opval[0] and " val " not in opval[0]
+    assert "threshold=val" not in seen.stdout
+    assert plan.stdout.index("for s in val test") < plan.stdout.index(opval[0])
     for family in ("val", "sealed", "", "seen val"):
         got = dry(family)
         assert got.returncode != 0 and not got.stdout, family

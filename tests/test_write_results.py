@@ -181,6 +181,32 @@ def test_a_rows_splice_keeps_the_pages_main_row_when_the_run_benched_its_model_o
     assert not any(line.startswith("| sim-pretrained tower, front + side, 4-layer") for line in table.splitlines())
 
 
+def test_a_row_chosen_at_an_operating_point_on_val_gets_a_second_row_at_that_cut(tmp_path: Path) -> None:
+    """rows/rand's benches at its val-chosen cut (eval_<split>_opval) are a row of their own under its 0.5 row, the
+    cut named; without them the table says that bench was not run."""
+    from scripts.write_results import main
+
+    page, run = tmp_path / "RESULTS.md", tmp_path / "run"
+    page.write_text(PAGE)
+    (run / "dataset").mkdir(parents=True)
+    (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
+    _eval(run / "rows" / "rand" / "final" / "eval_test", 82.4)
+    assert main([f"run={run}", f"out={page}", "sections=[rows]"]) == 0
+    table = page.read_text().split("## Tower and sensor rows\n")[1].split("## Supervision\n")[0]
+    assert "drawn in randomised scenes" in table and "at its operating point chosen on val (`rows/rand`" in table
+    for split, q2 in (("test", 81.9), ("test_both", 79.0)):
+        _eval(run / "rows" / "rand" / "final" / f"eval_{split}_opval", q2)
+        f = run / "rows" / "rand" / "final" / f"eval_{split}_opval" / "results.json"
+        f.write_text(json.dumps({**json.loads(f.read_text()), "threshold": 0.4421825, "threshold_chosen_on": "val"}))
+    assert main([f"run={run}", f"out={page}", "sections=[rows]"]) == 0
+    lines = page.read_text().split("## Tower and sensor rows\n")[1].split("## Supervision\n")[0].splitlines()
+    i = next(k for k, line in enumerate(lines) if "drawn in randomised scenes" in line)
+    assert "| 82.4 [79.4, 85.4] |" in lines[i]
+    assert lines[i + 1].startswith("| the row above at P(failure) >= 0.442, the cut chosen on its seen-val bench")
+    assert "| 81.9 [78.9, 84.9] |" in lines[i + 1] and lines[i + 1].endswith("| 79.0 [76.0, 82.0] |")
+    assert "operating point chosen on val (`rows/rand`" not in "\n".join(lines)
+
+
 def test_a_run_of_other_data_or_without_the_section_is_refused(tmp_path: Path) -> None:
     import pytest
 

@@ -343,7 +343,10 @@ def main(argv: list[str]) -> int:
         md += _executable_markdown(executable_rows)
     atomic_write_json(out / "results.json", payload)
     atomic_write_bytes(out / "results.md", md.encode())
-    ev.count_sealed_run(cfg.dataset_dir, cfg.split, str(cfg.model or cfg.predictions or cfg.endpoint), main_res)
+    source = str(cfg.model or cfg.predictions or cfg.endpoint)
+    if threshold != 0.5:  # the ledger says which operating point a sealed look was at
+        source += f" at P(failure) >= {threshold:.4g}" + (" (chosen on val)" if cfg.threshold == "val" else "")
+    ev.count_sealed_run(cfg.dataset_dir, cfg.split, source, main_res)
     atomic_write_bytes(out / "unparseable.log", "\n".join(log_lines).encode())
     _write_pngs(out, cfg.split, results, name)
     print(md)

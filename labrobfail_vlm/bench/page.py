@@ -269,6 +269,9 @@ ROWS = {
     ),
 }
 BY_HAND = ("rows/deep4",)
+# rows also shown at the operating point chosen on their own seen-val bench (eval_<split>_opval, `labrobfail-evaluate
+# threshold=val`), with the date the cut was adopted on validation (docs/EXPERIMENTS.md); make reproduce-more benches it
+OPVAL_ROWS = {"rows/rand": "4 Dec night"}
 ABLATIONS = {
     "ablate/tuned": "tuned tower and merger",
     "ablate/frozen": "frozen tower and merger",
@@ -277,9 +280,10 @@ ABLATIONS = {
 NOT_RUN = "Not run for this page: "  # how a table or the page names the runs it lacks
 
 
-def run_evals(folder: Path, splits: tuple[str, ...] = tuple(SPLIT_TITLES)) -> dict[str, Any] | None:
-    """A training folder's bench results per split, or None when it has not been run."""
-    files = {s: folder / "final" / f"eval_{s}" / "results.json" for s in splits}
+def run_evals(folder: Path, splits: tuple[str, ...] = tuple(SPLIT_TITLES), suffix: str = "") -> dict[str, Any] | None:
+    """A training folder's bench results per split (benches named eval_<split><suffix>), or None when it has not
+    been run."""
+    files = {s: folder / "final" / f"eval_{s}{suffix}" / "results.json" for s in splits}
     return {s: json.loads(f.read_text()) for s, f in files.items() if f.is_file()} or None
 
 
@@ -307,15 +311,28 @@ def rows_table(run: Path, shipped: str | None = None) -> list[str]:
             elif folder not in BY_HAND:
                 missing.append(f"{title} (`{folder}`)")
             continue
-        t = ev["test"]
-        det = (t.get("detection") or {}).get("auroc")
-        lines.append(
-            f"| {title} | {ci_cell(t, 'q2')} | {det} | {ci_cell(t, 'q3', True)} | {ci_cell(t, 'q5', True)} | "
-            f"{ci_cell(t, 'rougeL', True)} | "
-            + " | ".join(ci_cell(ev[s], "q2") if s in ev else "–" for s in HELD_OUT_COLUMNS)
-            + " |"
-        )
+        lines.append(_rows_line(title, ev))
+        if folder in OPVAL_ROWS:
+            if "test" not in (op := run_evals(run / folder, suffix="_opval") or {}):
+                missing.append(f"{title}, at its operating point chosen on val (`{folder}`, threshold=val)")
+                continue
+            cut = f"P(failure) >= {op['test']['threshold']:.3f}"
+            lines.append(
+                _rows_line(f"the row above at {cut}, the cut chosen on its seen-val bench ({OPVAL_ROWS[folder]})", op)
+            )
     return head + lines + _not_run(missing) if lines else []
+
+
+def _rows_line(title: str, ev: dict[str, Any]) -> str:
+    """One row of the rows table from a model's benches (seen test, then each held-out split it ran)."""
+    t = ev["test"]
+    det = (t.get("detection") or {}).get("auroc")
+    return (
+        f"| {title} | {ci_cell(t, 'q2')} | {det} | {ci_cell(t, 'q3', True)} | {ci_cell(t, 'q5', True)} | "
+        f"{ci_cell(t, 'rougeL', True)} | "
+        + " | ".join(ci_cell(ev[s], "q2") if s in ev else "–" for s in HELD_OUT_COLUMNS)
+        + " |"
+    )
 
 
 def _not_run(missing: list[str]) -> list[str]:
