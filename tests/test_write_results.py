@@ -124,15 +124,21 @@ PAGE = "\n".join(
 )
 
 
+def _page_and_run(tmp_path: Path) -> tuple[Path, Path]:
+    """The test page, and a run folder holding only its dataset's stats (the page's data line)."""
+    page, run = tmp_path / "RESULTS.md", tmp_path / "run"
+    page.write_text(PAGE)
+    (run / "dataset").mkdir(parents=True)
+    (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
+    return page, run
+
+
 def test_a_run_of_the_same_data_replaces_only_its_section(tmp_path: Path) -> None:
     """`sections=[ablation]`: a fresh run on the page's data (no main model) adds the ablation table, the frozen row
     carried from the page's shipped row, and leaves every other line of the page as it was; again: same page."""
     from scripts.write_results import main
 
-    page, run = tmp_path / "RESULTS.md", tmp_path / "run"
-    page.write_text(PAGE)
-    (run / "dataset").mkdir(parents=True)
-    (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
+    page, run = _page_and_run(tmp_path)
     _eval(run / "ablate" / "tuned" / "final" / "eval_test", 83.0)
     assert main([f"run={run}", f"out={page}", "sections=[ablation]"]) == 0
     text = page.read_text()
@@ -157,10 +163,7 @@ def test_a_rows_splice_keeps_the_pages_main_row_when_the_run_benched_its_model_o
     own: the page's row stays, the new row is added, and the main row is not called "not run"."""
     from scripts.write_results import main
 
-    page, run = tmp_path / "RESULTS.md", tmp_path / "run"
-    page.write_text(PAGE)
-    (run / "dataset").mkdir(parents=True)
-    (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
+    page, run = _page_and_run(tmp_path)
     _eval(run / "train" / "final" / "eval_val_object", 82.6)
     _eval(run / "rows" / "deep4" / "final" / "eval_test", 82.0)
     assert main([f"run={run}", f"out={page}", "sections=[rows]"]) == 0
@@ -186,10 +189,7 @@ def test_a_row_chosen_at_an_operating_point_on_val_gets_a_second_row_at_that_cut
     cut named; without them the table says that bench was not run."""
     from scripts.write_results import main
 
-    page, run = tmp_path / "RESULTS.md", tmp_path / "run"
-    page.write_text(PAGE)
-    (run / "dataset").mkdir(parents=True)
-    (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
+    page, run = _page_and_run(tmp_path)
     _eval(run / "rows" / "rand" / "final" / "eval_test", 82.4)
     assert main([f"run={run}", f"out={page}", "sections=[rows]"]) == 0
     table = page.read_text().split("## Tower and sensor rows\n")[1].split("## Supervision\n")[0]
