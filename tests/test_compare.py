@@ -127,7 +127,15 @@ def test_one_model_at_two_operating_points(tmp_path):
     res = out["splits"]["val"]
     assert res["recall"] == {"a": 50.0, "b": 100.0, "diff": 50.0, "ci95": res["recall"]["ci95"]}
     assert res["Q3"]["diff"] == 50.0 and res["false_alarms"]["diff"] == 0.0
-    assert f"b = {tmp_path / 'a'} (operating point val)" in r.stdout
+    assert f"b = {tmp_path / 'a'} (operating point val)" in r.stdout  # its results.json names no cut here
+    (tmp_path / "a" / "eval_val_opval" / "results.json").write_text(json.dumps({"threshold": 0.3}))
+    r = compare(tmp_path, f"a={tmp_path / 'a'}", "a_threshold=val", f"b={tmp_path / 'a'}", f"out={tmp_path / 'c.json'}")
+    assert r.returncode == 0 and f"a = {tmp_path / 'a'} (operating point val: P(failure) >= 0.300)" in r.stdout
+    out = json.loads((tmp_path / "c.json").read_text())
+    assert out["a_cut"] == 0.3 and out["splits"]["val"]["recall"]["diff"] == -50.0  # a read at the cut this time
+    _write(tmp_path / "a", recs, gold, p, split="val_t0.3")  # a number names its own folder, as the bench writes it
+    r = compare(tmp_path, f"b={tmp_path / 'a'}", "b_threshold=0.3", f"out={tmp_path / 'd.json'}")
+    assert r.returncode == 0 and json.loads((tmp_path / "d.json").read_text())["splits"]["val"]["Q3"]["diff"] == 50.0
     for bad in ("b_threshold=1.5", "a_threshold=half", "b_threshold=true"):
         r = compare(tmp_path, f"b={tmp_path / 'a'}", bad)
         assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr

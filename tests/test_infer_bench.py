@@ -300,8 +300,12 @@ def test_evaluate_at_the_operating_point_chosen_on_val(tiny, small_ds, tmp_path)
     (ds2 / "test_both.json").symlink_to(small_ds / "test.json")
     r = evaluate(f"model={model}", ds2, "split=test_both", "threshold=val", *fast[1:], call=run_here)
     assert r.returncode == 0, r.stderr[-2000:]
-    (entry,) = ev.sealed_runs(ds2)
-    assert entry["split"] == "test_both" and entry["source"] == f"{model} at P(failure) >= 0.2 (chosen on val)"
+    r = evaluate(f"model={model}", ds2, "split=test_both", "threshold=0.3", *fast[1:], call=run_here)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert [(e["split"], e["source"]) for e in ev.sealed_runs(ds2)] == [
+        ("test_both", f"{model} at P(failure) >= 0.2 (chosen on val)"),
+        ("test_both", f"{model} at P(failure) >= 0.3"),
+    ]
 
 
 def _q6_prefix(fa, img, task):

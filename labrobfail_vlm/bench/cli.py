@@ -344,7 +344,7 @@ def main(argv: list[str]) -> int:
     atomic_write_json(out / "results.json", payload)
     atomic_write_bytes(out / "results.md", md.encode())
     source = str(cfg.model or cfg.predictions or cfg.endpoint)
-    if threshold != 0.5:  # the ledger says which operating point a sealed look was at
+    if cfg.threshold != 0.5:  # the ledger says which operating point a sealed look was at
         source += f" at P(failure) >= {threshold:.4g}" + (" (chosen on val)" if cfg.threshold == "val" else "")
     ev.count_sealed_run(cfg.dataset_dir, cfg.split, source, main_res)
     atomic_write_bytes(out / "unparseable.log", "\n".join(log_lines).encode())

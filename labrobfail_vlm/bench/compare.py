@@ -20,6 +20,7 @@ sealed splits are refused (they are benched for reported rows only, and their le
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -178,9 +179,24 @@ def auroc_row(y: np.ndarray, sa: np.ndarray, sb: np.ndarray, w: np.ndarray) -> d
     return row(roc_auc_score(y, sa), roc_auc_score(y, sb), diffs, 1, 4)
 
 
+def bench_cut(folder: Path) -> float | None:
+    """The P(failure) cut a bench ran at (its results.json's `threshold`), or None where it does not say."""
+    try:
+        return float(json.loads((folder / "results.json").read_text())["threshold"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def op_text(threshold: Any, cut: float | None) -> str:
+    """The markdown header's words for a side's operating point (none for the default 0.5)."""
+    if threshold == 0.5:
+        return ""
+    return f" (operating point {threshold}" + ("" if cut is None else f": P(failure) >= {cut:.3f}") + ")"
+
+
 def markdown(res: dict[str, Any]) -> str:
     """The comparison as one Markdown table, a line per split and score."""
-    at = {k: f" (operating point {res[f'{k}_threshold']})" if res[f"{k}_threshold"] != 0.5 else "" for k in "ab"}
+    at = {k: op_text(res[f"{k}_threshold"], res.get(f"{k}_cut")) for k in "ab"}
     lines = [
         f"a = {res['a']}{at['a']}  \nb = {res['b']}{at['b']}  \n95 % intervals: {res['ci_method']}",
         "",
@@ -218,6 +234,9 @@ def main(argv: list[str]) -> int:
             raise ConfigError(f"splits: {split} has no records in {cfg.dataset_dir}")
         a, b = (read_replies(k, str(cfg[k]), split, cfg.max_trajectories, recs, cfg[f"{k}_threshold"]) for k in "ab")
         res["splits"][split] = compare_split(recs, traj, a, b, cfg.resamples, cfg.seed)
+        for k in "ab":  # the cut a val-chosen bench was run at (its results.json says; the same on every split)
+            if cfg[f"{k}_threshold"] == "val" and f"{k}_cut" not in res:
+                res[f"{k}_cut"] = bench_cut(eval_dir(str(cfg[k]), split, cfg.max_trajectories, "val"))
     print(markdown(res))
     if cfg.out is not None:
         atomic_write_json(Path(str(cfg.out)), res)
