@@ -228,15 +228,15 @@ def main(argv: list[str]) -> int:
         f"seed {cfg.seed}",
         "splits": {},
     }
+    for k in "ab":  # the cut a val-chosen bench ran at (its results.json says; chosen once, the same on every split)
+        if cfg[f"{k}_threshold"] == "val":
+            res[f"{k}_cut"] = bench_cut(eval_dir(str(cfg[k]), cfg.splits[0], cfg.max_trajectories, "val"))
     for split in cfg.splits:
         recs, traj = ev.load_split(cfg.dataset_dir, split, cfg.max_trajectories)
         if not recs:
             raise ConfigError(f"splits: {split} has no records in {cfg.dataset_dir}")
         a, b = (read_replies(k, str(cfg[k]), split, cfg.max_trajectories, recs, cfg[f"{k}_threshold"]) for k in "ab")
         res["splits"][split] = compare_split(recs, traj, a, b, cfg.resamples, cfg.seed)
-        for k in "ab":  # the cut a val-chosen bench was run at (its results.json says; the same on every split)
-            if cfg[f"{k}_threshold"] == "val" and f"{k}_cut" not in res:
-                res[f"{k}_cut"] = bench_cut(eval_dir(str(cfg[k]), split, cfg.max_trajectories, "val"))
     print(markdown(res))
     if cfg.out is not None:
         atomic_write_json(Path(str(cfg.out)), res)

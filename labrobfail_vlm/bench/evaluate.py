@@ -74,8 +74,12 @@ def check_operating_point(value: Any, key: str = "threshold") -> None:
     seen-val bench) or another number between 0 and 1; anything else a one-line error."""
     if value == 0.5 or value == "val":
         return
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < float(value) < 1.0:
-        raise ConfigError(f"{key}: expected val or a number between 0 and 1 (exclusive), got {value!r}")
+    from labrobfail_vlm.analyzer import check_threshold  # the analyzer's own range (imported only for a number)
+
+    try:
+        check_threshold(value)
+    except ValueError:
+        raise ConfigError(f"{key}: expected val or a number between 0 and 1 (exclusive), got {value!r}") from None
 
 
 def bench_suffix(threshold: Any = 0.5, limit: int | None = None) -> str:
