@@ -241,23 +241,41 @@ reproduce-online: $(STAMP)
 # stage is kept. `make report-tuned` then runs the seen test and the sealed splits
 # once (a split already benched is not run again) and splices the model's section into docs/RESULTS.md (each sealed
 # run is counted in the page's ledger, under the stage's own path).
+# TUNED_ROW=rand: the stages start from `make reproduce-more MORE_FAMILY=randomised`'s row instead, on the data it
+# trained on (the dataset plus dataset_rand), into rows/rand_tuned, a row of the page's rows table (4 Dec late night:
+# tuned on randomised scenes, the tower gains off the seen appearance too; docs/EXPERIMENTS.md); `make report-tuned
+# TUNED_ROW=rand` benches its seen test and sealed splits, and every reported split again at the cut chosen on its
+# seen-val bench (threshold=val), as reproduce-more does for the randomised row. Only rand: no other row was measured.
 TUNE_STAGE   := lr.vision=3e-5 lr.merger=3e-5
 TUNED_STAGES ?= 2
+TUNED_ROW    ?=
+ifneq ($(filter-out rand,$(TUNED_ROW))$(word 2,$(TUNED_ROW)),)
+$(error TUNED_ROW is rand (the randomised reproduce-more row) or empty (make reproduce's model), not '$(TUNED_ROW)')
+endif
+TUNED_FROM   := $(if $(TUNED_ROW),rows/$(TUNED_ROW),train)
+TUNED_DIR    := $(if $(TUNED_ROW),rows/$(TUNED_ROW)_tuned,tuned)
+TUNED_EXTRA  := $(if $(TUNED_ROW),'extra_train=[$(R)/dataset_$(TUNED_ROW)]')
+# bench, but a split already benched (eval_<split><5th argument>) is not run again, and the model is named by the
+# path its `final` link points to (the stage's own, as the sealed ledger lists it)
+bench_once   = for s in $(2); do test -f $(1)/final/eval_$${s}$(5)/results.json || $(BIN)/labrobfail-evaluate \
+  model=$(1)/$$(readlink $(1)/final) dataset_dir=$(3) split=$$s batch_size=8 progress=false $(4) || exit 1; done
 reproduce-tuned: $(STAMP)
-	@test -d $(R)/train/final || { echo "reproduce-tuned: run make reproduce first (no $(R)/train/final)" >&2; exit 2; }
-	prev=$(R)/train/final; for k in $$(seq 1 $(TUNED_STAGES)); do \
-	  test -f $(R)/tuned/stage$$k/train_summary.json || $(BIN)/labrobfail-train $(REPRO_TRAIN) epochs=1 \
-	    dataset_dir=$(R)/dataset output_dir=$(R)/tuned/stage$$k model.path=$$prev $(ONLINE_STAGE) $(TUNE_STAGE) || exit 1; \
-	  prev=$(R)/tuned/stage$$k/final; done
-	ln -sfnT stage$(TUNED_STAGES)/final $(R)/tuned/final
-	$(call bench,$(R)/tuned,val val_object val_scene val_both,$(R)/dataset)
+	@test -d $(R)/$(TUNED_FROM)/final || { echo "reproduce-tuned: run make $(if $(TUNED_ROW),reproduce-more \
+	  MORE_FAMILY=randomised,reproduce) first (no $(R)/$(TUNED_FROM)/final)" >&2; exit 2; }
+	prev=$(R)/$(TUNED_FROM)/final; for k in $$(seq 1 $(TUNED_STAGES)); do \
+	  test -f $(R)/$(TUNED_DIR)/stage$$k/train_summary.json || $(BIN)/labrobfail-train $(REPRO_TRAIN) epochs=1 \
+	    dataset_dir=$(R)/dataset $(TUNED_EXTRA) output_dir=$(R)/$(TUNED_DIR)/stage$$k model.path=$$prev \
+	    $(ONLINE_STAGE) $(TUNE_STAGE) || exit 1; \
+	  prev=$(R)/$(TUNED_DIR)/stage$$k/final; done
+	ln -sfnT stage$(TUNED_STAGES)/final $(R)/$(TUNED_DIR)/final
+	$(call bench_once,$(R)/$(TUNED_DIR),val val_object val_scene val_both,$(R)/dataset)
 
 report-tuned: $(STAMP)
-	@test -L $(R)/tuned/final || { echo "report-tuned: run make reproduce-tuned first (no link $(R)/tuned/final)" >&2; exit 2; }
-	for s in test test_object test_scene test_both; do test -f $(R)/tuned/final/eval_$$s/results.json || \
-	  $(BIN)/labrobfail-evaluate model=$(R)/tuned/$$(readlink $(R)/tuned/final) dataset_dir=$(R)/dataset split=$$s batch_size=8 \
-	  progress=false || exit 1; done
-	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS) 'sections=[tuned]'
+	@test -L $(R)/$(TUNED_DIR)/final || { echo >&2 \
+	  "report-tuned: no link $(R)/$(TUNED_DIR)/final (run make reproduce-tuned$(if $(TUNED_ROW), TUNED_ROW=rand) first)"; exit 2; }
+	$(call bench_once,$(R)/$(TUNED_DIR),test test_object test_scene test_both,$(R)/dataset)
+	$(if $(TUNED_ROW),$(call bench_once,$(R)/$(TUNED_DIR),test $(HELD_OUT),$(R)/dataset,threshold=val,_opval))
+	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS) 'sections=[$(if $(TUNED_ROW),rows,tuned)]'
 
 # The paper's recovery table in the wide world, with statistical power: per task, RECOVERY_TRIALS trials run from
 # the seeds RECOVERY_SEED, RECOVERY_SEED + 1, ..., each once without a supervisor and once with it (the same seed:

@@ -5,8 +5,8 @@ Run as:
 
 Reads <run>/dataset/stats.json, <run>/timeline.txt (one "<step> <unix seconds>" line per step), the main model's
 <run>/train/{train_summary,progress}.json and final/eval_<split>/results.json, the tower card it started from,
-`make reproduce-tuned`'s model <run>/tuned/, the optional rows <run>/rows/{scratch,wrist,more,rand}/ and ablations
-<run>/ablate/{frozen,tuned,no_index}/ (same layout), `make reproduce-online`'s model <run>/online/, `make
+`make reproduce-tuned`'s model <run>/tuned/, the optional rows <run>/rows/{scratch,wrist,more,rand,rand_tuned}/
+and ablations <run>/ablate/{frozen,tuned,no_index}/ (same layout), `make reproduce-online`'s model <run>/online/, `make
 online-bench`'s <run>/train/final/eval_online_*/online.json and `make recovery`'s tables
 <run>/recovery/{scripted,act/<task>}/. Sections: the issue's targets, the tuned model's section, the tower and
 sensor rows, the paper's ablation table, supervision (the online model on whole and prefix grids, the online bench,
@@ -73,7 +73,7 @@ SECTIONS = {
         "The same bench on the same validation and test trajectories; each row names what differs (the tower, the "
         "views, the decoder's depth, the training episodes, the scenes' appearance). 95 % intervals: bootstrap over "
         "pairs.",
-        ("rows/scratch", "rows/wrist", "rows/deep4", "rows/more", "rows/rand"),
+        ("rows/scratch", "rows/wrist", "rows/deep4", "rows/more", "rows/rand", "rows/rand_tuned"),
     ),
     "ablation": (
         "## Ablation (the paper's table, seen split)",

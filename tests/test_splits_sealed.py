@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import colorsys
 import json
+import os
+import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -116,25 +119,25 @@ def test_the_sealed_scene_family_is_outside_every_other_family():
         assert not kinds & {a["texture"] for a in app}, name
 
 
-def test_extra_training_episodes_are_drawn_in_seen_or_randomised_scenes_only(tmp_path):
-    """`make reproduce-more`'s MORE_FAMILY, read by make itself (a dry run: nothing is built or installed): the
-    randomised family reaches the generator and names its own shards, dataset and row; a val or sealed family (or
-    none) is refused in one line before any step."""
-    import os
-    import shutil
-    import subprocess
-
+def _make_dry(target: str, *settings: str) -> subprocess.CompletedProcess:
+    """`make -n target settings...` in the checkout: what make would run, read by make itself (nothing is built or
+    installed)."""
     make = shutil.which("make")
     if make is None:
         pytest.skip("make is not installed")
-    root = Path(__file__).resolve().parents[1]
-
     # the suite itself runs under make test: its MAKEFLAGS and MAKELEVEL would make this one a sub-make
     env = {k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MFLAGS", "MAKELEVEL")}
+    cmd = [make, "-n", "--no-print-directory", target, *settings]
+    root = Path(__file__).resolve().parents[1]
+    return subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=60)
+
+
+def test_extra_training_episodes_are_drawn_in_seen_or_randomised_scenes_only(tmp_path):
+    """`make reproduce-more`'s MORE_FAMILY (a dry run): the randomised family reaches the generator and names its own
+    shards, dataset and row; a val or sealed family (or none) is refused in one line before any step."""
 
     def dry(family: str) -> subprocess.CompletedProcess:
-        cmd = [make, "-n", "--no-print-directory", "reproduce-more", f"R={tmp_path}", f"MORE_FAMILY={family}"]
-        return subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=60)
+        return _make_dry("reproduce-more", f"R={tmp_path}", f"MORE_FAMILY={family}")
 
     plan = dry("randomised")
     assert plan.returncode == 0, plan.stderr
@@ -151,6 +154,30 @@ def test_extra_training_episodes_are_drawn_in_seen_or_randomised_scenes_only(tmp
         assert got.returncode != 0 and not got.stdout, family
         (line,) = got.stderr.strip().splitlines()
         assert "MORE_FAMILY is seen or randomised" in line and f"'{family}'" in line
+
+
+def test_the_randomised_rows_tuned_stages_train_on_its_data_and_report_at_its_cut(tmp_path):
+    """`make reproduce-tuned TUNED_ROW=rand` (a dry run): the stages start from the randomised row and train on the
+    data it trained on (dataset_rand added), into rows/rand_tuned; `make report-tuned TUNED_ROW=rand` benches the
+    sealed splits once at 0.5 and once at the cut chosen on val, then writes the rows section. Without TUNED_ROW the
+    stages are make reproduce's; any other row is refused in one line."""
+    plan = _make_dry("reproduce-tuned", f"R={tmp_path}", "TUNED_ROW=rand", "TUNED_STAGES=1")
+    assert plan.returncode == 0, plan.stderr
+    train = next(line for line in plan.stdout.splitlines() if "extra_train=" in line)
+    assert f"'extra_train=[{tmp_path}/dataset_rand]'" in train
+    assert f"output_dir={tmp_path}/rows/rand_tuned/stage" in train
+    assert f"prev={tmp_path}/rows/rand/final" in plan.stdout and "lr.vision=3e-5" in plan.stdout
+    report = _make_dry("report-tuned", f"R={tmp_path}", "TUNED_ROW=rand").stdout.splitlines()
+    (opval,) = [line for line in report if "threshold=val" in line]
+    assert "eval_${s}_opval/results.json" in opval and "test_both" in opval and " val " not in opval
+    assert "'sections=[rows]'" in report[-1] and f"model={tmp_path}/rows/rand_tuned/" in opval
+    main = _make_dry("reproduce-tuned", f"R={tmp_path}").stdout
+    assert "extra_train" not in main and f"output_dir={tmp_path}/tuned/stage" in main
+    for row in ("more", "rand more", "val_both"):
+        got = _make_dry("reproduce-tuned", f"R={tmp_path}", f"TUNED_ROW={row}")
+        assert got.returncode != 0 and not got.stdout, row
+        (line,) = got.stderr.strip().splitlines()
+        assert "TUNED_ROW is rand" in line and f"'{row}'" in line
 
 
 def test_the_sealed_catalogue_has_shapes_sizes_and_colours_of_its_own():

@@ -7,6 +7,8 @@ import json
 import shutil
 from pathlib import Path
 
+import pytest
+
 from scripts.write_results import supervision
 from sim_backends.supervision.paired import paired_cell
 
@@ -184,27 +186,33 @@ def test_a_rows_splice_keeps_the_pages_main_row_when_the_run_benched_its_model_o
     assert not any(line.startswith("| sim-pretrained tower, front + side, 4-layer") for line in table.splitlines())
 
 
-def test_a_row_chosen_at_an_operating_point_on_val_gets_a_second_row_at_that_cut(tmp_path: Path) -> None:
-    """rows/rand's benches at its val-chosen cut (eval_<split>_opval) are a row of their own under its 0.5 row, the
-    cut named; without them the table says that bench was not run."""
+@pytest.mark.parametrize(
+    ("folder", "title"),
+    [("rand", "drawn in randomised scenes"), ("rand_tuned", "then one-epoch stages with the tower")],
+)
+def test_a_row_chosen_at_an_operating_point_on_val_gets_a_second_row_at_that_cut(
+    tmp_path: Path, folder: str, title: str
+) -> None:
+    """A row's benches at its val-chosen cut (eval_<split>_opval) are a row of their own under its 0.5 row, the cut
+    named; without them the table says that bench was not run."""
     from scripts.write_results import main
 
     page, run = _page_and_run(tmp_path)
-    _eval(run / "rows" / "rand" / "final" / "eval_test", 82.4)
+    _eval(run / "rows" / folder / "final" / "eval_test", 82.4)
     assert main([f"run={run}", f"out={page}", "sections=[rows]"]) == 0
     table = page.read_text().split("## Tower and sensor rows\n")[1].split("## Supervision\n")[0]
-    assert "drawn in randomised scenes" in table and "at its operating point chosen on val (`rows/rand`" in table
+    assert title in table and f"at its operating point chosen on val (`rows/{folder}`" in table
     for split, q2 in (("test", 81.9), ("test_both", 79.0)):
-        _eval(run / "rows" / "rand" / "final" / f"eval_{split}_opval", q2)
-        f = run / "rows" / "rand" / "final" / f"eval_{split}_opval" / "results.json"
+        _eval(run / "rows" / folder / "final" / f"eval_{split}_opval", q2)
+        f = run / "rows" / folder / "final" / f"eval_{split}_opval" / "results.json"
         f.write_text(json.dumps({**json.loads(f.read_text()), "threshold": 0.4421825, "threshold_chosen_on": "val"}))
     assert main([f"run={run}", f"out={page}", "sections=[rows]"]) == 0
     lines = page.read_text().split("## Tower and sensor rows\n")[1].split("## Supervision\n")[0].splitlines()
-    i = next(k for k, line in enumerate(lines) if "drawn in randomised scenes" in line)
+    i = next(k for k, line in enumerate(lines) if title in line)
     assert "| 82.4 [79.4, 85.4] |" in lines[i]
     assert lines[i + 1].startswith("| the row above at P(failure) >= 0.442, the cut chosen on its seen-val bench")
     assert "| 81.9 [78.9, 84.9] |" in lines[i + 1] and lines[i + 1].endswith("| 79.0 [76.0, 82.0] |")
-    assert "operating point chosen on val (`rows/rand`" not in "\n".join(lines)
+    assert f"operating point chosen on val (`rows/{folder}`" not in "\n".join(lines)
 
 
 def test_a_run_of_other_data_or_without_the_section_is_refused(tmp_path: Path) -> None:
