@@ -188,7 +188,7 @@ def test_a_rows_splice_keeps_the_pages_main_row_when_the_run_benched_its_model_o
 
 @pytest.mark.parametrize(
     ("folder", "title"),
-    [("rand", "drawn in randomised scenes"), ("rand_tuned", "then one-epoch stages with the tower")],
+    [("rand", "drawn in randomised scenes"), ("rand_tuned", "then two one-epoch stages with the tower")],
 )
 def test_a_row_chosen_at_an_operating_point_on_val_gets_a_second_row_at_that_cut(
     tmp_path: Path, folder: str, title: str

@@ -269,7 +269,7 @@ ROWS = {
         "scenes at the same steps (chosen on validation, 4 Dec evening)"
     ),
     "rows/rand_tuned": (
-        "the randomised-scenes row, then one-epoch stages with the tower and merger tuned (3e-5) on its data "
+        "the randomised-scenes row, then two one-epoch stages with the tower and merger tuned (3e-5) on its data "
         "(chosen on validation, 4 Dec late night)"
     ),
 }
