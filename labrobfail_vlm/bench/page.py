@@ -251,7 +251,7 @@ HELD_OUT_COLUMNS = ("val_object", "val_scene", "val_both", "test_object", "test_
 # page made by a later `make reproduce` has it as its main row); rows/more: the 4-layer recipe with 1.6x the seen
 # training episodes at the same steps (chosen on validation, 4 Dec; `make reproduce-more`); rows/rand: the same extra
 # pairs drawn in randomised scenes (4 Dec evening; `make reproduce-more MORE_FAMILY=randomised`); rows/rand_tuned: that
-# row taught one-epoch stages with the tower and merger tuned, on its data (4 Dec late night; `make reproduce-tuned
+# row taught two one-epoch stages with the tower and merger tuned, on its data (4 Dec late night; `make reproduce-tuned
 # TUNED_ROW=rand`). No make target makes rows/deep4, so a page never lists it as not run (BY_HAND).
 ROWS = {
     "rows/scratch": "scratch tower (random init, stage A grounding: the pre-tower recipe)",
