@@ -237,8 +237,8 @@ reproduce-online: $(STAMP)
 # merger tuned (3e-5 each; a later stage's settings otherwise), each stage from the one before, benched on the
 # validation splits only. The count was chosen there (outputs/r14, 2 Dec: a second stage raised seen-val Q2 by +2.37
 # [+0.25, +4.25] by pair over the model it started from and every validation split; a third, 3 Dec, lost 7.6 on
-# val_object and the seen-val diagnosis scores: docs/EXPERIMENTS.md). About 23-34 min a stage on 2 cores; a finished
-# stage is kept. `make report-tuned` then runs the seen test and the sealed splits
+# val_object and the seen-val diagnosis scores: docs/EXPERIMENTS.md). About 23-36 min a stage on 2 cores (35-36 with
+# TUNED_ROW=rand); a finished stage is kept. `make report-tuned` then runs the seen test and the sealed splits
 # once (a split already benched is not run again) and splices the model's section into docs/RESULTS.md (each sealed
 # run is counted in the page's ledger, under the stage's own path).
 # TUNED_ROW=rand: the stages start from `make reproduce-more MORE_FAMILY=randomised`'s row instead, on the data it
