@@ -126,6 +126,8 @@ REPRO_LAYERS   ?= 4
 RESULTS        ?= docs/RESULTS.md
 REPRO_GEN      := backend=pybullet seed=0 workers=2 image_size=128 render_frames=8 backend_kwargs.wrist=true progress=false
 HELD_OUT       := val_object val_scene val_both test_object test_scene test_both
+# the splits a row adopted at the cut chosen on its seen-val bench is benched on again at that cut (threshold=val)
+OPVAL_SPLITS   := test $(HELD_OUT)
 comma          := ,
 space          := $(subst ,, )
 REPRO_SHARDS   := 'shards=[$(subst $(space),$(comma),$(strip $(addprefix $(R)/shards/,seen seen2 $(HELD_OUT))))]'
@@ -189,7 +191,7 @@ MORE_NAME := rand
 MORE_SHARDS := rand
 MORE_SCENE := backend_kwargs.scene_family=$(MORE_FAMILY)
 # its row also at the cut chosen on its seen-val bench (adopted on validation, docs/EXPERIMENTS.md 4 Dec night)
-MORE_OPVAL := test $(HELD_OUT)
+MORE_OPVAL := $(OPVAL_SPLITS)
 endif
 reproduce-more: $(STAMP)
 	@test -f $(R)/train/train_summary.json || { echo "reproduce-more: run make reproduce first" >&2; exit 2; }
@@ -255,10 +257,12 @@ endif
 TUNED_FROM   := $(if $(TUNED_ROW),rows/$(TUNED_ROW),train)
 TUNED_DIR    := $(if $(TUNED_ROW),rows/$(TUNED_ROW)_tuned,tuned)
 TUNED_EXTRA  := $(if $(TUNED_ROW),'extra_train=[$(R)/dataset_$(TUNED_ROW)]')
-# bench, but a split already benched (eval_<split><5th argument>) is not run again, and the model is named by the
-# path its `final` link points to (the stage's own, as the sealed ledger lists it)
-bench_once   = for s in $(2); do test -f $(1)/final/eval_$${s}$(5)/results.json || $(BIN)/labrobfail-evaluate \
-  model=$(1)/$$(readlink $(1)/final) dataset_dir=$(3) split=$$s batch_size=8 progress=false $(4) || exit 1; done
+# bench, but a split already benched (eval_<split>, or eval_<split>_opval at threshold=val: the bench's own folder
+# names) is not run again, and the model is named by the path its `final` link points to (the stage's own, as the
+# sealed ledger lists it)
+bench_once   = for s in $(2); do test -f $(1)/final/eval_$${s}$(if $(filter threshold=val,$(4)),_opval)/results.json \
+  || $(BIN)/labrobfail-evaluate model=$(1)/$$(readlink $(1)/final) dataset_dir=$(3) split=$$s batch_size=8 \
+  progress=false $(4) || exit 1; done
 reproduce-tuned: $(STAMP)
 	@test -d $(R)/$(TUNED_FROM)/final || { echo "reproduce-tuned: run make $(if $(TUNED_ROW),reproduce-more \
 	  MORE_FAMILY=randomised,reproduce) first (no $(R)/$(TUNED_FROM)/final)" >&2; exit 2; }
@@ -274,7 +278,7 @@ report-tuned: $(STAMP)
 	@test -L $(R)/$(TUNED_DIR)/final || { echo >&2 \
 	  "report-tuned: no link $(R)/$(TUNED_DIR)/final (run make reproduce-tuned$(if $(TUNED_ROW), TUNED_ROW=rand) first)"; exit 2; }
 	$(call bench_once,$(R)/$(TUNED_DIR),test test_object test_scene test_both,$(R)/dataset)
-	$(if $(TUNED_ROW),$(call bench_once,$(R)/$(TUNED_DIR),test $(HELD_OUT),$(R)/dataset,threshold=val,_opval))
+	$(if $(TUNED_ROW),$(call bench_once,$(R)/$(TUNED_DIR),$(OPVAL_SPLITS),$(R)/dataset,threshold=val))
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS) 'sections=[$(if $(TUNED_ROW),rows,tuned)]'
 
 # The paper's recovery table in the wide world, with statistical power: per task, RECOVERY_TRIALS trials run from
