@@ -19,8 +19,9 @@ page, from a run that holds just those folders (a fresh machine's regeneration w
 first that the run's data are the page's (the same trajectories and splits line); a run that ran sealed splits brings
 its datasets' ledgers of sealed runs, whose runs join the page's list (which keeps every run it had; `sealed` alone
 splices nothing else, for a regeneration that re-ran only the recipe's sealed benches). What such a run lacks is
-carried from the page and said so: the ablation's frozen row is the page's shipped front + side row (the recipe's
-model is the frozen one), the online model's table and the online bench stay when the run has only recovery
+carried from the page and said so: the rows table keeps the page's line for every row the run has no seen test
+bench for (with its line at the val-chosen cut), the ablation's frozen row is the page's shipped front + side row (the
+recipe's model is the frozen one), the online model's table and the online bench stay when the run has only recovery
 tables, the online model's table and every recovery row stay when it has only the online bench, and the page's
 recovery rows stay for cells the run did not re-measure (the table's lead line names them as carried).
 """
@@ -161,7 +162,7 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
     cells = [c.strip() for c in shipped.strip("|").split("|")] if shipped else None
     old_sv = next((p for p in parts if p[0] == SECTIONS["supervision"][0]), [])
     bodies = {
-        "rows": lambda: rows_table(run, shipped),
+        "rows": lambda: rows_table(run, next((p for p in parts if p[0] == SECTIONS["rows"][0]), [])),
         # the shipped row's seen Q2, Q3, Q5 and ROUGE-L cells
         "ablation": lambda: ablation_table(run, [cells[1], cells[3], cells[4], cells[5]] if cells else None),
         "supervision": lambda: supervision(run, old_sv),

@@ -162,7 +162,7 @@ def test_a_rows_splice_keeps_the_pages_main_row_when_the_run_benched_its_model_o
     tmp_path: Path,
 ) -> None:
     """A run whose main model has validation benches but no seen test one (a lever's baseline) has no main row of its
-    own: the page's row stays, the new row is added, and the main row is not called "not run"."""
+    own: the page's row stays, named as carried, the new row is added, and the main row is not called "not run"."""
     from scripts.write_results import main
 
     page, run = _page_and_run(tmp_path)
@@ -174,16 +174,21 @@ def test_a_rows_splice_keeps_the_pages_main_row_when_the_run_benched_its_model_o
     assert "| sim-pretrained tower, front + side, 4-layer decoder (chosen on validation" in table
     row = next(line for line in table.splitlines() if "4-layer decoder" in line)  # its own bench's figures
     assert "| 82.0 [79.0, 85.0] |" in row and "| 61.0 [55.0, 66.0] |" in row and "0.6000 [0.550, 0.650]" in row
-    assert "(`train`)" not in table and "Not run for this page: scratch tower" in table
-    # A row no make target makes (rows/deep4) is never called "not run" by a run without it; one that a target makes
-    # (rows/more and rows/rand: make reproduce-more) is.
+    carried = next(line for line in table.splitlines() if line.startswith("Carried from the page"))
+    assert "(`train`)" in carried and "Not run for this page: scratch tower" in table
+    assert "(`train`)" not in table.split("Not run for this page: ")[1]
+    # A later run that re-benches another row keeps every row the page has and it lacks (named as carried, its
+    # figures as the page had them); a row no make target makes (rows/deep4) is never called "not run"; one that a
+    # target makes and the page lacks (rows/more and rows/rand: make reproduce-more) is.
     shutil.rmtree(run / "rows" / "deep4")
     _eval(run / "rows" / "wrist" / "final" / "eval_test", 92.0)
     assert main([f"run={run}", f"out={page}", "sections=[rows]"]) == 0
     table = page.read_text().split("## Tower and sensor rows\n")[1].split("## Supervision\n")[0]
     assert "front + wrist" in table and "Not run for this page: scratch tower" in table
-    assert "4-layer decoder (chosen" not in table and "(`rows/more`)" in table and "(`rows/rand`)" in table
-    assert not any(line.startswith("| sim-pretrained tower, front + side, 4-layer") for line in table.splitlines())
+    assert row in table.splitlines() and SHIPPED in table.splitlines()
+    carried = next(line for line in table.splitlines() if line.startswith("Carried from the page"))
+    assert "(`rows/deep4`)" in carried and "(`train`)" in carried and "front + wrist" not in carried
+    assert "(`rows/more`)" in table.split("Not run for this page: ")[1] and "(`rows/rand`)" in table
 
 
 @pytest.mark.parametrize(
@@ -213,6 +218,14 @@ def test_a_row_chosen_at_an_operating_point_on_val_gets_a_second_row_at_that_cut
     assert lines[i + 1].startswith("| the row above at P(failure) >= 0.442, the cut chosen on its seen-val bench")
     assert "| 81.9 [78.9, 84.9] |" in lines[i + 1] and lines[i + 1].endswith("| 79.0 [76.0, 82.0] |")
     assert f"operating point chosen on val (`rows/{folder}`" not in "\n".join(lines)
+    # a later splice from a run without this row keeps both its lines, in order
+    shutil.rmtree(run / "rows" / folder)
+    _eval(run / "rows" / "wrist" / "final" / "eval_test", 92.0)
+    assert main([f"run={run}", f"out={page}", "sections=[rows]"]) == 0
+    after = page.read_text().split("## Tower and sensor rows\n")[1].split("## Supervision\n")[0].splitlines()
+    j = after.index(lines[i])
+    assert after[j + 1] == lines[i + 1]
+    assert any(line.startswith("| sim-pretrained tower, front + wrist") for line in after)
 
 
 def test_a_run_of_other_data_or_without_the_section_is_refused(tmp_path: Path) -> None:

@@ -283,6 +283,8 @@ ABLATIONS = {
     "ablate/no_index": "no temporal index (no labels drawn, none mentioned)",
 }
 NOT_RUN = "Not run for this page: "  # how a table or the page names the runs it lacks
+CARRIED = "Carried from the page (not benched in the run it was spliced from): "
+OPVAL_LINE = "| the row above at "  # a row at its val-chosen cut, the line under its 0.5 row
 
 
 def run_evals(folder: Path, splits: tuple[str, ...] = tuple(SPLIT_TITLES), suffix: str = "") -> dict[str, Any] | None:
@@ -297,22 +299,24 @@ def tuned_table(run: Path) -> list[str]:
     return model_section(run_evals(run / "tuned", ("val", *SPLIT_TITLES)) or {})  # val: a row, not a target split
 
 
-def rows_table(run: Path, shipped: str | None = None) -> list[str]:
+def rows_table(run: Path, page: list[str] | None = None) -> list[str]:
     """Tower and sensor rows side by side: seen Q2 and AUROC, failure-only Q3/Q5/ROUGE-L, Q2 on each held-out split
-    (validation, then sealed). `shipped` (the page's own row) stands in for a run whose main model has no seen test
-    bench (none at all, or only validation benches)."""
+    (validation, then sealed). `page` (the existing page's lines, when a splice replaces its rows table): a row the
+    run has no seen test bench for keeps the page's line (and the line at its val-chosen cut under it), named as
+    carried, so a run that re-benched one row never drops the others."""
     head = [
         "| row | seen Q2 | seen AUROC | seen Q3 (failures) | seen Q5 (failures) | ROUGE-L (failures) | "
         + " | ".join(f"{s.replace('_', ' ')} Q2" for s in HELD_OUT_COLUMNS)
         + " |",
         "|---|---|---|---|---|---|" + "---|" * len(HELD_OUT_COLUMNS),
     ]
-    lines, missing = [], []
+    lines, missing, carried = [], [], []
     for folder, title in ROWS.items():
         ev = run_evals(run / folder) or {}
         if "test" not in ev:
-            if folder == "train" and shipped:
-                lines.append(shipped)
+            if kept := _page_row(page or [], title):
+                lines += kept
+                carried.append(f"{title} (`{folder}`)")
             elif folder not in BY_HAND:
                 missing.append(f"{title} (`{folder}`)")
             continue
@@ -323,9 +327,21 @@ def rows_table(run: Path, shipped: str | None = None) -> list[str]:
                 continue
             cut = f"P(failure) >= {op['test']['threshold']:.3f}"
             lines.append(
-                _rows_line(f"the row above at {cut}, the cut chosen on its seen-val bench ({OPVAL_ROWS[folder]})", op)
+                _rows_line(f"{OPVAL_LINE[2:]}{cut}, the cut chosen on its seen-val bench ({OPVAL_ROWS[folder]})", op)
             )
-    return head + lines + _not_run(missing) if lines else []
+    if not lines:
+        return []
+    said = ["", CARRIED + "; ".join(carried) + "."] if carried else []
+    return head + lines + said + _not_run(missing)
+
+
+def _page_row(page: list[str], title: str) -> list[str]:
+    """The page's line of the row titled `title` and the line at its cut right under it (none: [])."""
+    at = next((i for i, line in enumerate(page) if line.startswith(f"| {title} |")), None)
+    if at is None:
+        return []
+    below = page[at + 1 : at + 2]
+    return [page[at], *(line for line in below if line.startswith(OPVAL_LINE))]
 
 
 def _rows_line(title: str, ev: dict[str, Any]) -> str:
