@@ -159,8 +159,9 @@ def test_extra_training_episodes_are_drawn_in_seen_or_randomised_scenes_only(tmp
 def test_the_randomised_rows_tuned_stages_train_on_its_data_and_report_at_its_cut(tmp_path):
     """`make reproduce-tuned TUNED_ROW=rand` (a dry run): the stages start from the randomised row and train on the
     data it trained on (dataset_rand added), into rows/rand_tuned; `make report-tuned TUNED_ROW=rand` benches the
-    sealed splits once at 0.5 and once at the cut chosen on val, then writes the rows section. Without TUNED_ROW the
-    stages are make reproduce's; any other row is refused in one line."""
+    sealed splits once at 0.5 and once at the cut chosen on val, then writes the rows section. `TUNED_ROW=rand2` is one
+    more stage from that row with new randomised episodes. Without TUNED_ROW the stages are make reproduce's; any
+    other row is refused in one line."""
     plan = _make_dry("reproduce-tuned", f"R={tmp_path}", "TUNED_ROW=rand", "TUNED_STAGES=1")
     assert plan.returncode == 0, plan.stderr
     train = next(line for line in plan.stdout.splitlines() if "extra_train=" in line)
@@ -173,11 +174,22 @@ def test_the_randomised_rows_tuned_stages_train_on_its_data_and_report_at_its_cu
     assert "'sections=[rows]'" in report[-1] and f"model={tmp_path}/rows/rand_tuned/" in opval
     main = _make_dry("reproduce-tuned", f"R={tmp_path}").stdout
     assert "extra_train" not in main and f"output_dir={tmp_path}/tuned/stage" in main
-    for row in ("more", "rand more", "val_both"):
+    # rand2: one stage from the two-stage row, on its data plus new randomised pairs numbered after rand's
+    more = _make_dry("reproduce-tuned", f"R={tmp_path}", "TUNED_ROW=rand2", "TUNED_STAGES=2").stdout
+    gen = next(line for line in more.splitlines() if "labrobfail-generate" in line)
+    assert "backend_kwargs.scene_family=randomised" in gen and "first_pair=6000" in gen and "num_episodes=4000" in gen
+    assert f"test -f {tmp_path}/dataset_rand2/stats.json ||" in gen
+    train = next(line for line in more.splitlines() if "extra_train=" in line)
+    assert f"'extra_train=[{tmp_path}/dataset_rand,{tmp_path}/dataset_rand2]'" in train
+    assert f"prev={tmp_path}/rows/rand_tuned/final" in more and "$(seq 1 1)" in more
+    assert f"ln -sfnT stage1/final {tmp_path}/rows/rand2_tuned/final" in more
+    report = _make_dry("report-tuned", f"R={tmp_path}", "TUNED_ROW=rand2").stdout
+    assert f"model={tmp_path}/rows/rand2_tuned/" in report and "threshold=val" not in report  # its cut not adopted
+    for row in ("more", "rand more", "val_both", "rand3"):
         got = _make_dry("reproduce-tuned", f"R={tmp_path}", f"TUNED_ROW={row}")
         assert got.returncode != 0 and not got.stdout, row
         (line,) = got.stderr.strip().splitlines()
-        assert "TUNED_ROW is rand" in line and f"'{row}'" in line
+        assert "TUNED_ROW is rand or rand2" in line and f"'{row}'" in line
 
 
 def test_the_sealed_catalogue_has_shapes_sizes_and_colours_of_its_own():

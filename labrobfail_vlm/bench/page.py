@@ -252,7 +252,9 @@ HELD_OUT_COLUMNS = ("val_object", "val_scene", "val_both", "test_object", "test_
 # training episodes at the same steps (chosen on validation, 4 Dec; `make reproduce-more`); rows/rand: the same extra
 # pairs drawn in randomised scenes (4 Dec evening; `make reproduce-more MORE_FAMILY=randomised`); rows/rand_tuned: that
 # row taught two one-epoch stages with the tower and merger tuned, on its data (4 Dec late night; `make reproduce-tuned
-# TUNED_ROW=rand`). No make target makes rows/deep4, so a page never lists it as not run (BY_HAND).
+# TUNED_ROW=rand`); rows/rand2_tuned: one more such stage on its data plus 4,000 new randomised episodes (4 Dec
+# midnight; `make reproduce-tuned TUNED_ROW=rand2`). No make target makes rows/deep4, so a page never lists it as not
+# run (BY_HAND).
 ROWS = {
     "rows/scratch": "scratch tower (random init, stage A grounding: the pre-tower recipe)",
     "train": "sim-pretrained tower (shipped), front + side",
@@ -271,6 +273,10 @@ ROWS = {
     "rows/rand_tuned": (
         "the randomised-scenes row, then two one-epoch stages with the tower and merger tuned (3e-5) on its data "
         "(chosen on validation, 4 Dec late night)"
+    ),
+    "rows/rand2_tuned": (
+        "the two-stage row above, then a third tuned stage on its data plus 4,000 new seen episodes in randomised "
+        "scenes (chosen on validation, 4 Dec midnight)"
     ),
 }
 BY_HAND = ("rows/deep4",)
