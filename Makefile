@@ -265,6 +265,12 @@ TUNED_DATA   := $(if $(filter rand2,$(TUNED_ROW)),rand rand2,$(TUNED_ROW))
 TUNED_EXTRA  := $(if $(TUNED_ROW),'extra_train=[$(subst $(space),$(comma),$(addprefix $(R)/dataset_,$(TUNED_DATA)))]')
 TUNED_COUNT  := $(if $(filter rand2,$(TUNED_ROW)),1,$(TUNED_STAGES))
 RAND2_FIRST  := $(shell echo $$(( $(REPRO_SEEN) + $(MORE_SEEN) / 2 )))
+# (a variable, not inline: the commas of its lists would split an $(if))
+RAND2_DATA   := test -f $(R)/dataset_rand2/stats.json || { $(BIN)/labrobfail-generate $(REPRO_GEN) \
+  backend_kwargs.wrist=false num_episodes=$(MORE_SEEN) backend_kwargs.scene_family=randomised \
+  first_pair=$(RAND2_FIRST) out_dir=$(R)/shards/rand2 && $(BIN)/labrobfail-build-dataset \
+  'shards=[$(R)/shards/rand2]' out_dir=$(R)/dataset_rand2 $(DEMO_GRID) 'views=[front,side]' 'ratios=[1,0,0]' \
+  progress=false; } || exit 1
 # bench, but a split already benched (eval_<split>, or eval_<split>_opval at threshold=val: the bench's own folder
 # names) is not run again, and the model is named by the path its `final` link points to (the stage's own, as the
 # sealed ledger lists it)
@@ -275,11 +281,7 @@ reproduce-tuned: $(STAMP)
 	@test -d $(R)/$(TUNED_FROM)/final || { echo "reproduce-tuned: run make $(if $(TUNED_ROW),$(if $(filter rand2,\
 	  $(TUNED_ROW)),reproduce-tuned TUNED_ROW=rand,reproduce-more MORE_FAMILY=randomised),reproduce) first (no \
 	  $(R)/$(TUNED_FROM)/final)" >&2; exit 2; }
-	$(if $(filter rand2,$(TUNED_ROW)),test -f $(R)/dataset_rand2/stats.json || { $(BIN)/labrobfail-generate $(REPRO_GEN) \
-	  backend_kwargs.wrist=false num_episodes=$(MORE_SEEN) backend_kwargs.scene_family=randomised \
-	  first_pair=$(RAND2_FIRST) out_dir=$(R)/shards/rand2 && $(BIN)/labrobfail-build-dataset \
-	  'shards=[$(R)/shards/rand2]' out_dir=$(R)/dataset_rand2 $(DEMO_GRID) 'views=[front,side]' 'ratios=[1,0,0]' \
-	  progress=false; } || exit 1)
+	$(if $(filter rand2,$(TUNED_ROW)),$(RAND2_DATA))
 	prev=$(R)/$(TUNED_FROM)/final; for k in $$(seq 1 $(TUNED_COUNT)); do \
 	  test -f $(R)/$(TUNED_DIR)/stage$$k/train_summary.json || $(BIN)/labrobfail-train $(REPRO_TRAIN) epochs=1 \
 	    dataset_dir=$(R)/dataset $(TUNED_EXTRA) output_dir=$(R)/$(TUNED_DIR)/stage$$k model.path=$$prev \

@@ -179,6 +179,7 @@ def test_the_randomised_rows_tuned_stages_train_on_its_data_and_report_at_its_cu
     gen = next(line for line in more.splitlines() if "labrobfail-generate" in line)
     assert "backend_kwargs.scene_family=randomised" in gen and "first_pair=6000" in gen and "num_episodes=4000" in gen
     assert f"test -f {tmp_path}/dataset_rand2/stats.json ||" in gen
+    assert gen.rstrip().endswith("'views=[front,side]' 'ratios=[1,0,0]' progress=false; } || exit 1")
     train = next(line for line in more.splitlines() if "extra_train=" in line)
     assert f"'extra_train=[{tmp_path}/dataset_rand,{tmp_path}/dataset_rand2]'" in train
     assert f"prev={tmp_path}/rows/rand_tuned/final" in more and "$(seq 1 1)" in more
