@@ -264,6 +264,8 @@ TUNED_DIR    := $(if $(TUNED_ROW),rows/$(TUNED_ROW)_tuned,tuned)
 TUNED_DATA   := $(if $(filter rand2,$(TUNED_ROW)),rand rand2,$(TUNED_ROW))
 TUNED_EXTRA  := $(if $(TUNED_ROW),'extra_train=[$(subst $(space),$(comma),$(addprefix $(R)/dataset_,$(TUNED_DATA)))]')
 TUNED_COUNT  := $(if $(filter rand2,$(TUNED_ROW)),1,$(TUNED_STAGES))
+TUNED_PREV   := $(if $(TUNED_ROW),$(if $(filter rand2,$(TUNED_ROW)),reproduce-tuned TUNED_ROW=rand,reproduce-more \
+  MORE_FAMILY=randomised),reproduce)
 RAND2_FIRST  := $(shell echo $$(( $(REPRO_SEEN) + $(MORE_SEEN) / 2 )))
 # (a variable, not inline: the commas of its lists would split an $(if))
 RAND2_DATA   := test -f $(R)/dataset_rand2/stats.json || { $(BIN)/labrobfail-generate $(REPRO_GEN) \
@@ -278,9 +280,8 @@ bench_once   = for s in $(2); do test -f $(1)/final/eval_$${s}$(if $(filter thre
   || $(BIN)/labrobfail-evaluate model=$(1)/$$(readlink $(1)/final) dataset_dir=$(3) split=$$s batch_size=8 \
   progress=false $(4) || exit 1; done
 reproduce-tuned: $(STAMP)
-	@test -d $(R)/$(TUNED_FROM)/final || { echo "reproduce-tuned: run make $(if $(TUNED_ROW),$(if $(filter rand2,\
-	  $(TUNED_ROW)),reproduce-tuned TUNED_ROW=rand,reproduce-more MORE_FAMILY=randomised),reproduce) first (no \
-	  $(R)/$(TUNED_FROM)/final)" >&2; exit 2; }
+	@test -d $(R)/$(TUNED_FROM)/final || \
+	  { echo "reproduce-tuned: run make $(TUNED_PREV) first (no $(R)/$(TUNED_FROM)/final)" >&2; exit 2; }
 	$(if $(filter rand2,$(TUNED_ROW)),$(RAND2_DATA))
 	prev=$(R)/$(TUNED_FROM)/final; for k in $$(seq 1 $(TUNED_COUNT)); do \
 	  test -f $(R)/$(TUNED_DIR)/stage$$k/train_summary.json || $(BIN)/labrobfail-train $(REPRO_TRAIN) epochs=1 \

@@ -184,6 +184,7 @@ def test_the_randomised_rows_tuned_stages_train_on_its_data_and_report_at_its_cu
     assert f"'extra_train=[{tmp_path}/dataset_rand,{tmp_path}/dataset_rand2]'" in train
     assert f"prev={tmp_path}/rows/rand_tuned/final" in more and "$(seq 1 1)" in more
     assert f"ln -sfnT stage1/final {tmp_path}/rows/rand2_tuned/final" in more
+    assert f"run make reproduce-tuned TUNED_ROW=rand first (no {tmp_path}/rows/rand_tuned/final)" in more
     report = _make_dry("report-tuned", f"R={tmp_path}", "TUNED_ROW=rand2").stdout
     assert f"model={tmp_path}/rows/rand2_tuned/" in report and "threshold=val" not in report  # its cut not adopted
     for row in ("more", "rand more", "val_both", "rand3"):
