@@ -266,8 +266,10 @@ TUNED_EXTRA  := $(if $(TUNED_ROW),'extra_train=[$(subst $(space),$(comma),$(addp
 TUNED_COUNT  := $(if $(filter rand2,$(TUNED_ROW)),1,$(TUNED_STAGES))
 TUNED_PREV   := $(if $(TUNED_ROW),$(if $(filter rand2,$(TUNED_ROW)),reproduce-tuned TUNED_ROW=rand,reproduce-more \
   MORE_FAMILY=randomised),reproduce)
-RAND2_FIRST  := $(shell echo $$(( $(REPRO_SEEN) + $(MORE_SEEN) / 2 )))
-# (a variable, not inline: the commas of its lists would split an $(if))
+# rand2's first pair: the one after rand's last, read from rand's own run.json when the step runs (so a MORE_SEEN
+# changed since cannot make the two share pairs); a variable, not inline: the commas of its lists would split an $(if)
+RAND2_FIRST  := $$($(PY) -c "import json; r = json.load(open('$(R)/shards/rand/run.json')); \
+  print(r['first_pair'] + r['num_episodes'] // 2)")
 RAND2_DATA   := test -f $(R)/dataset_rand2/stats.json || { $(BIN)/labrobfail-generate $(REPRO_GEN) \
   backend_kwargs.wrist=false num_episodes=$(MORE_SEEN) backend_kwargs.scene_family=randomised \
   first_pair=$(RAND2_FIRST) out_dir=$(R)/shards/rand2 && $(BIN)/labrobfail-build-dataset \

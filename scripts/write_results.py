@@ -5,7 +5,7 @@ Run as:
 
 Reads <run>/dataset/stats.json, <run>/timeline.txt (one "<step> <unix seconds>" line per step), the main model's
 <run>/train/{train_summary,progress}.json and final/eval_<split>/results.json, the tower card it started from,
-`make reproduce-tuned`'s model <run>/tuned/, the optional rows <run>/rows/{scratch,wrist,more,rand,rand_tuned}/
+`make reproduce-tuned`'s model <run>/tuned/, the optional rows (page.ROWS: <run>/rows/{scratch,wrist,more,rand,...}/)
 and ablations <run>/ablate/{frozen,tuned,no_index}/ (same layout), `make reproduce-online`'s model <run>/online/, `make
 online-bench`'s <run>/train/final/eval_online_*/online.json and `make recovery`'s tables
 <run>/recovery/{scripted,act/<task>}/. Sections: the issue's targets, the tuned model's section, the tower and
@@ -171,6 +171,8 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
     tables = [n for n in names if n != "sealed"]  # sealed: the ledgers alone, spliced below
     for name in tables:
         heading, _, folders = SECTIONS[name]
+        if name == "rows":  # every row the table knows, not only those a page's "not run" line names
+            folders = tuple(f for f in ROWS if f != "train")
         if not any(_ran(run, f) for f in folders):
             raise ConfigError(f"sections: {run} has no results under {', '.join(folders)}")
         new = _section(name, bodies[name](), made_on=run)

@@ -166,6 +166,7 @@ def test_the_randomised_rows_tuned_stages_train_on_its_data_and_report_at_its_cu
     assert plan.returncode == 0, plan.stderr
     train = next(line for line in plan.stdout.splitlines() if "extra_train=" in line)
     assert f"'extra_train=[{tmp_path}/dataset_rand]'" in train
+    assert "labrobfail-generate" not in plan.stdout and "dataset_rand2" not in plan.stdout
     assert f"output_dir={tmp_path}/rows/rand_tuned/stage" in train
     assert f"prev={tmp_path}/rows/rand/final" in plan.stdout and "lr.vision=3e-5" in plan.stdout
     report = _make_dry("report-tuned", f"R={tmp_path}", "TUNED_ROW=rand").stdout.splitlines()
@@ -177,7 +178,10 @@ def test_the_randomised_rows_tuned_stages_train_on_its_data_and_report_at_its_cu
     # rand2: one stage from the two-stage row, on its data plus new randomised pairs numbered after rand's
     more = _make_dry("reproduce-tuned", f"R={tmp_path}", "TUNED_ROW=rand2", "TUNED_STAGES=2").stdout
     gen = next(line for line in more.splitlines() if "labrobfail-generate" in line)
-    assert "backend_kwargs.scene_family=randomised" in gen and "first_pair=6000" in gen and "num_episodes=4000" in gen
+    assert "backend_kwargs.scene_family=randomised" in gen and "num_episodes=4000" in gen
+    # the first pair after rand's last, read from rand's own run record when the step runs
+    first = gen.split("first_pair=$(")[1].split(") out_dir=")[0]
+    assert f"{tmp_path}/shards/rand/run.json" in first and "r['first_pair'] + r['num_episodes'] // 2" in first
     assert f"test -f {tmp_path}/dataset_rand2/stats.json ||" in gen
     assert gen.rstrip().endswith("'views=[front,side]' 'ratios=[1,0,0]' progress=false; } || exit 1")
     train = next(line for line in more.splitlines() if "extra_train=" in line)
@@ -187,6 +191,7 @@ def test_the_randomised_rows_tuned_stages_train_on_its_data_and_report_at_its_cu
     assert f"run make reproduce-tuned TUNED_ROW=rand first (no {tmp_path}/rows/rand_tuned/final)" in more
     report = _make_dry("report-tuned", f"R={tmp_path}", "TUNED_ROW=rand2").stdout
     assert f"model={tmp_path}/rows/rand2_tuned/" in report and "threshold=val" not in report  # its cut not adopted
+    assert "test_both" in report and report.rstrip().endswith("'sections=[rows]'")
     for row in ("more", "rand more", "val_both", "rand3"):
         got = _make_dry("reproduce-tuned", f"R={tmp_path}", f"TUNED_ROW={row}")
         assert got.returncode != 0 and not got.stdout, row

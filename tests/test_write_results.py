@@ -191,6 +191,32 @@ def test_a_rows_splice_keeps_the_pages_main_row_when_the_run_benched_its_model_o
     assert "(`rows/more`)" in table.split("Not run for this page: ")[1] and "(`rows/rand`)" in table
 
 
+def test_a_rows_splice_keeps_rows_added_by_hand_where_they_stood_and_says_which_cut_was_never_run(
+    tmp_path: Path,
+) -> None:
+    """A row no folder makes (added to the page by hand) stays under the row it stood under, named as carried; a
+    carried row shown without its cut line still says that cut's bench was not run; a second splice changes
+    nothing."""
+    from labrobfail_vlm.bench.page import ROWS
+    from scripts.write_results import main
+
+    page, run = _page_and_run(tmp_path)
+    hand = "| the recipe rerun (added by hand) | 81.4 [78.8, 83.9] | 0.8824 | - | - | - | - | - | - | - | - | - |"
+    tuned = f"| {ROWS['rows/rand_tuned']} | 85.0 [82.4, 87.5] | 0.9268 | - | - | - | - | - | - | - | - | - |"
+    page.write_text(PAGE.replace(SHIPPED + "\n", f"{SHIPPED}\n{hand}\n{tuned}\n"))
+    _eval(run / "rows" / "wrist" / "final" / "eval_test", 92.0)
+    assert main([f"run={run}", f"out={page}", "sections=[rows]"]) == 0
+    text = page.read_text()
+    table = text.split("## Tower and sensor rows\n")[1].split("## Supervision\n")[0].splitlines()
+    assert table[table.index(SHIPPED) + 1] == hand and tuned in table
+    carried = next(line for line in table if line.startswith("Carried from the page"))
+    assert "the recipe rerun (added by hand) (added by hand)" in carried and "(`rows/rand_tuned`)" in carried
+    not_run = next(line for line in table if line.startswith("Not run for this page"))
+    assert "at its operating point chosen on val (`rows/rand_tuned`, threshold=val)" in not_run
+    assert main([f"run={run}", f"out={page}", "sections=[rows]"]) == 0
+    assert page.read_text() == text
+
+
 @pytest.mark.parametrize(
     ("folder", "title"),
     [("rand", "drawn in randomised scenes"), ("rand_tuned", "then two one-epoch stages with the tower")],

@@ -316,29 +316,52 @@ def rows_table(run: Path, page: list[str] | None = None) -> list[str]:
         + " |",
         "|---|---|---|---|---|---|" + "---|" * len(HELD_OUT_COLUMNS),
     ]
-    lines, missing, carried = [], [], []
+    blocks: dict[str | None, list[str]] = {None: []}  # per ROWS title, its lines (None: before the first)
+    missing, carried = [], []
     for folder, title in ROWS.items():
         ev = run_evals(run / folder) or {}
+        not_cut = f"{title}, at its operating point chosen on val (`{folder}`, threshold=val)"
         if "test" not in ev:
             if kept := _page_row(page or [], title):
-                lines += kept
+                blocks[title] = kept
                 carried.append(f"{title} (`{folder}`)")
+                if folder in OPVAL_ROWS and len(kept) == 1:
+                    missing.append(not_cut)
             elif folder not in BY_HAND:
                 missing.append(f"{title} (`{folder}`)")
             continue
-        lines.append(_rows_line(title, ev))
+        blocks[title] = [_rows_line(title, ev)]
         if folder in OPVAL_ROWS:
             if "test" not in (op := run_evals(run / folder, suffix="_opval") or {}):
-                missing.append(f"{title}, at its operating point chosen on val (`{folder}`, threshold=val)")
+                missing.append(not_cut)
                 continue
             cut = f"P(failure) >= {op['test']['threshold']:.3f}"
-            lines.append(
+            blocks[title].append(
                 _rows_line(f"{OPVAL_LINE[2:]}{cut}, the cut chosen on its seen-val bench ({OPVAL_ROWS[folder]})", op)
             )
+    for above, line in _hand_rows(page or []):  # rows no folder makes stay where the page had them
+        blocks.setdefault(above if above in blocks else None, []).append(line)
+        carried.append(line.split(" | ")[0].removeprefix("| ") + " (added by hand)")
+    lines = [line for block in blocks.values() for line in block]
     if not lines:
         return []
     said = ["", CARRIED + "; ".join(carried) + "."] if carried else []
     return head + lines + said + _not_run(missing)
+
+
+def _hand_rows(page: list[str]) -> list[tuple[str | None, str]]:
+    """The page's table rows that no ROWS title makes (added by hand), each with the ROWS title of the row above it
+    (None: none above)."""
+    out: list[tuple[str | None, str]] = []
+    above = None
+    for line in page:
+        if not line.startswith("| ") or line.startswith(("| row |", OPVAL_LINE)):
+            continue
+        title = next((t for t in ROWS.values() if line.startswith(f"| {t} |")), None)
+        if title is None:
+            out.append((above, line))
+        above = title or above
+    return out
 
 
 def _page_row(page: list[str], title: str) -> list[str]:
