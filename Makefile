@@ -259,13 +259,24 @@ TUNED_ROW    ?=
 ifneq ($(filter-out rand rand2,$(TUNED_ROW))$(word 2,$(TUNED_ROW)),)
 $(error TUNED_ROW is rand or rand2 (the randomised rows) or empty (make reproduce's model), not '$(TUNED_ROW)')
 endif
-TUNED_FROM   := $(if $(TUNED_ROW),$(if $(filter rand2,$(TUNED_ROW)),rows/rand_tuned,rows/$(TUNED_ROW)),train)
+# per row (TUNED_ROW empty: make reproduce's model): the model the stages start from, the make step that makes it,
+# the extra datasets they train on beside the dataset, the stage count
+TUNED_FROM_       := train
+TUNED_PREV_       := reproduce
+TUNED_COUNT_      := $(TUNED_STAGES)
+TUNED_FROM_rand   := rows/rand
+TUNED_PREV_rand   := reproduce-more MORE_FAMILY=randomised
+TUNED_DATA_rand   := rand
+TUNED_COUNT_rand  := $(TUNED_STAGES)
+TUNED_FROM_rand2  := rows/rand_tuned
+TUNED_PREV_rand2  := reproduce-tuned TUNED_ROW=rand
+TUNED_DATA_rand2  := rand rand2
+TUNED_COUNT_rand2 := 1
+TUNED_FROM   := $(TUNED_FROM_$(TUNED_ROW))
+TUNED_PREV   := $(TUNED_PREV_$(TUNED_ROW))
+TUNED_COUNT  := $(TUNED_COUNT_$(TUNED_ROW))
 TUNED_DIR    := $(if $(TUNED_ROW),rows/$(TUNED_ROW)_tuned,tuned)
-TUNED_DATA   := $(if $(filter rand2,$(TUNED_ROW)),rand rand2,$(TUNED_ROW))
-TUNED_EXTRA  := $(if $(TUNED_ROW),'extra_train=[$(subst $(space),$(comma),$(addprefix $(R)/dataset_,$(TUNED_DATA)))]')
-TUNED_COUNT  := $(if $(filter rand2,$(TUNED_ROW)),1,$(TUNED_STAGES))
-TUNED_PREV   := $(if $(TUNED_ROW),$(if $(filter rand2,$(TUNED_ROW)),reproduce-tuned TUNED_ROW=rand,reproduce-more \
-  MORE_FAMILY=randomised),reproduce)
+TUNED_EXTRA  := $(if $(TUNED_ROW),'extra_train=[$(subst $(space),$(comma),$(addprefix $(R)/dataset_,$(TUNED_DATA_$(TUNED_ROW))))]')
 # rand2's first pair: the one after rand's last, read from rand's own run.json when the step runs (so a MORE_SEEN
 # changed since cannot make the two share pairs); a variable, not inline: the commas of its lists would split an $(if)
 RAND2_FIRST  := $$($(PY) -c "import json; r = json.load(open('$(R)/shards/rand/run.json')); \
