@@ -252,15 +252,19 @@ reproduce-online: $(STAMP)
 # randomised scenes (pairs after rand's; generated and built here when missing, about 21 min), into rows/rand2_tuned
 # (4 Dec midnight: adopted on validation over the two-stage row; its val-chosen cut was not, so it is reported at 0.5
 # only). Its stage count is 1 (TUNED_STAGES is rand's).
+# TUNED_ROW=rand3: one more stage from rows/rand2_tuned on the dataset plus MORE_SEEN new randomised pairs (after
+# rand2's; generated when missing) only, into rows/rand3_tuned (5 Dec: adopted on validation over rand2's row, and its
+# val-chosen cut too, so report-tuned benches it at 0.5 and at the cut).
 # Only these: no other row was measured.
 TUNE_STAGE   := lr.vision=3e-5 lr.merger=3e-5
 TUNED_STAGES ?= 2
 TUNED_ROW    ?=
-ifneq ($(filter-out rand rand2,$(TUNED_ROW))$(word 2,$(TUNED_ROW)),)
-$(error TUNED_ROW is rand or rand2 (the randomised rows) or empty (make reproduce's model), not '$(TUNED_ROW)')
+ifneq ($(filter-out rand rand2 rand3,$(TUNED_ROW))$(word 2,$(TUNED_ROW)),)
+$(error TUNED_ROW is rand, rand2 or rand3 (the randomised rows) or empty (make reproduce's model), not '$(TUNED_ROW)')
 endif
 # per row (TUNED_ROW empty: make reproduce's model): the model the stages start from, the make step that makes it,
-# the extra datasets they train on beside the dataset, the stage count
+# the extra datasets they train on beside the dataset, the stage count, the row whose pairs its new ones follow (a
+# row that generates its own), whether report-tuned benches it at its val-chosen cut too
 TUNED_FROM_       := train
 TUNED_PREV_       := reproduce
 TUNED_COUNT_      := $(TUNED_STAGES)
@@ -268,24 +272,34 @@ TUNED_FROM_rand   := rows/rand
 TUNED_PREV_rand   := reproduce-more MORE_FAMILY=randomised
 TUNED_DATA_rand   := rand
 TUNED_COUNT_rand  := $(TUNED_STAGES)
+TUNED_CUT_rand    := yes
 TUNED_FROM_rand2  := rows/rand_tuned
 TUNED_PREV_rand2  := reproduce-tuned TUNED_ROW=rand
 TUNED_DATA_rand2  := rand rand2
 TUNED_COUNT_rand2 := 1
+TUNED_AFTER_rand2 := rand
+TUNED_FROM_rand3  := rows/rand2_tuned
+TUNED_PREV_rand3  := reproduce-tuned TUNED_ROW=rand2
+TUNED_DATA_rand3  := rand3
+TUNED_COUNT_rand3 := 1
+TUNED_AFTER_rand3 := rand2
+TUNED_CUT_rand3   := yes
 TUNED_FROM   := $(TUNED_FROM_$(TUNED_ROW))
 TUNED_PREV   := $(TUNED_PREV_$(TUNED_ROW))
 TUNED_COUNT  := $(TUNED_COUNT_$(TUNED_ROW))
+TUNED_AFTER  := $(TUNED_AFTER_$(TUNED_ROW))
 TUNED_DIR    := $(if $(TUNED_ROW),rows/$(TUNED_ROW)_tuned,tuned)
 TUNED_EXTRA  := $(if $(TUNED_ROW),'extra_train=[$(subst $(space),$(comma),$(addprefix $(R)/dataset_,$(TUNED_DATA_$(TUNED_ROW))))]')
-# rand2's first pair: the one after rand's last, read from rand's own run.json when the step runs (so a MORE_SEEN
-# changed since cannot make the two share pairs); a variable, not inline: the commas of its lists would split an $(if)
-RAND2_FIRST  := $$($(PY) -c "import json; r = json.load(open('$(R)/shards/rand/run.json')); \
+# a row's new randomised pairs, generated and built all-train when missing: the first is the one after the pairs of
+# the row it follows, read from that row's own run.json when the step runs (so a MORE_SEEN changed since cannot make
+# the two share pairs); a variable, not inline: the commas of its lists would split an $(if)
+TUNED_FIRST  := $$($(PY) -c "import json; r = json.load(open('$(R)/shards/$(TUNED_AFTER)/run.json')); \
   print(r['first_pair'] + r['num_episodes'] // 2)")
-RAND2_DATA   := test -f $(R)/dataset_rand2/stats.json || { $(BIN)/labrobfail-generate $(REPRO_GEN) \
+TUNED_NEW    := test -f $(R)/dataset_$(TUNED_ROW)/stats.json || { $(BIN)/labrobfail-generate $(REPRO_GEN) \
   backend_kwargs.wrist=false num_episodes=$(MORE_SEEN) backend_kwargs.scene_family=randomised \
-  first_pair=$(RAND2_FIRST) out_dir=$(R)/shards/rand2 && $(BIN)/labrobfail-build-dataset \
-  'shards=[$(R)/shards/rand2]' out_dir=$(R)/dataset_rand2 $(DEMO_GRID) 'views=[front,side]' 'ratios=[1,0,0]' \
-  progress=false; } || exit 1
+  first_pair=$(TUNED_FIRST) out_dir=$(R)/shards/$(TUNED_ROW) && $(BIN)/labrobfail-build-dataset \
+  'shards=[$(R)/shards/$(TUNED_ROW)]' out_dir=$(R)/dataset_$(TUNED_ROW) $(DEMO_GRID) 'views=[front,side]' \
+  'ratios=[1,0,0]' progress=false; } || exit 1
 # bench, but a split already benched (eval_<split>, or eval_<split>_opval at threshold=val: the bench's own folder
 # names) is not run again, and the model is named by the path its `final` link points to (the stage's own, as the
 # sealed ledger lists it)
@@ -295,7 +309,7 @@ bench_once   = for s in $(2); do test -f $(1)/final/eval_$${s}$(if $(filter thre
 reproduce-tuned: $(STAMP)
 	@test -d $(R)/$(TUNED_FROM)/final || \
 	  { echo "reproduce-tuned: run make $(TUNED_PREV) first (no $(R)/$(TUNED_FROM)/final)" >&2; exit 2; }
-	$(if $(filter rand2,$(TUNED_ROW)),$(RAND2_DATA))
+	$(if $(TUNED_AFTER),$(TUNED_NEW))
 	prev=$(R)/$(TUNED_FROM)/final; for k in $$(seq 1 $(TUNED_COUNT)); do \
 	  test -f $(R)/$(TUNED_DIR)/stage$$k/train_summary.json || $(BIN)/labrobfail-train $(REPRO_TRAIN) epochs=1 \
 	    dataset_dir=$(R)/dataset $(TUNED_EXTRA) output_dir=$(R)/$(TUNED_DIR)/stage$$k model.path=$$prev \
@@ -308,7 +322,7 @@ report-tuned: $(STAMP)
 	@test -L $(R)/$(TUNED_DIR)/final || { echo >&2 \
 	  "report-tuned: no link $(R)/$(TUNED_DIR)/final (run make reproduce-tuned$(if $(TUNED_ROW), TUNED_ROW=$(TUNED_ROW)) first)"; exit 2; }
 	$(call bench_once,$(R)/$(TUNED_DIR),test test_object test_scene test_both,$(R)/dataset)
-	$(if $(filter rand,$(TUNED_ROW)),$(call bench_once,$(R)/$(TUNED_DIR),$(OPVAL_SPLITS),$(R)/dataset,threshold=val))
+	$(if $(TUNED_CUT_$(TUNED_ROW)),$(call bench_once,$(R)/$(TUNED_DIR),$(OPVAL_SPLITS),$(R)/dataset,threshold=val))
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS) 'sections=[$(if $(TUNED_ROW),rows,tuned)]'
 
 # The paper's recovery table in the wide world, with statistical power: per task, RECOVERY_TRIALS trials run from

@@ -160,8 +160,8 @@ def test_the_randomised_rows_tuned_stages_train_on_its_data_and_report_at_its_cu
     """`make reproduce-tuned TUNED_ROW=rand` (a dry run): the stages start from the randomised row and train on the
     data it trained on (dataset_rand added), into rows/rand_tuned; `make report-tuned TUNED_ROW=rand` benches the
     sealed splits once at 0.5 and once at the cut chosen on val, then writes the rows section. `TUNED_ROW=rand2` is one
-    more stage from that row with new randomised episodes. Without TUNED_ROW the stages are make reproduce's; any
-    other row is refused in one line."""
+    more stage from that row with new randomised episodes, `rand3` one more from rand2's with newer ones. Without
+    TUNED_ROW the stages are make reproduce's; any other row is refused in one line."""
     plan = _make_dry("reproduce-tuned", f"R={tmp_path}", "TUNED_ROW=rand", "TUNED_STAGES=1")
     assert plan.returncode == 0, plan.stderr
     train = next(line for line in plan.stdout.splitlines() if "extra_train=" in line)
@@ -192,11 +192,20 @@ def test_the_randomised_rows_tuned_stages_train_on_its_data_and_report_at_its_cu
     report = _make_dry("report-tuned", f"R={tmp_path}", "TUNED_ROW=rand2").stdout
     assert f"model={tmp_path}/rows/rand2_tuned/" in report and "threshold=val" not in report  # its cut not adopted
     assert "test_both" in report and report.rstrip().endswith("'sections=[rows]'")
-    for row in ("more", "rand more", "val_both", "rand3"):
+    # rand3: one stage from rand2's row on the dataset plus new pairs after rand2's only, reported at its cut too
+    more = _make_dry("reproduce-tuned", f"R={tmp_path}", "TUNED_ROW=rand3").stdout
+    gen = next(line for line in more.splitlines() if "labrobfail-generate" in line)
+    assert f"{tmp_path}/shards/rand2/run.json" in gen and f"out_dir={tmp_path}/shards/rand3 " in gen
+    assert f"'shards=[{tmp_path}/shards/rand3]' out_dir={tmp_path}/dataset_rand3 " in gen
+    assert f"'extra_train=[{tmp_path}/dataset_rand3]'" in more and f"prev={tmp_path}/rows/rand2_tuned/final" in more
+    report = _make_dry("report-tuned", f"R={tmp_path}", "TUNED_ROW=rand3").stdout
+    (opval,) = [line for line in report.splitlines() if "threshold=val" in line]
+    assert f"model={tmp_path}/rows/rand3_tuned/" in opval and "test_both" in opval
+    for row in ("more", "rand more", "val_both", "rand9"):
         got = _make_dry("reproduce-tuned", f"R={tmp_path}", f"TUNED_ROW={row}")
         assert got.returncode != 0 and not got.stdout, row
         (line,) = got.stderr.strip().splitlines()
-        assert "TUNED_ROW is rand or rand2" in line and f"'{row}'" in line
+        assert "TUNED_ROW is rand, rand2 or rand3" in line and f"'{row}'" in line
 
 
 def test_the_sealed_catalogue_has_shapes_sizes_and_colours_of_its_own():
