@@ -189,6 +189,12 @@ def test_a_rows_splice_keeps_the_pages_main_row_when_the_run_benched_its_model_o
     carried = next(line for line in table.splitlines() if line.startswith("Carried from the page"))
     assert "(`rows/deep4`)" in carried and "(`train`)" in carried and "front + wrist" not in carried
     assert "(`rows/more`)" in table.split("Not run for this page: ")[1] and "(`rows/rand`)" in table
+    # a run whose own `train` has a seen test bench (a later rerun of the recipe: another model) leaves the page's
+    # main row as it was: the main row is the whole page's model
+    _eval(run / "train" / "final" / "eval_test", 70.0)
+    assert main([f"run={run}", f"out={page}", "sections=[rows]"]) == 0
+    table = page.read_text().split("## Tower and sensor rows\n")[1].split("## Supervision\n")[0]
+    assert SHIPPED in table.splitlines() and "| 70.0 [" not in table
 
 
 def test_a_rows_splice_keeps_rows_added_by_hand_where_they_stood_and_says_which_cut_was_never_run(
@@ -210,7 +216,7 @@ def test_a_rows_splice_keeps_rows_added_by_hand_where_they_stood_and_says_which_
     table = text.split("## Tower and sensor rows\n")[1].split("## Supervision\n")[0].splitlines()
     assert table[table.index(SHIPPED) + 1] == hand and tuned in table
     carried = next(line for line in table if line.startswith("Carried from the page"))
-    assert "the recipe rerun (added by hand) (added by hand)" in carried and "(`rows/rand_tuned`)" in carried
+    assert "; the recipe rerun (added by hand)." in carried and "(`rows/rand_tuned`)" in carried
     not_run = next(line for line in table if line.startswith("Not run for this page"))
     assert "at its operating point chosen on val (`rows/rand_tuned`, threshold=val)" in not_run
     assert main([f"run={run}", f"out={page}", "sections=[rows]"]) == 0

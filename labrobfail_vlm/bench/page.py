@@ -314,7 +314,9 @@ def rows_table(run: Path, page: list[str] | None = None) -> list[str]:
     """Tower and sensor rows side by side: seen Q2 and AUROC, failure-only Q3/Q5/ROUGE-L, Q2 on each held-out split
     (validation, then sealed). `page` (the existing page's lines, when a splice replaces its rows table): a row the
     run has no seen test bench for keeps the page's line (and the line at its val-chosen cut under it), named as
-    carried, so a run that re-benched one row never drops the others."""
+    carried, so a run that re-benched one row never drops the others; the main row (`train`) is the whole page's
+    model, described by its other sections, so a splice keeps the page's line for it whatever the run holds (a later
+    run's `train` is another model: its own whole page, or a row added by hand)."""
     head = [
         "| row | seen Q2 | seen AUROC | seen Q3 (failures) | seen Q5 (failures) | ROUGE-L (failures) | "
         + " | ".join(f"{s.replace('_', ' ')} Q2" for s in HELD_OUT_COLUMNS)
@@ -326,6 +328,10 @@ def rows_table(run: Path, page: list[str] | None = None) -> list[str]:
     for folder, title in ROWS.items():
         ev = run_evals(run / folder) or {}
         not_cut = f"{title}, at its operating point chosen on val (`{folder}`, threshold=val)"
+        if folder == "train" and (kept := _page_row(page or [], title)):
+            blocks[title] = kept
+            carried.append(f"{title} (`{folder}`)")
+            continue
         if "test" not in ev:
             if kept := _page_row(page or [], title):
                 blocks[title] = kept
@@ -346,7 +352,8 @@ def rows_table(run: Path, page: list[str] | None = None) -> list[str]:
             )
     for above, line in _hand_rows(page or []):  # rows no folder makes stay where the page had them
         blocks.setdefault(above if above in blocks else None, []).append(line)
-        carried.append(line.split(" | ")[0].removeprefix("| ") + " (added by hand)")
+        name = line.split(" | ")[0].removeprefix("| ")
+        carried.append(name if "added by hand" in name else f"{name} (added by hand)")
     lines = [line for block in blocks.values() for line in block]
     if not lines:
         return []
