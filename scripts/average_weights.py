@@ -4,7 +4,7 @@ WiSE-FT's interpolation, which keeps much of the later stage's gain and the earl
 
 Run as:
     S=outputs/r15/rows
-    python scripts/average_weights.py "src=[$S/rand3_tuned/stage1/final,$S/rand4_tuned/stage1/final]" out=$S/soup34/final
+    python scripts/average_weights.py "src=[$S/rand3_tuned/final,$S/rand4_tuned/final]" out=$S/soup34/final
     python scripts/average_weights.py 'src=[A,B]' 'weights=[0.7,0.3]' out=DIR
 
 Every *.safetensors file of the first checkpoint is averaged with the same file of the others (same tensor names,
