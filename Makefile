@@ -295,7 +295,10 @@ TUNED_EXTRA  := $(if $(TUNED_ROW),'extra_train=[$(subst $(space),$(comma),$(addp
 # the two share pairs); a variable, not inline: the commas of its lists would split an $(if)
 TUNED_FIRST  := $$($(PY) -c "import json; r = json.load(open('$(R)/shards/$(TUNED_AFTER)/run.json')); \
   print(r['first_pair'] + r['num_episodes'] // 2)")
-TUNED_NEW    := test -f $(R)/dataset_$(TUNED_ROW)/stats.json || { $(BIN)/labrobfail-generate $(REPRO_GEN) \
+TUNED_NEW    := test -f $(R)/dataset_$(TUNED_ROW)/stats.json || { { test -f $(R)/shards/$(TUNED_AFTER)/run.json || { \
+  echo "reproduce-tuned: no $(R)/shards/$(TUNED_AFTER)/run.json (the pairs these follow: run make $(if \
+  $(filter rand,$(TUNED_AFTER)),reproduce-more MORE_FAMILY=randomised,reproduce-tuned TUNED_ROW=$(TUNED_AFTER)) first)" >&2; \
+  exit 2; }; } && $(BIN)/labrobfail-generate $(REPRO_GEN) \
   backend_kwargs.wrist=false num_episodes=$(MORE_SEEN) backend_kwargs.scene_family=randomised \
   first_pair=$(TUNED_FIRST) out_dir=$(R)/shards/$(TUNED_ROW) && $(BIN)/labrobfail-build-dataset \
   'shards=[$(R)/shards/$(TUNED_ROW)]' out_dir=$(R)/dataset_$(TUNED_ROW) $(DEMO_GRID) 'views=[front,side]' \

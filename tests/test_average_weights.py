@@ -58,6 +58,7 @@ def test_the_average_is_the_weighted_mean_and_loads(two, tmp_path):
         (["weights=[0.5,0.6]"], "summing to 1"),
         (["weights=[1.0]"], "summing to 1"),
         (["weights=[a,b]"], "not a list of numbers"),
+        (["weights=[nan,nan]"], "summing to 1"),
     ],
 )
 def test_bad_weights_are_refused_in_one_line_and_nothing_is_written(two, tmp_path, args, says):
@@ -91,3 +92,42 @@ def test_checkpoints_of_other_shapes_or_configs_and_an_existing_out_are_refused(
     assert r.returncode == 2 and "already exists" in r.stderr
     r = average(f"src=[{a}]", f"out={tmp_path / 'other'}")
     assert r.returncode == 2 and "two or more" in r.stderr
+    r = average("src=3", f"out={tmp_path / 'other'}")
+    assert r.returncode == 2 and "two or more" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def _copy(src, dst, change=None, extra=None):
+    """A copy of a checkpoint folder, its weights changed by `change` and `extra` tensors added."""
+    shutil.copytree(src, dst)
+    w = load_file(str(dst / "model.safetensors"))
+    save_file({**(change(w) if change else w), **(extra or {})}, str(dst / "model.safetensors"))
+    return dst
+
+
+def test_a_failure_part_way_leaves_no_folder_and_other_folders_are_refused(two, tmp_path):
+    """Tensors that cannot be averaged (a non-float one that differs), other weight files, a LoRA-tuned card: each
+    refused in one line, with no <out> and no <out>.tmp left; an <out>.tmp already there is refused, not deleted."""
+    a, b = two
+    out = tmp_path / "soup"
+    ia = _copy(a, tmp_path / "ia", extra={"steps": torch.tensor([1, 2])})
+    ib = _copy(b, tmp_path / "ib", extra={"steps": torch.tensor([1, 3])})
+    r = average(f"src=[{ia},{ib}]", f"out={out}")
+    assert r.returncode == 2 and "non-float tensor steps differs" in r.stderr, r.stderr
+    assert not out.exists() and not (tmp_path / "soup.tmp").exists()
+    same = _copy(b, tmp_path / "same", extra={"steps": torch.tensor([1, 2])})
+    assert average(f"src=[{ia},{same}]", f"out={out}").returncode == 0  # equal non-float tensors are kept
+    assert torch.equal(load_file(str(out / "model.safetensors"))["steps"], torch.tensor([1, 2]))
+    r = average(f"src=[{a},{ia}]", f"out={tmp_path / 'o2'}")
+    assert r.returncode == 2 and "other tensor names" in r.stderr, r.stderr
+    shutil.copy(b / "model.safetensors", same / "more.safetensors")
+    r = average(f"src=[{a},{same}]", f"out={tmp_path / 'o2'}")
+    assert r.returncode == 2 and ".safetensors files differ" in r.stderr, r.stderr
+    lora = _copy(b, tmp_path / "lora")
+    (lora / "labrobfail.json").write_text(json.dumps({"tuning": "hybrid", "grid": None}))
+    r = average(f"src=[{a},{lora}]", f"out={tmp_path / 'o2'}")
+    assert r.returncode == 2 and "tuned 'hybrid', not 'full'" in r.stderr, r.stderr
+    (tmp_path / "o3.tmp").mkdir()
+    (tmp_path / "o3.tmp" / "keep").write_text("mine")
+    r = average(f"src=[{a},{b}]", f"out={tmp_path / 'o3'}")
+    assert r.returncode == 2 and "o3.tmp exists" in r.stderr and (tmp_path / "o3.tmp" / "keep").is_file()
+    assert not (tmp_path / "o2").exists() and not (tmp_path / "o2.tmp").exists()

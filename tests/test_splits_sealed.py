@@ -196,6 +196,9 @@ def test_the_randomised_rows_tuned_stages_train_on_its_data_and_report_at_its_cu
     more = _make_dry("reproduce-tuned", f"R={tmp_path}", "TUNED_ROW=rand3").stdout
     gen = next(line for line in more.splitlines() if "labrobfail-generate" in line)
     assert f"{tmp_path}/shards/rand2/run.json" in gen and f"out_dir={tmp_path}/shards/rand3 " in gen
+    # without the pairs it follows, one line saying which step makes them (not a Python traceback)
+    assert f"test -f {tmp_path}/shards/rand2/run.json || {{ echo" in gen
+    assert '(the pairs these follow: run make reproduce-tuned TUNED_ROW=rand2 first)" >&2; exit 2' in gen
     assert f"'shards=[{tmp_path}/shards/rand3]' out_dir={tmp_path}/dataset_rand3 " in gen
     assert f"'extra_train=[{tmp_path}/dataset_rand3]'" in more and f"prev={tmp_path}/rows/rand2_tuned/final" in more
     report = _make_dry("report-tuned", f"R={tmp_path}", "TUNED_ROW=rand3").stdout

@@ -195,6 +195,9 @@ def test_a_rows_splice_keeps_the_pages_main_row_when_the_run_benched_its_model_o
     assert main([f"run={run}", f"out={page}", "sections=[rows]"]) == 0
     table = page.read_text().split("## Tower and sensor rows\n")[1].split("## Supervision\n")[0]
     assert SHIPPED in table.splitlines() and "| 70.0 [" not in table
+    kept = next(line for line in table.splitlines() if line.startswith("Kept from the page: its main row"))
+    assert "(`train`); the run's own `train` is another model." in kept
+    assert "(`train`)" not in next(line for line in table.splitlines() if line.startswith("Carried from the page"))
 
 
 def test_a_rows_splice_keeps_rows_added_by_hand_where_they_stood_and_says_which_cut_was_never_run(

@@ -286,7 +286,8 @@ ROWS = {
 }
 BY_HAND = ("rows/deep4",)
 # rows also shown at the operating point chosen on their own seen-val bench (eval_<split>_opval, `labrobfail-evaluate
-# threshold=val`), with the date the cut was adopted on validation (docs/EXPERIMENTS.md); make reproduce-more benches it
+# threshold=val`), with the date the cut was adopted on validation (docs/EXPERIMENTS.md); make reproduce-more
+# (rows/rand) and make report-tuned (the tuned rows) bench it
 OPVAL_ROWS = {"rows/rand": "4 Dec night", "rows/rand_tuned": "4 Dec late night", "rows/rand3_tuned": "5 Dec"}
 ABLATIONS = {
     "ablate/tuned": "tuned tower and merger",
@@ -295,6 +296,7 @@ ABLATIONS = {
 }
 NOT_RUN = "Not run for this page: "  # how a table or the page names the runs it lacks
 CARRIED = "Carried from the page (not benched in the run it was spliced from): "
+MAIN_KEPT = "Kept from the page: its main row, the model its other sections describe, "
 OPVAL_LINE = "| the row above at "  # a row at its val-chosen cut, the line under its 0.5 row
 
 
@@ -324,13 +326,16 @@ def rows_table(run: Path, page: list[str] | None = None) -> list[str]:
         "|---|---|---|---|---|---|" + "---|" * len(HELD_OUT_COLUMNS),
     ]
     blocks: dict[str | None, list[str]] = {None: []}  # per ROWS title, its lines (None: before the first)
-    missing, carried = [], []
+    missing, carried, own = [], [], []
     for folder, title in ROWS.items():
         ev = run_evals(run / folder) or {}
         not_cut = f"{title}, at its operating point chosen on val (`{folder}`, threshold=val)"
         if folder == "train" and (kept := _page_row(page or [], title)):
             blocks[title] = kept
-            carried.append(f"{title} (`{folder}`)")
+            if "test" in ev:  # benched in the run, but as another model than the page's
+                own = [f"{MAIN_KEPT}{title} (`{folder}`); the run's own `{folder}` is another model."]
+            else:
+                carried.append(f"{title} (`{folder}`)")
             continue
         if "test" not in ev:
             if kept := _page_row(page or [], title):
@@ -358,7 +363,7 @@ def rows_table(run: Path, page: list[str] | None = None) -> list[str]:
     if not lines:
         return []
     said = ["", CARRIED + "; ".join(carried) + "."] if carried else []
-    return head + lines + said + _not_run(missing)
+    return head + lines + said + (["", *own] if own else []) + _not_run(missing)
 
 
 def _hand_rows(page: list[str]) -> list[tuple[str | None, str]]:
