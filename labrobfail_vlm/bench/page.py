@@ -330,20 +330,18 @@ def rows_table(run: Path, page: list[str] | None = None) -> list[str]:
     for folder, title in ROWS.items():
         ev = run_evals(run / folder) or {}
         not_cut = f"{title}, at its operating point chosen on val (`{folder}`, threshold=val)"
-        if folder == "train" and (kept := _page_row(page or [], title)):
+        kept = _page_row(page or [], title)
+        if kept and ("test" not in ev or folder == "train"):
             blocks[title] = kept
-            if "test" in ev:  # benched in the run, but as another model than the page's
+            if "test" in ev:  # the main row, benched in the run, but as another model than the page's
                 own = [f"{MAIN_KEPT}{title} (`{folder}`); the run's own `{folder}` is another model."]
-            else:
-                carried.append(f"{title} (`{folder}`)")
+                continue
+            carried.append(f"{title} (`{folder}`)")
+            if folder in OPVAL_ROWS and len(kept) == 1:
+                missing.append(not_cut)
             continue
         if "test" not in ev:
-            if kept := _page_row(page or [], title):
-                blocks[title] = kept
-                carried.append(f"{title} (`{folder}`)")
-                if folder in OPVAL_ROWS and len(kept) == 1:
-                    missing.append(not_cut)
-            elif folder not in BY_HAND:
+            if folder not in BY_HAND:
                 missing.append(f"{title} (`{folder}`)")
             continue
         blocks[title] = [_rows_line(title, ev)]
