@@ -14,6 +14,8 @@ from typing import Any, ClassVar
 from sim_backends.schema import Goal, Step
 from sim_backends.types import Keyframe
 
+PRESS_TRAVEL = 0.007  # m of cap travel that counts as a press: the pressed goal's test (and a lit button lamp's)
+
 
 @dataclass
 class PlanBuilder:
@@ -64,7 +66,7 @@ class PlanBuilder:
             self.goal("released", object=obj)
 
     def goal_pressed(self, button: str) -> None:
-        self.goal("button", object=button, min_travel=0.007)
+        self.goal("button", object=button, min_travel=PRESS_TRAVEL)
 
     def goal_door(self, oven: str, to_open: bool) -> None:
         """Door angle (rad) at least 1.1 when opened, at most 0.12 when shut."""

@@ -145,3 +145,37 @@ def test_the_lowpoly_robot_file_is_one_file_shared_by_every_process():
     urdf = Path(paths.pop())
     assert urdf.is_file() and "meshes/collision/" in urdf.read_text() and "package://" not in urdf.read_text()
     assert not list(urdf.parent.glob(urdf.name + "*.tmp"))
+
+
+def test_button_lamp_lights_on_a_press_and_not_on_a_press_beside_the_button():
+    """`button_lamp=true`: the housing turns green in the keyframes after the cap's travel reaches the pressed goal's
+    (a grid then shows the press), and stays grey when the press lands 7 cm beside the button; off by default."""
+    import io
+
+    import pybullet as p
+    from PIL import Image
+
+    from sim_backends.pybullet.assets import HOUSING_RGBA, LAMP_RGBA
+
+    def green(ep, i: int = -1) -> int:  # lit-green pixels in front keyframe i
+        a = np.asarray(Image.open(io.BytesIO(ep.images[0][i])).convert("RGB")).astype(int)
+        return int(((a[..., 1] > 170) & (a[..., 0] < 120) & (a[..., 2] < 140)).sum())
+
+    beside = lambda k: _shifted(k, ["s0_touch", "s0_press"], 0.07)  # noqa: E731
+    lit = make_backend("pybullet", image_size=128, cameras=["front"], max_distractors=0, button_lamp=True)
+    plain = make_backend("pybullet", image_size=128, cameras=["front"], max_distractors=0)
+    try:
+        housing = lambda s: p.getVisualShapeData(s.scene.objects["button"].body, physicsClientId=s.cid)[0][7]  # noqa: E731
+        ok = _run(lit, "press_button_red", 3)
+        assert ok.labels.success and housing(lit) == pytest.approx(LAMP_RGBA)
+        assert green(ok, 0) == 0 and green(ok) >= 10  # dark before the press, lit after it
+        miss = _run(lit, "press_button_red", 3, beside)
+        assert miss.labels.failure_type == "operation_position_error", miss.labels.evidence
+        assert housing(lit) == pytest.approx(HOUSING_RGBA) and green(miss) == 0
+        same = _run(plain, "press_button_red", 3)
+        assert same.labels == ok.labels and housing(plain) == pytest.approx(HOUSING_RGBA) and green(same) == 0
+    finally:
+        lit.close()
+        plain.close()
+    with pytest.raises(ValueError, match="button_lamp: expected true or false"):
+        make_backend("pybullet", render=False, button_lamp="yes")

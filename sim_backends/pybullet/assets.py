@@ -326,12 +326,14 @@ def handle_position(
     return hinge + np.array([lx * c - ly * s, lx * s + ly * c, height / 2])
 
 
+HOUSING_RGBA = (0.25, 0.25, 0.28, 1.0)  # a button's housing, dark grey
+LAMP_RGBA = (0.15, 0.95, 0.25, 1.0)  # the housing lit green once pressed (the backend's `button_lamp` option)
+
+
 def button(cid: int, pos, rgba=(0.85, 0.1, 0.1, 1.0), travel: float = 0.012) -> tuple[int, int]:
     """Push button: a fixed housing and a cap on a sprung prismatic joint (spring = position motor)."""
     hcol = p.createCollisionShape(p.GEOM_BOX, halfExtents=[0.04, 0.04, 0.02], physicsClientId=cid)
-    hvis = p.createVisualShape(
-        p.GEOM_BOX, halfExtents=[0.04, 0.04, 0.02], rgbaColor=(0.25, 0.25, 0.28, 1), physicsClientId=cid
-    )
+    hvis = p.createVisualShape(p.GEOM_BOX, halfExtents=[0.04, 0.04, 0.02], rgbaColor=HOUSING_RGBA, physicsClientId=cid)
     ccol = p.createCollisionShape(p.GEOM_CYLINDER, radius=0.022, height=0.02, physicsClientId=cid)
     cvis = p.createVisualShape(p.GEOM_CYLINDER, radius=0.022, length=0.02, rgbaColor=rgba, physicsClientId=cid)
     body = p.createMultiBody(

@@ -12,6 +12,7 @@ from omegaconf import OmegaConf
 
 from labrobfail_vlm.config import CONFIG_DIR, is_int
 from sim_backends.perturbations.physics import PhysicsEvent
+from sim_backends.plan_builder import PRESS_TRAVEL
 from sim_backends.pybullet import (
     assets,
     templates,  # noqa: F401 - registers the task templates
@@ -56,6 +57,12 @@ def _yaml_mapping(key: str, path: str | None) -> dict[str, Any] | None:
     return data
 
 
+def _lamp_setting(value: Any) -> bool:
+    if not isinstance(value, bool):
+        raise ValueError(f"button_lamp: expected true or false, got {value!r}")
+    return value
+
+
 @register_backend(
     "pybullet",
     image_size=224,
@@ -66,6 +73,7 @@ def _yaml_mapping(key: str, path: str | None) -> dict[str, Any] | None:
     max_distractors=scene_mod.MAX_DISTRACTORS,
     lowpoly_robot=True,
     scene_family=None,
+    button_lamp=False,
 )
 class PyBulletSource(ScenarioConfig, FailureSource):
     name = "pybullet"
@@ -85,6 +93,7 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         max_distractors: int = scene_mod.MAX_DISTRACTORS,
         lowpoly_robot: bool = True,
         scene_family: str | None = None,
+        button_lamp: bool = False,
     ):
         super().__init__()
         self.camera_jitter, self.max_distractors, self.lowpoly_robot = (
@@ -93,6 +102,10 @@ class PyBulletSource(ScenarioConfig, FailureSource):
             lowpoly_robot,
         )
         self.scene_family = scene_family  # None: the variant's own family (scene.SCENE_FAMILIES)
+        # A button's cap travels 12 mm and springs back, which no 128-px keyframe shows: with the lamp on, its housing
+        # turns green from the first trace sample at which the pressed goal holds, so a grid shows a press that
+        # happened and a press beside the button. Off by default: the page's data were rendered without it.
+        self.button_lamp = _lamp_setting(button_lamp)
         self.cfg = self.load_task_config(tasks_file)
         self.cid = p.connect(p.DIRECT)
         if egl:
@@ -136,6 +149,7 @@ class PyBulletSource(ScenarioConfig, FailureSource):
                 raise ValueError(f"custom_scene: missing {k!r}")
         if scene is not None and "vary" in scene:
             scene_mod.vary_keys(scene["vary"])
+        _lamp_setting(out.get("button_lamp", False))  # before run.json is written: a resume would refuse a fixed value
         if out.get("scene_family") is not None:
             scene_mod.scene_family("seen", out["scene_family"])  # an unknown family fails here, before any episode
         return out
@@ -213,7 +227,16 @@ class PyBulletSource(ScenarioConfig, FailureSource):
 
     def render(self) -> list[np.ndarray]:
         assert self.scene is not None
+        if self.button_lamp and self._trace is not None:
+            self._light_pressed_buttons()
         return self.renderer.render(self.scene.robot.id) if self.renderer is not None else []
+
+    def _light_pressed_buttons(self) -> None:
+        """Latch each button's lamp once its recorded travel reaches PRESS_TRAVEL (the pressed goal's own test on the
+        same trace, so the lamp and the label cannot disagree); a new episode rebuilds the scene, lamps off."""
+        for name, o in self.scene.objects.items():
+            if o.kind == "button" and max(self._trace.cols.get(f"{name}.q") or [0.0]) >= PRESS_TRAVEL:
+                p.changeVisualShape(o.body, -1, rgbaColor=assets.LAMP_RGBA, physicsClientId=self.cid)
 
     def camera_matrices(self) -> list[list[float]] | None:
         assert self.scene is not None
