@@ -14,7 +14,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from labrobfail_vlm.actions import DOOR_HANDLE, ORIGINAL, TARGET_POSITION, norm
-from sim_backends.plan_builder import PRESS_TRAVEL
+from sim_backends.plan_builder import PRESSED_MIN_TRAVEL
 from sim_backends.schema import MOVABLE, Step, TaskMeta
 from sim_backends.source import FailureSource
 from sim_backends.types import Keyframe, matrix_to_quat, quat_to_matrix, rotation_angle
@@ -158,7 +158,7 @@ class ExecutorCore:
             if not buttons:
                 raise PrimitiveError("the scene has no button to press")
             b = self._step_object(buttons)
-            travel = float(goals.get("button", {}).get("min_travel", PRESS_TRAVEL))
+            travel = float(goals.get("button", {}).get("min_travel", PRESSED_MIN_TRAVEL))
             return lambda: float(self._state()[f"{b}.q"]) >= travel
         raise PrimitiveError(f"unknown condition {until!r}")
 

@@ -14,7 +14,9 @@ from typing import Any, ClassVar
 from sim_backends.schema import Goal, Step
 from sim_backends.types import Keyframe
 
-PRESS_TRAVEL = 0.007  # m of cap travel that counts as a press: the pressed goal's test (and a lit button lamp's)
+PRESSED_MIN_TRAVEL = (
+    0.007  # m of cap travel that counts as pressed (the goal's threshold; actions.PRESS_TRAVEL is a push)
+)
 
 
 @dataclass
@@ -66,7 +68,7 @@ class PlanBuilder:
             self.goal("released", object=obj)
 
     def goal_pressed(self, button: str) -> None:
-        self.goal("button", object=button, min_travel=PRESS_TRAVEL)
+        self.goal("button", object=button, min_travel=PRESSED_MIN_TRAVEL)
 
     def goal_door(self, oven: str, to_open: bool) -> None:
         """Door angle (rad) at least 1.1 when opened, at most 0.12 when shut."""

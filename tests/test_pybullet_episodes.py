@@ -147,35 +147,64 @@ def test_the_lowpoly_robot_file_is_one_file_shared_by_every_process():
     assert not list(urdf.parent.glob(urdf.name + "*.tmp"))
 
 
-def test_button_lamp_lights_on_a_press_and_not_on_a_press_beside_the_button():
-    """`button_lamp=true`: the housing turns green in the keyframes after the cap's travel reaches the pressed goal's
-    (a grid then shows the press), and stays grey when the press lands 7 cm beside the button; off by default."""
+def test_button_lamp_lights_on_a_press_and_not_on_a_press_beside_the_button(tmp_path):
+    """`button_lamp=true`: the housing renders lit in exactly the keyframes by which the pressed goal holds on the trace
+    (a grid then shows the press); dark for a press 7 cm beside the button and for a shallow one (3 mm of travel);
+    off, the same episode records the same trace and the frames before the press are the same bytes."""
+    import dataclasses
     import io
 
     import pybullet as p
     from PIL import Image
 
+    from labrobfail_vlm.config import ConfigError
+    from sim_backends import generate
+    from sim_backends.plan_builder import PRESSED_MIN_TRAVEL
     from sim_backends.pybullet.assets import HOUSING_RGBA, LAMP_RGBA
 
-    def green(ep, i: int = -1) -> int:  # lit-green pixels in front keyframe i
-        a = np.asarray(Image.open(io.BytesIO(ep.images[0][i])).convert("RGB")).astype(int)
-        return int(((a[..., 1] > 170) & (a[..., 0] < 120) & (a[..., 2] < 140)).sum())
+    def lit(ep) -> list[bool]:  # per front keyframe: magenta lamp pixels present
+        out = []
+        for png in ep.images[0]:
+            a = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
+            out.append(int(((a[..., 0] > 170) & (a[..., 1] < 110) & (a[..., 2] > 140)).sum()) >= 10)
+        return out
+
+    def pressed_by(ep) -> list[bool]:  # per keyframe: the pressed goal holds on the trace up to its end
+        q, ends = ep.state_trace["button.q"], ep.state_trace["kf_end"]
+        return [max(q[: e + 1]) >= PRESSED_MIN_TRAVEL for e in ends]
 
     beside = lambda k: _shifted(k, ["s0_touch", "s0_press"], 0.07)  # noqa: E731
-    lit = make_backend("pybullet", image_size=128, cameras=["front"], max_distractors=0, button_lamp=True)
+
+    def shallow(k):  # the press stops 19 mm higher: about 3 mm of travel
+        return [
+            dataclasses.replace(x, pos=(*x.pos[:2], x.pos[2] + 0.019)) if x.name == "s0_press" else x for x in k
+        ], {}
+
+    lamp = make_backend("pybullet", image_size=128, cameras=["front"], max_distractors=0, button_lamp=True)
     plain = make_backend("pybullet", image_size=128, cameras=["front"], max_distractors=0)
     try:
         housing = lambda s: p.getVisualShapeData(s.scene.objects["button"].body, physicsClientId=s.cid)[0][7]  # noqa: E731
-        ok = _run(lit, "press_button_red", 3)
-        assert ok.labels.success and housing(lit) == pytest.approx(LAMP_RGBA)
-        assert green(ok, 0) == 0 and green(ok) >= 10  # dark before the press, lit after it
-        miss = _run(lit, "press_button_red", 3, beside)
-        assert miss.labels.failure_type == "operation_position_error", miss.labels.evidence
-        assert housing(lit) == pytest.approx(HOUSING_RGBA) and green(miss) == 0
+        ok = _run(lamp, "press_button_red", 3)
+        assert ok.labels.success and housing(lamp) == pytest.approx(LAMP_RGBA)
+        assert lit(ok) == pressed_by(ok) and lit(ok)[0] is False and lit(ok)[-1] is True
+        for perturb, travel in ((beside, (0.0, 0.001)), (shallow, (0.001, PRESSED_MIN_TRAVEL))):
+            miss = _run(lamp, "press_button_red", 3, perturb)
+            assert travel[0] <= max(miss.state_trace["button.q"]) < travel[1]  # none, then some but short of a press
+            assert miss.labels.failure_type == "operation_position_error", miss.labels.evidence
+            assert housing(lamp) == pytest.approx(HOUSING_RGBA) and not any(lit(miss))
         same = _run(plain, "press_button_red", 3)
-        assert same.labels == ok.labels and housing(plain) == pytest.approx(HOUSING_RGBA) and green(same) == 0
+        assert (
+            same.state_trace == ok.state_trace and housing(plain) == pytest.approx(HOUSING_RGBA) and not any(lit(same))
+        )
+        assert same.images[0][0] == ok.images[0][0] and same.images[0][-1] != ok.images[0][-1]
     finally:
-        lit.close()
+        lamp.close()
         plain.close()
     with pytest.raises(ValueError, match="button_lamp: expected true or false"):
         make_backend("pybullet", render=False, button_lamp="yes")
+    out = tmp_path / "gen"  # the generator refuses it in one line before it writes anything
+    with pytest.raises(ConfigError, match=r"^backend_kwargs.button_lamp: expected true or false, got 'maybe'$"):
+        generate.validate(
+            generate.load_config(["backend=pybullet", "backend_kwargs.button_lamp=maybe", f"out_dir={out}"])
+        )
+    assert not out.exists()

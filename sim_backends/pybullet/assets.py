@@ -327,7 +327,7 @@ def handle_position(
 
 
 HOUSING_RGBA = (0.25, 0.25, 0.28, 1.0)  # a button's housing, dark grey
-LAMP_RGBA = (0.15, 0.95, 0.25, 1.0)  # the housing lit green once pressed (the backend's `button_lamp` option)
+LAMP_RGBA = (1.0, 0.15, 0.85, 1.0)  # the housing lit once pressed (`button_lamp`): magenta, a hue no cap has
 
 
 def button(cid: int, pos, rgba=(0.85, 0.1, 0.1, 1.0), travel: float = 0.012) -> tuple[int, int]:

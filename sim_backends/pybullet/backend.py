@@ -11,8 +11,8 @@ import pybullet as p
 from omegaconf import OmegaConf
 
 from labrobfail_vlm.config import CONFIG_DIR, is_int
+from sim_backends.goals import GOALS
 from sim_backends.perturbations.physics import PhysicsEvent
-from sim_backends.plan_builder import PRESS_TRAVEL
 from sim_backends.pybullet import (
     assets,
     templates,  # noqa: F401 - registers the task templates
@@ -102,9 +102,10 @@ class PyBulletSource(ScenarioConfig, FailureSource):
             lowpoly_robot,
         )
         self.scene_family = scene_family  # None: the variant's own family (scene.SCENE_FAMILIES)
-        # A button's cap travels 12 mm and springs back, which no 128-px keyframe shows: with the lamp on, its housing
-        # turns green from the first trace sample at which the pressed goal holds, so a grid shows a press that
-        # happened and a press beside the button. Off by default: the page's data were rendered without it.
+        # A button's cap travels 12 mm and springs back, which a keyframe of a few hundred pixels does not show: with
+        # the lamp on, the housing of a button the task must press renders lit in every keyframe rendered once its
+        # pressed goal holds on the trace so far, so a grid shows a press that happened and a press beside the
+        # button. Off by default: the page's data were rendered without it.
         self.button_lamp = _lamp_setting(button_lamp)
         self.cfg = self.load_task_config(tasks_file)
         self.cid = p.connect(p.DIRECT)
@@ -158,6 +159,7 @@ class PyBulletSource(ScenarioConfig, FailureSource):
     def _reset(self, scenario: str, seed: int, variant: str) -> None:
         sc = self._scenario(scenario)
         cid = self.cid
+        self._trace = None  # the last episode's: a lamp must not read it for the new scene
         p.resetSimulation(physicsClientId=cid)
         p.setPhysicsEngineParameter(
             deterministicOverlappingPairs=1,
@@ -232,11 +234,18 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         return self.renderer.render(self.scene.robot.id) if self.renderer is not None else []
 
     def _light_pressed_buttons(self) -> None:
-        """Latch each button's lamp once its recorded travel reaches PRESS_TRAVEL (the pressed goal's own test on the
-        same trace, so the lamp and the label cannot disagree); a new episode rebuilds the scene, lamps off."""
-        for name, o in self.scene.objects.items():
-            if o.kind == "button" and max(self._trace.cols.get(f"{name}.q") or [0.0]) >= PRESS_TRAVEL:
-                p.changeVisualShape(o.body, -1, rgbaColor=assets.LAMP_RGBA, physicsClientId=self.cid)
+        """Light the housing of each button goal that holds on the trace so far (the labeler's own predicate, so a
+        lit frame and the label agree up to the settling after the last keyframe); it stays lit (the travel is a
+        running maximum), and a new episode rebuilds the scene with lamps off."""
+        for goal in self.plan.goals:
+            g = goal.to_dict()
+            if (
+                goal.kind == "button"
+                and self._trace.cols.get(f"{g['object']}.q")
+                and GOALS["button"](self._trace.cols, {}, g)
+            ):
+                body = self.scene.objects[g["object"]].body
+                p.changeVisualShape(body, -1, rgbaColor=assets.LAMP_RGBA, physicsClientId=self.cid)
 
     def camera_matrices(self) -> list[list[float]] | None:
         assert self.scene is not None
