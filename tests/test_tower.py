@@ -202,3 +202,18 @@ def test_the_shipped_tower_matches_its_card_and_loads():
     want = load_file(str(shipped_dir() / "tower.safetensors"))
     got = tower.state_dict()
     assert want.keys() == got.keys() and all(torch.equal(want[k], got[k]) for k in want)
+
+
+def test_the_card_names_how_each_shard_folder_was_rendered(tmp_path):
+    from labrobfail_vlm.train.tower_card import shard_origin
+
+    def folder(name: str, **kw) -> str:
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "run.json").write_text(json.dumps({"variant": "seen", "seed": 7, "backend_kwargs": kw}))
+        return str(tmp_path / name)
+
+    assert shard_origin(folder("plain", scene_family=None, button_lamp=False)).endswith("(seen, seed 7)")
+    assert shard_origin(folder("both", scene_family="randomised", button_lamp=True)).endswith(
+        "(seen, seed 7, scene family randomised, button lamp on)"
+    )
+    assert shard_origin(str(tmp_path / "absent")) == str(tmp_path / "absent")  # no run.json: the folder alone

@@ -24,16 +24,17 @@ TRAINING_KEYS = (
 
 
 def shard_origin(shard_dir: str) -> str:
-    """How a shard folder was generated (its run.json), in words for the card: the variant, seed and any scene family
-    other than the variant's own, so a reader sees which frames were domain-randomised."""
+    """How a shard folder was generated (its run.json), in words for the card: the variant, seed, any scene family
+    other than the variant's own (so a reader sees which frames were domain-randomised) and a lit button lamp."""
     try:
         run = json.loads((Path(shard_dir) / "run.json").read_text())
     except (OSError, ValueError):
         return shard_dir
-    family = (run.get("backend_kwargs") or {}).get("scene_family")
-    return f"{shard_dir} ({run.get('variant')}, seed {run.get('seed')}" + (
-        f", scene family {family})" if family else ")"
+    kw = run.get("backend_kwargs") or {}
+    extra = (f", scene family {kw['scene_family']}" if kw.get("scene_family") else "") + (
+        ", button lamp on" if kw.get("button_lamp") else ""
     )
+    return f"{shard_dir} ({run.get('variant')}, seed {run.get('seed')}{extra})"
 
 
 def _row(name: str, cells: list[dict[str, float] | None], fmt: str) -> str:
