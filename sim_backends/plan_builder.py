@@ -14,9 +14,8 @@ from typing import Any, ClassVar
 from sim_backends.schema import Goal, Step
 from sim_backends.types import Keyframe
 
-PRESSED_MIN_TRAVEL = (
-    0.007  # m of cap travel that counts as pressed (the goal's threshold; actions.PRESS_TRAVEL is a push)
-)
+# m of cap travel that counts as pressed: the goal's threshold (labrobfail_vlm.actions.PRESS_TRAVEL is a push's length)
+PRESSED_MIN_TRAVEL = 0.007
 
 
 @dataclass
