@@ -186,7 +186,8 @@ def test_button_lamp_lights_on_a_press_and_not_on_a_press_beside_the_button(tmp_
         housing = lambda s: p.getVisualShapeData(s.scene.objects["button"].body, physicsClientId=s.cid)[0][7]  # noqa: E731
         ok = _run(lamp, "press_button_red", 3)
         assert ok.labels.success and housing(lamp) == pytest.approx(LAMP_RGBA)
-        assert lit(ok) == pressed_by(ok) and lit(ok)[0] is False and lit(ok)[-1] is True
+        shown = lit(ok)
+        assert shown == pressed_by(ok) and shown[0] is False and shown[-1] is True
         for perturb, travel in ((beside, (0.0, 0.001)), (shallow, (0.001, PRESSED_MIN_TRAVEL))):
             miss = _run(lamp, "press_button_red", 3, perturb)
             assert travel[0] <= max(miss.state_trace["button.q"]) < travel[1]  # none, then some but short of a press

@@ -237,13 +237,8 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         """Light the housing of each button goal that holds on the trace so far (the labeler's own predicate, so a
         lit frame and the label agree up to the settling after the last keyframe); it stays lit (the travel is a
         running maximum), and a new episode rebuilds the scene with lamps off."""
-        for goal in self.plan.goals:
-            g = goal.to_dict()
-            if (
-                goal.kind == "button"
-                and self._trace.cols.get(f"{g['object']}.q")
-                and GOALS["button"](self._trace.cols, {}, g)
-            ):
+        for goal in self.plan.goals:  # the trace holds every button's travel from its first sample (_begin)
+            if goal.kind == "button" and GOALS["button"](self._trace.cols, {}, g := goal.to_dict()):
                 body = self.scene.objects[g["object"]].body
                 p.changeVisualShape(body, -1, rgbaColor=assets.LAMP_RGBA, physicsClientId=self.cid)
 
