@@ -29,6 +29,7 @@ from labrobfail_vlm.actions import to_primitives
 from labrobfail_vlm.corrections import STRATEGIES, candidates
 from labrobfail_vlm.grid import GridConfig, build_grid, fit_grid, sample_keyframes
 from labrobfail_vlm.model.processor import common_prefix_len
+from labrobfail_vlm.option_bias import BIASED_DIMS, biased_choice, check_option_bias
 from labrobfail_vlm.taxonomy import Category, Severity
 
 
@@ -57,9 +58,14 @@ class Diagnosis:
 
 
 class Answers(dict[str, str]):
-    """The decoded replies keyed by dimension, plus `p_failure` (P("Yes") for Q2) when the model scored it."""
+    """The decoded replies keyed by dimension, plus `p_failure` (P("Yes") for Q2) when the model scored it and
+    `option_scores` (dimension -> the log-likelihood of each option, before any option bias) for the closed
+    failure-only questions the model answered."""
 
-    p_failure: float | None = None
+    def __init__(self, *args: Any, **kwargs: Any):
+        super().__init__(*args, **kwargs)
+        self.p_failure: float | None = None
+        self.option_scores: dict[str, list[float]] = {}
 
 
 def p_yes(options: Sequence[str], scores: Sequence[float]) -> float:
@@ -180,7 +186,9 @@ class FailureAnalyzer:
     table among the strategies of the answered Q5 category, placeholders filled from the `objects` given to
     `analyze`, so every correction maps to primitives and agrees with the diagnosis).
     `threshold`: Q2 answers "Yes" (a failure, and Q3-Q6 are asked as one) when P(failure) >= threshold; 0.5 is
-    the decoder's argmax, a lower value makes a supervisor intervene earlier."""
+    the decoder's argmax, a lower value makes a supervisor intervene earlier. `option_bias`: per closed failure-only
+    question, a bias per option added to its log-likelihood before the argmax (labrobfail_vlm.option_bias; a
+    checkpoint's labrobfail.json may carry one, fitted on validation by labrobfail-calibrate)."""
 
     fit_grid = False  # subclasses that answer over HTTP (EndpointAnalyzer) take the grid as given
 
@@ -192,6 +200,7 @@ class FailureAnalyzer:
         q6_mode: str = "free",
         threshold: float = 0.5,
         fit: bool = False,
+        option_bias: Mapping[str, Sequence[float]] | None = None,
     ):
         from labrobfail_vlm.decoding import Decoder
 
@@ -199,6 +208,7 @@ class FailureAnalyzer:
             raise ValueError(f"q6_mode: expected one of {', '.join(Q6_MODES)}, got {q6_mode!r}")
         self.q6_mode = q6_mode
         self.threshold = check_threshold(threshold)
+        self.option_bias = check_option_bias(option_bias)
         self.model, self.processor = model.eval(), processor
         self.processor.tokenizer.padding_side = "left"
         self.decoder = Decoder(self.model, processor)
@@ -223,8 +233,15 @@ class FailureAnalyzer:
         bad or oversized checkpoint is a one-line ConfigError, not an out-of-memory kill."""
         import torch
 
+        from labrobfail_vlm.config import ConfigError
         from labrobfail_vlm.model.loading import load_model, load_processor
-        from labrobfail_vlm.train.checkpoint import is_finetuned, load_finetuned, trained_grid, validate_checkpoint
+        from labrobfail_vlm.train.checkpoint import (
+            is_finetuned,
+            load_finetuned,
+            read_manifest,
+            trained_grid,
+            validate_checkpoint,
+        )
 
         validate_checkpoint(path, "model.path", max_model_gb, dtype)
         model = (
@@ -234,6 +251,11 @@ class FailureAnalyzer:
         if "grid" not in kwargs and (grid := trained_grid(path)) is not None:
             kwargs["grid"] = grid
             kwargs.setdefault("fit", True)
+        if is_finetuned(path) and "option_bias" not in kwargs:
+            try:
+                kwargs["option_bias"] = check_option_bias(read_manifest(Path(path), "model.path").get("option_bias"))
+            except ValueError as e:
+                raise ConfigError(f"model.path: {Path(path) / 'labrobfail.json'}: {e}") from None
         return cls(model.to(dev), load_processor(path), **kwargs)
 
     # ---- prompts -----------------------------------------------------------------------------------------
@@ -271,6 +293,13 @@ class FailureAnalyzer:
         probs = [p_yes(ask.options, sc) for sc in self.decoder.option_scores_rows(pre, [ask.options] * rows)]
         return ["Yes" if p >= self.threshold else "No" for p in probs], probs
 
+    def _choose_biased(self, pre: Any, asks: Sequence[Ask], dim: str) -> tuple[list[str], list[list[float]]]:
+        """A closed failure-only question for each row of `pre`: the option chosen with the dimension's option bias,
+        and every option's log-likelihood (without it)."""
+        scores = self.decoder.option_scores_rows(pre, [a.options for a in asks], [a.per_token for a in asks])
+        bias = self.option_bias.get(dim, ())
+        return [a.options[biased_choice(s, bias)] for a, s in zip(asks, scores)], scores
+
     def _answer(
         self,
         dim: str,
@@ -280,7 +309,10 @@ class FailureAnalyzer:
         objects: Sequence[str] = (),
         earlier: Mapping[str, str] | None = None,
     ) -> str:
-        return str(self._decode(pre, [plan_reply(dim, failed, frames, objects, self.q6_mode, earlier)])[0])
+        plan = plan_reply(dim, failed, frames, objects, self.q6_mode, earlier)
+        if dim in BIASED_DIMS and isinstance(plan, Ask):
+            return self._choose_biased(pre, [plan], dim)[0][0]
+        return str(self._decode(pre, [plan])[0])
 
     def _prefixes(self, image: Image.Image, prompts: dict[str, str]) -> Iterator[tuple[str, Any]]:
         """Six-prompt mode (the reference path): (dimension, model state after its whole prompt, image included)."""
@@ -387,6 +419,10 @@ class FailureAnalyzer:
                     got, probs = self._decide_q2(q, len(rows))
                     for i, p in zip(rows, probs):
                         out[i].p_failure = p
+                elif dim in BIASED_DIMS:  # always a choice among options (plan_reply)
+                    got, scores = self._choose_biased(q, [plans[i] for i in rows], dim)  # type: ignore[misc]
+                    for i, sc in zip(rows, scores):
+                        out[i].option_scores[dim] = sc
                 else:
                     got = self._decode(q, [plans[i] for i in rows])
                 for i, r in zip(rows, got):

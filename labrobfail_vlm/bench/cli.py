@@ -158,11 +158,13 @@ def _predict(
 
 
 def _write_predictions(out: Path, preds: Any) -> None:
-    """predictions.jsonl: every answer, with P(failure) on each Q2 line whose trajectory has one."""
+    """predictions.jsonl: every answer, with P(failure) on each Q2 line whose trajectory has one and the options'
+    log-likelihoods on each closed failure-only reply the model chose."""
     from labrobfail_vlm import questions as Q
     from labrobfail_vlm.io import atomic_write_bytes
 
     p_fail = getattr(preds, "p_failure", {})
+    scores = getattr(preds, "option_scores", {})
     atomic_write_bytes(
         out / "predictions.jsonl",
         "".join(
@@ -175,6 +177,7 @@ def _write_predictions(out: Path, preds: Any) -> None:
                         if k.endswith("_Q2") and Q.traj_of(k) in p_fail
                         else {}
                     ),
+                    **({"scores": scores[k]} if k in scores else {}),
                 }
             )
             + "\n"
@@ -326,6 +329,7 @@ def main(argv: list[str]) -> int:
             if k in results:
                 results[k]["q6_executable"] = v
     main_res = results[name]
+    bias = getattr(analyzer, "option_bias", None)  # fitted on validation (labrobfail-calibrate), from the checkpoint
     md = _results_markdown(cfg, recs, results, name)
     payload = {
         **main_res,
@@ -336,6 +340,7 @@ def main(argv: list[str]) -> int:
             if cfg.model is not None
             else {}
         ),
+        **({"option_bias": {k: list(v) for k, v in bias.items()}} if bias else {}),
         "baselines": {k: v for k, v in results.items() if k != name},
     }
     if executable_rows:
@@ -346,6 +351,8 @@ def main(argv: list[str]) -> int:
     source = str(cfg.model or cfg.predictions or cfg.endpoint)
     if cfg.threshold != 0.5:  # the ledger says which operating point a sealed look was at
         source += f" at P(failure) >= {threshold:.4g}" + (" (chosen on val)" if cfg.threshold == "val" else "")
+    if bias:
+        source += " with option biases on " + ", ".join(bias)
     ev.count_sealed_run(cfg.dataset_dir, cfg.split, source, main_res)
     atomic_write_bytes(out / "unparseable.log", "\n".join(log_lines).encode())
     _write_pngs(out, cfg.split, results, name)

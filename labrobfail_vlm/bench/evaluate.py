@@ -15,6 +15,7 @@ ranking of P(failure) (`detection`: AUROC, AUPRC, ECE; labrobfail_vlm.bench.dete
 from __future__ import annotations
 
 import json
+import math
 from collections import Counter, defaultdict
 from pathlib import Path
 from typing import Any, Callable
@@ -126,15 +127,24 @@ FAILURE_ONLY_DIMS = ("Q3", "Q4", "Q5", "Q6")
 
 
 class Predictions(dict[str, str]):
-    """Replies keyed by record id, and P(failure) keyed by trajectory where the source scored it."""
+    """Replies keyed by record id, P(failure) keyed by trajectory where the source scored it, and keyed by record id
+    the log-likelihood of each option of a closed failure-only reply the model chose (Q3-Q5, before any option
+    bias: what labrobfail-calibrate fits its biases on)."""
 
-    def __init__(self, *args: Any, p_failure: dict[str, float] | None = None):
+    def __init__(
+        self,
+        *args: Any,
+        p_failure: dict[str, float] | None = None,
+        option_scores: dict[str, list[float]] | None = None,
+    ):
         super().__init__(*args)
         self.p_failure: dict[str, float] = dict(p_failure or {})
+        self.option_scores: dict[str, list[float]] = dict(option_scores or {})
 
 
 def read_predictions(path: str | Path) -> Predictions:
-    """JSONL of {"id", "prediction"}; a line may add "p_failure" (a number in [0, 1]) for its trajectory."""
+    """JSONL of {"id", "prediction"}; a line may add "p_failure" (a number in [0, 1]) for its trajectory and
+    "scores" (a list of finite numbers: its options' log-likelihoods)."""
     out = Predictions()
     try:
         lines = Path(path).read_text().splitlines()
@@ -153,10 +163,15 @@ def read_predictions(path: str | Path) -> Predictions:
                 if not 0.0 <= p <= 1.0:
                     raise ValueError
                 out.p_failure[Q.traj_of(str(obj["id"]))] = p
+            if obj.get("scores") is not None:
+                sc = [float(v) for v in obj["scores"]]
+                if not sc or not all(math.isfinite(v) for v in sc):
+                    raise ValueError
+                out.option_scores[str(obj["id"])] = sc
         except (ValueError, KeyError, TypeError, AttributeError):
             raise ConfigError(
-                f"predictions: {path} line {i} is not a JSON object with id, prediction and an "
-                "optional p_failure in [0, 1]"
+                f"predictions: {path} line {i} is not a JSON object with id, prediction, an "
+                "optional p_failure in [0, 1] and optional scores (finite numbers)"
             ) from None
     return out
 
@@ -200,9 +215,12 @@ def model_predictions(
             failed = ans["Q2"] == "Yes"
             if getattr(ans, "p_failure", None) is not None:
                 out.p_failure[t] = float(ans.p_failure)
+            scored = getattr(ans, "option_scores", {})
             for r in rs:
                 d = Q.dim_of(r["id"])
                 out[r["id"]] = q2_as_asked(r["conversations"][0]["value"], failed) if d == "Q2" else ans[d]
+                if d in scored:
+                    out.option_scores[r["id"]] = [round(float(v), 5) for v in scored[d]]
         bar.update(len(chunk))
     bar.close()
     return out

@@ -1,0 +1,134 @@
+"""Option biases for the closed failure-only questions (Q3 frame, Q4 severity, Q5 category), fitted on a model's
+own seen-val bench: the code behind the `labrobfail-calibrate` console script (labrobfail_vlm/option_bias.py says
+what a bias does and why).
+
+Run as:
+    labrobfail-evaluate model=M dataset_dir=D split=val            # the bench it fits on (its predictions' scores)
+    labrobfail-calibrate model=M dataset_dir=D out=M_cal           # M's files, labrobfail.json with option_bias
+    labrobfail-calibrate model=M dataset_dir=D out=M_cal objective=accuracy dims=[Q4]
+
+Fits on the seen-val failures whose Q2 the model called a failure (the only rows it answers Q3-Q5 on; their
+options' log-likelihoods are in M/eval_val/predictions.jsonl), one dimension at a time, and writes `out`: a new
+folder with M's model files (not its benches) and the biases in labrobfail.json. It prints, per dimension, the
+failure-only score on seen val (the split fitted on: optimistic) and on each `check` split (held-out validation
+splits M was already benched on) before and after, from M's own predictions with the biases applied (no model run;
+the scores are stored to 5 decimals, so a near-tie may fall the other way in a real run). Whether to take the
+calibrated model is then decided on validation like any choice (labrobfail-compare on benches of `out`).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+from labrobfail_vlm import questions as Q
+from labrobfail_vlm.bench import evaluate as ev
+from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from labrobfail_vlm.option_bias import BIASED_DIMS, OBJECTIVES, biased_choice, fit_bias
+from labrobfail_vlm.taxonomy import SEALED_SPLITS, Category, Severity
+
+DEFAULTS = """\
+model: null                 # a fine-tuned checkpoint folder (labrobfail.json) benched on seen val (eval_val/)
+dataset_dir: null           # the dataset it was benched on (gold answers)
+out: null                   # the calibrated checkpoint's folder: new (an existing one is refused)
+dims: [Q3, Q4, Q5]          # the closed failure-only questions to bias
+objective: likelihood       # likelihood (the prior correction: convex, smooth) | accuracy (coordinate ascent)
+ridge: 0.01                 # likelihood: keeps an option no val failure has finite
+check: [val_object, val_scene, val_both]   # held-out validation benches of model= re-scored with the biases
+"""
+
+
+def option_count(dim: str, frames: int) -> int:
+    return {"Q3": frames, "Q4": len(Severity), "Q5": len(Category)}[dim]
+
+
+def with_bias(preds: ev.Predictions, bias: dict[str, list[float]]) -> ev.Predictions:
+    """`preds` with each scored closed reply of a biased dimension chosen again with its bias (options "1".."n")."""
+    out = ev.Predictions(preds, p_failure=preds.p_failure, option_scores=preds.option_scores)
+    for rid, sc in preds.option_scores.items():
+        if (d := Q.dim_of(rid)) in bias:
+            out[rid] = str(biased_choice(sc, bias[d]) + 1)
+    return out
+
+
+def fit_rows(recs: list[dict], preds: ev.Predictions, dim: str) -> tuple[list[list[float]], list[int]]:
+    """(option scores, gold option 0-based) of `dim`'s records that are failures with a scored reply."""
+    scores, gold = [], []
+    for r in recs:
+        ref = r["conversations"][1]["value"]
+        if Q.dim_of(r["id"]) == dim and ref.isdigit() and r["id"] in preds.option_scores:
+            scores.append(preds.option_scores[r["id"]])
+            gold.append(int(ref) - 1)
+    return scores, gold
+
+
+def _check_args(cfg: Any) -> None:
+    for k in ("model", "dataset_dir", "out"):
+        if cfg[k] is None:
+            raise ConfigError(f"{k}: required (labrobfail-calibrate model=DIR dataset_dir=DIR out=DIR)")
+    if not (Path(cfg.model) / "labrobfail.json").is_file():
+        raise ConfigError(f"model: {cfg.model} is not a fine-tuned checkpoint (no labrobfail.json)")
+    if Path(cfg.out).exists():
+        raise ConfigError(f"out: {cfg.out} exists (a calibrated checkpoint is written to a new folder)")
+    if cfg.objective not in OBJECTIVES:
+        raise ConfigError(f"objective: expected one of {', '.join(OBJECTIVES)}, got {cfg.objective!r}")
+    if not cfg.dims or any(d not in BIASED_DIMS for d in cfg.dims):
+        raise ConfigError(f"dims: expected a list of {', '.join(BIASED_DIMS)}, got {cfg.dims!r}")
+    if any(s in SEALED_SPLITS or s.startswith("test") for s in cfg.check or []):
+        raise ConfigError("check: validation splits only (choices are taken on validation)")
+
+
+def _bench(model: str, dataset_dir: str, split: str) -> tuple[list[dict], dict[str, dict], ev.Predictions]:
+    f = ev.bench_dir(model, split) / "predictions.jsonl"
+    if not f.is_file():
+        raise ConfigError(f"{f} not found (run labrobfail-evaluate model={model} split={split} first)")
+    recs, traj = ev.load_split(dataset_dir, split)
+    preds = ev.read_predictions(f)
+    return recs, traj, preds
+
+
+def write_checkpoint(model: str | Path, out: str | Path, entry: dict[str, Any]) -> None:
+    """`model`'s files (benches, checkpoints and logs left out) in a new folder `out`, with `entry` merged into its
+    labrobfail.json; written beside and renamed, so a stopped run leaves no half folder."""
+    src, dst = Path(model), Path(out)
+    tmp = dst.with_name(dst.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    skip = shutil.ignore_patterns("eval_*", "checkpoint-*", "wandb", "*.log")
+    shutil.copytree(src, tmp, ignore=skip, symlinks=False)
+    man = json.loads((tmp / "labrobfail.json").read_text())
+    (tmp / "labrobfail.json").write_text(json.dumps({**man, **entry}, indent=1))
+    tmp.rename(dst)
+
+
+def main(argv: list[str]) -> int:
+    cfg = load_config(DEFAULTS, argv)
+    _check_args(cfg)
+    recs, traj, preds = _bench(str(cfg.model), str(cfg.dataset_dir), "val")
+    frames = max([int(t.get("frames") or 0) for t in traj.values()] + [8])
+    bias: dict[str, list[float]] = {}
+    report = []
+    for d in cfg.dims:
+        scores, gold = fit_rows(recs, preds, d)
+        if not scores:
+            raise ConfigError(f"{cfg.model}/eval_val/predictions.jsonl has no option scores for {d} (bench it again)")
+        bias[d] = fit_bias(scores, gold, option_count(d, frames), cfg.objective, float(cfg.ridge))
+        report.append(f"{d}: fitted on {len(gold)} seen-val failures, biases {bias[d]}")
+    checks = {"val": (recs, traj, preds)} | {s: _bench(str(cfg.model), str(cfg.dataset_dir), s) for s in cfg.check}
+    report.append("| split | dim | failure-only before | after |\n|---|---|---|---|")
+    for split, (r, t, p) in checks.items():
+        before, after = ev.score(r, p, t)["failure_only"], ev.score(r, with_bias(p, bias), t)["failure_only"]
+        for d in cfg.dims:
+            tag = " (fitted on)" if split == "val" else ""
+            report.append(f"| {split}{tag} | {d} | {before[d.lower()]} | {after[d.lower()]} |")
+    entry = {"option_bias": bias, "option_bias_fit": {"on": f"{cfg.dataset_dir} val", "objective": cfg.objective}}
+    write_checkpoint(str(cfg.model), str(cfg.out), entry)
+    print("\n".join(report))
+    print(f"wrote {cfg.out}")
+    return 0
+
+
+def cli() -> None:
+    """The `labrobfail-calibrate` console script."""
+    cli_main(main, __doc__)
