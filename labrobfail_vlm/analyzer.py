@@ -309,9 +309,14 @@ class FailureAnalyzer:
         objects: Sequence[str] = (),
         earlier: Mapping[str, str] | None = None,
     ) -> str:
+        """One reply; a closed failure-only one's option scores go into `earlier` when it is the Answers being built
+        (the six-prompt path keeps them as the one-pass path does)."""
         plan = plan_reply(dim, failed, frames, objects, self.q6_mode, earlier)
         if dim in BIASED_DIMS and isinstance(plan, Ask):
-            return self._choose_biased(pre, [plan], dim)[0][0]
+            (reply,), (scores,) = self._choose_biased(pre, [plan], dim)
+            if isinstance(earlier, Answers):
+                earlier.option_scores[dim] = scores
+            return reply
         return str(self._decode(pre, [plan])[0])
 
     def _prefixes(self, image: Image.Image, prompts: dict[str, str]) -> Iterator[tuple[str, Any]]:

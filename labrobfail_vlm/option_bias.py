@@ -4,8 +4,10 @@ The constrained decoder answers a closed question with the option of highest log
 likelihoods carry the answer frequencies it was taught: on the bench the severity reply sat under the majority
 class. A bias per option, added to the options' log-likelihoods before the argmax (a prior correction, as in
 "calibrate before use"), is fitted on the model's own seen-val bench by `labrobfail-calibrate` and stored in the
-checkpoint's labrobfail.json, so every user of the checkpoint (bench, infer, serve, supervise) answers with it.
-Q2 is not biased here: its operating point is the analyzer's threshold.
+checkpoint's labrobfail.json, so every local user of the checkpoint (bench, infer, serve, supervise) answers with
+it; an endpoint (vLLM's structured choice) has no option scores and answers without. Q2 is not biased here: its
+operating point is the analyzer's threshold. Q3's prior is fitted on whole-trajectory grids; on prefix grids (the
+supervisor's, the online bench's) the frames' prior differs, so a Q3 bias is a choice to check there.
 """
 
 from __future__ import annotations
@@ -19,9 +21,17 @@ BIASED_DIMS = ("Q3", "Q4", "Q5")
 OBJECTIVES = ("likelihood", "accuracy")
 
 
+def option_count(dim: str, frames: int) -> int:
+    """The options of a closed failure-only question: Q3's are the keyframes shown."""
+    from labrobfail_vlm.taxonomy import Category, Severity
+
+    return {"Q3": frames, "Q4": len(Severity), "Q5": len(Category)}[dim]
+
+
 def check_option_bias(value: Any) -> dict[str, tuple[float, ...]]:
     """`value` as {dim: (bias of option 1, option 2, ...)} for dims of BIASED_DIMS; a one-line ValueError for
-    anything else (another key, a non-list, a non-finite number)."""
+    anything else (another key, a non-list, a non-finite number, a Q4 or Q5 list of another length than its
+    options, an empty Q3 list)."""
     if value is None:
         return {}
     if not isinstance(value, Mapping):
@@ -35,6 +45,11 @@ def check_option_bias(value: Any) -> dict[str, tuple[float, ...]]:
         )
         if not ok:
             raise ValueError(f"option_bias.{dim}: expected a list of finite numbers, got {bias!r}")
+        n = option_count(dim, 1) if dim != "Q3" else None
+        if (n is not None and len(bias) != n) or not bias:
+            raise ValueError(
+                f"option_bias.{dim}: expected {n or 'at least 1'} numbers (one per option), got {len(bias)}"
+            )
         out[dim] = tuple(float(b) for b in bias)
     return out
 
@@ -59,9 +74,9 @@ def _nll(bias: np.ndarray, groups: list[tuple[np.ndarray, np.ndarray]], n_rows: 
         k = s.shape[1]
         z = s + bias[:k]
         z = z - z.max(1, keepdims=True)
-        p = np.exp(z)
-        p /= p.sum(1, keepdims=True)
-        loss -= float(np.log(p[np.arange(len(g)), g]).sum()) / n_rows
+        lse = np.log(np.exp(z).sum(1))
+        loss -= float((z[np.arange(len(g)), g] - lse).sum()) / n_rows  # log-softmax: no log(0) on a far option
+        p = np.exp(z - lse[:, None])
         p[np.arange(len(g)), g] -= 1.0
         grad[:k] += p.sum(0) / n_rows
     return loss, grad
@@ -77,7 +92,8 @@ def fit_bias(
     """Biases for `n` options from rows of option scores and their gold option (0-based; rows whose gold is not
     among their options are skipped). `likelihood`: the biases that maximise the mean log-likelihood of the gold
     options (convex; `ridge` keeps an option never seen finite); `accuracy`: coordinate ascent on the share of
-    right choices over a grid of biases in [-4, 4] (option 1's bias fixed at 0, a tie kept at the smaller bias)."""
+    right choices over a grid of biases in [-4, 4] (option 1's bias fixed at 0, a tie kept at the smaller bias).
+    An option that no fitted row offers keeps 0, as an option past a bias's end does."""
     if objective not in OBJECTIVES:
         raise ValueError(f"objective: expected one of {', '.join(OBJECTIVES)}, got {objective!r}")
     rows = [(list(s), g) for s, g in zip(scores, gold) if 0 <= g < len(s) <= n]
@@ -92,8 +108,11 @@ def fit_bias(
         by_k.setdefault(len(s), []).append((s, g))
     groups = [(np.array([s for s, _ in v]), np.array([g for _, g in v])) for v in by_k.values()]
     res = minimize(_nll, np.zeros(n), args=(groups, len(rows), ridge), jac=True, method="L-BFGS-B")
+    if not res.success:
+        raise ValueError(f"option bias: the likelihood fit did not converge ({res.message})")
     b = res.x - res.x[0]  # a shift common to every option changes no choice: option 1 at 0, as accuracy's
-    return [round(float(v), 4) for v in b]
+    offered = max(len(s) for s, _ in rows)
+    return [round(float(v), 4) if k < offered else 0.0 for k, v in enumerate(b)]
 
 
 def _fit_accuracy(scores: list[list[float]], gold: list[int], n: int, sweeps: int = 3) -> list[float]:

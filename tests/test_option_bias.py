@@ -13,13 +13,15 @@ from labrobfail_vlm.option_bias import accuracy, biased_choice, check_option_bia
 
 
 def test_bad_biases_are_one_line_and_ties_go_to_the_first_option():
-    assert check_option_bias({"Q4": [0, 1.5]}) == {"Q4": (0.0, 1.5)} and check_option_bias(None) == {}
+    assert check_option_bias({"Q4": [0, 1.5, 0, 0]}) == {"Q4": (0.0, 1.5, 0.0, 0.0)} and check_option_bias(None) == {}
     for bad, needle in (
         ({"Q2": [0, 1]}, "keys among Q3, Q4, Q5"),
         ({"Q4": [0, float("nan")]}, "finite numbers"),
         ({"Q4": "0 1"}, "finite numbers"),
         ({"Q4": [True]}, "finite numbers"),
         ([0, 1], "mapping"),
+        ({"Q5": [0, 1, 2]}, "expected 5 numbers"),
+        ({"Q3": []}, "at least 1"),
     ):
         with pytest.raises(ValueError, match=needle):
             check_option_bias(bad)
@@ -81,9 +83,13 @@ def test_the_analyzer_answers_with_the_bias_and_keeps_the_unbiased_scores(tiny, 
     assert b["Q1"] == a["Q1"] and b.p_failure == pytest.approx(a.p_failure, abs=1e-6)
     six = fa.answers(img, "pick up the beaker", one_pass=False)
     assert {d: six[d] for d in worst} == {d: b[d] for d in worst}  # the reference path applies it too
+    assert all(six.option_scores[d] == pytest.approx(b.option_scores[d], abs=1e-4) for d in worst)
     bad = _checkpoint(tiny, tmp_path / "bad", {"tuning": "full", "option_bias": {"Q2": [0, 1]}})
     with pytest.raises(ConfigError, match="labrobfail.json: option_bias: expected keys"):
         FailureAnalyzer.from_pretrained(bad)
+    short = _checkpoint(tiny, tmp_path / "short", {"tuning": "full", "option_bias": {"Q4": [0, 1]}})
+    with pytest.raises(ConfigError, match="option_bias.Q4: expected 4 numbers"):
+        FailureAnalyzer.from_pretrained(short)
 
 
 def test_calibrate_writes_a_checkpoint_that_answers_with_its_biases(tiny, small_ds, tmp_path):  # noqa: F811
@@ -99,17 +105,25 @@ def test_calibrate_writes_a_checkpoint_that_answers_with_its_biases(tiny, small_
         if f.name != "val.json":
             (ds / f.name).symlink_to(f)
     (ds / "val.json").symlink_to(small_ds / "test.json")
+    (ds / "val_object.json").symlink_to(small_ds / "test.json")
     fast = ("baselines=[]", "q6_template=false", "progress=false", "threshold=0.001")  # Q3-Q5 asked everywhere
     r = evaluate(f"model={model}", ds, "split=val", f"out_dir={model / 'eval_val'}", *fast, call=run_here)
     assert r.returncode == 0, r.stderr[-2000:]
     preds = ev.read_predictions(model / "eval_val" / "predictions.jsonl")
     assert preds.option_scores and {i.rsplit("_", 1)[1] for i in preds.option_scores} == {"Q3", "Q4", "Q5"}
+    (model / "eval_val_object").mkdir()  # a bench written before the scores were kept: refused, not re-scored as 0
+    old = [json.dumps({"id": k, "prediction": v}) + "\n" for k, v in preds.items()]
+    (model / "eval_val_object" / "predictions.jsonl").write_text("".join(old))
     out = tmp_path / "m_cal"
     calibrate = [cli("calibrate"), f"model={model}", f"dataset_dir={ds}", "check=[]", "objective=accuracy"]
     for extra, needle in (
         (["check=[test]"], "validation splits only"),
         (["objective=vibes"], "objective: expected one of"),
         (["dims=[Q2]"], "dims: expected"),
+        (["check=null"], "check: expected a list"),
+        (["ridge=-1"], "ridge: expected a number"),
+        ([f"out={model / 'inner'}"], "inside model="),
+        (["check=[val_object]"], "no option scores for Q3, Q4, Q5"),
     ):
         r = run_here([*calibrate, f"out={out}", *extra])
         assert r.returncode == 2 and needle in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
@@ -130,3 +144,11 @@ def test_calibrate_writes_a_checkpoint_that_answers_with_its_biases(tiny, small_
     assert dict(real) == dict(with_bias(preds, man["option_bias"]))
     res = json.loads((out / "eval_val_t0.001" / "results.json").read_text())
     assert res["option_bias"] == man["option_bias"]
+    # and with biases that surely move replies: every Q4 answered 4, every Q5 answered 3
+    forced = {"Q4": [0.0, 0.0, 0.0, 50.0], "Q5": [0.0, 0.0, 50.0, 0.0, 0.0]}
+    fc = _checkpoint(tiny, tmp_path / "forced", {"tuning": "full", "option_bias": forced})
+    r = evaluate(f"model={fc}", ds, "split=val", *fast, call=run_here)
+    assert r.returncode == 0, r.stderr[-2000:]
+    real = ev.read_predictions(fc / "eval_val_t0.001" / "predictions.jsonl")
+    assert dict(real) == dict(with_bias(preds, forced)) != dict(preds)
+    assert {v for k, v in real.items() if k.endswith(("_Q4", "_Q5"))} == {"4", "3"}

@@ -26,8 +26,8 @@ from typing import Any
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.bench import evaluate as ev
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
-from labrobfail_vlm.option_bias import BIASED_DIMS, OBJECTIVES, biased_choice, fit_bias
-from labrobfail_vlm.taxonomy import SEALED_SPLITS, Category, Severity
+from labrobfail_vlm.option_bias import BIASED_DIMS, OBJECTIVES, biased_choice, fit_bias, option_count
+from labrobfail_vlm.taxonomy import SEALED_SPLITS
 
 DEFAULTS = """\
 model: null                 # a fine-tuned checkpoint folder (labrobfail.json) benched on seen val (eval_val/)
@@ -38,10 +38,6 @@ objective: likelihood       # likelihood (the prior correction: convex, smooth) 
 ridge: 0.01                 # likelihood: keeps an option no val failure has finite
 check: [val_object, val_scene, val_both]   # held-out validation benches of model= re-scored with the biases
 """
-
-
-def option_count(dim: str, frames: int) -> int:
-    return {"Q3": frames, "Q4": len(Severity), "Q5": len(Category)}[dim]
 
 
 def with_bias(preds: ev.Predictions, bias: dict[str, list[float]]) -> ev.Predictions:
@@ -70,60 +66,86 @@ def _check_args(cfg: Any) -> None:
             raise ConfigError(f"{k}: required (labrobfail-calibrate model=DIR dataset_dir=DIR out=DIR)")
     if not (Path(cfg.model) / "labrobfail.json").is_file():
         raise ConfigError(f"model: {cfg.model} is not a fine-tuned checkpoint (no labrobfail.json)")
-    if Path(cfg.out).exists():
-        raise ConfigError(f"out: {cfg.out} exists (a calibrated checkpoint is written to a new folder)")
+    out, model = Path(cfg.out).resolve(), Path(cfg.model).resolve()
+    if out.exists() or out.with_name(out.name + ".tmp").exists():
+        raise ConfigError(f"out: {cfg.out} (or its .tmp) exists (a calibrated checkpoint is written to a new folder)")
+    if out.is_relative_to(model):
+        raise ConfigError(f"out: {cfg.out} is inside model= (the copy would hold copies)")
     if cfg.objective not in OBJECTIVES:
         raise ConfigError(f"objective: expected one of {', '.join(OBJECTIVES)}, got {cfg.objective!r}")
     if not cfg.dims or any(d not in BIASED_DIMS for d in cfg.dims):
         raise ConfigError(f"dims: expected a list of {', '.join(BIASED_DIMS)}, got {cfg.dims!r}")
-    if any(s in SEALED_SPLITS or s.startswith("test") for s in cfg.check or []):
+    if cfg.check is None or isinstance(cfg.check, str) or not all(isinstance(s, str) for s in cfg.check):
+        raise ConfigError(f"check: expected a list of validation splits (or []), got {cfg.check!r}")
+    if any(s in SEALED_SPLITS or s.startswith("test") for s in cfg.check):
         raise ConfigError("check: validation splits only (choices are taken on validation)")
+    r = cfg.ridge
+    if isinstance(r, bool) or not isinstance(r, (int, float)) or not 0 <= r < float("inf"):
+        raise ConfigError(f"ridge: expected a number >= 0, got {r!r}")
 
 
-def _bench(model: str, dataset_dir: str, split: str) -> tuple[list[dict], dict[str, dict], ev.Predictions]:
+def _bench(
+    model: str, dataset_dir: str, split: str, dims: list[str]
+) -> tuple[list[dict], dict[str, dict], ev.Predictions]:
+    """A bench of `model` on `split` whose predictions carry option scores for each of `dims` (a bench written
+    before the scores were kept would re-score as unchanged: refused)."""
     f = ev.bench_dir(model, split) / "predictions.jsonl"
     if not f.is_file():
         raise ConfigError(f"{f} not found (run labrobfail-evaluate model={model} split={split} first)")
     recs, traj = ev.load_split(dataset_dir, split)
     preds = ev.read_predictions(f)
+    have = {Q.dim_of(i) for i in preds.option_scores}
+    if missing := [d for d in dims if d not in have]:
+        raise ConfigError(f"{f} has no option scores for {', '.join(missing)} (bench it again with this version)")
     return recs, traj, preds
 
 
-def write_checkpoint(model: str | Path, out: str | Path, entry: dict[str, Any]) -> None:
-    """`model`'s files (benches, checkpoints and logs left out) in a new folder `out`, with `entry` merged into its
-    labrobfail.json; written beside and renamed, so a stopped run leaves no half folder."""
+def write_checkpoint(model: str | Path, out: str | Path, bias: dict[str, list[float]], fit: dict[str, Any]) -> None:
+    """`model`'s files (benches, checkpoints and logs left out; linked files copied) in a new folder `out`, its
+    labrobfail.json with `bias` over any biases it had (a dimension not refitted keeps its own) and `fit`; written
+    beside as <out>.tmp and renamed, so a stopped run leaves no half folder under `out`'s name."""
     src, dst = Path(model), Path(out)
     tmp = dst.with_name(dst.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
     skip = shutil.ignore_patterns("eval_*", "checkpoint-*", "wandb", "*.log")
-    shutil.copytree(src, tmp, ignore=skip, symlinks=False)
-    man = json.loads((tmp / "labrobfail.json").read_text())
-    (tmp / "labrobfail.json").write_text(json.dumps({**man, **entry}, indent=1))
-    tmp.rename(dst)
+    try:
+        shutil.copytree(src, tmp, ignore=skip, symlinks=False)
+        man = json.loads((tmp / "labrobfail.json").read_text())
+        man["option_bias"] = {**(man.get("option_bias") or {}), **bias}
+        man["option_bias_fit"] = fit
+        (tmp / "labrobfail.json").write_text(json.dumps(man, indent=1))
+        tmp.rename(dst)
+    except (OSError, ValueError) as e:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise ConfigError(f"out: cannot write {dst} ({type(e).__name__}: {e})") from None
 
 
 def main(argv: list[str]) -> int:
     cfg = load_config(DEFAULTS, argv)
     _check_args(cfg)
-    recs, traj, preds = _bench(str(cfg.model), str(cfg.dataset_dir), "val")
+    dims = list(cfg.dims)
+    recs, traj, preds = _bench(str(cfg.model), str(cfg.dataset_dir), "val", dims)
     frames = max([int(t.get("frames") or 0) for t in traj.values()] + [8])
     bias: dict[str, list[float]] = {}
     report = []
-    for d in cfg.dims:
+    for d in dims:
         scores, gold = fit_rows(recs, preds, d)
         if not scores:
-            raise ConfigError(f"{cfg.model}/eval_val/predictions.jsonl has no option scores for {d} (bench it again)")
-        bias[d] = fit_bias(scores, gold, option_count(d, frames), cfg.objective, float(cfg.ridge))
+            raise ConfigError(f"{cfg.model}/eval_val: no failure it found has a gold {d} option to fit on")
+        try:
+            bias[d] = fit_bias(scores, gold, option_count(d, frames), cfg.objective, float(cfg.ridge))
+        except (ValueError, ImportError) as e:  # a fit that did not converge; scipy missing (the bench extra)
+            raise ConfigError(f"{d}: {e}") from None
         report.append(f"{d}: fitted on {len(gold)} seen-val failures, biases {bias[d]}")
-    checks = {"val": (recs, traj, preds)} | {s: _bench(str(cfg.model), str(cfg.dataset_dir), s) for s in cfg.check}
+    checks = {"val": (recs, traj, preds)}
+    checks |= {s: _bench(str(cfg.model), str(cfg.dataset_dir), s, dims) for s in cfg.check}
     report.append("| split | dim | failure-only before | after |\n|---|---|---|---|")
     for split, (r, t, p) in checks.items():
         before, after = ev.score(r, p, t)["failure_only"], ev.score(r, with_bias(p, bias), t)["failure_only"]
-        for d in cfg.dims:
+        for d in dims:
             tag = " (fitted on)" if split == "val" else ""
             report.append(f"| {split}{tag} | {d} | {before[d.lower()]} | {after[d.lower()]} |")
-    entry = {"option_bias": bias, "option_bias_fit": {"on": f"{cfg.dataset_dir} val", "objective": cfg.objective}}
-    write_checkpoint(str(cfg.model), str(cfg.out), entry)
+    fit = {"on": f"{cfg.dataset_dir} val", "objective": cfg.objective, "dims": dims}
+    write_checkpoint(str(cfg.model), str(cfg.out), bias, fit)
     print("\n".join(report))
     print(f"wrote {cfg.out}")
     return 0

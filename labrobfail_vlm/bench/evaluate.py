@@ -164,8 +164,11 @@ def read_predictions(path: str | Path) -> Predictions:
                     raise ValueError
                 out.p_failure[Q.traj_of(str(obj["id"]))] = p
             if obj.get("scores") is not None:
-                sc = [float(v) for v in obj["scores"]]
-                if not sc or not all(math.isfinite(v) for v in sc):
+                raw = obj["scores"]
+                if not isinstance(raw, list) or not raw or any(isinstance(v, bool) for v in raw):
+                    raise ValueError
+                sc = [float(v) for v in raw]
+                if not all(math.isfinite(v) for v in sc):
                     raise ValueError
                 out.option_scores[str(obj["id"])] = sc
         except (ValueError, KeyError, TypeError, AttributeError):
