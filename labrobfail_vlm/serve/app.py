@@ -2,7 +2,7 @@
 
     POST /diagnose  multipart form (labrobfail_vlm.serve.form) -> the Diagnosis JSON (Diagnosis.to_json())
     GET  /health    {"status": "ok", queue and batch counters}; never needs the token
-    GET  /info      model, grid layout, version, batching settings
+    GET  /info      model, grid layout, operating points (threshold, option biases), version, batching settings
 
 Errors are one JSON line, {"error": "..."}: 400 bad field or image, 401 missing/wrong token, 404/405,
 408 body not received within `body_timeout_s`, 413 upload over the limit, a decompression bomb or images too
@@ -278,6 +278,8 @@ def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
             "version": __version__,
             "grid": asdict(analyzer.grid),
             "q6_mode": analyzer.q6_mode,
+            "threshold": analyzer.threshold,  # the Q2 operating point
+            "option_bias": {k: list(v) for k, v in getattr(analyzer, "option_bias", {}).items()},  # Q3-Q5, if fitted
             "device": str(p.device),
             "dtype": str(p.dtype).removeprefix("torch."),
             "serve": cfg.public(),
