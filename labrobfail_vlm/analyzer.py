@@ -29,7 +29,7 @@ from labrobfail_vlm.actions import to_primitives
 from labrobfail_vlm.corrections import STRATEGIES, candidates
 from labrobfail_vlm.grid import GridConfig, build_grid, fit_grid, sample_keyframes
 from labrobfail_vlm.model.processor import common_prefix_len
-from labrobfail_vlm.option_bias import BIASED_DIMS, biased_choice, check_option_bias
+from labrobfail_vlm.option_bias import BIASED_DIMS, biased_choice, check_option_bias, option_count
 from labrobfail_vlm.taxonomy import Category, Severity
 
 
@@ -132,8 +132,7 @@ def plan_reply(
         return Ask("free", closed if failed else ())
     if failed is False:
         return Q.NO_FAILURE
-    hi = {"Q3": frames, "Q4": len(Severity), "Q5": len(Category)}[dim]
-    return Ask("choose", tuple(str(i) for i in range(1, hi + 1)))
+    return Ask("choose", tuple(str(i) for i in range(1, option_count(dim, frames) + 1)))
 
 
 def _option(reply: str | None, n: int) -> int | None:

@@ -17,14 +17,14 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from labrobfail_vlm.taxonomy import Category, Severity
+
 BIASED_DIMS = ("Q3", "Q4", "Q5")
 OBJECTIVES = ("likelihood", "accuracy")
 
 
 def option_count(dim: str, frames: int) -> int:
     """The options of a closed failure-only question: Q3's are the keyframes shown."""
-    from labrobfail_vlm.taxonomy import Category, Severity
-
     return {"Q3": frames, "Q4": len(Severity), "Q5": len(Category)}[dim]
 
 

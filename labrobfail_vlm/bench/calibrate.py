@@ -25,6 +25,7 @@ from typing import Any
 
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.bench import evaluate as ev
+from labrobfail_vlm.bench.compare import read_replies
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
 from labrobfail_vlm.option_bias import BIASED_DIMS, OBJECTIVES, biased_choice, fit_bias, option_count
 from labrobfail_vlm.taxonomy import SEALED_SPLITS
@@ -89,11 +90,9 @@ def _bench(
 ) -> tuple[list[dict], dict[str, dict], ev.Predictions]:
     """A bench of `model` on `split` whose predictions carry option scores for each of `dims` (a bench written
     before the scores were kept would re-score as unchanged: refused)."""
-    f = ev.bench_dir(model, split) / "predictions.jsonl"
-    if not f.is_file():
-        raise ConfigError(f"{f} not found (run labrobfail-evaluate model={model} split={split} first)")
     recs, traj = ev.load_split(dataset_dir, split)
-    preds = ev.read_predictions(f)
+    preds = read_replies("model", model, split, None, recs)  # every record answered, as compare asks
+    f = ev.bench_dir(model, split) / "predictions.jsonl"
     have = {Q.dim_of(i) for i in preds.option_scores}
     if missing := [d for d in dims if d not in have]:
         raise ConfigError(f"{f} has no option scores for {', '.join(missing)} (bench it again with this version)")
@@ -124,7 +123,6 @@ def main(argv: list[str]) -> int:
     _check_args(cfg)
     dims = list(cfg.dims)
     recs, traj, preds = _bench(str(cfg.model), str(cfg.dataset_dir), "val", dims)
-    frames = max([int(t.get("frames") or 0) for t in traj.values()] + [8])
     bias: dict[str, list[float]] = {}
     report = []
     for d in dims:
@@ -132,7 +130,9 @@ def main(argv: list[str]) -> int:
         if not scores:
             raise ConfigError(f"{cfg.model}/eval_val: no failure it found has a gold {d} option to fit on")
         try:
-            bias[d] = fit_bias(scores, gold, option_count(d, frames), cfg.objective, float(cfg.ridge))
+            # Q3's options are the keyframes shown: as many as the longest scored reply offers
+            n = option_count(d, max(len(s) for s in scores))
+            bias[d] = fit_bias(scores, gold, n, cfg.objective, float(cfg.ridge))
         except (ValueError, ImportError) as e:  # a fit that did not converge; scipy missing (the bench extra)
             raise ConfigError(f"{d}: {e}") from None
         report.append(f"{d}: fitted on {len(gold)} seen-val failures, biases {bias[d]}")
