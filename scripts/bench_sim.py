@@ -8,9 +8,11 @@ Run as:
 Every row runs the same episodes: the generator's own pair plan for seed 0 (the same scenario mix,
 short, medium and long, with its oversampling), so rows compare side by side in one run:
 physics only (no camera), two rendered views with each rendering variant the backend offers
-(PyBullet: the stock Panda meshes against the low-poly ones) at every keyframe, the default rendering at only
-the keyframes the generator's default `render_frames` grid shows, and end to end into shards (the generator's
-defaults) with 1 worker and with 2 workers (speed-up = ratio). Peak memory of the main process and of a worker.
+(PyBullet: the stock Panda meshes against the low-poly ones, and the whole scene at every keyframe against the
+layered backdrop) at every keyframe, the default rendering at only the keyframes the generator's default
+`render_frames` grid shows, and end to end into shards (the generator's defaults) with 1 worker and with 2
+workers (speed-up = ratio), and on 1 worker with the whole scene rendered. Peak memory of the main process and of
+a worker.
 """
 
 from __future__ import annotations
@@ -34,7 +36,13 @@ out: outputs/bench_sim_${backend}.json  # the JSON result (${backend}: the backe
 """
 
 # Rendering variants compared per backend (backend kwargs); the first is the backend's default.
-RENDER_VARIANTS = {"pybullet": {"lowpoly_robot": {"lowpoly_robot": True}, "stock_meshes": {"lowpoly_robot": False}}}
+RENDER_VARIANTS = {
+    "pybullet": {
+        "lowpoly_robot": {"lowpoly_robot": True},
+        "stock_meshes": {"lowpoly_robot": False},
+        "whole_scene": {"layered_render": False},  # every keyframe renders every body (before the backdrop)
+    }
+}
 
 
 def per_hour(n: int, seconds: float) -> float:
@@ -54,7 +62,7 @@ def in_process(backend: str, pairs: int, render_frames: int | None = None, **kwa
     return per_hour(2 * pairs, dt)
 
 
-def end_to_end(backend: str, workers: int, n: int, image_size: int) -> float:
+def end_to_end(backend: str, workers: int, n: int, image_size: int, extra: tuple[str, ...] = ()) -> float:
     with tempfile.TemporaryDirectory() as d:
         cfg = generate_config(
             [
@@ -66,6 +74,7 @@ def end_to_end(backend: str, workers: int, n: int, image_size: int) -> float:
                 "episodes_per_shard=2",
                 "seed=0",
                 f"image_size={image_size}",
+                *extra,
             ]
         )
         t = time.perf_counter()
@@ -100,10 +109,14 @@ def main(argv: list[str]) -> int:
         backend, pairs, render_frames=rf, image_size=size
     )
     t1 = end_to_end(backend, 1, n, size)
+    res["end_to_end_episodes_per_hour_per_core"] = per_hour(n, t1)
+    for name, kw in RENDER_VARIANTS.get(backend, {}).items():  # before the backdrop, end to end beside it
+        if kw.get("layered_render") is False:
+            flags = tuple(f"backend_kwargs.{k}={str(v).lower()}" for k, v in kw.items())
+            res[f"end_to_end_{name}_episodes_per_hour_per_core"] = per_hour(n, end_to_end(backend, 1, n, size, flags))
     t2 = end_to_end(backend, 2, n, size)
     res.update(
         {
-            "end_to_end_episodes_per_hour_per_core": per_hour(n, t1),
             "end_to_end_2_workers_episodes_per_hour": per_hour(n, t2),
             "speedup_2_workers": round(t1 / t2, 2),
             "peak_rss_mb_main_process": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),

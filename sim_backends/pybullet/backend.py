@@ -57,9 +57,9 @@ def _yaml_mapping(key: str, path: str | None) -> dict[str, Any] | None:
     return data
 
 
-def _lamp_setting(value: Any) -> bool:
+def _flag(name: str, value: Any) -> bool:
     if not isinstance(value, bool):
-        raise ValueError(f"button_lamp: expected true or false, got {value!r}")
+        raise ValueError(f"{name}: expected true or false, got {value!r}")
     return value
 
 
@@ -74,6 +74,7 @@ def _lamp_setting(value: Any) -> bool:
     lowpoly_robot=True,
     scene_family=None,
     button_lamp=False,
+    layered_render=True,
 )
 class PyBulletSource(ScenarioConfig, FailureSource):
     name = "pybullet"
@@ -94,6 +95,7 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         lowpoly_robot: bool = True,
         scene_family: str | None = None,
         button_lamp: bool = False,
+        layered_render: bool = True,
     ):
         super().__init__()
         self.camera_jitter, self.max_distractors, self.lowpoly_robot = (
@@ -106,7 +108,7 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         # the lamp on, the housing of a button the task must press renders lit in every keyframe rendered once its
         # pressed goal holds on the trace so far, so a grid shows a press that happened and a press beside the
         # button. Off by default: the page's data were rendered without it.
-        self.button_lamp = _lamp_setting(button_lamp)
+        self.button_lamp = _flag("button_lamp", button_lamp)
         self.cfg = self.load_task_config(tasks_file)
         self.cid = p.connect(p.DIRECT)
         if egl:
@@ -116,7 +118,10 @@ class PyBulletSource(ScenarioConfig, FailureSource):
             if egl_mod is None:
                 raise ValueError("egl: the eglRenderer plugin is not available in this PyBullet build")
             p.loadPlugin(egl_mod.get_filename(), "_eglRendererPlugin", physicsClientId=self.cid)
-        self.renderer = Renderer(self.cid, cameras, image_size, wrist=wrist, egl=egl) if render else None
+        # Layered rendering (render.Renderer) gives the same images pixel for pixel; off renders the whole scene
+        # at every keyframe, for a side-by-side benchmark (scripts/bench_sim.py).
+        layered = _flag("layered_render", layered_render)
+        self.renderer = Renderer(self.cid, cameras, image_size, wrist, egl, layered) if render else None
         self.custom_objects = custom_objects
         self.custom_scene = custom_scene
         self.scene: scene_mod.Scene | None = None
@@ -150,7 +155,8 @@ class PyBulletSource(ScenarioConfig, FailureSource):
                 raise ValueError(f"custom_scene: missing {k!r}")
         if scene is not None and "vary" in scene:
             scene_mod.vary_keys(scene["vary"])
-        _lamp_setting(out.get("button_lamp", False))  # before run.json is written: a resume would refuse a fixed value
+        for flag in ("button_lamp", "layered_render"):  # checked before run.json is written (a resume compares it)
+            _flag(flag, out.get(flag, False))
         if out.get("scene_family") is not None:
             scene_mod.scene_family("seen", out["scene_family"])  # an unknown family fails here, before any episode
         return out
@@ -187,6 +193,8 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         )
         if self.renderer is not None:
             self.renderer.set_episode(self.scene.appearance, rng if self.camera_jitter else None)
+            lamps = [o.body for o in self.scene.objects.values() if o.kind == "button"] if self.button_lamp else []
+            self.renderer.set_scene(moving_bodies=lamps)
         for _ in range(60):  # let liquid and glassware settle before the first keyframe
             p.stepSimulation(physicsClientId=cid)
 

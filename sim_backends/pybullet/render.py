@@ -22,8 +22,45 @@ TARGET_JITTER = 0.02  # m, per axis, for the point they look at
 FOV_JITTER = 3.0  # degrees
 
 
+# One visual shape: body, link (-1: base), its index among the link's shapes, its colour.
+Visual = tuple[int, int, int, tuple[float, ...]]
+
+
+def scene_visuals(cid: int) -> list[Visual]:
+    out: list[Visual] = []
+    for i in range(p.getNumBodies(physicsClientId=cid)):
+        body = p.getBodyUniqueId(i, physicsClientId=cid)
+        seen: dict[int, int] = {}
+        for v in p.getVisualShapeData(body, physicsClientId=cid):
+            k = seen[v[1]] = seen.get(v[1], -1) + 1
+            out.append((body, v[1], k, tuple(v[7])))
+    return out
+
+
+def composite(back: tuple[np.ndarray, np.ndarray], front: tuple[np.ndarray, np.ndarray]) -> np.ndarray | None:
+    """The image two layers (rgb, depth) make together: per pixel, the nearer layer's colour. None when a pixel
+    both layers drew has the same depth in each: the depth TinyRenderer returns is rounded from its z-buffer, so
+    an equal depth does not tell which fragment the whole scene would keep (measured: at an oven door's edge, the
+    door). A strictly nearer depth does, as the rounding keeps the order."""
+    drawn = front[1] < 1.0  # 1.0: the far plane, where a layer drew nothing
+    if np.any(drawn & (front[1] == back[1])):
+        return None
+    return np.where((front[1] < back[1])[:, :, None], front[0], back[0])
+
+
 class Renderer:
-    def __init__(self, cid: int, views: Sequence[str], size: int, wrist: bool = False, egl: bool = False):
+    """The cameras of one simulator client.
+
+    Layered (TinyRenderer's default here): a fixed camera's image is the composite of a backdrop, the bodies that
+    cannot move (bench, floor, zones, racks, the oven's body) rendered once per episode, and the bodies that can,
+    rendered at each keyframe with the backdrop hidden. TinyRenderer's cost is its pixels' fragments, most of which
+    are the bench and floor, so a keyframe costs about a third; the composite is the same image pixel for pixel
+    (tests/test_render_layers.py). The wrist camera moves, so it always renders the whole scene.
+    """
+
+    def __init__(
+        self, cid: int, views: Sequence[str], size: int, wrist: bool = False, egl: bool = False, layered: bool = True
+    ):
         unknown = [v for v in views if v not in CAMERAS]
         if unknown:
             raise ValueError(f"cameras: unknown view(s) {unknown}; available: {', '.join(CAMERAS)}")
@@ -35,10 +72,15 @@ class Renderer:
         self.renderer = p.ER_BULLET_HARDWARE_OPENGL if egl else p.ER_TINY_RENDERER
         self.light = (0.6, -0.4, 2.0)
         self.light_kw: dict[str, float] = {}
+        self.layered = layered and not egl  # EGL renders on a GPU: no fragment cost to save
+        self._static: list[Visual] = []  # the backdrop's visuals (hidden while the moving bodies render)
+        self._moving: list[Visual] = []
+        self._backdrops: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # view -> (rgb, depth) this episode
 
     def set_episode(self, appearance: dict, rng: np.random.Generator | None) -> None:
         """Light of the scene's appearance; camera poses jittered from the episode's RNG (None: nominal poses)."""
         self.light = tuple(appearance["light"])
+        self._backdrops = {}  # new poses and light: last episode's backdrops are stale
         self.light_kw = {
             "lightAmbientCoeff": float(appearance.get("ambient", 0.6)),
             "lightDiffuseCoeff": float(appearance.get("diffuse", 0.35)),
@@ -68,21 +110,68 @@ class Renderer:
             for v in self.views
         ]
 
-    def render(self, robot_id: int) -> list[np.ndarray]:
-        out = []
-        for v in self.views:
-            vm = self._wrist_view(robot_id) if v == WRIST else self.view_mats[v]
-            _, _, rgb, _, _ = p.getCameraImage(
-                self.size,
-                self.size,
-                vm,
-                self.projs.get(v, self.proj),
-                renderer=self.renderer,
-                lightDirection=self.light,
-                shadow=0,
-                **self.light_kw,
-                flags=p.ER_NO_SEGMENTATION_MASK,
-                physicsClientId=self.cid,
-            )
-            out.append(np.asarray(rgb, np.uint8).reshape(self.size, self.size, 4)[:, :, :3])
+    def set_scene(self, moving_bodies: Sequence[int] = ()) -> None:
+        """Split a freshly built scene's visuals into backdrop and moving ones; call after `set_episode` and before
+        the first render of an episode. Static: the base of a body of zero mass (PyBullet never moves it); also
+        moving: `moving_bodies`, bodies whose colour may change during the episode (a button's lamp)."""
+        self._backdrops = {}
+        if not self.layered:
+            return
+        keep = set(moving_bodies)
+        visuals = scene_visuals(self.cid)
+        fixed = {b for b, link, _, _ in visuals if link == -1 and b not in keep and self._massless(b)}
+        self._static = [v for v in visuals if v[0] in fixed and v[1] == -1]
+        self._moving = [v for v in visuals if not (v[0] in fixed and v[1] == -1)]
+
+    def _massless(self, body: int) -> bool:
+        return p.getDynamicsInfo(body, -1, physicsClientId=self.cid)[0] == 0.0
+
+    def _show(self, visuals: list[Visual], on: bool) -> None:
+        for body, link, k, rgba in visuals:
+            colour = rgba if on else (*rgba[:3], 0.0)  # TinyRenderer skips a shape of alpha 0
+            p.changeVisualShape(body, link, shapeIndex=k, rgbaColor=colour, physicsClientId=self.cid)
+
+    def _shot(self, view_matrix, proj) -> tuple[np.ndarray, np.ndarray]:
+        _, _, rgb, depth, _ = p.getCameraImage(
+            self.size,
+            self.size,
+            view_matrix,
+            proj,
+            renderer=self.renderer,
+            lightDirection=self.light,
+            shadow=0,
+            **self.light_kw,
+            flags=p.ER_NO_SEGMENTATION_MASK,
+            physicsClientId=self.cid,
+        )
+        n = self.size
+        return np.asarray(rgb, np.uint8).reshape(n, n, 4)[:, :, :3], np.asarray(depth, np.float32).reshape(n, n)
+
+    def _layered(self, views: list[str]) -> dict[str, np.ndarray]:
+        """The fixed `views` that two layers settle; every visual keeps its colour afterwards (a caller reading
+        the scene's visual data sees no hidden shape)."""
+        if not self._backdrops:  # once per episode, every fixed view at once, the moving bodies hidden
+            self._show(self._moving, False)
+            try:
+                self._backdrops = {v: self._shot(self.view_mats[v], self.projs[v]) for v in views}
+            finally:
+                self._show(self._moving, True)
+        out: dict[str, np.ndarray] = {}
+        self._show(self._static, False)
+        try:
+            for v in views:
+                img = composite(self._backdrops[v], self._shot(self.view_mats[v], self.projs[v]))
+                if img is not None:  # None: a tie the layers cannot settle; the whole scene renders it
+                    out[v] = img
+        finally:
+            self._show(self._static, True)
         return out
+
+    def render(self, robot_id: int) -> list[np.ndarray]:
+        fixed = [v for v in self.views if v != WRIST]
+        out = self._layered(fixed) if self.layered and self._static and fixed else {}
+        for v in self.views:
+            if v not in out:
+                vm = self._wrist_view(robot_id) if v == WRIST else self.view_mats[v]
+                out[v] = self._shot(vm, self.projs.get(v, self.proj))[0]
+        return [out[v] for v in self.views]
