@@ -2,6 +2,7 @@
 episode, composited with the moving bodies gives the image the whole scene gives, pixel for pixel."""
 
 import numpy as np
+import pybullet as p
 import pytest
 
 from sim_backends import make_backend
@@ -14,6 +15,9 @@ def _images(layered: bool, scenario: str, seed: int) -> tuple[list[list[bytes]],
     )
     try:
         src.reset(scenario, seed)
+        # A colour changed after the reset (as a lamp does) must be what every frame shows, the first included.
+        jointed = next(o.body for o in src.scene.objects.values() if o.kind in ("button", "oven"))
+        p.changeVisualShape(jointed, 0, rgbaColor=(0.1, 0.9, 0.2, 1.0), physicsClientId=src.cid)
         ep = src.execute(src.scripted_keyframes())
         return ep.images, src.renderer, scene_visuals(src.cid)
     finally:

@@ -74,13 +74,12 @@ class Renderer:
         self.light_kw: dict[str, float] = {}
         self.layered = layered and not egl  # EGL renders on a GPU: no fragment cost to save
         self._static: list[Visual] = []  # the backdrop's visuals (hidden while the moving bodies render)
-        self._moving: list[Visual] = []
-        self._backdrops: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # view -> (rgb, depth) this episode
+        self._backdrops: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # fixed view -> (rgb, depth) this episode
 
     def set_episode(self, appearance: dict, rng: np.random.Generator | None) -> None:
         """Light of the scene's appearance; camera poses jittered from the episode's RNG (None: nominal poses)."""
         self.light = tuple(appearance["light"])
-        self._backdrops = {}  # new poses and light: last episode's backdrops are stale
+        self._backdrops = {}  # new poses and light: stale until set_scene renders them
         self.light_kw = {
             "lightAmbientCoeff": float(appearance.get("ambient", 0.6)),
             "lightDiffuseCoeff": float(appearance.get("diffuse", 0.35)),
@@ -111,17 +110,23 @@ class Renderer:
         ]
 
     def set_scene(self, moving_bodies: Sequence[int] = ()) -> None:
-        """Split a freshly built scene's visuals into backdrop and moving ones; call after `set_episode` and before
-        the first render of an episode. Static: the base of a body of zero mass (PyBullet never moves it); also
-        moving: `moving_bodies`, bodies whose colour may change during the episode (a button's lamp)."""
-        self._backdrops = {}
-        if not self.layered:
+        """Render this episode's backdrops: call once a scene is built and `set_episode` has placed the cameras,
+        before anything changes a colour. Backdrop: the base of each body of zero mass (PyBullet never moves it),
+        but not `moving_bodies`, bodies whose colour may change during the episode (a button's lamp)."""
+        self._backdrops, self._static = {}, []
+        fixed_views = [v for v in self.views if v != WRIST]
+        if not self.layered or not fixed_views:
             return
         keep = set(moving_bodies)
         visuals = scene_visuals(self.cid)
         fixed = {b for b, link, _, _ in visuals if link == -1 and b not in keep and self._massless(b)}
         self._static = [v for v in visuals if v[0] in fixed and v[1] == -1]
-        self._moving = [v for v in visuals if not (v[0] in fixed and v[1] == -1)]
+        moving = [v for v in visuals if not (v[0] in fixed and v[1] == -1)]
+        self._show(moving, False)
+        try:
+            self._backdrops = {v: self._shot(self.view_mats[v], self.projs[v]) for v in fixed_views}
+        finally:
+            self._show(moving, True)
 
     def _massless(self, body: int) -> bool:
         return p.getDynamicsInfo(body, -1, physicsClientId=self.cid)[0] == 0.0
@@ -147,20 +152,14 @@ class Renderer:
         n = self.size
         return np.asarray(rgb, np.uint8).reshape(n, n, 4)[:, :, :3], np.asarray(depth, np.float32).reshape(n, n)
 
-    def _layered(self, views: list[str]) -> dict[str, np.ndarray]:
-        """The fixed `views` that two layers settle; every visual keeps its colour afterwards (a caller reading
-        the scene's visual data sees no hidden shape)."""
-        if not self._backdrops:  # once per episode, every fixed view at once, the moving bodies hidden
-            self._show(self._moving, False)
-            try:
-                self._backdrops = {v: self._shot(self.view_mats[v], self.projs[v]) for v in views}
-            finally:
-                self._show(self._moving, True)
+    def _layered(self) -> dict[str, np.ndarray]:
+        """The fixed views that the backdrop and the moving bodies settle; every visual keeps its colour
+        afterwards (a caller reading the scene's visual data sees no hidden shape)."""
         out: dict[str, np.ndarray] = {}
         self._show(self._static, False)
         try:
-            for v in views:
-                img = composite(self._backdrops[v], self._shot(self.view_mats[v], self.projs[v]))
+            for v, back in self._backdrops.items():
+                img = composite(back, self._shot(self.view_mats[v], self.projs[v]))
                 if img is not None:  # None: a tie the layers cannot settle; the whole scene renders it
                     out[v] = img
         finally:
@@ -168,8 +167,7 @@ class Renderer:
         return out
 
     def render(self, robot_id: int) -> list[np.ndarray]:
-        fixed = [v for v in self.views if v != WRIST]
-        out = self._layered(fixed) if self.layered and self._static and fixed else {}
+        out = self._layered() if self._backdrops else {}
         for v in self.views:
             if v not in out:
                 vm = self._wrist_view(robot_id) if v == WRIST else self.view_mats[v]
