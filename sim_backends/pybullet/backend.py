@@ -167,6 +167,8 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         cid = self.cid
         self._trace = None  # the last episode's: a lamp must not read it for the new scene
         p.resetSimulation(physicsClientId=cid)
+        if self.renderer is not None:
+            self.renderer.forget_scene()  # a build that fails must not leave the old backdrops on new body ids
         p.setPhysicsEngineParameter(
             deterministicOverlappingPairs=1,
             numSolverIterations=SOLVER_ITERATIONS,

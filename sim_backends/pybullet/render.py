@@ -79,7 +79,7 @@ class Renderer:
     def set_episode(self, appearance: dict, rng: np.random.Generator | None) -> None:
         """Light of the scene's appearance; camera poses jittered from the episode's RNG (None: nominal poses)."""
         self.light = tuple(appearance["light"])
-        self._backdrops = {}  # new poses and light: stale until set_scene renders them
+        self._backdrops = {}  # new poses and light: whole-scene renders until set_scene renders the backdrops
         self.light_kw = {
             "lightAmbientCoeff": float(appearance.get("ambient", 0.6)),
             "lightDiffuseCoeff": float(appearance.get("diffuse", 0.35)),
@@ -109,11 +109,18 @@ class Renderer:
             for v in self.views
         ]
 
+    def forget_scene(self) -> None:
+        """Drop the last episode's backdrops (its body ids mean nothing after a reset): whole-scene renders until
+        `set_scene`."""
+        self._backdrops, self._static = {}, []
+
     def set_scene(self, moving_bodies: Sequence[int] = ()) -> None:
         """Render this episode's backdrops: call once a scene is built and `set_episode` has placed the cameras,
-        before anything changes a colour. Backdrop: the base of each body of zero mass (PyBullet never moves it),
-        but not `moving_bodies`, bodies whose colour may change during the episode (a button's lamp)."""
-        self._backdrops, self._static = {}, []
+        before anything changes a colour (the colours read here are the ones restored after each render; after a
+        change, PyBullet reports one colour for every shape of a link). Backdrop: the base of each body of zero
+        mass (PyBullet never moves it: bench, floor, zones, rack, the oven's body, the Panda's fixed base), but not
+        `moving_bodies`, bodies whose colour may change during the episode (a button's lamp)."""
+        self.forget_scene()
         fixed_views = [v for v in self.views if v != WRIST]
         if not self.layered or not fixed_views:
             return
@@ -122,8 +129,8 @@ class Renderer:
         fixed = {b for b, link, _, _ in visuals if link == -1 and b not in keep and self._massless(b)}
         self._static = [v for v in visuals if v[0] in fixed and v[1] == -1]
         moving = [v for v in visuals if not (v[0] in fixed and v[1] == -1)]
-        self._show(moving, False)
         try:
+            self._show(moving, False)
             self._backdrops = {v: self._shot(self.view_mats[v], self.projs[v]) for v in fixed_views}
         finally:
             self._show(moving, True)
@@ -153,11 +160,11 @@ class Renderer:
         return np.asarray(rgb, np.uint8).reshape(n, n, 4)[:, :, :3], np.asarray(depth, np.float32).reshape(n, n)
 
     def _layered(self) -> dict[str, np.ndarray]:
-        """The fixed views that the backdrop and the moving bodies settle; every visual keeps its colour
-        afterwards (a caller reading the scene's visual data sees no hidden shape)."""
+        """The fixed views that the backdrop and the moving bodies settle; every shape is drawn in its own colour
+        again afterwards, also after an error."""
         out: dict[str, np.ndarray] = {}
-        self._show(self._static, False)
         try:
+            self._show(self._static, False)
             for v, back in self._backdrops.items():
                 img = composite(back, self._shot(self.view_mats[v], self.projs[v]))
                 if img is not None:  # None: a tie the layers cannot settle; the whole scene renders it
