@@ -113,7 +113,7 @@ demo-online: $(STAMP)
 # trajectories and 150 per held-out split (seen: two generation runs of REPRO_SEEN episodes, the second's pairs
 # numbered after the first's, so a larger recipe extends the smaller one's data instead of redrawing it). Each
 # held-out variant draws episodes of its own; the sealed test_* splits are benched once here, for the page's rows. Resumable: generation resumes its
-# shards; delete outputs/reproduce to start over. 115 min on 2 cores from a fresh clone, the install included
+# shards, training its newest checkpoint; delete outputs/reproduce to start over (and before changing its settings). 115 min on 2 cores from a fresh clone, the install included
 # (docs/EXPERIMENTS.md, 4 Dec: generation 51.5, dataset 3.4, training 46.7, benches 7.9, learning curve 4.5). Then, on
 # the same data: make reproduce-rows (the scratch-tower and front + wrist rows) and make ablate (the paper's ablation
 # table); each rewrites docs/RESULTS.md with what exists.
@@ -138,6 +138,8 @@ same_layers = @$(PY) -c "from labrobfail_vlm.config import cli_main; from labrob
   cli_main(lambda _: check_built('$(R)/train/final', {'num_hidden_layers': $(REPRO_LAYERS)}, 'REPRO_LAYERS', \
   '$(1) needs the main model\'s size: set REPRO_LAYERS to it') or 0)"
 stamp           = echo "$(1) $$(date +%s)" >> $(R)/timeline.txt
+# resume=true where a checkpoint was left in the folder when make started (an interrupted run); none: train afresh
+resume_in       = $(if $(wildcard $(1)/checkpoint-*),resume=true)
 bench          = for s in $(2); do $(BIN)/labrobfail-evaluate model=$(1)/final dataset_dir=$(3) split=$$s batch_size=8 \
   progress=false $(4) || exit 1; done
 reproduce: $(STAMP)
@@ -150,7 +152,7 @@ reproduce: $(STAMP)
 	$(call stamp,dataset)
 	$(BIN)/labrobfail-build-dataset $(REPRO_SHARDS) out_dir=$(R)/dataset $(DEMO_GRID) 'views=[front,side]' progress=false
 	$(call stamp,train)
-	$(BIN)/labrobfail-train $(REPRO_TRAIN) dataset_dir=$(R)/dataset output_dir=$(R)/train
+	$(BIN)/labrobfail-train $(REPRO_TRAIN) dataset_dir=$(R)/dataset output_dir=$(R)/train $(call resume_in,$(R)/train)
 	$(call stamp,evaluate)
 	$(call bench,$(R)/train,test $(HELD_OUT),$(R)/dataset)
 	$(call stamp,learning_curve)

@@ -132,6 +132,21 @@ def _make_dry(target: str, *settings: str) -> subprocess.CompletedProcess:
     return subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=60)
 
 
+def test_make_reproduce_resumes_training_only_where_a_checkpoint_was_left(tmp_path):
+    """`make reproduce` (a dry run): a fresh folder trains from scratch (resume=true would refuse it), a folder an
+    interrupted run left a checkpoint in resumes (before, the recipe's training restarted from step 0)."""
+
+    def train_line() -> str:
+        plan = _make_dry("reproduce", f"R={tmp_path}")
+        assert plan.returncode == 0, plan.stderr
+        (line,) = [x for x in plan.stdout.splitlines() if "labrobfail-train" in x]
+        return line.rstrip()
+
+    assert train_line().endswith(f"output_dir={tmp_path}/train") and "resume=true" not in train_line()
+    (tmp_path / "train" / "checkpoint-1600").mkdir(parents=True)
+    assert train_line().endswith("resume=true")
+
+
 def test_extra_training_episodes_are_drawn_in_seen_or_randomised_scenes_only(tmp_path):
     """`make reproduce-more`'s MORE_FAMILY (a dry run): the randomised family reaches the generator and names its own
     shards, dataset and row; a val or sealed family (or none) is refused in one line before any step."""
