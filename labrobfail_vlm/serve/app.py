@@ -279,7 +279,7 @@ def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
             "grid": asdict(analyzer.grid),
             "q6_mode": analyzer.q6_mode,
             "threshold": analyzer.threshold,  # the Q2 operating point
-            "option_bias": {k: list(v) for k, v in getattr(analyzer, "option_bias", {}).items()},  # Q3-Q5, if fitted
+            "option_bias": {k: list(v) for k, v in analyzer.option_bias.items()},  # Q3-Q5, if fitted
             "device": str(p.device),
             "dtype": str(p.dtype).removeprefix("torch."),
             "serve": cfg.public(),

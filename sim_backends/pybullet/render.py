@@ -79,7 +79,7 @@ class Renderer:
     def set_episode(self, appearance: dict, rng: np.random.Generator | None) -> None:
         """Light of the scene's appearance; camera poses jittered from the episode's RNG (None: nominal poses)."""
         self.light = tuple(appearance["light"])
-        self._backdrops = {}  # new poses and light: whole-scene renders until set_scene renders the backdrops
+        self.forget_scene()  # new poses and light: whole-scene renders until set_scene renders the backdrops
         self.light_kw = {
             "lightAmbientCoeff": float(appearance.get("ambient", 0.6)),
             "lightDiffuseCoeff": float(appearance.get("diffuse", 0.35)),
