@@ -32,7 +32,7 @@ from labrobfail_data.paraphrase import Paraphraser
 from labrobfail_data.splits import assign
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.bench import robot_baseline
-from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.config import ConfigError, names, require_ints
 from labrobfail_vlm.grid import GridConfig
 from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
 from labrobfail_vlm.taxonomy import DATA_VARIANTS, HELD_OUT_SPLITS, RENAMED_VARIANTS, REPLAY_SPLITS, SEEN_SPLITS
@@ -62,7 +62,9 @@ def _shard_files(cfg: DictConfig) -> list[Path]:
     dirs = cfg.shards
     if dirs is None:
         raise ConfigError("shards: give a shard directory (shards=DIR) or a list of them")
-    dirs = [dirs] if isinstance(dirs, str) else list(dirs)
+    dirs = [dirs] if isinstance(dirs, str) else list(dirs) if OmegaConf.is_list(dirs) else None
+    if dirs is None:
+        raise ConfigError(f"shards: give a shard directory (shards=DIR) or a list of them, got {cfg.shards!r}")
     files: list[Path] = []
     for d in dirs:
         if not Path(d).is_dir():
@@ -149,10 +151,20 @@ def _grid_config(cfg: DictConfig) -> GridConfig:
         raise ConfigError(str(e)) from None
 
 
+def fractions(key: str, value: Any, n: int) -> tuple[float, ...]:
+    """A ratios setting: `n` non-negative numbers summing to 1 (one-line ConfigError naming `key` otherwise)."""
+    try:
+        out = tuple(float(r) for r in value)
+    except (TypeError, ValueError):
+        out = ()
+    if len(out) != n or any(r < 0 for r in out) or abs(sum(out) - 1) > 1e-6:
+        raise ConfigError(f"{key}: {n} non-negative fractions summing to 1, got {value!r}")
+    return out
+
+
 def _check_ratios(cfg: DictConfig) -> None:
     """The seen train/val/test ratios: three non-negative fractions summing to 1."""
-    if len(cfg.ratios) != 3 or any(float(r) < 0 for r in cfg.ratios) or abs(sum(cfg.ratios) - 1) > 1e-6:
-        raise ConfigError(f"ratios: three non-negative fractions summing to 1, got {list(cfg.ratios)}")
+    fractions("ratios", cfg.ratios, 3)
 
 
 def _prefix_questions(cfg: DictConfig) -> list[str]:
@@ -175,7 +187,7 @@ def _prefix_questions(cfg: DictConfig) -> list[str]:
 
 def _views(cfg: DictConfig) -> list[str] | None:
     """The camera views of each grid, in order (None: every view of the shards)."""
-    views = None if cfg.views is None else [str(v) for v in cfg.views]
+    views = names(cfg.views)
     if views is not None and (not views or len(set(views)) != len(views)):
         raise ConfigError(f"views: expected distinct camera names, e.g. [front, side], got {views}")
     return views
@@ -332,6 +344,7 @@ def _write_splits(out: Path, splits: dict[str, list[dict[str, Any]]]) -> None:
 
 
 def build(cfg: DictConfig) -> dict[str, Any]:
+    require_ints(cfg, ("seed", "review_sample"), 0)  # the review page is written last: its count is checked first
     files = _shard_files(cfg)
     check_unique(files)
     gcfg = _grid_config(cfg)

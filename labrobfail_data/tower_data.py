@@ -25,10 +25,10 @@ from omegaconf import DictConfig
 from tqdm import tqdm
 
 from labrobfail_data.annotate import grid_failure_frame, grid_picks
-from labrobfail_data.build import READ_COLUMNS, _rows, _shard_files
+from labrobfail_data.build import READ_COLUMNS, _rows, _shard_files, fractions
 from labrobfail_data.frame_targets import CELL_TARGETS, MAX_POINTS, TOKEN_TARGETS, row_targets
 from labrobfail_data.splits import assign
-from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.config import ConfigError, require_ints
 from labrobfail_vlm.io import atomic_write_json
 from sim_backends.shards import write_shard
 
@@ -80,11 +80,13 @@ def _record(row: dict[str, Any], max_frames: int, image_size: int) -> dict[str, 
 def build(cfg: DictConfig) -> dict[str, Any]:
     """cfg: shards (dir or list), out_dir, max_frames, image_size, ratios [train, val], seed, progress."""
     files = _shard_files(cfg)
-    out = Path(cfg.out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     max_frames, size = int(cfg.max_frames), int(cfg.image_size)
     if max_frames < 1 or size < 32:
         raise ConfigError(f"max_frames/image_size: expected >= 1 and >= 32, got {max_frames}, {size}")
+    ratios = fractions("ratios", cfg.ratios, 2)  # checked before a frame file is written
+    require_ints(cfg, ("seed",), 0)
+    out = Path(cfg.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
     sig = f"{zlib.crc32(json.dumps([CELL_TARGETS, TOKEN_TARGETS, MAX_POINTS, max_frames, size]).encode()):08x}"
     written: list[str] = []
     for f in tqdm(files, desc="tower data", disable=not cfg.progress):
@@ -99,7 +101,6 @@ def build(cfg: DictConfig) -> dict[str, Any]:
         for n in written
         for r in pq.read_table(out / n, columns=["group", "variant", "success", "failure_type"]).to_pylist()
     ]
-    ratios = tuple(float(x) for x in cfg.ratios)
     split = assign(((r["group"], r["variant"]) for r in meta), int(cfg.seed), (ratios[0], ratios[1], 0.0))
     counts = Counter(split[r["group"]] for r in meta)
     index = {

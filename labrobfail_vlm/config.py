@@ -2,7 +2,8 @@
 
 A setting is given as `key=value`, `--key value` or `--key=value` (in `--key`, dashes read as underscores:
 `--max-model-gb 8` is `max_model_gb=8`; a `--flag` with no value is `true`); dotted keys reach nested sections
-(`lr.vision=0`). Unknown keys are one-line errors. `-h` / `--help` prints the entry point's docstring and its
+(`lr.vision=0`). Unknown keys, and values of the wrong shape for their defaults, are one-line errors; a list is
+`[a,b]` or `a,b`. `-h` / `--help` prints the entry point's docstring and its
 documented defaults. Entry points call `cli_main(fn, __doc__)`: a ConfigError or ValueError becomes
 `error: <message>` on stderr and exit code 2, never a traceback.
 """
@@ -74,6 +75,14 @@ def require_ints(cfg: Any, keys: Iterable[str], low: int = 1) -> None:
             raise ConfigError(f"{key}: expected an integer >= {low}, got {cfg[key]!r}")
 
 
+def names(value: Any) -> list[str] | None:
+    """A list-of-names setting whose default is null: None stays None, a string is a comma-separated list
+    (`scenarios=pick,place`; iterated as it is, `scenarios=pick` would be four one-letter names)."""
+    if value is None:
+        return None
+    return [v.strip() for v in value.split(",") if v.strip()] if isinstance(value, str) else [str(v) for v in value]
+
+
 def size_setting(key: str, value: object, example: str) -> tuple[int, int]:
     """A `WxH` setting (e.g. grid=512x512) as positive (width, height), or a one-line ConfigError naming `key`."""
     try:
@@ -106,30 +115,56 @@ def load_config(defaults: str | Path, argv: list[str]) -> DictConfig:
             if name not in base.presets:
                 raise ConfigError(f"preset: unknown preset {name!r}; known: {', '.join(base.presets)}")
             layers.append(base.presets[name])
-        _check_lists(OmegaConf.merge(*layers), OmegaConf.to_container(cli, resolve=False))
-        cfg = OmegaConf.merge(*layers, cli)
+        given = OmegaConf.to_container(cli, resolve=False)
+        _check_shapes(OmegaConf.merge(*layers), given)
+        cfg = OmegaConf.merge(*layers, OmegaConf.create(given))
     except ConfigError:
         raise
     except Exception as e:  # omegaconf raises several types for unknown keys / bad syntax
-        key = getattr(e, "full_key", None) or str(e).splitlines()[0]
+        key = getattr(e, "full_key", None) or _unparsable(args) or str(e).splitlines()[0]
         raise ConfigError(f"{key}: not a valid setting ({type(e).__name__})") from None
     assert isinstance(cfg, DictConfig)
     return cfg
 
 
-def _check_lists(defaults: Any, given: Any, prefix: str = "") -> None:
-    """A command-line true/false or number where the default is a list (`baselines=false`) is a one-line error:
-    OmegaConf would take it, and its reader would then iterate a bool. A string or null is left to the reader, which
-    may take it on purpose (`backends=pybullet,maniskill`, `pair_shares=null`). `given`: the command line as plain
-    containers, interpolations unresolved."""
-    for key, value in given.items():
+# bool settings whose reader also takes a path (train's `resume=<checkpoint folder>`)
+BOOL_OR_PATH = frozenset({"resume"})
+
+
+def _unparsable(args: list[str]) -> str | None:
+    """The key of the first setting whose value does not parse on its own (`num_episodes=[1`), or None."""
+    for a in args:
+        try:
+            OmegaConf.from_dotlist([a])
+        except Exception:  # noqa: BLE001 - any parse failure names this argument
+            return a.partition("=")[0]
+    return None
+
+
+def _check_shapes(defaults: Any, given: Any, prefix: str = "") -> None:
+    """The command line's values against the shapes of their defaults, as one-line errors before any reader sees
+    them (a reader would iterate a bool, or call int() on a list): a number or bool where the default is a list
+    (`baselines=false`), a list or mapping where it is a number or bool (`seed=[1]`), anything but true/false where
+    it is a bool (`draw_index=maybe`). A string where the default is a list is a comma-separated list
+    (`cameras=front,side`; `cameras=front` would otherwise read as five one-letter views); a string or null
+    elsewhere is left to the reader, which may take it on purpose (`threshold=val`, `tower_cache_mb=auto`).
+    `given`: the command line as plain containers, interpolations unresolved; rewritten in place."""
+    for key, value in list(given.items()):
         default = defaults.get(key) if isinstance(defaults, DictConfig) else None
         name = f"{prefix}{key}"
-        if isinstance(value, dict):
-            _check_lists(default, value, f"{name}.")
-        elif isinstance(default, ListConfig) and isinstance(value, (bool, int, float)):
-            example = ",".join(map(str, default)) if len(default) else "a,b"
-            raise ConfigError(f"{name}: expected a list (e.g. '{name}=[{example}]' or '{name}=[]'), got {value!r}")
+        if isinstance(value, dict) and not isinstance(default, (bool, int, float)):
+            _check_shapes(default, value, f"{name}.")
+        elif isinstance(default, ListConfig):
+            if isinstance(value, (bool, int, float)):
+                example = ",".join(map(str, default)) if len(default) else "a,b"
+                raise ConfigError(f"{name}: expected a list (e.g. '{name}=[{example}]' or '{name}=[]'), got {value!r}")
+            if isinstance(value, str) and not value.startswith("${"):
+                given[key] = [v.strip() for v in value.split(",") if v.strip()]
+        elif isinstance(default, (bool, int, float)) and isinstance(value, (list, dict)):
+            raise ConfigError(f"{name}: expected one value, got {'a list' if isinstance(value, list) else 'a mapping'}")
+        elif isinstance(default, bool) and value is not None and not isinstance(value, bool):
+            if not (isinstance(value, str) and key in BOOL_OR_PATH):
+                raise ConfigError(f"{name}: expected true or false, got {value!r}")
 
 
 def cli_main(fn: Callable[[list[str]], int], doc: str | None = None) -> None:

@@ -51,7 +51,10 @@ class ChatClient:
             self.url,
             {"model": self.model, "temperature": temperature, "max_tokens": max_tokens, "messages": messages, **extra},
         )
-        return str(reply["choices"][0]["message"]["content"])
+        content = reply["choices"][0]["message"]["content"]
+        if not isinstance(content, str):  # null (a refusal or tool call) or parts: not a reply this client reads
+            raise ValueError(f"the reply's content is {type(content).__name__}, not text")
+        return content
 
     def models(self) -> list[str]:
         """The model ids the server lists (GET /models)."""

@@ -52,10 +52,24 @@ def _capture(path: Path, name: str, field: str):  # -> cv2.VideoCapture
             f.read(16)
     except OSError as e:
         raise ConfigError(f"{field}: {name} is not readable ({e.strerror or type(e).__name__})") from None
+    still = _image_format(path)  # FFmpeg reads a still as a one-frame "video" whose stated frame count is garbage
+    if still:
+        raise ConfigError(f"{field}: {name} is a {still} image, not a video (a grid or frames go elsewhere)")
     cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
     if not cap.isOpened():
         raise ConfigError(f"{field}: {name} is not a video OpenCV can read (or its header is truncated)")
     return cap
+
+
+def _image_format(path: Path) -> str | None:
+    """The still-image format Pillow recognises in the file's header (PNG, JPEG, ...), or None."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            return im.format or "still"
+    except (UnidentifiedImageError, OSError, ValueError):
+        return None
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ from typing import Any, Iterator
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from labrobfail_vlm.config import CONFIG_DIR, ConfigError, is_int, require_ints
+from labrobfail_vlm.config import CONFIG_DIR, ConfigError, is_int, names, require_ints
 from labrobfail_vlm.config import load_config as _load_config
 from labrobfail_vlm.io import atomic_write_json
 from labrobfail_vlm.taxonomy import REPLAY_PREFIX, SCENE_VARIANTS, check_variant
@@ -59,11 +59,13 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
 
     if cfg.backend not in available_backends():
         raise ConfigError(f"backend: unknown backend {cfg.backend!r}; available: {', '.join(available_backends())}")
-    require_ints(cfg, ("num_episodes", "first_pair"), 0)
+    require_ints(cfg, ("num_episodes", "first_pair", "seed"), 0)
     require_ints(cfg, ("workers", "episodes_per_shard", "image_size"))
     rf = cfg.render_frames
     if rf is not None and not is_int(rf, 1):
         raise ConfigError(f"render_frames: must be a positive integer or null (every keyframe), got {rf!r}")
+    if cfg.num_episodes % 2:
+        raise ConfigError(f"num_episodes: must be even (success/failure pairs), got {cfg.num_episodes}")
     if cfg.episodes_per_shard % 2:
         raise ConfigError("episodes_per_shard: must be even (a shard holds whole success/failure pairs)")
     if cfg.executor not in ("process", "ray"):
@@ -74,8 +76,15 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
     if cfg.replay_seen and cfg.variant == "seen":
         raise ConfigError("replay_seen: replays the seen episodes under a held-out variant's appearance; give one")
     spec = backend_spec(cfg.backend)
+    spec.cls.check_cameras(list(cfg.cameras))
     own = backend_options(cfg.backend, _own_section(cfg))
-    out = Path(cfg.out_dir)
+    kwargs = {"image_size": cfg.image_size, "cameras": list(cfg.cameras), **own}
+    known = spec.cls.list_scenarios(**kwargs)
+    cfg.scenarios = names(cfg.scenarios)
+    for s in cfg.scenarios or []:
+        if s not in known:
+            raise ConfigError(f"scenarios: unknown task scenario {s!r}")
+    out = Path(cfg.out_dir)  # made last: a bad setting above leaves no folder behind
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / ".write_probe"
@@ -83,11 +92,6 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
         probe.unlink()
     except OSError as e:
         raise ConfigError(f"out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
-    kwargs = {"image_size": cfg.image_size, "cameras": list(cfg.cameras), **own}
-    known = spec.cls.list_scenarios(**kwargs)
-    for s in cfg.scenarios or []:
-        if s not in known:
-            raise ConfigError(f"scenarios: unknown task scenario {s!r}")
     return kwargs
 
 

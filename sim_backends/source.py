@@ -80,6 +80,17 @@ class FailureSource(ABC):
         self._run: _Run | None = None
 
     # ---- configuration (class level: checked before any simulator starts) ---------------------------
+    # the fixed views this backend renders (name -> its camera); empty: names checked only when a source is built
+    CAMERAS: dict[str, Any] = {}
+
+    @classmethod
+    def check_cameras(cls, cameras: Sequence[str]) -> None:
+        """ValueError naming the views this backend does not render, before any simulator starts (a run must not
+        record a bad camera list in its run.json and then fail)."""
+        unknown = [v for v in cameras if cls.CAMERAS and v not in cls.CAMERAS]
+        if unknown:
+            raise ValueError(f"cameras: unknown view(s) {unknown}; available: {', '.join(cls.CAMERAS)}")
+
     @classmethod
     def prepare_kwargs(cls, kwargs: dict[str, Any]) -> dict[str, Any]:
         """Check and resolve the backend's own config section (`backend_kwargs`); raise ValueError

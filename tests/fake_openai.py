@@ -24,6 +24,8 @@ class FakeOpenAI:
         from labrobfail_vlm.train.data import messages
 
         self.fa, self.name, self.requests = analyzer, name, []
+        # a broken model: the reply's content for every request of a kind ("choice", "regex" or "free")
+        self.canned: dict[str, Any] = {}
         lock = threading.Lock()
         fake = self
 
@@ -82,6 +84,9 @@ class FakeOpenAI:
                     else:
                         fa.decoder.max_new_tokens = int(body.get("max_tokens", 96))
                         reply = fa.decoder.free_text(pre)
+                kind = next((k for k in ("choice", "regex") if k in so), "free")
+                if kind in fake.canned:
+                    reply = fake.canned[kind]
                 self._send(
                     200,
                     {

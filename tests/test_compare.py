@@ -214,7 +214,7 @@ def test_bad_settings_are_one_line(tmp_path):
         _write(tmp_path / side, recs, lambda t, d, r: r["conversations"][1]["value"], lambda t: 0.5)
     cases = {
         "seed=abc": "error: seed: expected an integer >= 0",
-        "splits=val": "error: splits: expected a list of split names",
+        "splits=3": "error: splits: expected a list",  # ("splits=val" is the list [val])
         "splits=[val,test_both]": "error: splits: test_both is a sealed split",
         f"out={tmp_path / 'no' / 'c.json'}": "error: out: no such folder",
         "splits=[val,val_both]": f"error: a: {tmp_path / 'a' / 'eval_val_both' / 'predictions.jsonl'} not found",

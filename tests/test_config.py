@@ -1,4 +1,6 @@
-"""The shared command line (labrobfail_vlm/config.py): a list setting given a scalar is a one-line error."""
+"""The shared command line (labrobfail_vlm/config.py): a value of the wrong shape for its default (a scalar for a
+list, a list for a number, anything but true/false for a bool) is a one-line error; a string for a list is a
+comma-separated list."""
 
 import subprocess
 import sys
@@ -9,6 +11,10 @@ from labrobfail_vlm.config import ConfigError, load_config
 
 DEFAULTS = """
 preset: plain
+seed: 0
+lr: 0.1
+progress: true
+resume: false
 baselines: [majority, blind]
 scenarios: null
 grid: {views: [front, side]}
@@ -24,9 +30,15 @@ presets:
         ("baselines=false", "baselines: expected a list .* got False"),
         ("baselines=3", "baselines: expected a list .* got 3"),
         ("grid.views=0.5", "grid.views: expected a list .* got 0.5"),
+        ("seed=[1]", "seed: expected one value, got a list"),  # a reader's int() raised a TypeError
+        ("lr={a: 1}", "lr: expected one value, got a mapping"),
+        ("progress=maybe", "progress: expected true or false, got 'maybe'"),  # was taken as true
+        ("progress=0", "progress: expected true or false, got 0"),
+        ("resume=[a]", "resume: expected one value, got a list"),
+        ("seed=[1", "seed: not a valid setting"),  # the parser's message named no setting
     ],
 )
-def test_a_scalar_for_a_list_is_refused(arg, msg):
+def test_a_value_of_the_wrong_shape_is_refused(arg, msg):
     with pytest.raises(ConfigError, match=msg):
         load_config(DEFAULTS, ["preset=plain", arg])
 
@@ -34,8 +46,11 @@ def test_a_scalar_for_a_list_is_refused(arg, msg):
 def test_lists_strings_nulls_and_interpolations_pass_to_their_readers():
     cfg = load_config(DEFAULTS, ["preset=plain", "baselines=[]", "grid.views=[front,wrist]"])
     assert list(cfg.baselines) == [] and list(cfg.grid.views) == ["front", "wrist"]
-    # a string or null is the reader's to take (a script may read "a,b" or null on purpose)
-    assert load_config(DEFAULTS, ["preset=plain", "baselines=majority,blind"]).baselines == "majority,blind"
+    # a string for a list is a comma-separated list (iterated, "front" would be five one-letter views); null stays
+    assert list(load_config(DEFAULTS, ["preset=plain", "baselines=majority,blind"]).baselines) == ["majority", "blind"]
+    assert list(load_config(DEFAULTS, ["preset=plain", "grid.views=front"]).grid.views) == ["front"]
+    # a bool that also takes a path (train's resume=<checkpoint>) takes it; a number takes an int
+    assert load_config(DEFAULTS, ["resume=outputs/run/checkpoint-8", "lr=1", "progress=false"]).resume.endswith("-8")
     assert load_config(DEFAULTS, ["preset=demo", "scenarios=null"]).scenarios is None
     assert list(load_config(DEFAULTS, ["preset=demo"]).scenarios) == ["pick", "place"]
     # an interpolation resolves after the merge, against the whole configuration

@@ -174,12 +174,16 @@ def test_bad_inputs_are_one_line_errors(run6, tmp_path):
         (["prefix.cuts=1", "prefix.questions=[Q2,Q3,Q4]"], "prefix.questions"),
         (["prefix.cuts=1", "prefix.questions=Q6"], "prefix.questions"),
         ([f"shards=[{run6},{run6}]"], "first_pair"),  # the same trajectories twice
+        (["review_sample=-1"], "review_sample"),  # was found after the dataset had been rewritten
+        (["seed=[1,2]"], "seed"),
+        (["grid.draw_index=maybe"], "grid.draw_index"),
     ]:
         shards = [f"shards={run6}"] if not args[0].startswith("shards") else []
         call = run if field == "shards" else run_here  # the first case as a real process, the rest in this one
         r = call([cli("build-dataset"), f"out_dir={tmp_path}/o", *shards, *args])
         assert r.returncode == 2 and "Traceback" not in r.stderr and field in r.stderr, r.stderr
         assert len(r.stderr.strip().splitlines()) == 1
+        assert not (tmp_path / "o").exists()  # refused before anything is written
 
 
 def test_review_marks_remove_rejected(run6, ds, tmp_path):

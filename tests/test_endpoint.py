@@ -182,3 +182,37 @@ def test_evaluate_batch_size_gives_the_same_predictions(mixed_model, small_ds, t
     for bad in ("batch_size=0", "tower_cache_mb=lots"):
         r = _run("labrobfail-evaluate", bad, *common, here=True)
         assert r.returncode == 2 and bad.split("=")[0] in r.stderr
+
+
+@pytest.mark.parametrize(
+    "canned, needle",
+    [
+        ({"choice": "zzz"}, "reply to Q2 is none of its answers: 'zzz'"),  # read as "no failure" before
+        ({"choice": None}, "content is NoneType, not text"),  # was the text "None"
+        ({"regex": ["run"]}, "content is list, not text"),
+    ],
+)
+def test_unreadable_replies_are_one_line_errors(fake, grids, tmp_path, canned, needle):  # noqa: F811
+    from labrobfail_vlm.endpoint import EndpointAnalyzer, EndpointError
+
+    ep = EndpointAnalyzer(fake.url, fake.name, api_key_env="_FAKE_KEY")
+    fake.canned = canned
+    try:
+        with pytest.raises(EndpointError, match=needle.replace("(", r"\(")):
+            ep.answers(grids[0], "pick up the small beaker")
+        grids[0].save(tmp_path / "g.png")
+        r = _run(
+            "infer.py",
+            "--grid",
+            str(tmp_path / "g.png"),
+            "--endpoint",
+            fake.url,
+            "--endpoint-model",
+            fake.name,
+            env={"OPENAI_API_KEY": KEY},
+            here=True,
+        )
+        assert r.returncode == 2 and needle in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert r.stdout == ""
+    finally:
+        fake.canned = {}

@@ -71,6 +71,15 @@ def test_training_killed_mid_run_resumes_to_the_final_step_and_evaluates(tiny, s
     # nothing to resume from is one line
     r = run_here([*common[:-3], f"output_dir={tmp_path / 'empty'}", "resume=true", "progress=false"])
     assert r.returncode == 2 and "no complete checkpoint" in r.stderr.strip().splitlines()[-1], r.stderr
+    # a complete-looking checkpoint whose weights or optimizer state cannot be read (a full disk while saving): one
+    # line naming the file, not the trainer's traceback half-way through loading it
+    for name in (sorted(p.name for p in (out / "checkpoint-8").glob("*.safetensors"))[0], "optimizer.pt"):
+        bad = tmp_path / f"bad_{name}"
+        shutil.copytree(out / "checkpoint-8", bad / "checkpoint-8")
+        (bad / "checkpoint-8" / name).write_bytes(b"")
+        r = run_here([*common[:-3], f"output_dir={bad}", "resume=true", "progress=false"])
+        last = r.stderr.strip().splitlines()[-1]
+        assert r.returncode == 2 and last.startswith("error: resume:") and name in last and "Traceback" not in r.stderr
 
 
 def _sha(path):

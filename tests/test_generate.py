@@ -107,12 +107,16 @@ def test_first_pair_numbers_ids_and_seeds_so_a_second_run_adds_new_pairs(tmp_pat
         ("backend_kwargs.custom_scene=nowhere.yaml", "backend_kwargs.custom_scene"),
         ("backend_kwargs.custom_scene=tests/data/bad_vary_scene.yaml", "vary"),
         ("backend_kwargs.scene_family=moon", "scene_family"),
+        ("cameras=[front,moon]", "cameras"),  # was found by the renderer after run.json recorded it
+        ("seed=abc", "seed"),  # likewise: the corrected rerun was then refused
+        ("seed=[1]", "seed"),
     ],
 )
 def test_bad_config_is_one_line(tmp_path, arg, field):
     r = gen(tmp_path / "c", "num_episodes=2", arg, check=False, here=arg != "backend=gazebo")  # the first: a process
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip().count("\n") == 0 and field in r.stderr
+    assert not (tmp_path / "c").exists()  # no folder, no run.json: the corrected command starts afresh
 
 
 def test_unwritable_out_dir_and_nothing_lost(run6, tmp_path):

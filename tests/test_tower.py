@@ -154,6 +154,8 @@ def test_bad_tower_settings_are_one_line(tower_data, tmp_path):
         (["epochs=0"], "epochs"),
         (["lr=-1"], "lr"),
         (["layouts=[[front,side],[front]]"], "layouts"),
+        (["layouts=front"], "layouts"),  # was read as a one-view layout of five letters
+        (["layouts=[[front,top]]"], "layouts"),  # a view no trajectory has: was found after an epoch's checkpoint
         ([f"data.out_dir={tmp_path}"], "data"),
         (["grid.width=100"], "grid"),
         ([f"init={tmp_path / 'none'}"], "tower"),
@@ -163,6 +165,7 @@ def test_bad_tower_settings_are_one_line(tower_data, tmp_path):
         r = _pretrain(tower_data, tmp_path / "r", *args, here=key != "epochs")  # the first case as a process
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-2000:]
         assert r.stderr.strip().splitlines()[-1].startswith(f"error: {key}"), r.stderr
+        assert not (tmp_path / "r").exists() or key != "layouts"  # refused before its folder is made
 
 
 def test_hue_range_reaches_any_hue_and_the_default_draw_is_unchanged():

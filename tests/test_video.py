@@ -116,11 +116,13 @@ def test_bad_and_truncated_videos_are_one_line_errors(episode_videos, mixed_mode
         w.write(np.random.default_rng(i).integers(0, 255, (64, 64, 3), dtype=np.uint8))
     w.release()
     (tmp_path / "cut.avi").write_bytes(avi.read_bytes()[: int(avi.stat().st_size * 0.6)])
+    Image.new("RGB", (64, 64)).save(tmp_path / "still.png")  # FFmpeg opens a still as a one-frame video
     cases = [
         (["--video", str(tmp_path / "cut.mp4")], "header is truncated"),
         (["--video", str(tmp_path / "text.mp4")], "not a video"),
         (["--video", str(tmp_path / "cut.avi")], "truncated or corrupt"),
         (["--video", str(tmp_path / "gone.mp4")], "does not exist"),
+        (["--video", str(tmp_path / "still.png")], "is a PNG image, not a video"),
         (["--video", str(paths[0]), "--grid", str(paths[0])], "give one of them"),
         (["--video", str(paths[0]), "--keyframes", "random"], "keyframes: expected uniform or motion"),
     ]

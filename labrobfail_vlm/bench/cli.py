@@ -40,6 +40,10 @@ def _check_args(cfg: Any) -> None:
         raise ConfigError("model/predictions/endpoint: give exactly one of model=DIR, predictions=FILE or endpoint=URL")
     if cfg.dataset_dir is None:
         raise ConfigError("dataset_dir: required")
+    if not isinstance(cfg.split, str):
+        raise ConfigError(f"split: expected one split's name (split=test), got {cfg.split!r}")
+    if cfg.executable.enabled and not cfg.executable.shards:  # before the model runs, not after
+        raise ConfigError("executable.shards: name the shard folder(s) the dataset was built from")
     if cfg.max_trajectories is not None and (not isinstance(cfg.max_trajectories, int) or cfg.max_trajectories < 1):
         raise ConfigError(f"max_trajectories: expected a positive integer or null, got {cfg.max_trajectories!r}")
     if cfg.max_trajectories is not None and cfg.mode == "offline" and cfg.split in SEALED_SPLITS:
@@ -137,7 +141,12 @@ def _predict(
 
     tmpl: dict[str, str] = {}  # Q6 in template mode (model and endpoint runs)
     if cfg.model is None and cfg.endpoint is None:
-        return None, Path(cfg.predictions).stem, ev.read_predictions(cfg.predictions), tmpl
+        preds = ev.read_predictions(cfg.predictions)
+        if not any(r["id"] in preds for r in recs):  # else every reply scores as missing, silently 0.00
+            raise ConfigError(
+                f"predictions: no id of {cfg.predictions} is a record of split {cfg.split} (empty, or another split's)"
+            )
+        return None, Path(cfg.predictions).stem, preds, tmpl
     analyzer, name = _load_analyzer(cfg, threshold)
     preds = ev.model_predictions(
         analyzer, cfg.dataset_dir, recs, traj, progress=cfg.progress, batch_size=cfg.batch_size
@@ -311,6 +320,8 @@ def main(argv: list[str]) -> int:
     if cfg.mode == "online":
         return _online(cfg)
     recs, traj = ev.load_split(cfg.dataset_dir, cfg.split, cfg.max_trajectories)
+    if not recs:  # a table of dashes would read as a bench that ran
+        raise ConfigError(f"split: {cfg.split} has no records in {cfg.dataset_dir}")
     threshold = val_threshold(cfg.model, cfg.dataset_dir) if cfg.threshold == "val" else float(cfg.threshold)
     out = _out_dir(cfg)
     log_lines: list[str] = []

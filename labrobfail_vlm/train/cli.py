@@ -129,6 +129,8 @@ def _check_settings(cfg: Any, detect: float) -> int:
     check_cache_mb(cfg.tower_cache_mb)
 
     check_head(str(cfg.grounding.head))  # before the model loads
+    if not (float(cfg.epochs) > 0 or int(cfg.max_steps) > 0):  # else an untrained final/ would be written
+        raise ConfigError(f"epochs: expected > 0 (or max_steps > 0), got {cfg.epochs!r}")
     pre_epochs = int(cfg.grounding.pretrain_epochs)
     if pre_epochs and float(cfg.grounding.weight) == 0:
         raise ConfigError("grounding.pretrain_epochs: needs grounding.weight > 0 (the head it trains)")
@@ -366,7 +368,25 @@ def _resume_point(cfg: Any, pre_epochs: int) -> tuple[str | None, bool]:
         if not Path(cfg.resume).is_dir():
             raise ConfigError(f"resume: no such checkpoint {cfg.resume!r}")
         resume = cfg.resume
+    if resume is not None:
+        _check_resumable(Path(resume))
     return resume, resume_stage_a
+
+
+def _check_resumable(ckpt: Path) -> None:
+    """A checkpoint whose weights or optimizer state cannot be read is one line here, not the trainer's traceback
+    half-way through loading (a disk that filled while saving leaves such a folder with a complete-looking state)."""
+    import zipfile
+
+    from labrobfail_vlm.model.loading import safetensors_header
+    from labrobfail_vlm.train.checkpoint import validate_checkpoint
+
+    validate_checkpoint(ckpt, "resume")
+    for f in sorted(ckpt.glob("*.safetensors")):  # the grounding head's too, which the model check does not read
+        safetensors_header(f, "resume")
+    opt = ckpt / "optimizer.pt"  # torch.save writes a zip archive
+    if opt.exists() and not zipfile.is_zipfile(opt):
+        raise ConfigError(f"resume: {opt} is not a readable optimizer state (delete {ckpt}: the one before resumes)")
 
 
 def _load_resumed_head(resume: str | None, grounding: dict[str, Any] | None) -> None:

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from omegaconf import OmegaConf
+
 from labrobfail_vlm.config import ConfigError, cli_main, load_config, require_ints
 
 EVAL_SETS = {
@@ -34,7 +36,9 @@ def _check(cfg: Any) -> None:
     require_ints(cfg, ("epochs", "batch_size", "max_eval", "eval_every"))
     if not float(cfg.lr) > 0:
         raise ConfigError(f"lr: expected a positive number, got {cfg.lr!r}")
-    if not cfg.layouts or any(len(lay) != len(cfg.layouts[0]) for lay in cfg.layouts):
+    if not all(OmegaConf.is_list(lay) for lay in cfg.layouts or [None]):
+        raise ConfigError(f"layouts: expected lists of views, e.g. 'layouts=[[front,side]]', got {cfg.layouts!r}")
+    if any(len(lay) != len(cfg.layouts[0]) for lay in cfg.layouts):
         raise ConfigError(f"layouts: expected view lists of one length, got {list(cfg.layouts)}")
     from labrobfail_vlm.grid import GridConfig
 
@@ -109,7 +113,6 @@ class Run:
 def setup(cfg: Any) -> Run:
     """Data, tower (from `init` if given), heads and optimiser; resumed from out_dir's checkpoint when there is one."""
     import torch
-    from omegaconf import OmegaConf
 
     from labrobfail_vlm.grid import GridConfig
     from labrobfail_vlm.model.processor import image_processor
@@ -121,6 +124,7 @@ def setup(cfg: Any) -> Run:
     if not len(train):
         raise ConfigError(f"data.out_dir: {cfg.data.out_dir} has no seen training trajectories")
     evals = {k: T.TowerData(cfg.data.out_dir, s, v, int(cfg.max_eval)) for k, (s, v) in EVAL_SETS.items()}
+    _check_views(cfg, [r for d in (train, *evals.values()) for r in d.rows])
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     tower = T.build_tower(OmegaConf.to_container(cfg.vision), int(cfg.out_hidden_size), int(cfg.seed))
@@ -241,6 +245,18 @@ def finish(run: Run, argv: list[str]) -> dict[str, Any]:
             shutil.copyfile(run.out / f, dest / (f + ".tmp"))
             (dest / (f + ".tmp")).replace(dest / f)
     return card
+
+
+def _check_views(cfg: Any, rows: list[dict[str, Any]]) -> None:
+    """Every layout's views in every trajectory, before a folder is made (else the first grid that lacks one stops
+    the run after an epoch's checkpoint)."""
+    have = set.intersection(*(set(r["views"]) for r in rows))
+    missing = sorted({str(v) for lay in cfg.layouts for v in lay} - have)
+    if missing:
+        raise ConfigError(
+            f"layouts: views {missing} are not in every trajectory of {cfg.data.out_dir} (it has {sorted(have)}; "
+            "generate with backend_kwargs.wrist=true for a wrist layout)"
+        )
 
 
 def main(argv: list[str]) -> int:

@@ -43,6 +43,7 @@ SIM_BACKENDS = {"cpu": ("physx_cpu", "cpu"), "gpu": ("physx_cuda", "gpu")}
 class ManiSkillSource(ScenarioConfig, FailureSource):
     name = "maniskill"
     TASKS_FILE = TASKS_FILE
+    CAMERAS = envs.CAMERAS
 
     def __init__(
         self,
@@ -55,9 +56,7 @@ class ManiSkillSource(ScenarioConfig, FailureSource):
     ):
         super().__init__()
         self.cfg = self.load_task_config(tasks_file)
-        unknown = [v for v in cameras if v not in envs.CAMERAS]
-        if unknown:
-            raise ValueError(f"cameras: unknown view(s) {unknown}; available: {', '.join(envs.CAMERAS)}")
+        self.check_cameras(cameras)
         self.views = list(cameras) + ([envs.WRIST] if wrist else [])
         self.image_size = int(image_size)
         self.render_on = bool(render) and bool(self.views)

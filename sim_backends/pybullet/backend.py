@@ -19,7 +19,7 @@ from sim_backends.pybullet import (
 )
 from sim_backends.pybullet import scene as scene_mod
 from sim_backends.pybullet.plan import Plan
-from sim_backends.pybullet.render import Renderer
+from sim_backends.pybullet.render import CAMERAS, Renderer
 from sim_backends.pybullet.robot import DT
 from sim_backends.registry import register_backend, task_templates
 from sim_backends.scenario_config import ScenarioConfig
@@ -79,6 +79,7 @@ def _flag(name: str, value: Any) -> bool:
 class PyBulletSource(ScenarioConfig, FailureSource):
     name = "pybullet"
     TASKS_FILE = TASKS_FILE
+    CAMERAS = CAMERAS
 
     def __init__(
         self,

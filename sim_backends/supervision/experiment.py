@@ -19,7 +19,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from labrobfail_vlm.config import ConfigError, is_int
+from labrobfail_vlm.config import ConfigError, is_int, require_ints
 from labrobfail_vlm.taxonomy import check_variant
 from sim_backends.policies.base import POLICIES, Policy, make_policy
 from sim_backends.supervision.base import SUPERVISORS, Supervisor, make_supervisor
@@ -127,6 +127,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     check_variant(cfg.variant)
     if not is_int(cfg.trials, 1):
         raise ConfigError(f"trials: must be a positive integer, got {cfg.trials!r}")
+    require_ints(cfg, ("image_size",))
+    require_ints(cfg, ("seed",), 0)
     try:
         loop = LoopConfig(**OmegaConf.to_container(cfg.loop, resolve=True))  # type: ignore[arg-type]
     except (TypeError, ValueError) as e:
