@@ -129,6 +129,8 @@ def load_config(defaults: str | Path, argv: list[str]) -> DictConfig:
 
 # bool settings whose reader also takes a path (train's `resume=<checkpoint folder>`)
 BOOL_OR_PATH = frozenset({"resume"})
+# number settings whose reader also takes a word: the bench's operating point chosen on val, the cache's auto size
+NUMBER_OR_WORD = {"threshold": "val", "a_threshold": "val", "b_threshold": "val", "tower_cache_mb": "auto"}
 
 
 def _unparsable(args: list[str]) -> str | None:
@@ -141,11 +143,23 @@ def _unparsable(args: list[str]) -> str | None:
     return None
 
 
+def _number_or_word(key: str, value: str) -> bool:
+    """Whether a string given for a number setting is one (`inf`), an interpolation, or the word its reader takes."""
+    if value.startswith("${") or value == NUMBER_OR_WORD.get(key):
+        return True
+    try:
+        float(value)
+    except ValueError:
+        return False
+    return True
+
+
 def _check_shapes(defaults: Any, given: Any, prefix: str = "") -> None:
     """The command line's values against the shapes of their defaults, as one-line errors before any reader sees
     them (a reader would iterate a bool, or call int() on a list): a number or bool where the default is a list
     (`baselines=false`), a list or mapping where it is a number or bool (`seed=[1]`), anything but true/false where
-    it is a bool (`draw_index=maybe`). A string where the default is a list is a comma-separated list
+    it is a bool (`draw_index=maybe`), a word where it is a number (`seed=abc`; NUMBER_OR_WORD lists the words
+    readers take). A string where the default is a list is a comma-separated list
     (`cameras=front,side`; `cameras=front` would otherwise read as five one-letter views); a string or null
     elsewhere is left to the reader, which may take it on purpose (`threshold=val`, `tower_cache_mb=auto`).
     `given`: the command line as plain containers, interpolations unresolved; rewritten in place."""
@@ -165,6 +179,9 @@ def _check_shapes(defaults: Any, given: Any, prefix: str = "") -> None:
         elif isinstance(default, bool) and value is not None and not isinstance(value, bool):
             if not (isinstance(value, str) and key in BOOL_OR_PATH):
                 raise ConfigError(f"{name}: expected true or false, got {value!r}")
+        elif isinstance(default, (int, float)) and isinstance(value, str) and not _number_or_word(key, value):
+            word = NUMBER_OR_WORD.get(key)
+            raise ConfigError(f"{name}: expected {word + ' or ' if word else ''}a number, got {value!r}")
 
 
 def cli_main(fn: Callable[[list[str]], int], doc: str | None = None) -> None:

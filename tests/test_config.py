@@ -36,6 +36,7 @@ presets:
         ("progress=0", "progress: expected true or false, got 0"),
         ("resume=[a]", "resume: expected one value, got a list"),
         ("seed=[1", "seed: not a valid setting"),  # the parser's message named no setting
+        ("lr=fast", "lr: expected a number, got 'fast'"),  # a reader's float() named no setting
     ],
 )
 def test_a_value_of_the_wrong_shape_is_refused(arg, msg):
@@ -51,6 +52,7 @@ def test_lists_strings_nulls_and_interpolations_pass_to_their_readers():
     assert list(load_config(DEFAULTS, ["preset=plain", "grid.views=front"]).grid.views) == ["front"]
     # a bool that also takes a path (train's resume=<checkpoint>) takes it; a number takes an int
     assert load_config(DEFAULTS, ["resume=outputs/run/checkpoint-8", "lr=1", "progress=false"]).resume.endswith("-8")
+    assert load_config(DEFAULTS, ["lr=inf"]).lr == "inf"  # a number YAML reads as text is the reader's
     assert load_config(DEFAULTS, ["preset=demo", "scenarios=null"]).scenarios is None
     assert list(load_config(DEFAULTS, ["preset=demo"]).scenarios) == ["pick", "place"]
     # an interpolation resolves after the merge, against the whole configuration
