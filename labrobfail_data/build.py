@@ -151,14 +151,16 @@ def _grid_config(cfg: DictConfig) -> GridConfig:
         raise ConfigError(str(e)) from None
 
 
-def fractions(key: str, value: Any, n: int) -> tuple[float, ...]:
-    """A ratios setting: `n` non-negative numbers summing to 1 (one-line ConfigError naming `key` otherwise)."""
+def fractions(key: str, value: Any, n: int, whole: bool = True) -> tuple[float, ...]:
+    """A ratios setting: `n` non-negative numbers summing to 1 (`whole`) or at most 1 (one-line ConfigError
+    naming `key` otherwise)."""
     try:
         out = tuple(float(r) for r in value)
     except (TypeError, ValueError):
         out = ()
-    if len(out) != n or any(r < 0 for r in out) or abs(sum(out) - 1) > 1e-6:
-        raise ConfigError(f"{key}: {n} non-negative fractions summing to 1, got {value!r}")
+    total = sum(out)
+    if len(out) != n or any(r < 0 for r in out) or (abs(total - 1) > 1e-6 if whole else total > 1 + 1e-6):
+        raise ConfigError(f"{key}: {n} non-negative fractions summing to {'' if whole else 'at most '}1, got {value!r}")
     return out
 
 

@@ -28,7 +28,7 @@ from labrobfail_data.annotate import grid_failure_frame, grid_picks
 from labrobfail_data.build import READ_COLUMNS, _rows, _shard_files, fractions
 from labrobfail_data.frame_targets import CELL_TARGETS, MAX_POINTS, TOKEN_TARGETS, row_targets
 from labrobfail_data.splits import assign
-from labrobfail_vlm.config import ConfigError, require_ints
+from labrobfail_vlm.config import ConfigError, is_int
 from labrobfail_vlm.io import atomic_write_json
 from sim_backends.shards import write_shard
 
@@ -83,8 +83,9 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     max_frames, size = int(cfg.max_frames), int(cfg.image_size)
     if max_frames < 1 or size < 32:
         raise ConfigError(f"max_frames/image_size: expected >= 1 and >= 32, got {max_frames}, {size}")
-    ratios = fractions("ratios", cfg.ratios, 2)  # checked before a frame file is written
-    require_ints(cfg, ("seed",), 0)
+    ratios = fractions("data.ratios", cfg.ratios, 2, whole=False)  # before a frame file is written
+    if not is_int(cfg.seed, 0):
+        raise ConfigError(f"data.seed: expected an integer >= 0, got {cfg.seed!r}")
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     sig = f"{zlib.crc32(json.dumps([CELL_TARGETS, TOKEN_TARGETS, MAX_POINTS, max_frames, size]).encode()):08x}"

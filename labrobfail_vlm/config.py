@@ -143,6 +143,15 @@ def _unparsable(args: list[str]) -> str | None:
     return None
 
 
+def _comma_list(value: str) -> list[Any]:
+    """`a,b` as the list `[a,b]` would be: numbers stay numbers (`pair_shares=0.2,0.5`); text YAML cannot read in
+    brackets is split on its commas as it is."""
+    try:
+        return list(OmegaConf.to_container(OmegaConf.from_dotlist([f"v=[{value}]"]))["v"])  # type: ignore[index]
+    except Exception:  # noqa: BLE001 - any YAML problem: plain names
+        return [v.strip() for v in value.split(",") if v.strip()]
+
+
 def _number_or_word(key: str, value: str) -> bool:
     """Whether a string given for a number setting is one (`inf`), an interpolation, or the word its reader takes."""
     if value.startswith("${") or value == NUMBER_OR_WORD.get(key):
@@ -173,7 +182,7 @@ def _check_shapes(defaults: Any, given: Any, prefix: str = "") -> None:
                 example = ",".join(map(str, default)) if len(default) else "a,b"
                 raise ConfigError(f"{name}: expected a list (e.g. '{name}=[{example}]' or '{name}=[]'), got {value!r}")
             if isinstance(value, str) and not value.startswith("${"):
-                given[key] = [v.strip() for v in value.split(",") if v.strip()]
+                given[key] = _comma_list(value)
         elif isinstance(default, (bool, int, float)) and isinstance(value, (list, dict)):
             raise ConfigError(f"{name}: expected one value, got {'a list' if isinstance(value, list) else 'a mapping'}")
         elif isinstance(default, bool) and value is not None and not isinstance(value, bool):

@@ -141,15 +141,15 @@ class EndpointAnalyzer(FailureAnalyzer):
 
 def _canonical(dim: str, reply: str, ask: Ask) -> str:
     """A reply in the bench's canonical form: a choice as given, free text stripped, anything else parsed
-    (a server without structured outputs may answer in words). A closed reply that reads as none of its answers
-    is an EndpointError: kept as text, an unreadable Q2 would read as "no failure" and settle Q3-Q6 with it."""
+    (a server without structured outputs may answer in words); other unparseable text is kept for the log and
+    scores as wrong. Q2's is an EndpointError: kept, it would read as "no failure" and settle Q3-Q6 with it."""
     text = (reply or "").strip()
     if ask.kind == "free" or (ask.kind == "choose" and text in ask.options):
         return text
     got = parse(dim, text)
-    if got is None or (ask.kind == "choose" and got not in ask.options):
-        raise EndpointError(f"endpoint: the model's reply to {dim} is none of its answers: {text[:80]!r}")
-    return got
+    if dim == "Q2" and got not in ask.options:
+        raise EndpointError(f"endpoint: the model's reply to Q2 is neither Yes nor No: {text[:80]!r}")
+    return got or text
 
 
 def _why(e: BaseException | None) -> str:

@@ -61,14 +61,18 @@ def _capture(path: Path, name: str, field: str):  # -> cv2.VideoCapture
     return cap
 
 
+STILL_FORMATS = ("PNG", "JPEG", "BMP", "TIFF", "WEBP")  # not GIF or MPEG: Pillow reads those, and so does FFmpeg
+
+
 def _image_format(path: Path) -> str | None:
-    """The still-image format Pillow recognises in the file's header (PNG, JPEG, ...), or None."""
-    from PIL import Image, UnidentifiedImageError
+    """The still-image format Pillow finds in the file's header (one frame of PNG, JPEG, ...), or None."""
+    from PIL import Image
 
     try:
         with Image.open(path) as im:
-            return im.format or "still"
-    except (UnidentifiedImageError, OSError, ValueError):
+            still = im.format in STILL_FORMATS and getattr(im, "n_frames", 1) == 1
+            return im.format if still else None
+    except Exception:  # noqa: BLE001 - anything Pillow cannot open (or refuses: a decompression bomb) is FFmpeg's
         return None
 
 

@@ -50,6 +50,7 @@ def test_lists_strings_nulls_and_interpolations_pass_to_their_readers():
     # a string for a list is a comma-separated list (iterated, "front" would be five one-letter views); null stays
     assert list(load_config(DEFAULTS, ["preset=plain", "baselines=majority,blind"]).baselines) == ["majority", "blind"]
     assert list(load_config(DEFAULTS, ["preset=plain", "grid.views=front"]).grid.views) == ["front"]
+    assert list(load_config(DEFAULTS, ["preset=plain", "baselines=0.2,5"]).baselines) == [0.2, 5]  # numbers stay
     # a bool that also takes a path (train's resume=<checkpoint>) takes it; a number takes an int
     assert load_config(DEFAULTS, ["resume=outputs/run/checkpoint-8", "lr=1", "progress=false"]).resume.endswith("-8")
     assert load_config(DEFAULTS, ["lr=inf"]).lr == "inf"  # a number YAML reads as text is the reader's

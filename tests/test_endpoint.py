@@ -187,7 +187,7 @@ def test_evaluate_batch_size_gives_the_same_predictions(mixed_model, small_ds, t
 @pytest.mark.parametrize(
     "canned, needle",
     [
-        ({"choice": "zzz"}, "reply to Q2 is none of its answers: 'zzz'"),  # read as "no failure" before
+        ({"choice": "zzz"}, "reply to Q2 is neither Yes nor No: 'zzz'"),  # read as "no failure" before
         ({"choice": None}, "content is NoneType, not text"),  # was the text "None"
         ({"regex": ["run"]}, "content is list, not text"),
     ],

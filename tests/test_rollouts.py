@@ -156,6 +156,7 @@ def test_a_resumed_rollout_run_adds_its_trials_shards_beside_the_first_runs(tmp_
     [
         (["shard_frames=0"], "shard_frames: a positive number of grid frames, got 0"),
         (["shards=maybe"], "shards: expected true or false"),
+        (["image_size=-1"], "image_size: expected an integer >= 1"),  # was a native bad_alloc
         ([], "holds trials of a run without run_config.json; give a new out_dir"),
     ],
 )

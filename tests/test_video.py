@@ -131,6 +131,10 @@ def test_bad_and_truncated_videos_are_one_line_errors(episode_videos, mixed_mode
         r = call([cli("infer"), *args, "--model", str(mixed_model)])
         assert r.returncode == 2 and needle in r.stderr, (args, r.returncode, r.stderr[-500:])
         assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr, r.stderr
+    # an animated GIF is a video to FFmpeg (Pillow reads it too): only a one-frame still is refused as an image
+    frames = [Image.new("RGB", (64, 64), (i * 12, 0, 0)) for i in range(20)]
+    frames[0].save(tmp_path / "moving.gif", save_all=True, append_images=frames[1:], duration=100)
+    assert scan(tmp_path / "moving.gif").frames == 20
     with pytest.raises(ConfigError, match="truncated or corrupt"):
         scan(tmp_path / "cut.avi")
     with pytest.raises(ConfigError, match="has more than 10 frames"):  # the server's bound on decoding

@@ -369,11 +369,11 @@ def _resume_point(cfg: Any, pre_epochs: int) -> tuple[str | None, bool]:
             raise ConfigError(f"resume: no such checkpoint {cfg.resume!r}")
         resume = cfg.resume
     if resume is not None:
-        _check_resumable(Path(resume))
+        _check_resumable(Path(resume), _dtype(cfg))
     return resume, resume_stage_a
 
 
-def _check_resumable(ckpt: Path) -> None:
+def _check_resumable(ckpt: Path, dtype: Any) -> None:
     """A checkpoint whose weights or optimizer state cannot be read is one line here, not the trainer's traceback
     half-way through loading (a disk that filled while saving leaves such a folder with a complete-looking state)."""
     import zipfile
@@ -381,7 +381,7 @@ def _check_resumable(ckpt: Path) -> None:
     from labrobfail_vlm.model.loading import safetensors_header
     from labrobfail_vlm.train.checkpoint import validate_checkpoint
 
-    validate_checkpoint(ckpt, "resume")
+    validate_checkpoint(ckpt, "resume", dtype=dtype)  # priced as the run loads it, as a fresh start is
     for f in sorted(ckpt.glob("*.safetensors")):  # the grounding head's too, which the model check does not read
         safetensors_header(f, "resume")
     opt = ckpt / "optimizer.pt"  # torch.save writes a zip archive
