@@ -29,6 +29,15 @@ class Paraphraser:
             self.client = ChatClient(base_url, model, api_key_env, timeout_s)
         except ValueError as e:
             raise ValueError(f"paraphrase.{e}") from None
+        try:  # an endpoint nobody answers at would reject every rewording silently: say so before the build
+            self.client.models()
+        except urllib.error.HTTPError:
+            pass  # it answers (a server without GET /models is still a chat server)
+        except (urllib.error.URLError, OSError) as e:
+            why = getattr(e, "reason", None) or e
+            raise ValueError(f"paraphrase.base_url: nothing answers at {self.client.base} ({why})") from None
+        except (ValueError, KeyError, TypeError):
+            pass  # it answers, in another format
 
     def _chat(self, content: str) -> dict[str, Any]:
         text = self.client.chat(

@@ -87,7 +87,10 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     if not is_int(cfg.seed, 0):
         raise ConfigError(f"data.seed: expected an integer >= 0, got {cfg.seed!r}")
     out = Path(cfg.out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ConfigError(f"data.out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
     sig = f"{zlib.crc32(json.dumps([CELL_TARGETS, TOKEN_TARGETS, MAX_POINTS, max_frames, size]).encode()):08x}"
     written: list[str] = []
     for f in tqdm(files, desc="tower data", disable=not cfg.progress):

@@ -88,6 +88,8 @@ def main(argv: list[str]) -> int:
     if backend not in available_backends():
         raise ConfigError(f"backend: unknown backend {backend!r}; available: {', '.join(available_backends())}")
     require_ints(cfg, ("episodes",), 2)
+    if cfg.episodes % 2:  # the end-to-end timing runs the generator, which takes whole pairs
+        raise ConfigError(f"episodes: must be even (success/failure pairs), got {cfg.episodes}")
     require_ints(cfg, ("image_size",))
     n, size = cfg.episodes, cfg.image_size
     out = Path(str(cfg.out))

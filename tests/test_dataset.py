@@ -175,6 +175,7 @@ def test_bad_inputs_are_one_line_errors(run6, tmp_path):
         (["prefix.cuts=1", "prefix.questions=Q6"], "prefix.questions"),
         ([f"shards=[{run6},{run6}]"], "first_pair"),  # the same trajectories twice
         (["review_sample=-1"], "review_sample"),  # was found after the dataset had been rewritten
+        (["paraphrase.enabled=true", "paraphrase.base_url=http://127.0.0.1:9/v1"], "paraphrase.base_url"),
         (["seed=[1,2]"], "seed"),
         (["grid.draw_index=maybe"], "grid.draw_index"),
     ]:

@@ -126,7 +126,10 @@ def setup(cfg: Any) -> Run:
     evals = {k: T.TowerData(cfg.data.out_dir, s, v, int(cfg.max_eval)) for k, (s, v) in EVAL_SETS.items()}
     _check_views(cfg, [r for d in (train, *evals.values()) for r in d.rows])
     out = Path(cfg.out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ConfigError(f"out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
     tower = T.build_tower(OmegaConf.to_container(cfg.vision), int(cfg.out_hidden_size), int(cfg.seed))
     init = None if cfg.init is None else tower_dir(str(cfg.init))
     init_sha = None
