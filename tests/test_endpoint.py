@@ -201,17 +201,8 @@ def test_unreadable_replies_are_one_line_errors(fake, grids, tmp_path, canned, n
         with pytest.raises(EndpointError, match=needle.replace("(", r"\(")):
             ep.answers(grids[0], "pick up the small beaker")
         grids[0].save(tmp_path / "g.png")
-        r = _run(
-            "infer.py",
-            "--grid",
-            str(tmp_path / "g.png"),
-            "--endpoint",
-            fake.url,
-            "--endpoint-model",
-            fake.name,
-            env={"OPENAI_API_KEY": KEY},
-            here=True,
-        )
+        argv = ["infer.py", "--grid", str(tmp_path / "g.png"), "--endpoint", fake.url, "--endpoint-model", fake.name]
+        r = _run(*argv, env={"OPENAI_API_KEY": KEY}, here=True)
         assert r.returncode == 2 and needle in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert r.stdout == ""
     finally:
