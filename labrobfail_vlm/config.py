@@ -169,8 +169,8 @@ def _check_shapes(defaults: Any, given: Any, prefix: str = "") -> None:
     (`baselines=false`), a list or mapping where it is a number or bool (`seed=[1]`), anything but true/false where
     it is a bool (`draw_index=maybe`), a word where it is a number (`seed=abc`; NUMBER_OR_WORD lists the words
     readers take). A string where the default is a list is a comma-separated list
-    (`cameras=front,side`; `cameras=front` would otherwise read as five one-letter views); a string or null
-    elsewhere is left to the reader, which may take it on purpose (`threshold=val`, `tower_cache_mb=auto`).
+    (`cameras=front,side`; `cameras=front` would otherwise read as five one-letter views); null, and a string
+    where the default is text or null, are left to the reader (`pair_shares=null`, `shards=DIR` or a list).
     `given`: the command line as plain containers, interpolations unresolved; rewritten in place."""
     for key, value in list(given.items()):
         default = defaults.get(key) if isinstance(defaults, DictConfig) else None
