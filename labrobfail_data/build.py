@@ -170,7 +170,8 @@ def _check_ratios(cfg: DictConfig) -> None:
 
 
 def _prefix_questions(cfg: DictConfig) -> list[str]:
-    """prefix.pair_cuts and prefix.questions checked; returns the prefix questions as a list."""
+    """prefix.cuts, prefix.pair_cuts and prefix.questions checked; returns the prefix questions as a list."""
+    require_ints(cfg.prefix, ("cuts",), 0, "prefix.")
     if not isinstance(cfg.prefix.pair_cuts, bool):
         raise ConfigError(f"prefix.pair_cuts: true or false, got {cfg.prefix.pair_cuts!r}")
     got = cfg.prefix.questions

@@ -68,11 +68,12 @@ def is_int(value: object, low: int) -> bool:
     return isinstance(value, int) and not isinstance(value, bool) and value >= low
 
 
-def require_ints(cfg: Any, keys: Iterable[str], low: int = 1) -> None:
-    """A one-line ConfigError naming the first of `keys` in `cfg` that is not an integer >= `low`."""
+def require_ints(cfg: Any, keys: Iterable[str], low: int = 1, section: str = "") -> None:
+    """A one-line ConfigError naming the first of `keys` in `cfg` (the `section` of a larger config, e.g.
+    "prefix.") that is not an integer >= `low`."""
     for key in keys:
         if not is_int(cfg[key], low):
-            raise ConfigError(f"{key}: expected an integer >= {low}, got {cfg[key]!r}")
+            raise ConfigError(f"{section}{key}: expected an integer >= {low}, got {cfg[key]!r}")
 
 
 def names(value: Any) -> list[str] | None:

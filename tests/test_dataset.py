@@ -178,6 +178,7 @@ def test_bad_inputs_are_one_line_errors(run6, tmp_path):
         (["paraphrase.enabled=true", "paraphrase.base_url=http://127.0.0.1:9/v1"], "paraphrase.base_url"),
         (["seed=[1,2]"], "seed"),
         (["grid.draw_index=maybe"], "grid.draw_index"),
+        (["prefix.cuts=-1"], "prefix.cuts"),  # was taken as no cuts
     ]:
         shards = [f"shards={run6}"] if not args[0].startswith("shards") else []
         call = run if field == "shards" else run_here  # the first case as a real process, the rest in this one

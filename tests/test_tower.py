@@ -155,6 +155,7 @@ def test_bad_tower_settings_are_one_line(tower_data, tmp_path):
         (["lr=-1"], "lr"),
         (["layouts=[[front,side],[front]]"], "layouts"),
         (["layouts=front"], "layouts"),  # was read as a one-view layout of five letters
+        (["vision.depth=-1"], "vision.depth"),  # was a tower exported with depth -1
         (["layouts=[[front,top]]"], "layouts"),  # a view no trajectory has: was found after an epoch's checkpoint
         ([f"data.out_dir={tmp_path}"], "data"),
         (["grid.width=100"], "grid"),

@@ -34,6 +34,8 @@ EVAL_SETS = {
 
 def _check(cfg: Any) -> None:
     require_ints(cfg, ("epochs", "batch_size", "max_eval", "eval_every"))
+    sizes = ("depth", "hidden_size", "intermediate_size", "num_heads", "temporal_patch_size")
+    require_ints(cfg.vision, sizes, 1, "vision.")  # a tower of depth -1 would train and export
     if not float(cfg.lr) > 0:
         raise ConfigError(f"lr: expected a positive number, got {cfg.lr!r}")
     if not all(OmegaConf.is_list(lay) for lay in cfg.layouts or [None]):
