@@ -32,7 +32,7 @@ from labrobfail_data.paraphrase import Paraphraser
 from labrobfail_data.splits import assign
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.bench import robot_baseline
-from labrobfail_vlm.config import ConfigError, names, require_ints
+from labrobfail_vlm.config import ConfigError, make_dir, names, require_ints
 from labrobfail_vlm.grid import GridConfig
 from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
 from labrobfail_vlm.taxonomy import DATA_VARIANTS, HELD_OUT_SPLITS, RENAMED_VARIANTS, REPLAY_SPLITS, SEEN_SPLITS
@@ -207,13 +207,7 @@ def _paraphraser(cfg: DictConfig) -> Paraphraser | None:
 
 def _out_dir(cfg: DictConfig) -> Path:
     """The output folder with its images/ and plots/ made."""
-    out = Path(cfg.out_dir)
-    try:
-        (out / "images").mkdir(parents=True, exist_ok=True)
-        (out / "plots").mkdir(exist_ok=True)
-    except OSError as e:
-        raise ConfigError(f"out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
-    return out
+    return make_dir("out_dir", cfg.out_dir, "images", "plots")
 
 
 def _check_variant(row: dict[str, Any]) -> None:

@@ -15,7 +15,6 @@ from __future__ import annotations
 import json
 import zlib
 from collections import Counter
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -28,7 +27,7 @@ from labrobfail_data.annotate import grid_failure_frame, grid_picks
 from labrobfail_data.build import READ_COLUMNS, _rows, _shard_files, fractions
 from labrobfail_data.frame_targets import CELL_TARGETS, MAX_POINTS, TOKEN_TARGETS, row_targets
 from labrobfail_data.splits import assign
-from labrobfail_vlm.config import ConfigError, is_int
+from labrobfail_vlm.config import ConfigError, make_dir, require_ints
 from labrobfail_vlm.io import atomic_write_json
 from sim_backends.shards import write_shard
 
@@ -84,13 +83,8 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     if max_frames < 1 or size < 32:
         raise ConfigError(f"max_frames/image_size: expected >= 1 and >= 32, got {max_frames}, {size}")
     ratios = fractions("data.ratios", cfg.ratios, 2, whole=False)  # before a frame file is written
-    if not is_int(cfg.seed, 0):
-        raise ConfigError(f"data.seed: expected an integer >= 0, got {cfg.seed!r}")
-    out = Path(cfg.out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ConfigError(f"data.out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
+    require_ints(cfg, ("seed",), 0, "data.")
+    out = make_dir("data.out_dir", cfg.out_dir)
     sig = f"{zlib.crc32(json.dumps([CELL_TARGETS, TOKEN_TARGETS, MAX_POINTS, max_frames, size]).encode()):08x}"
     written: list[str] = []
     for f in tqdm(files, desc="tower data", disable=not cfg.progress):

@@ -76,12 +76,28 @@ def require_ints(cfg: Any, keys: Iterable[str], low: int = 1, section: str = "")
             raise ConfigError(f"{section}{key}: expected an integer >= {low}, got {cfg[key]!r}")
 
 
+def make_dir(key: str, path: Any, *subdirs: str, probe: bool = False) -> Path:
+    """The folder a setting names (`key`, e.g. out_dir), made with `subdirs` inside it and, with `probe`, a file
+    written and removed there; any OSError is a one-line ConfigError naming the setting."""
+    out = Path(str(path))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        for sub in subdirs:
+            (out / sub).mkdir(exist_ok=True)
+        if probe:  # a folder that exists may still refuse a file (read-only mount, no space)
+            (out / ".write_probe").write_bytes(b"")
+            (out / ".write_probe").unlink()
+    except OSError as e:
+        raise ConfigError(f"{key}: cannot write to {path!r} ({e.strerror})") from None
+    return out
+
+
 def names(value: Any) -> list[str] | None:
     """A list-of-names setting whose default is null: None stays None, a string is a comma-separated list
     (`scenarios=pick,place`; iterated as it is, `scenarios=pick` would be four one-letter names)."""
     if value is None:
         return None
-    return [v.strip() for v in value.split(",") if v.strip()] if isinstance(value, str) else [str(v) for v in value]
+    return [str(v) for v in (_comma_list(value) if isinstance(value, str) else value)]
 
 
 def size_setting(key: str, value: object, example: str) -> tuple[int, int]:

@@ -21,7 +21,7 @@ from typing import Any, Iterator
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from labrobfail_vlm.config import CONFIG_DIR, ConfigError, is_int, names, require_ints
+from labrobfail_vlm.config import CONFIG_DIR, ConfigError, is_int, make_dir, names, require_ints
 from labrobfail_vlm.config import load_config as _load_config
 from labrobfail_vlm.io import atomic_write_json
 from labrobfail_vlm.taxonomy import REPLAY_PREFIX, SCENE_VARIANTS, check_variant
@@ -84,14 +84,7 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
     for s in cfg.scenarios or []:
         if s not in known:
             raise ConfigError(f"scenarios: unknown task scenario {s!r}")
-    out = Path(cfg.out_dir)  # made last: a bad setting above leaves no folder behind
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".write_probe"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as e:
-        raise ConfigError(f"out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
+    make_dir("out_dir", cfg.out_dir, probe=True)  # made last: a bad setting above leaves no folder behind
     return kwargs
 
 

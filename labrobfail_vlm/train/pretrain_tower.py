@@ -23,7 +23,7 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from labrobfail_vlm.config import ConfigError, cli_main, load_config, require_ints
+from labrobfail_vlm.config import ConfigError, cli_main, load_config, make_dir, require_ints
 
 EVAL_SETS = {
     "seen": ({"val"}, {"seen"}),
@@ -127,11 +127,7 @@ def setup(cfg: Any) -> Run:
         raise ConfigError(f"data.out_dir: {cfg.data.out_dir} has no seen training trajectories")
     evals = {k: T.TowerData(cfg.data.out_dir, s, v, int(cfg.max_eval)) for k, (s, v) in EVAL_SETS.items()}
     _check_views(cfg, [r for d in (train, *evals.values()) for r in d.rows])
-    out = Path(cfg.out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ConfigError(f"out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
+    out = make_dir("out_dir", cfg.out_dir)
     tower = T.build_tower(OmegaConf.to_container(cfg.vision), int(cfg.out_hidden_size), int(cfg.seed))
     init = None if cfg.init is None else tower_dir(str(cfg.init))
     init_sha = None

@@ -122,6 +122,8 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         # Layered rendering (render.Renderer) gives the same images pixel for pixel; off renders the whole scene
         # at every keyframe, for a side-by-side benchmark (scripts/bench_sim.py).
         layered = _flag("layered_render", layered_render)
+        if render:  # the views' names, as every backend checks them (FailureSource.check_cameras)
+            self.check_cameras(cameras)
         self.renderer = Renderer(self.cid, cameras, image_size, wrist, egl, layered) if render else None
         self.custom_objects = custom_objects
         self.custom_scene = custom_scene

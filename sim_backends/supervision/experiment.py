@@ -19,7 +19,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from labrobfail_vlm.config import ConfigError, is_int, require_ints
+from labrobfail_vlm.config import ConfigError, is_int, make_dir, require_ints
 from labrobfail_vlm.taxonomy import check_variant
 from sim_backends.policies.base import POLICIES, Policy, make_policy
 from sim_backends.supervision.base import SUPERVISORS, Supervisor, make_supervisor
@@ -145,11 +145,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         supervisors = {n: build_supervisor(cfg, n) for n in sups}
         for s in supervisors.values():
             s.check_cameras(list(src.camera_names))
-        out = Path(cfg.out_dir)
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise ConfigError(f"out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
+        out = make_dir("out_dir", cfg.out_dir)
         sinks = rollout_sinks(cfg, tasks, sups, out)
         done = finished_trials(out, fingerprint(cfg, [*POLICIES.names(), *SUPERVISORS.names()]))
     except BaseException:

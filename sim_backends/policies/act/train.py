@@ -14,7 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from labrobfail_vlm.augment import AugmentConfig
-from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.config import ConfigError, make_dir
 from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
 from sim_backends.policies.act.checkpoint import last_progress, load_progress, save_checkpoint, save_progress
 from sim_backends.policies.act.configuration_act import ACTConfig
@@ -144,13 +144,11 @@ def augment_config(section: Any) -> AugmentConfig | None:
         raise ConfigError(f"train.{e}") from None
 
 
-def _model_config(cfg: DictConfig, out: Path) -> ACTConfig:
+def _model_config(cfg: DictConfig) -> ACTConfig:
     """Create out_dir and read the model section; either failing is a ConfigError (before any recording)."""
+    make_dir("out_dir", cfg.out_dir)
     try:
-        out.mkdir(parents=True, exist_ok=True)
         return ACTConfig(**OmegaConf.to_container(cfg.model, resolve=True))  # type: ignore[arg-type]
-    except OSError as e:
-        raise ConfigError(f"out_dir: cannot write to {cfg.out_dir!r} ({e.strerror})") from None
     except (TypeError, ValueError) as e:
         raise ConfigError(str(e)) from None
 
@@ -276,7 +274,7 @@ def train(cfg: DictConfig, family: Any) -> dict[str, Any]:
     from sim_backends.policies.act.modeling_act import ACTModel
 
     out = Path(cfg.out_dir)
-    model_cfg = _model_config(cfg, out)
+    model_cfg = _model_config(cfg)
     demos, info = load_or_record(cfg, family, out)
     model_cfg.stats = normalisation(demos)
     t = cfg.train
