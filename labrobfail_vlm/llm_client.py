@@ -21,6 +21,17 @@ def image_data_url(image: Any) -> str:
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode()
 
 
+class NoRedirect(urllib.request.HTTPRedirectHandler):
+    """An endpoint that answers 3xx is refused, not followed: urllib would resend every header but the content ones
+    (the API key's Authorization with them) and the body (a grid, a robot's images) to the host it names."""
+
+    def redirect_request(self, *args: Any, **kwargs: Any) -> None:
+        return None  # urllib then raises HTTPError with the 3xx code
+
+
+OPENER = urllib.request.build_opener(NoRedirect)
+
+
 class ChatClient:
     def __init__(self, base_url: str, model: str, api_key_env: str = "OPENAI_API_KEY", timeout_s: float = 60.0):
         if not base_url.startswith(("http://", "https://")):
@@ -39,7 +50,7 @@ class ChatClient:
             headers["Authorization"] = f"Bearer {self._key}"
         data = json.dumps(body).encode() if body is not None else None
         req = urllib.request.Request(url, data=data, method="POST" if body is not None else "GET", headers=headers)
-        with urllib.request.urlopen(req, timeout=self.timeout) as r:  # noqa: S310 - scheme checked above
+        with OPENER.open(req, timeout=self.timeout) as r:  # scheme checked above; redirects refused (NoRedirect)
             return json.loads(r.read())
 
     def chat(

@@ -207,3 +207,54 @@ def test_unreadable_replies_are_one_line_errors(fake, grids, tmp_path, canned, n
         assert r.stdout == ""
     finally:
         fake.canned = {}
+
+
+def test_a_redirecting_endpoint_gets_no_key_and_no_follow(monkeypatch):
+    """An endpoint that answers 302 is refused: the key (and the grid) never reach the host it points to."""
+    import threading
+    import urllib.error
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    from labrobfail_vlm.llm_client import ChatClient
+
+    seen: list[dict[str, str]] = []
+
+    class Elsewhere(BaseHTTPRequestHandler):
+        def log_message(self, *_):
+            pass
+
+        def do_GET(self):  # noqa: N802
+            seen.append(dict(self.headers))
+            body = json.dumps({"data": [{"id": "m"}]}).encode()
+            self.send_response(200)
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+    other = ThreadingHTTPServer(("127.0.0.1", 0), Elsewhere)
+
+    class Redirect(BaseHTTPRequestHandler):
+        def log_message(self, *_):
+            pass
+
+        def do_GET(self):  # noqa: N802
+            self.send_response(302)
+            self.send_header("Location", f"http://127.0.0.1:{other.server_address[1]}/v1/models")
+            self.send_header("Content-Length", "0")
+            self.end_headers()
+
+    first = ThreadingHTTPServer(("127.0.0.1", 0), Redirect)
+    for srv in (first, other):
+        threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        monkeypatch.setenv("_REDIRECT_KEY", KEY)
+        client = ChatClient(f"http://127.0.0.1:{first.server_address[1]}/v1", "m", "_REDIRECT_KEY", 5)
+        with pytest.raises(urllib.error.HTTPError) as err:
+            client.models()
+        assert err.value.code == 302 and seen == []
+        assert ChatClient(f"http://127.0.0.1:{other.server_address[1]}/v1", "m", "_REDIRECT_KEY", 5).models() == ["m"]
+        assert seen and seen[0]["Authorization"] == f"Bearer {KEY}"  # the direct call does carry it
+    finally:
+        for srv in (first, other):
+            srv.shutdown()
+            srv.server_close()

@@ -27,6 +27,31 @@ def _wait_for(path, proc, timeout_s=300):
         time.sleep(0.05)
 
 
+def test_an_augmented_run_resumed_ends_as_an_uninterrupted_one(tiny, small_ds, tmp_path):  # noqa: F811
+    """Grid augmentation draws by epoch and pair: a run resumed from a checkpoint inside its second epoch (the
+    loader skips the batches it trained) sees the grids an uninterrupted run sees and ends with its weights (to
+    float rounding: 3e-7 here; a running generator's draws left them 4e-4 apart). The curriculum's phases are off:
+    their switch is read as a batch is collated, a step or two ahead of it, so a checkpoint taken within two steps
+    of a switch resumes with other flags (docs/EXPERIMENTS.md, 5 Dec)."""
+    import torch
+    from safetensors.torch import load_file
+
+    def cmd(out, *extra):
+        steps = ("save_steps=3", "save_total_limit=null", "max_steps=6", "epochs=4")
+        off = ("grounding.pretrain_epochs=0", "curriculum.polarity_warmup=0", "curriculum.detect_first=0")
+        return tiny_train(tiny, small_ds, out, "augment.enabled=true", *off, *steps, *extra)
+
+    r = run_here(cmd(tmp_path / "full"))
+    assert r.returncode == 0, r.stderr[-3000:]
+    state = json.loads((tmp_path / "full" / "checkpoint-3" / "trainer_state.json").read_text())
+    assert 1 < state["epoch"] < 2  # the resume begins inside an epoch that is not the first
+    shutil.copytree(tmp_path / "full" / "checkpoint-3", tmp_path / "resumed" / "checkpoint-3")
+    r = run_here(cmd(tmp_path / "resumed", "resume=true"))
+    assert r.returncode == 0, r.stderr[-3000:]
+    a, b = (load_file(str(tmp_path / d / "final" / "model.safetensors")) for d in ("full", "resumed"))
+    assert a.keys() == b.keys() and all(torch.allclose(a[k], b[k], rtol=0, atol=1e-5) for k in a)
+
+
 def test_training_killed_mid_run_resumes_to_the_final_step_and_evaluates(tiny, small_ds, tmp_path):  # noqa: F811
     out = tmp_path / "run"
     common = tiny_train(

@@ -294,7 +294,7 @@ def _build_trainer(
 ) -> tuple[Any, Any, dict[str, Any] | None]:
     """(trainer, progress log, grounding or None): the training set, its collator and curriculum callbacks, and
     the HybridTrainer that runs them."""
-    from labrobfail_vlm.train.curriculum import DetectFirst, PolarityWarmup, Rewording
+    from labrobfail_vlm.train.curriculum import AugmentEpoch, DetectFirst, PolarityWarmup, Rewording
     from labrobfail_vlm.train.data import Collator, VQADataset, answer_balance
     from labrobfail_vlm.train.packing import TrajectoryDataset
     from labrobfail_vlm.train.trainer import HybridTrainer, ProgressLog
@@ -317,6 +317,9 @@ def _build_trainer(
         *([DetectFirst(rewording, detect)] if rewording is not None and detect else []),
     ]
     grounding, targets = _grounding(cfg, model, grid)
+    augment = _augment(cfg, grid)
+    if augment is not None:
+        callbacks.append(AugmentEpoch(augment))
     balance = answer_balance(train.records if cfg.packing else train, dict(cfg.loss.get("balance") or {}))
     trainer = HybridTrainer(
         model=model,
@@ -329,7 +332,7 @@ def _build_trainer(
             rewording,
             targets,
             train.group_of,
-            _augment(cfg, grid),
+            augment,
             cache,
             balance,
         ),
@@ -424,7 +427,7 @@ def _stage_a(
         bool(cfg.progress),
         state_dir=Path(cfg.output_dir),
         resume=resume_stage_a,
-        augment_rng=getattr(getattr(trainer.data_collator, "augment", None), "rng", None),
+        augment=trainer.data_collator.augment,
     )
     pre |= {
         "epochs": pre_epochs,

@@ -24,6 +24,7 @@ The benchmark is untouched: evaluation reads the test split as built. Rewording 
 from __future__ import annotations
 
 import hashlib
+import math
 from typing import Any, Iterator, Sequence
 
 import numpy as np
@@ -135,3 +136,15 @@ class DetectFirst(Phase):
     """Loss on Q2 records only."""
 
     flag = "detect_only"
+
+
+class AugmentEpoch(TrainerCallback):
+    """Tells the grid augmentation (train/data.GridAugment) which VQA epoch is beginning: its draws are seeded by it.
+    A resumed run begins inside an epoch (state.epoch 2.37 is epoch 2); the small term keeps an epoch's float end
+    (state.epoch after its last step) from reading as the one before."""
+
+    def __init__(self, augment: Any):
+        self.augment = augment
+
+    def on_epoch_begin(self, args, state, control, **kwargs):  # noqa: D102
+        self.augment.epoch = (1, math.floor(float(state.epoch or 0) + 1e-6))

@@ -27,18 +27,25 @@ IGNORE = -100
 
 
 class GridAugment:
-    """Augments keyframe grids of one layout (labrobfail_vlm/augment.py); `draw()` is one seeded draw."""
+    """Augments keyframe grids of one layout (labrobfail_vlm/augment.py). A pair's draw is seeded by the run's seed,
+    the pass (`epoch`: stage A's and the VQA stage's apart) and the pair, not taken from a running generator: a resumed
+    run skips the batches it trained and accelerate's loader collates one batch ahead, so a generator's state at a
+    checkpoint would not be the one the next batch needs, and the same seed would give other data after a resume.
+    A pair drawn twice in one pass (extra_repeat) gets the same draw both times."""
 
     def __init__(self, cfg: Any, grid: Any, views: int, seed: int = 0):
+        self.cfg, self.grid, self.views, self.seed = cfg, grid, int(views), int(seed)
+        self.epoch: tuple[int, int] = (1, 0)  # (0: stage A, 1: the VQA stage; its epoch), set as each pass begins
+
+    def draw(self, group: str) -> Any:
+        import zlib
+
         import numpy as np
 
-        self.cfg, self.grid, self.views = cfg, grid, int(views)
-        self.rng = np.random.default_rng([int(seed), 0xA06])
-
-    def draw(self) -> Any:
         from labrobfail_vlm.augment import Augment
 
-        return Augment.draw(self.cfg, self.views, self.rng)
+        rng = np.random.default_rng([self.seed, 0xA06, *self.epoch, zlib.crc32(group.encode())])
+        return Augment.draw(self.cfg, self.views, rng)
 
     def __call__(self, img: Image.Image, aug: Any) -> Image.Image:
         from labrobfail_vlm.augment import augment_grid
@@ -223,7 +230,10 @@ class Collator:
             return imgs
         draws: dict[str, Any] = {}
         groups = [self.group_of.get(Q.traj_of(r["id"]), Q.traj_of(r["id"])) for r in recs]
-        return [self.augment(img, draws.setdefault(g, self.augment.draw())) for img, g in zip(imgs, groups)]
+        for g in groups:
+            if g not in draws:
+                draws[g] = self.augment.draw(g)
+        return [self.augment(img, draws[g]) for img, g in zip(imgs, groups)]
 
     def _ids(self, texts: list[str], grid_thw: torch.Tensor) -> list[list[int]]:
         """Token ids of texts holding one image placeholder, as the processor would make them: the

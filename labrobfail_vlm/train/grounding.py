@@ -276,7 +276,7 @@ def pretrain(
     progress: bool = True,
     state_dir: Path | None = None,
     resume: bool = False,
-    augment_rng: Any = None,
+    augment: Any = None,
 ) -> dict[str, float]:
     """Stage A: the vision tower (and its merger) with the head on the frame targets alone, `epochs` passes over
     `batches` (the training dataloader: collated batches with pixel_values, image_grid_thw, frame_target,
@@ -284,8 +284,9 @@ def pretrain(
     follows keeps its own per-group rates). Returns the mean grounding loss of the first and the last epoch.
 
     With `state_dir`, the state after each epoch is saved there (STAGE_A_DIR/epoch-N); with `resume`, the run goes
-    on after the newest one: weights, optimizer, schedule, the torch RNG, the data order (the dataloader's epoch)
-    and the grid augmentation's generator (`augment_rng`), so a killed run ends as an uninterrupted one would."""
+    on after the newest one: weights, optimizer, schedule, the torch RNG and the data order (the dataloader's epoch);
+    the grid augmentation (`augment`, a GridAugment) draws by pass and pair, so a killed run ends as an uninterrupted
+    one would."""
     from safetensors.torch import load_file
     from tqdm.auto import tqdm
     from transformers import get_cosine_schedule_with_warmup
@@ -313,8 +314,6 @@ def pretrain(
         opt.load_state_dict(state["opt"])
         sched.load_state_dict(state["sched"])
         torch.set_rng_state(state["rng"])
-        if augment_rng is not None and meta.get("augment_rng") is not None:
-            augment_rng.bit_generator.state = meta["augment_rng"]
         start, means = int(meta["epoch"]), list(meta["means"])
         if hasattr(batches, "iteration"):  # accelerate's loader: its pass count is the sampler's epoch
             batches.iteration = start
@@ -322,6 +321,8 @@ def pretrain(
     vm.train()
     bar = tqdm(total=total, initial=start * len(batches), desc="grounding pre-training", disable=not progress)
     for epoch in range(start, int(epochs)):
+        if augment is not None:
+            augment.epoch = (0, epoch)
         losses = []
         for b in batches:
             tokens = merged_tokens(vm(b["pixel_values"], grid_thw=b["image_grid_thw"]))
@@ -336,9 +337,8 @@ def pretrain(
             bar.set_postfix(loss=f"{losses[-1]:.3f}")
         means.append(sum(losses) / max(1, len(losses)))
         if root is not None:
-            rng_state = augment_rng.bit_generator.state if augment_rng is not None else None
             meta = {"epoch": epoch + 1, "epochs": int(epochs), "batches": len(batches), "means": means}
-            _save_stage_a(root, epoch + 1, vm, head, opt, sched, meta | {"augment_rng": rng_state})
+            _save_stage_a(root, epoch + 1, vm, head, opt, sched, meta)
     bar.close()
     vm.train(was)
     if not means:

@@ -37,6 +37,7 @@ from urllib.parse import urlparse
 import numpy as np
 
 from labrobfail_vlm.config import ConfigError, is_int
+from labrobfail_vlm.llm_client import OPENER  # OpenVLA's server never redirects: a 3xx is refused
 from sim_backends.perturbations.control import so3_exp
 from sim_backends.policies import wire
 from sim_backends.policies.base import Action, EpisodeContext, Policy, PolicyError, register_policy
@@ -90,16 +91,6 @@ def check_reachable(url: str, key: str = "openvla.url", timeout: float = 2.0) ->
         socket.create_connection((u.hostname, u.port or (443 if u.scheme == "https" else 80)), timeout).close()
     except OSError as e:
         raise ConfigError(f"{key}: cannot reach {url} ({e.strerror or e})") from None
-
-
-class _NoRedirect(urllib.request.HTTPRedirectHandler):
-    """OpenVLA's server never redirects; following one would send the robot's images to another host."""
-
-    def redirect_request(self, *args: Any, **kwargs: Any) -> None:
-        return None  # urllib then raises HTTPError with the 3xx code
-
-
-_OPENER = urllib.request.build_opener(_NoRedirect)
 
 
 @register_policy("openvla")
@@ -157,7 +148,7 @@ class OpenVLAClient(Policy):
         req = urllib.request.Request(self.url, body, self.headers)
         deadline = time.monotonic() + self.timeout
         try:
-            with _OPENER.open(req, timeout=self.timeout) as r:
+            with OPENER.open(req, timeout=self.timeout) as r:
                 return self._read_capped(r, deadline)
         except urllib.error.HTTPError as e:
             raise PolicyError(f"{self.url} answered HTTP {e.code}") from None
