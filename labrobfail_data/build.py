@@ -15,7 +15,6 @@ Every file is written atomically; a trajectory is kept only with all six records
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 import zlib
 from collections import Counter
@@ -34,7 +33,7 @@ from labrobfail_vlm import questions as Q
 from labrobfail_vlm.bench import robot_baseline
 from labrobfail_vlm.config import ConfigError, make_dir, names, require_ints
 from labrobfail_vlm.grid import GridConfig
-from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
+from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json, save_image
 from labrobfail_vlm.taxonomy import DATA_VARIANTS, HELD_OUT_SPLITS, RENAMED_VARIANTS, REPLAY_SPLITS, SEEN_SPLITS
 
 READ_COLUMNS = [
@@ -238,9 +237,7 @@ def _paraphrase(ann: Annotated, para: Paraphraser, dimensions: Any, para_stats: 
 def _write_grids(ann: Annotated, out: Path) -> None:
     """Write the trajectory's grid and its prefix grids as PNGs, then drop them from memory."""
     for a in (ann, *ann.prefixes):
-        buf = io.BytesIO()
-        a.grid.save(buf, format="PNG", optimize=False, compress_level=3)
-        atomic_write_bytes(out / a.image_name, buf.getvalue())
+        save_image(a.grid, out / a.image_name, optimize=False, compress_level=3)
         a.grid = None  # on disk now; held in memory, 17,000 grids of 512 x 512 px took 13 GB
 
 

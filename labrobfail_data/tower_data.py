@@ -1,8 +1,9 @@
 """Tower pretraining data: simulator shards -> per-trajectory frames and dense per-frame targets.
 
-One output file per source shard (`frames-<variant>-<shard>-<signature>.parquet`, written atomically; a rerun skips
-the files already written, so a killed build resumes; the signature names the target definitions and grid, so a
-changed definition rebuilds instead of mixing), then `index.json`: the files, the target names, and each pair's split.
+One output file per source shard (`frames-<variant>-<shard>-<signature>-<made>.parquet`, written atomically; a
+rerun skips the files already written, so a killed build resumes; the signature names the target definitions and
+grid, so a changed definition rebuilds instead of mixing, and <made> the shard's size and time, so a regenerated
+shard is read again), then `index.json`: the files, the target names, and each pair's split.
 A row is one trajectory: the PNG bytes of the keyframes a grid of `max_frames` shows, in every rendered view
 (`images[view][frame]`), and its targets from labrobfail_data/frame_targets.py (cells (F, V, K) and points
 (F, V, C, P, 2) as float32 bytes). Seen pairs are split train/val by `ratios` (labrobfail_data/splits.py, grouped by
@@ -88,7 +89,9 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     sig = f"{zlib.crc32(json.dumps([CELL_TARGETS, TOKEN_TARGETS, MAX_POINTS, max_frames, size]).encode()):08x}"
     written: list[str] = []
     for f in tqdm(files, desc="tower data", disable=not cfg.progress):
-        name = f"frames-{f.parent.name}-{f.stem}-{sig}.parquet"
+        st = f.stat()  # a shard regenerated under the same name (another seed) is read again, not served stale
+        made = f"{zlib.crc32(f'{st.st_size}:{st.st_mtime_ns}'.encode()):08x}"
+        name = f"frames-{f.parent.name}-{f.stem}-{sig}-{made}.parquet"
         target = out / name
         if not target.is_file():
             recs = [_record(r, max_frames, size) for r in _rows([f], READ)]

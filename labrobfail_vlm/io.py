@@ -27,6 +27,26 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         raise
 
 
+def swap_in(tmp: Path, final: Path) -> None:
+    """The fully written folder `tmp` in place of `final` (a model, a resume point): a reader finds the old folder or
+    the new one whole, never a mix. A kill between the two renames leaves `<final>.old` and no `final`; `swapped`
+    reads it back."""
+    import shutil
+
+    old = final.with_name(final.name + ".old")
+    shutil.rmtree(old, ignore_errors=True)
+    if final.exists():
+        final.rename(old)
+    tmp.rename(final)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def swapped(final: Path, marker: str) -> Path:
+    """`final`, or the `<final>.old` a kill in the middle of `swap_in` left, whichever holds `marker`."""
+    old = final.with_name(final.name + ".old")
+    return old if not (final / marker).is_file() and (old / marker).is_file() else final
+
+
 def sha256_file(path: Path) -> str:
     """A file's sha256 (hex), read in 1 MiB blocks."""
     h = hashlib.sha256()
@@ -55,6 +75,7 @@ def save_resume_state(folder: Path, tensors: dict[str, Any], state: dict[str, An
     JSON `marker`, written last, so `newest_complete` never picks a folder a kill cut short."""
     import torch
 
+    (folder / marker).unlink(missing_ok=True)  # a folder reused from an earlier run: not complete until the end
     torch.save(tensors, folder / RESUME_TENSORS)
     atomic_write_json(folder / marker, state)
 
@@ -64,6 +85,15 @@ def load_resume_state(folder: Path, marker: str) -> tuple[dict[str, Any], dict[s
     import torch
 
     return torch.load(folder / RESUME_TENSORS, weights_only=True), json.loads((folder / marker).read_text())
+
+
+def save_image(img: Any, path: Path, **options: Any) -> None:
+    """A PIL image written whole or not at all, in the format its suffix names (`options`: the encoder's)."""
+    import io
+
+    buf = io.BytesIO()
+    img.save(buf, format=Path(path).suffix.lstrip(".").upper().replace("JPG", "JPEG"), **options)
+    atomic_write_bytes(Path(path), buf.getvalue())
 
 
 def save_figure(fig: Any, path: Path, dpi: int = 110) -> None:

@@ -18,6 +18,7 @@ import pyarrow.parquet as pq
 from PIL import Image, ImageDraw
 
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from labrobfail_vlm.io import save_image
 from labrobfail_vlm.taxonomy import FAILURE_TYPE_NAMES
 
 DEFAULTS = """
@@ -85,12 +86,12 @@ def main(argv: list[str]) -> int:
             canvas.paste(a, (0, 0))
             canvas.paste(b, (0, a.height + 6))
             a = canvas
-        a.save(out / f"{ftype}.png")
+        save_image(a, out / f"{ftype}.png")
         written += 1
     successes = [r for r in rows if r["success"]]
     rng = np.random.default_rng(0)
     for k, i in enumerate(rng.choice(len(successes), size=min(4, len(successes)), replace=False)):
-        strip(successes[int(i)], None).save(out / f"success_{k}.png")
+        save_image(strip(successes[int(i)], None), out / f"success_{k}.png")
         written += 1
     print(f"wrote {written} strips to {out}")
     return 0

@@ -29,7 +29,6 @@ recovery rows stay for cells the run did not re-measure (the table's lead line n
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +51,7 @@ from labrobfail_vlm.bench.page import (
     tuned_table,
 )
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
+from labrobfail_vlm.io import atomic_write_bytes
 from sim_backends.supervision.report import LEAD, block, page_recovery, recovery_files, recovery_md
 
 DEFAULTS = """
@@ -185,8 +185,6 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
     _drop_absent(parts, tables)
     if not _splice_ledger(run, parts) and "sealed" in names:
         raise ConfigError(f"sections: {run} has no sealed runs in its datasets' ledgers")
-    from labrobfail_vlm.io import atomic_write_bytes
-
     atomic_write_bytes(out, ("\n".join(line for p in parts for line in p) + "\n").encode())
     print(out)
     return 0
@@ -272,7 +270,8 @@ def online_benches(run: Path) -> list[str]:
     out: list[str] = []
     for model in ("train", "online"):
         for f in sorted(
-            (run / model / "final").glob("eval_online_*/online.json"), key=lambda p: p.parent.name != "eval_online_test"
+            (run / model / "final").glob("eval_online_*/online.json"),
+            key=lambda p: (p.parent.name != "eval_online_test", p.parent.name),
         ):
             out += [f"`{model}/final`, {f.parent.name}:", "", *online_md(json.loads(f.read_text())), ""]
     return [ONLINE_GUARANTEE, "", *out] if out else []
@@ -420,7 +419,7 @@ def detection_section(run: Path, out: Path, evals: dict[str, Any]) -> list[str]:
         lines += [detection_markdown(named_rows(res), title), ""]
         png = run / "train" / "final" / f"eval_{split}" / "reliability_q2.png"
         if png.is_file():
-            shutil.copyfile(png, out.parent / f"reliability_{split}.png")
+            atomic_write_bytes(out.parent / f"reliability_{split}.png", png.read_bytes())
             lines += [f"![reliability, {title}](reliability_{split}.png)", ""]
     return lines
 
@@ -452,11 +451,9 @@ def main(argv: list[str]) -> int:
     lines += ["## Failure detection (Q2) per failure type, seen test split", "", *per_type(evals["test"])]
     curve = run / "train" / "learning_curve.png"
     if curve.is_file():
-        shutil.copyfile(curve, out.parent / "learning_curve.png")
+        atomic_write_bytes(out.parent / "learning_curve.png", curve.read_bytes())
         lines += ["", "## Learning curve (validation split)", "", "![learning curve](learning_curve.png)"]
     lines += ["", f"Run timeline (unix seconds): {json.dumps({n: int(t) for n, t in stamps})}", ""]
-    from labrobfail_vlm.io import atomic_write_bytes
-
     atomic_write_bytes(out, "\n".join(lines).encode())
     print(out)
     return 0

@@ -180,3 +180,30 @@ def test_an_atomic_write_that_fails_leaves_the_old_file_and_no_temp_file(tmp_pat
     io.atomic_write_bytes(out, b"a")
     io.atomic_write_bytes(out, b"b")
     assert len(set(opened)) == 2 and all(p.endswith(".tmp") for p in opened) and out.read_bytes() == b"b"
+
+
+def test_a_folder_swapped_in_is_whole_and_a_kill_between_renames_is_read_back(tmp_path):
+    """swap_in puts a fully written folder in place of the old one (train's final/, the tower's resume point);
+    between its two renames only <name>.old exists, which `swapped` reads back. A resume point saved into a folder
+    an earlier run left complete is not complete until its marker is written again."""
+    import torch
+
+    from labrobfail_vlm import io
+
+    final, tmp = tmp_path / "final", tmp_path / "final.tmp"
+    for n, text in enumerate(("old", "new")):
+        tmp.mkdir()
+        (tmp / "w").write_text(text)
+        (tmp / "m.json").write_text("{}")
+        io.swap_in(tmp, final)
+        assert (final / "w").read_text() == text and sorted(p.name for p in tmp_path.iterdir()) == ["final"]
+    final.rename(tmp_path / "final.old")  # a kill after the first rename
+    assert io.swapped(final, "m.json") == tmp_path / "final.old"
+    assert io.swapped(tmp_path / "other", "m.json") == tmp_path / "other"
+    # save_resume_state: a stale marker goes before the tensors are written
+    step = tmp_path / "step-2"
+    step.mkdir()
+    (step / "state.json").write_text('{"step": 2}')
+    with pytest.raises(TypeError):
+        io.save_resume_state(step, {"x": torch.zeros(1)}, {"step": object()}, "state.json")  # the marker fails
+    assert io.newest_complete(tmp_path, "step", "state.json") is None

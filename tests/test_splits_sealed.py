@@ -285,6 +285,12 @@ def test_every_bench_run_on_a_sealed_split_is_counted(tmp_path):
     runs = sealed_runs(tmp_path)
     assert [r["split"] for r in runs] == [*SEALED_SPLITS, "test_both"]
     assert runs[-1]["source"] == "other" and runs[0]["q2"] == 71.5 and runs[0]["rougeL_failures"] == 0.4
+    # benches on one dataset at once: every run counted (a read-and-rewrite ledger dropped the other's lines)
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(8) as pool:
+        list(pool.map(lambda i: count_sealed_run(tmp_path, "test_scene", f"m{i}", res), range(200)))
+    assert sorted(r["source"] for r in sealed_runs(tmp_path)[len(runs) :]) == sorted(f"m{i}" for i in range(200))
 
 
 def test_per_type_recall_counts_q2_records_only_and_draws_pairs():

@@ -221,3 +221,24 @@ def test_the_card_names_how_each_shard_folder_was_rendered(tmp_path):
         "(seen, seed 7, scene family randomised, button lamp on)"
     )
     assert shard_origin(str(tmp_path / "absent")) == str(tmp_path / "absent")  # no run.json: the folder alone
+
+
+def test_tower_data_reads_a_regenerated_shard_again(tower_shards, tmp_path):
+    """A rebuild reuses the frame files of shards it has read (a killed build resumes) but not of a shard written
+    again under the same name (another seed): its frames would be stale."""
+    import os
+    import shutil
+
+    shards, out = tmp_path / "shards", tmp_path / "data"
+    shutil.copytree(tower_shards, shards)
+    frames = ["data.max_frames=4", "data.image_size=64", "data.ratios=[0.6,0.4]", "data.progress=false"]
+    argv = [cli("build-tower-data"), f"data.shards={shards}", f"data.out_dir={out}", *frames]
+    assert run_here(argv).returncode == 0
+    before = json.loads((out / "index.json").read_text())["files"]
+    first = sorted(shards.glob("shard-*.parquet"))[0]
+    st = first.stat()
+    os.utime(first, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))  # written again
+    assert run_here(argv).returncode == 0
+    after = json.loads((out / "index.json").read_text())["files"]
+    changed = [a for a, b in zip(before, after) if a != b]
+    assert len(before) == len(after) > 1 and len(changed) == 1 and f"-{first.stem}-" in changed[0]

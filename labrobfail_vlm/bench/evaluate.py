@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections import Counter, defaultdict
 from pathlib import Path
 from typing import Any, Callable
@@ -46,8 +47,6 @@ def count_sealed_run(dataset_dir: str | Path, split: str, source: str, res: dict
         return
     from datetime import datetime, timezone
 
-    from labrobfail_vlm.io import atomic_write_bytes
-
     fo = res.get("failure_only") or {}
     entry = {
         "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
@@ -59,9 +58,14 @@ def count_sealed_run(dataset_dir: str | Path, split: str, source: str, res: dict
         "q5_failures": fo.get("q5"),
         "rougeL_failures": (fo.get("q6") or {}).get("rougeL"),
     }
-    ledger = Path(dataset_dir) / SEALED_LEDGER
-    old = ledger.read_bytes() if ledger.is_file() else b""
-    atomic_write_bytes(ledger, old + (json.dumps(entry) + "\n").encode())
+    # one append of the whole line (O_APPEND): two benches on one dataset at once both count, which a read and
+    # rewrite would not (the later rewrite drops the other's line)
+    fd = os.open(Path(dataset_dir) / SEALED_LEDGER, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        os.write(fd, (json.dumps(entry) + "\n").encode())
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def sealed_runs(dataset_dir: str | Path) -> list[dict[str, Any]]:

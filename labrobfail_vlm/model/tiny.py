@@ -11,6 +11,8 @@ Run as:
 from __future__ import annotations
 
 import json
+import os
+import shutil
 import sys
 from pathlib import Path
 from typing import Any, Iterable
@@ -182,9 +184,19 @@ def build_tiny(
     model.generation_config = GenerationConfig(
         eos_token_id=ids["<|im_end|>"], pad_token_id=ids["<|endoftext|>"], do_sample=False
     )
-    model.save_pretrained(out, safe_serialization=True)
+    # Written beside and renamed into place: a kill mid-write leaves no folder a later run takes as built, and the
+    # ranks of a DeepSpeed run that each build it (same seed, same model) never read another's half-written files.
+    tmp = out.with_name(f"{out.name}.{os.getpid()}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    model.save_pretrained(tmp, safe_serialization=True)
     ip = image_processor(temporal_patch_size=vis["temporal_patch_size"])
-    LabRobFailProcessor(image_processor=ip, tokenizer=tok, chat_template=CHAT_TEMPLATE).save_pretrained(out)
+    LabRobFailProcessor(image_processor=ip, tokenizer=tok, chat_template=CHAT_TEMPLATE).save_pretrained(tmp)
+    try:
+        tmp.rename(out)
+    except OSError:  # built by another rank first
+        shutil.rmtree(tmp, ignore_errors=True)
+        if not out.is_dir():
+            raise
     return out
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -23,7 +24,7 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from labrobfail_vlm.config import ConfigError, cli_main, is_int, load_config
-from labrobfail_vlm.io import atomic_write_json
+from labrobfail_vlm.io import atomic_write_json, swap_in
 
 
 def _world_size() -> int:
@@ -493,9 +494,16 @@ def run(cfg: Any) -> dict[str, Any]:
     if pre_epochs and resume is None:  # stage A; a resumed run's checkpoint already holds the grounded tower
         pre = _stage_a(cfg, model, trainer, grounding, pre_epochs, resume_stage_a, progress_log)
     result = trainer.train(resume_from_checkpoint=resume)
-    trainer.save_model(str(Path(cfg.output_dir) / "final"))
+    # final/ is written beside and swapped in whole: a bench or server reading a reused output_dir's final/ (or a
+    # kill while saving) never meets old and new weights under one manifest
+    final = Path(cfg.output_dir) / "final"
+    tmp = final.with_name("final.tmp")
+    if args.process_index == 0:
+        shutil.rmtree(tmp, ignore_errors=True)
+    trainer.save_model(str(tmp))  # every rank (ZeRO-3 gathers the weights); rank 0 writes
     summary = _summary(trainer, result, counts, pre, tower_info, cache)
     if args.process_index == 0:
+        swap_in(tmp, final)
         atomic_write_json(Path(cfg.output_dir) / "train_summary.json", summary)
         print(json.dumps(summary), flush=True)
     return summary

@@ -60,7 +60,7 @@ def _save(out: Path, tower: Any, heads: Any, opt: Any, state: dict[str, Any]) ->
     import torch
     from safetensors.torch import save_file
 
-    from labrobfail_vlm.io import atomic_write_json
+    from labrobfail_vlm.io import atomic_write_json, swap_in
 
     tmp, final = out / "checkpoint.tmp", out / "checkpoint"
     shutil.rmtree(tmp, ignore_errors=True)
@@ -69,19 +69,16 @@ def _save(out: Path, tower: Any, heads: Any, opt: Any, state: dict[str, Any]) ->
     save_file({k: v.contiguous() for k, v in heads.state_dict().items()}, str(tmp / "heads.safetensors"))
     torch.save(opt.state_dict(), tmp / "optimizer.pt")
     atomic_write_json(tmp / "state.json", state)
-    old = out / "checkpoint.old"
-    shutil.rmtree(old, ignore_errors=True)
-    if final.exists():
-        final.rename(old)
-    tmp.rename(final)
-    shutil.rmtree(old, ignore_errors=True)
+    swap_in(tmp, final)
 
 
 def _resume(out: Path, tower: Any, heads: Any, opt: Any) -> dict[str, Any] | None:
     import torch
     from safetensors.torch import load_file
 
-    ck = out / "checkpoint"
+    from labrobfail_vlm.io import swapped
+
+    ck = swapped(out / "checkpoint", "state.json")
     if not (ck / "state.json").is_file():
         return None
     tower.load_state_dict(load_file(str(ck / "tower.safetensors")))
