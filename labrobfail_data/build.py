@@ -198,7 +198,13 @@ def _views(cfg: DictConfig) -> list[str] | None:
 def _paraphraser(cfg: DictConfig) -> Paraphraser | None:
     """The LLM rewording client when paraphrase.enabled, else None."""
     return (
-        Paraphraser(cfg.paraphrase.base_url, cfg.paraphrase.model, cfg.paraphrase.api_key_env, cfg.paraphrase.timeout_s)
+        Paraphraser(
+            cfg.paraphrase.base_url,
+            cfg.paraphrase.model,
+            cfg.paraphrase.api_key_env,
+            cfg.paraphrase.timeout_s,
+            int(cfg.seed),
+        )
         if cfg.paraphrase.enabled
         else None
     )
@@ -349,6 +355,8 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     marks = _review_marks(cfg.review)
     para = _paraphraser(cfg)
     out = _out_dir(cfg)
+    if para is not None:
+        para.open_cache(out)
 
     res = _annotate_all(cfg, files, gcfg, questions, views, marks, para, out)
     kept = res.kept

@@ -4,13 +4,20 @@ Off by default. The API key is read from the environment variable named in the c
 only ever placed in the Authorization header: never logged, never written. A reworded
 record must pass the same rule-based filter as the original (labrobfail_data.annotate.check_record);
 otherwise the original wording is kept and the rejection is counted.
+
+Same seed, same data: each request carries a seed made from the build's seed and the record's id (servers that
+honour it reply alike), and every reply is kept in the dataset folder (CACHE, keyed by the model and the request),
+so a rebuild asks again only what it has not asked before.
 """
 
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
+import os
 import urllib.error
+from pathlib import Path
 from typing import Any
 
 from labrobfail_vlm import questions as Q
@@ -21,10 +28,12 @@ SYSTEM = (
     "Reword the given question (and the answer, when one is given) so that the meaning, every object name "
     'and every number stay exactly the same. Reply with JSON only: {"question": ..., "answer": ...}.'
 )
+CACHE = "paraphrase_cache.jsonl"  # in the dataset folder: {"key", "reply"} per line, appended as replies come
 
 
 class Paraphraser:
-    def __init__(self, base_url: str, model: str, api_key_env: str, timeout_s: float = 30.0):
+    def __init__(self, base_url: str, model: str, api_key_env: str, timeout_s: float = 30.0, seed: int = 0):
+        self.seed, self.cache_file, self.cache = int(seed), None, {}
         try:
             self.client = ChatClient(base_url, model, api_key_env, timeout_s)
         except ValueError as e:
@@ -39,10 +48,32 @@ class Paraphraser:
         except (ValueError, KeyError, TypeError):
             pass  # it answers, in another format
 
-    def _chat(self, content: str) -> dict[str, Any]:
-        text = self.client.chat(
-            [{"role": "system", "content": SYSTEM}, {"role": "user", "content": content}], temperature=0.7
-        ).strip()
+    def open_cache(self, folder: Path) -> None:
+        """Read the replies an earlier build of this folder kept (a torn last line is skipped) and keep new ones."""
+        self.cache_file = Path(folder) / CACHE
+        if self.cache_file.is_file():
+            for line in self.cache_file.read_text(encoding="utf-8").splitlines():
+                try:
+                    row = json.loads(line)
+                    self.cache[str(row["key"])] = str(row["reply"])
+                except (ValueError, KeyError, TypeError):
+                    continue
+
+    def _chat(self, content: str, rid: str) -> dict[str, Any]:
+        key = hashlib.sha256(json.dumps([self.client.model, SYSTEM, content]).encode()).hexdigest()
+        text = self.cache.get(key)
+        if text is None:
+            seed = int.from_bytes(hashlib.sha256(f"{self.seed}:{rid}".encode()).digest()[:4], "little")
+            messages = [{"role": "system", "content": SYSTEM}, {"role": "user", "content": content}]
+            text = self.client.chat(messages, temperature=0.7, seed=seed)
+            self.cache[key] = text
+            if self.cache_file is not None:  # one whole line per append: a kill loses at most this reply
+                fd = os.open(self.cache_file, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+                try:
+                    os.write(fd, (json.dumps({"key": key, "reply": text}) + "\n").encode())
+                finally:
+                    os.close(fd)
+        text = text.strip()
         if text.startswith("```"):
             text = text.strip("`").removeprefix("json").strip()
         out = json.loads(text)
@@ -60,7 +91,7 @@ class Paraphraser:
         question, _, options = rest.partition("\nOptions:")
         payload = {"question": question} | ({"answer": gpt["value"]} if dim == "Q6" else {})
         try:
-            out = self._chat(json.dumps(payload))
+            out = self._chat(json.dumps(payload), str(rec["id"]))
         except (urllib.error.URLError, OSError, ValueError, KeyError, IndexError, TypeError):
             return None
         new_q = out.get("question")

@@ -203,11 +203,13 @@ def test_review_marks_remove_rejected(run6, ds, tmp_path):
 
 class _FakeLLM(BaseHTTPRequestHandler):
     seen_auth: list = []
+    seeds: list = []
     mode = "good"
 
     def do_POST(self):  # noqa: N802
         body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
         _FakeLLM.seen_auth.append(self.headers.get("Authorization"))
+        _FakeLLM.seeds.append(body.get("seed"))
         payload = json.loads(body["messages"][1]["content"])
         if _FakeLLM.mode == "good":
             out = {"question": "Rephrased: " + payload["question"], "answer": payload.get("answer")}
@@ -228,12 +230,18 @@ class _FakeLLM(BaseHTTPRequestHandler):
 def test_paraphrase_through_openai_compatible_endpoint(run6, tmp_path, mode):
     srv = HTTPServer(("127.0.0.1", 0), _FakeLLM)
     threading.Thread(target=srv.serve_forever, daemon=True).start()
-    _FakeLLM.mode, _FakeLLM.seen_auth = mode, []
+    _FakeLLM.mode, _FakeLLM.seen_auth, _FakeLLM.seeds = mode, [], []
     env = {**os.environ, "LRF_TEST_KEY": "sk-secret-123"}
     out = tmp_path / "p"
     url = f"http://127.0.0.1:{srv.server_port}/v1"
     paraphrase = ["paraphrase.enabled=true", f"paraphrase.base_url={url}", "paraphrase.api_key_env=LRF_TEST_KEY"]
     r = build(run6, out, *paraphrase, here=False, timeout=300, env=env)  # the key from a process's environment
+    asked = len(_FakeLLM.seeds)
+    assert asked and all(isinstance(x, int) for x in _FakeLLM.seeds) and len(set(_FakeLLM.seeds)) > 1
+    if mode == "good":  # a rebuild reuses the kept replies: no request, the same records
+        first = (out / "train.json").read_bytes()
+        assert build(run6, out, *paraphrase).returncode == 0
+        assert len(_FakeLLM.seeds) == asked and (out / "train.json").read_bytes() == first
     srv.shutdown()
     assert r.returncode == 0, r.stderr
     assert _FakeLLM.seen_auth and set(_FakeLLM.seen_auth) == {"Bearer sk-secret-123"}
