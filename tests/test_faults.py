@@ -105,6 +105,27 @@ def test_training_killed_mid_run_resumes_to_the_final_step_and_evaluates(tiny, s
         r = run_here([*common[:-3], f"output_dir={bad}", "resume=true", "progress=false"])
         last = r.stderr.strip().splitlines()[-1]
         assert r.returncode == 2 and last.startswith("error: resume:") and name in last and "Traceback" not in r.stderr
+    # a DeepSpeed state that names code to run (DeepSpeed unpickles its states in full): refused before it loads
+    import torch
+
+    bad = tmp_path / "bad_deepspeed"
+    shutil.copytree(out / "checkpoint-8", bad / "checkpoint-8")
+    (bad / "checkpoint-8" / "global_step8").mkdir()
+    torch.save({"module": _Planted(bad / "ran")}, bad / "checkpoint-8" / "global_step8" / "mp_rank_00_model_states.pt")
+    r = run_here([*common[:-3], f"output_dir={bad}", "resume=true", "progress=false"])
+    last = r.stderr.strip().splitlines()[-1]
+    assert r.returncode == 2 and "beyond DeepSpeed's plain state (io.open)" in last
+    assert not (bad / "ran").exists()
+
+
+class _Planted:
+    """A pickle that creates a file when it is loaded in full."""
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def __reduce__(self):
+        return (open, (self.path, "w"))
 
 
 def _sha(path):

@@ -391,6 +391,34 @@ def _check_resumable(ckpt: Path, dtype: Any) -> None:
     opt = ckpt / "optimizer.pt"  # torch.save writes a zip archive
     if opt.exists() and not zipfile.is_zipfile(opt):
         raise ConfigError(f"resume: {opt} is not a readable optimizer state (delete {ckpt}: the one before resumes)")
+    for f in sorted(ckpt.glob("global_step*/*.pt")):
+        _check_deepspeed_state(f)
+
+
+# What DeepSpeed's own states hold beyond tensors and plain containers (ZeRO-3 on these machines: the stage enum and
+# the loss scaler); anything else in such a file is refused before DeepSpeed's loader unpickles it in full.
+DEEPSPEED_GLOBALS = frozenset(
+    {
+        "deepspeed.runtime.zero.config.ZeroStageEnum",
+        "deepspeed.runtime.fp16.loss_scaler.LossScaler",
+        "deepspeed.runtime.fp16.loss_scaler.DynamicLossScaler",
+    }
+)
+
+
+def _check_deepspeed_state(f: Path) -> None:
+    """A DeepSpeed state file of a checkpoint to resume: DeepSpeed loads it with torch.load(weights_only=False), which
+    runs whatever a pickle names, so its globals are read first (without unpickling) and any beyond plain state and
+    DEEPSPEED_GLOBALS is one line: a checkpoint from elsewhere never runs code here."""
+    import torch
+
+    try:
+        found = set(torch.serialization.get_unsafe_globals_in_checkpoint(f))
+    except (OSError, RuntimeError, ValueError) as e:
+        raise ConfigError(f"resume: {f} is not a readable DeepSpeed state ({type(e).__name__})") from None
+    if found - DEEPSPEED_GLOBALS:
+        names = ", ".join(sorted(found - DEEPSPEED_GLOBALS))
+        raise ConfigError(f"resume: {f} holds objects beyond DeepSpeed's plain state ({names}); not loaded")
 
 
 def _load_resumed_head(resume: str | None, grounding: dict[str, Any] | None) -> None:
