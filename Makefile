@@ -160,7 +160,9 @@ reproduce: $(STAMP)
 	$(call stamp,done)
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 
-# After make reproduce, on its data: the scratch tower (the pre-tower recipe) and the front + wrist sensor row.
+# After make reproduce, on its data: the scratch tower (the pre-tower recipe) and the sensor rows, front + wrist and
+# front + side + wrist. Three views stack six bands of cells: a 512x768 grid keeps them the 128 px squares the shipped
+# tower was pretrained on (512x512 would squeeze them to 128x85).
 reproduce-rows: $(STAMP)
 	@test -f $(R)/train/final/eval_test/results.json || { echo "reproduce-rows: run make reproduce first" >&2; exit 2; }
 	$(call same_layers,reproduce-rows)
@@ -169,6 +171,10 @@ reproduce-rows: $(STAMP)
 	$(BIN)/labrobfail-build-dataset $(REPRO_SHARDS) out_dir=$(R)/dataset_wrist $(DEMO_GRID) 'views=[front,wrist]' progress=false
 	$(BIN)/labrobfail-train $(REPRO_TRAIN) dataset_dir=$(R)/dataset_wrist output_dir=$(R)/rows/wrist
 	$(call bench,$(R)/rows/wrist,test $(HELD_OUT),$(R)/dataset_wrist)
+	$(BIN)/labrobfail-build-dataset $(REPRO_SHARDS) out_dir=$(R)/dataset_three $(DEMO_GRID) grid.height=768 \
+	  'views=[front,side,wrist]' progress=false
+	$(BIN)/labrobfail-train $(REPRO_TRAIN) dataset_dir=$(R)/dataset_three output_dir=$(R)/rows/three
+	$(call bench,$(R)/rows/three,test $(HELD_OUT),$(R)/dataset_three)
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 
 # After make reproduce, on its data: the more-episodes row (docs/EXPERIMENTS.md, 4 Dec): MORE_SEEN new seen episodes,
