@@ -260,7 +260,10 @@ ROWS = {
     "rows/scratch": "scratch tower (random init, stage A grounding: the pre-tower recipe)",
     "train": "sim-pretrained tower (shipped), front + side",
     "rows/wrist": "sim-pretrained tower, front + wrist (sensor ablation, not the paper's views)",
-    "rows/three": "sim-pretrained tower, front + side + wrist (sensor ablation, 512x768 grid of the same cells)",
+    "rows/three": (
+        "sim-pretrained tower, front + side + wrist (sensor ablation, not the paper's views; a 512x768 grid of the "
+        "same 128-px cells)"
+    ),
     "rows/deep4": (
         "sim-pretrained tower, front + side, 4-layer decoder (chosen on validation; the recipe since 3 Dec)"
     ),
