@@ -60,10 +60,11 @@ class Paraphraser:
                     continue
 
     def _chat(self, content: str, rid: str) -> dict[str, Any]:
-        key = hashlib.sha256(json.dumps([self.client.model, SYSTEM, content]).encode()).hexdigest()
+        # one request per record, as without the cache: a question's few wordings must not share one rewording
+        seed = int.from_bytes(hashlib.sha256(f"{self.seed}:{rid}".encode()).digest()[:4], "little")
+        key = hashlib.sha256(json.dumps([self.client.model, SYSTEM, content, seed]).encode()).hexdigest()
         text = self.cache.get(key)
         if text is None:
-            seed = int.from_bytes(hashlib.sha256(f"{self.seed}:{rid}".encode()).digest()[:4], "little")
             messages = [{"role": "system", "content": SYSTEM}, {"role": "user", "content": content}]
             text = self.client.chat(messages, temperature=0.7, seed=seed)
             self.cache[key] = text

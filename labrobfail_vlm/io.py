@@ -34,8 +34,8 @@ def swap_in(tmp: Path, final: Path) -> None:
     import shutil
 
     old = final.with_name(final.name + ".old")
-    shutil.rmtree(old, ignore_errors=True)
-    if final.exists():
+    if final.exists():  # else `old` may be the only whole copy (a kill between renames): it goes after the swap
+        shutil.rmtree(old, ignore_errors=True)
         final.rename(old)
     tmp.rename(final)
     shutil.rmtree(old, ignore_errors=True)

@@ -203,7 +203,7 @@ def test_an_atomic_write_that_fails_leaves_the_old_file_and_no_temp_file(tmp_pat
     assert len(set(opened)) == 2 and all(p.endswith(".tmp") for p in opened) and out.read_bytes() == b"b"
 
 
-def test_a_folder_swapped_in_is_whole_and_a_kill_between_renames_is_read_back(tmp_path):
+def test_a_folder_swapped_in_is_whole_and_a_kill_between_renames_is_read_back(tmp_path, monkeypatch):
     """swap_in puts a fully written folder in place of the old one (train's final/, the tower's resume point);
     between its two renames only <name>.old exists, which `swapped` reads back. A resume point saved into a folder
     an earlier run left complete is not complete until its marker is written again."""
@@ -221,6 +221,18 @@ def test_a_folder_swapped_in_is_whole_and_a_kill_between_renames_is_read_back(tm
     final.rename(tmp_path / "final.old")  # a kill after the first rename
     assert io.swapped(final, "m.json") == tmp_path / "final.old"
     assert io.swapped(tmp_path / "other", "m.json") == tmp_path / "other"
+    # the next save from there: the .old (the only whole copy) stays until the new folder is in place
+    tmp.mkdir()
+    (tmp / "m.json").write_text("{}")
+
+    def killed(self, target):
+        raise KeyboardInterrupt  # a kill at the rename
+
+    with monkeypatch.context() as m:
+        m.setattr(type(tmp), "rename", killed)
+        with pytest.raises(KeyboardInterrupt):
+            io.swap_in(tmp, final)
+    assert (tmp_path / "final.old" / "w").read_text() == "new"
     # save_resume_state: a stale marker goes before the tensors are written
     step = tmp_path / "step-2"
     step.mkdir()

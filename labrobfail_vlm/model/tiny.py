@@ -144,12 +144,14 @@ def build_tiny(
     vision: dict[str, Any] | None = None,
     text: dict[str, Any] | None = None,
     tower: Path | None = None,
+    replace: bool = False,
 ) -> Path:
     """Write a tiny random Qwen3-VL checkpoint (weights as safetensors, tokenizer, processor, template).
 
     `texts`: extra tokenizer corpus (a dataset's records); `vision`/`text`: overrides of TINY_VISION/TINY_TEXT;
     `tower`: a folder with a pretrained vision tower (labrobfail_vlm/model/tower.py), whose config replaces
-    `vision` and whose weights replace the random tower's.
+    `vision` and whose weights replace the random tower's. `replace`: a folder already at `out_dir` is replaced
+    whole; without it that folder is kept (another process, e.g. a DeepSpeed rank, built it from the same settings).
     """
     import torch
     from transformers import GenerationConfig, Qwen3VLConfig, Qwen3VLForConditionalGeneration
@@ -191,6 +193,11 @@ def build_tiny(
     model.save_pretrained(tmp, safe_serialization=True)
     ip = image_processor(temporal_patch_size=vis["temporal_patch_size"])
     LabRobFailProcessor(image_processor=ip, tokenizer=tok, chat_template=CHAT_TEMPLATE).save_pretrained(tmp)
+    if replace and out.is_dir():
+        from labrobfail_vlm.io import swap_in
+
+        swap_in(tmp, out)
+        return out
     try:
         tmp.rename(out)
     except OSError:  # built by another rank first
@@ -205,5 +212,6 @@ if __name__ == "__main__":
         build_tiny(
             sys.argv[1] if len(sys.argv) > 1 else "outputs/tiny_qwen3vl",
             texts=dataset_texts(sys.argv[2]) if len(sys.argv) > 2 else (),
+            replace=True,
         )
     )

@@ -410,11 +410,13 @@ def _check_deepspeed_state(f: Path) -> None:
     """A DeepSpeed state file of a checkpoint to resume: DeepSpeed loads it with torch.load(weights_only=False), which
     runs whatever a pickle names, so its globals are read first (without unpickling) and any beyond plain state and
     DEEPSPEED_GLOBALS is one line: a checkpoint from elsewhere never runs code here."""
+    import pickle
+
     import torch
 
     try:
         found = set(torch.serialization.get_unsafe_globals_in_checkpoint(f))
-    except (OSError, RuntimeError, ValueError) as e:
+    except (OSError, RuntimeError, ValueError, EOFError, pickle.UnpicklingError) as e:
         raise ConfigError(f"resume: {f} is not a readable DeepSpeed state ({type(e).__name__})") from None
     if found - DEEPSPEED_GLOBALS:
         names = ", ".join(sorted(found - DEEPSPEED_GLOBALS))
