@@ -180,6 +180,47 @@ def check_threshold(value: Any) -> float:
     return float(value)
 
 
+def load_checkpoint(
+    path: str | Path, dtype: Any, device: str | None, max_model_gb: float | None, kwargs: dict[str, Any]
+) -> tuple[Any, Any]:
+    """FailureAnalyzer.from_pretrained's model and processor, on `device` (default: cuda when there is one); the
+    analyzer's `kwargs` gain what the checkpoint's manifest names (its grid, and `fit`; its option biases) unless
+    the caller set them."""
+    import torch
+
+    from labrobfail_vlm.config import ConfigError
+    from labrobfail_vlm.model.loading import load_model, load_processor
+    from labrobfail_vlm.train.checkpoint import (
+        is_finetuned,
+        load_finetuned,
+        read_manifest,
+        trained_grid,
+        validate_checkpoint,
+    )
+
+    validate_checkpoint(path, "model.path", max_model_gb, dtype)
+    model = load_finetuned(path, dtype, max_model_gb) if is_finetuned(path) else load_model(path, dtype, max_model_gb)
+    dev = device or ("cuda" if torch.cuda.is_available() else "cpu")
+    if "grid" not in kwargs and (grid := trained_grid(path)) is not None:
+        kwargs["grid"] = grid
+        kwargs.setdefault("fit", True)
+    if is_finetuned(path) and "option_bias" not in kwargs:
+        try:
+            kwargs["option_bias"] = check_option_bias(read_manifest(Path(path), "model.path").get("option_bias"))
+        except ValueError as e:
+            raise ConfigError(f"model.path: {Path(path) / 'labrobfail.json'}: {e}") from None
+    return model.to(dev), load_processor(path)
+
+
+def choose_biased(
+    decoder: Any, pre: Any, asks: Sequence[Ask], bias: Sequence[float]
+) -> tuple[list[str], list[list[float]]]:
+    """A closed failure-only question for each row of `pre`: the option chosen with the dimension's option `bias`,
+    and every option's log-likelihood (without it)."""
+    scores = decoder.option_scores_rows(pre, [a.options for a in asks], [a.per_token for a in asks])
+    return [a.options[biased_choice(s, bias)] for a, s in zip(asks, scores)], scores
+
+
 class FailureAnalyzer:
     """`q6_mode`: "free" (greedy text) or "template" (the most likely entry of the paper's correction-strategy
     table among the strategies of the answered Q5 category, placeholders filled from the `objects` given to
@@ -212,9 +253,7 @@ class FailureAnalyzer:
         self.processor.tokenizer.padding_side = "left"
         self.decoder = Decoder(self.model, processor)
         self.grid = grid  # the layout the model was trained on: --frames grids and the Q3 range follow it
-        # fit: a grid image of another size is brought to `grid` (same aspect) or refused (grid.fit_grid); on when
-        # the checkpoint names the grid it was trained on
-        self.fit_grid = fit
+        self.fit_grid = fit  # another size brought to `grid` or refused (grid.fit_grid); on: the checkpoint names it
         self.num_frames, self.time_axis, self.index = grid.max_frames, grid.time_axis, grid.draw_index
         self._ids_checked = False
 
@@ -230,32 +269,8 @@ class FailureAnalyzer:
         """`max_model_gb`: the model memory budget (default $LABROBFAIL_MAX_MODEL_GB, else half the machine's
         memory). The directory is validated before any tensor is built (train.checkpoint.validate_checkpoint): a
         bad or oversized checkpoint is a one-line ConfigError, not an out-of-memory kill."""
-        import torch
-
-        from labrobfail_vlm.config import ConfigError
-        from labrobfail_vlm.model.loading import load_model, load_processor
-        from labrobfail_vlm.train.checkpoint import (
-            is_finetuned,
-            load_finetuned,
-            read_manifest,
-            trained_grid,
-            validate_checkpoint,
-        )
-
-        validate_checkpoint(path, "model.path", max_model_gb, dtype)
-        model = (
-            load_finetuned(path, dtype, max_model_gb) if is_finetuned(path) else load_model(path, dtype, max_model_gb)
-        )
-        dev = device or ("cuda" if torch.cuda.is_available() else "cpu")
-        if "grid" not in kwargs and (grid := trained_grid(path)) is not None:
-            kwargs["grid"] = grid
-            kwargs.setdefault("fit", True)
-        if is_finetuned(path) and "option_bias" not in kwargs:
-            try:
-                kwargs["option_bias"] = check_option_bias(read_manifest(Path(path), "model.path").get("option_bias"))
-            except ValueError as e:
-                raise ConfigError(f"model.path: {Path(path) / 'labrobfail.json'}: {e}") from None
-        return cls(model.to(dev), load_processor(path), **kwargs)
+        model, processor = load_checkpoint(path, dtype, device, max_model_gb, kwargs)
+        return cls(model, processor, **kwargs)
 
     # ---- prompts -----------------------------------------------------------------------------------------
     def _prompt(self, dim: str, task: str) -> str:
@@ -292,13 +307,6 @@ class FailureAnalyzer:
         probs = [p_yes(ask.options, sc) for sc in self.decoder.option_scores_rows(pre, [ask.options] * rows)]
         return ["Yes" if p >= self.threshold else "No" for p in probs], probs
 
-    def _choose_biased(self, pre: Any, asks: Sequence[Ask], dim: str) -> tuple[list[str], list[list[float]]]:
-        """A closed failure-only question for each row of `pre`: the option chosen with the dimension's option bias,
-        and every option's log-likelihood (without it)."""
-        scores = self.decoder.option_scores_rows(pre, [a.options for a in asks], [a.per_token for a in asks])
-        bias = self.option_bias.get(dim, ())
-        return [a.options[biased_choice(s, bias)] for a, s in zip(asks, scores)], scores
-
     def _answer(
         self,
         dim: str,
@@ -312,7 +320,7 @@ class FailureAnalyzer:
         (the six-prompt path keeps them as the one-pass path does)."""
         plan = plan_reply(dim, failed, frames, objects, self.q6_mode, earlier)
         if dim in BIASED_DIMS and isinstance(plan, Ask):
-            (reply,), (scores,) = self._choose_biased(pre, [plan], dim)
+            (reply,), (scores,) = choose_biased(self.decoder, pre, [plan], self.option_bias.get(dim, ()))
             if isinstance(earlier, Answers):
                 earlier.option_scores[dim] = scores
             return reply
@@ -424,7 +432,8 @@ class FailureAnalyzer:
                     for i, p in zip(rows, probs):
                         out[i].p_failure = p
                 elif dim in BIASED_DIMS:  # always a choice among options (plan_reply)
-                    got, scores = self._choose_biased(q, [plans[i] for i in rows], dim)  # type: ignore[misc]
+                    asks = [plans[i] for i in rows]
+                    got, scores = choose_biased(self.decoder, q, asks, self.option_bias.get(dim, ()))  # type: ignore[arg-type]
                     for i, sc in zip(rows, scores):
                         out[i].option_scores[dim] = sc
                 else:
