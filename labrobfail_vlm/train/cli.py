@@ -25,6 +25,7 @@ from omegaconf import OmegaConf
 
 from labrobfail_vlm.config import ConfigError, cli_main, is_int, load_config
 from labrobfail_vlm.io import atomic_write_json, swap_in
+from labrobfail_vlm.train.resume import load_resumed_head, resume_point
 
 
 def _world_size() -> int:
@@ -350,91 +351,6 @@ def _build_trainer(
     return trainer, progress_log, grounding
 
 
-def _resume_point(cfg: Any, pre_epochs: int) -> tuple[str | None, bool]:
-    """(checkpoint to resume from or None, whether to resume stage A) for resume=true, a checkpoint path, or off."""
-    from labrobfail_vlm.train.checkpoint import last_complete_checkpoint
-
-    resume = None
-    resume_stage_a = False
-    if cfg.resume is True:
-        from labrobfail_vlm.train.grounding import stage_a_state
-
-        last, partial = last_complete_checkpoint(cfg.output_dir)
-        for d in partial:  # a kill while saving: the run resumes from the checkpoint before it
-            print(f"resume: skipping {d} (incompletely written)", file=sys.stderr, flush=True)
-        if last is not None:
-            resume = str(last)
-        elif pre_epochs and stage_a_state(cfg.output_dir) is not None:  # killed in stage A (or before checkpoint-1)
-            resume_stage_a = True
-        else:
-            raise ConfigError(f"resume: no complete checkpoint-N in {cfg.output_dir}")
-    elif isinstance(cfg.resume, str):
-        if not Path(cfg.resume).is_dir():
-            raise ConfigError(f"resume: no such checkpoint {cfg.resume!r}")
-        resume = cfg.resume
-    if resume is not None:
-        _check_resumable(Path(resume), _dtype(cfg))
-    return resume, resume_stage_a
-
-
-def _check_resumable(ckpt: Path, dtype: Any) -> None:
-    """A checkpoint whose weights or optimizer state cannot be read is one line here, not the trainer's traceback
-    half-way through loading (a disk that filled while saving leaves such a folder with a complete-looking state)."""
-    import zipfile
-
-    from labrobfail_vlm.model.loading import safetensors_header
-    from labrobfail_vlm.train.checkpoint import validate_checkpoint
-
-    validate_checkpoint(ckpt, "resume", dtype=dtype)  # priced as the run loads it, as a fresh start is
-    for f in sorted(ckpt.glob("*.safetensors")):  # the grounding head's too, which the model check does not read
-        safetensors_header(f, "resume")
-    opt = ckpt / "optimizer.pt"  # torch.save writes a zip archive
-    if opt.exists() and not zipfile.is_zipfile(opt):
-        raise ConfigError(f"resume: {opt} is not a readable optimizer state (delete {ckpt}: the one before resumes)")
-    for f in sorted(ckpt.glob("global_step*/*.pt")):
-        _check_deepspeed_state(f)
-
-
-# What DeepSpeed's own states hold beyond tensors and plain containers (ZeRO-3 on these machines: the stage enum and
-# the loss scaler); anything else in such a file is refused before DeepSpeed's loader unpickles it in full.
-DEEPSPEED_GLOBALS = frozenset(
-    {
-        "deepspeed.runtime.zero.config.ZeroStageEnum",
-        "deepspeed.runtime.fp16.loss_scaler.LossScaler",
-        "deepspeed.runtime.fp16.loss_scaler.DynamicLossScaler",
-    }
-)
-
-
-def _check_deepspeed_state(f: Path) -> None:
-    """A DeepSpeed state file of a checkpoint to resume: DeepSpeed loads it with torch.load(weights_only=False), which
-    runs whatever a pickle names, so its globals are read first (without unpickling) and any beyond plain state and
-    DEEPSPEED_GLOBALS is one line: a checkpoint from elsewhere never runs code here."""
-    import pickle
-
-    import torch
-
-    try:
-        found = set(torch.serialization.get_unsafe_globals_in_checkpoint(f))
-    except (OSError, RuntimeError, ValueError, EOFError, pickle.UnpicklingError) as e:
-        raise ConfigError(f"resume: {f} is not a readable DeepSpeed state ({type(e).__name__})") from None
-    if found - DEEPSPEED_GLOBALS:
-        names = ", ".join(sorted(found - DEEPSPEED_GLOBALS))
-        raise ConfigError(f"resume: {f} holds objects beyond DeepSpeed's plain state ({names}); not loaded")
-
-
-def _load_resumed_head(resume: str | None, grounding: dict[str, Any] | None) -> None:
-    """Load the grounding head saved with the checkpoint being resumed; a ConfigError when it has none."""
-    if resume is not None and grounding is not None:
-        from labrobfail_vlm.train.grounding import load_head
-
-        if not load_head(grounding["head"], Path(resume)):  # a run made without grounding: its optimizer differs
-            raise ConfigError(
-                f"resume: {resume} was trained without frame grounding; resume it with "
-                f"grounding.weight=0 grounding.pretrain_epochs=0"
-            )
-
-
 def _stage_a(
     cfg: Any,
     model: Any,
@@ -518,8 +434,8 @@ def run(cfg: Any) -> dict[str, Any]:
     if args.process_index == 0:
         print(json.dumps({"trainable_parameters": counts, "tuning": cfg.tuning, "preset": cfg.preset}), flush=True)
     trainer, progress_log, grounding = _build_trainer(cfg, args, model, processor, grid, curriculum, cache)
-    resume, resume_stage_a = _resume_point(cfg, pre_epochs)
-    _load_resumed_head(resume, grounding)
+    resume, resume_stage_a = resume_point(cfg, pre_epochs, _dtype(cfg))
+    load_resumed_head(resume, grounding)
     pre: dict[str, float] = {}
     if pre_epochs and resume is None:  # stage A; a resumed run's checkpoint already holds the grounded tower
         pre = _stage_a(cfg, model, trainer, grounding, pre_epochs, resume_stage_a, progress_log)
