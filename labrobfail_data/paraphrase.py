@@ -15,12 +15,12 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
-import os
 import urllib.error
 from pathlib import Path
 from typing import Any
 
 from labrobfail_vlm import questions as Q
+from labrobfail_vlm.io import append_line
 from labrobfail_vlm.llm_client import ChatClient
 
 SYSTEM = (
@@ -68,12 +68,8 @@ class Paraphraser:
             messages = [{"role": "system", "content": SYSTEM}, {"role": "user", "content": content}]
             text = self.client.chat(messages, temperature=0.7, seed=seed)
             self.cache[key] = text
-            if self.cache_file is not None:  # one whole line per append: a kill loses at most this reply
-                fd = os.open(self.cache_file, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-                try:
-                    os.write(fd, (json.dumps({"key": key, "reply": text}) + "\n").encode())
-                finally:
-                    os.close(fd)
+            if self.cache_file is not None:  # a kill loses at most this reply
+                append_line(self.cache_file, json.dumps({"key": key, "reply": text}))
         text = text.strip()
         if text.startswith("```"):
             text = text.strip("`").removeprefix("json").strip()

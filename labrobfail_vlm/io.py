@@ -27,6 +27,17 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         raise
 
 
+def append_line(path: Path, line: str) -> None:
+    """`line` (no newline) added to the end of a line log in one O_APPEND write: processes appending to the same log
+    at once keep every line (a read and rewrite would drop another's), and a kill loses at most this line."""
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        os.write(fd, (line + "\n").encode())
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def swap_in(tmp: Path, final: Path) -> None:
     """The fully written folder `tmp` in place of `final` (a model, a resume point): a reader finds the old folder or
     the new one whole, never a mix. A kill between the two renames leaves `<final>.old` and no `final`; `swapped`

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from collections import Counter, defaultdict
 from pathlib import Path
 from typing import Any, Callable
@@ -27,6 +26,7 @@ from labrobfail_vlm import questions as Q
 from labrobfail_vlm.bench.metrics import accuracy, bleu, pair_bootstrap, rouge_l_values, within_one
 from labrobfail_vlm.bench.parse import parse
 from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.io import append_line
 from labrobfail_vlm.taxonomy import HELD_OUT_SPLITS, REPLAY_SPLITS, SEALED_SPLITS, SEEN_SPLITS
 
 # CLI split name -> file stem: every split by its file's name, its prefix grids (a dataset built with
@@ -58,14 +58,7 @@ def count_sealed_run(dataset_dir: str | Path, split: str, source: str, res: dict
         "q5_failures": fo.get("q5"),
         "rougeL_failures": (fo.get("q6") or {}).get("rougeL"),
     }
-    # one append of the whole line (O_APPEND): two benches on one dataset at once both count, which a read and
-    # rewrite would not (the later rewrite drops the other's line)
-    fd = os.open(Path(dataset_dir) / SEALED_LEDGER, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-    try:
-        os.write(fd, (json.dumps(entry) + "\n").encode())
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    append_line(Path(dataset_dir) / SEALED_LEDGER, json.dumps(entry))  # two benches at once: both counted
 
 
 def sealed_runs(dataset_dir: str | Path) -> list[dict[str, Any]]:

@@ -228,11 +228,8 @@ class Collator:
         imgs = [Image.open(r["image"]).convert("RGB") for r in recs]
         if self.augment is None:
             return imgs
-        draws: dict[str, Any] = {}
         groups = [self.group_of.get(Q.traj_of(r["id"]), Q.traj_of(r["id"])) for r in recs]
-        for g in groups:
-            if g not in draws:
-                draws[g] = self.augment.draw(g)
+        draws = {g: self.augment.draw(g) for g in dict.fromkeys(groups)}
         return [self.augment(img, draws[g]) for img, g in zip(imgs, groups)]
 
     def _ids(self, texts: list[str], grid_thw: torch.Tensor) -> list[list[int]]:
