@@ -7,6 +7,7 @@ from __future__ import annotations
 import colorsys
 import json
 import os
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -145,6 +146,42 @@ def test_make_reproduce_resumes_training_only_where_a_checkpoint_was_left(tmp_pa
     assert train_line().endswith(f"output_dir={tmp_path}/train") and "resume=true" not in train_line()
     (tmp_path / "train" / "checkpoint-1600").mkdir(parents=True)
     assert train_line().endswith("resume=true")
+
+
+def test_the_16_keyframe_candidate_draws_the_recipes_pairs_and_never_a_sealed_split(tmp_path):
+    """`make reproduce-grid16` (a dry run): every episode set it generates is one of `make reproduce`'s (the same
+    seed, variant, count and first pair; only the rendering differs, set last so it wins), it builds 16-keyframe
+    grids of the front and side views, and it neither generates nor benches a sealed (test_*) split or seen test."""
+
+    def plan(target: str) -> list[str]:
+        got = _make_dry(target, f"R={tmp_path}")
+        assert got.returncode == 0, got.stderr
+        text = got.stdout.replace("\\\n", "").replace(str(tmp_path), "R")  # pytest's folder names hold "test"
+        text = re.sub(r"\$\(\((.*?)\)\)", lambda m: m.group(0).replace(" ", ""), text)  # first_pair=$((4000/2))
+        return [line for line in text.splitlines() if line.strip()]
+
+    def episodes(lines: list[str]) -> list[tuple[str, ...]]:
+        """Each generate command's settings that choose episodes (rendering and the folder left out)."""
+        out = []
+        for line in lines:
+            words = line.split()
+            if not any(w.endswith("labrobfail-generate") for w in words):
+                continue
+            drop = ("render_frames=", "backend_kwargs.wrist=", "out_dir=", "progress=")
+            out.append(tuple(sorted(w for w in words if "=" in w and not w.startswith(drop))))
+        return out
+
+    grid16, recipe = plan("reproduce-grid16"), plan("reproduce")
+    assert episodes(grid16) and set(episodes(grid16)) <= set(episodes(recipe))
+    gen = [line for line in grid16 if "labrobfail-generate" in line]
+    assert all(line.split("render_frames=")[-1].startswith("16") for line in gen)
+    assert all(line.split("backend_kwargs.wrist=")[-1].startswith("false") for line in gen)
+    (build,) = [line for line in grid16 if "labrobfail-build-dataset" in line]
+    assert "grid.max_frames=16" in build and "'views=[front,side]'" in build and "test_" not in build
+    benches = [line for line in grid16 if "labrobfail-evaluate" in line]
+    assert benches and not any("test" in line.split("split=")[0] for line in benches)
+    assert all("for s in val" in line for line in benches)
+    assert not any("test" in line for line in gen)
 
 
 def test_extra_training_episodes_are_drawn_in_seen_or_randomised_scenes_only(tmp_path):
