@@ -3,13 +3,17 @@ only project-named packages and diagnoses a real PyBullet episode with a tiny ch
 
 import json
 import os
+import shutil
 import sys
 import zipfile
+from pathlib import Path
 
 import pytest
 from conftest import ROOT, run
 
 pytestmark = pytest.mark.slow
+
+PACKAGES = ("labrobfail_vlm", "sim_backends", "labrobfail_data")  # what the wheel holds, and all it holds
 
 OUTSIDE = r"""
 import io, json, sys
@@ -35,15 +39,28 @@ print(json.dumps({"scenario": ep.scenario, "diagnosis": json.loads(d.to_json())}
 """
 
 
+def source_copy(dest: Path) -> Path:
+    """What the wheel is built from: pyproject.toml and the three packages, copied outside the checkout. A build in
+    the checkout itself leaves build/ and labrobfail.egg-info/ there, and that stale metadata shadows the editable
+    install's (a console script added later stays invisible to importlib.metadata until the folder is deleted)."""
+    dest.mkdir()
+    shutil.copy2(ROOT / "pyproject.toml", dest)
+    for package in PACKAGES:
+        shutil.copytree(ROOT / package, dest / package, ignore=shutil.ignore_patterns("__pycache__"))
+    return dest
+
+
 def test_wheel_installs_outside_the_checkout_and_diagnoses_an_episode(tmp_path):
     pip = [sys.executable, "-m", "pip"]
-    r = run(
-        [*pip, "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", str(tmp_path / "whl"), str(ROOT)], cwd=None
-    )
+    before = {p.name for p in ROOT.iterdir()}
+    src = source_copy(tmp_path / "src")
+    r = run([*pip, "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", str(tmp_path / "whl"), str(src)], cwd=None)
     assert r.returncode == 0, r.stderr[-2000:]
     wheel = next((tmp_path / "whl").glob("labrobfail-*.whl"))
     tops = {n.split("/")[0] for n in zipfile.ZipFile(wheel).namelist() if not n.split("/")[0].endswith(".dist-info")}
-    assert tops == {"labrobfail_vlm", "sim_backends", "labrobfail_data"}, tops  # nothing named data, scripts, ...
+    assert tops == set(PACKAGES), tops  # nothing named data, scripts, ...
+    made = {p.name for p in ROOT.iterdir()} - before  # the build wrote no metadata into the checkout
+    assert not made & {"build", "labrobfail.egg-info"}, made
     site = tmp_path / "site"
     r = run([*pip, "install", "-q", "--no-deps", "--target", str(site), str(wheel)], cwd=None)
     assert r.returncode == 0, r.stderr[-2000:]
