@@ -184,7 +184,9 @@ reproduce-rows: $(STAMP)
 # trained with the recipe and benched beside the 8-keyframe recipe on seen val and the three validation splits.
 # The rule, written before its figures (5 Dec): adopted if seen-val Q2 rises and AUROC rises on at least three of
 # the four validation splits (failure-only Q3 is over 16 frames instead of 8 and is read, not compared). The sealed
-# shards are not drawn here: a row the page reports generates them. About 45 min of generation, 80 of training.
+# shards are not drawn here: a row the page reports generates them. 38.6 min of generation, 66.4 of training, 8.9 of
+# benches (5 Dec): it lost on all four validation splits (seen val Q2 -5.50 [-8.38, -2.75]), not adopted
+# (docs/EXPERIMENTS.md, 5 Dec late afternoon).
 GRID16         := grid.width=1024 grid.height=512 grid.max_frames=16 grid.columns=8
 VAL_SPLITS     := val val_object val_scene val_both
 reproduce-grid16: $(STAMP)
