@@ -103,6 +103,32 @@ def test_a_missing_bench_or_reply_is_one_line(tmp_path):
     assert r.returncode == 2 and r.stderr.startswith("error: resamples: expected an integer >= 1")
 
 
+def test_a_bench_on_grids_of_another_frame_count_is_refused(tmp_path):
+    """The same records built with 16 keyframes instead of 8 (5 Dec): a Q3 reply weighing 12 frames where the
+    dataset's grid shows 8 was made on other grids, and its Q3 would be scored against the wrong frame numbers."""
+    recs = _dataset(tmp_path / "ds")
+    traj = json.loads((tmp_path / "ds" / "trajectories.json").read_text())
+    (tmp_path / "ds" / "trajectories.json").write_text(json.dumps([{**t, "frames": 8} for t in traj]))
+    gold = lambda t, d, r: r["conversations"][1]["value"]  # noqa: E731
+    for side, frames in (("a", 8), ("b", 12)):
+        out = tmp_path / side / "eval_val"
+        out.mkdir(parents=True)
+        with open(out / "predictions.jsonl", "w") as f:
+            for r in recs:
+                t, d = r["id"].rsplit("_", 1)
+                line = {"id": r["id"], "prediction": gold(t, d, r), "p_failure": 0.5}
+                f.write(json.dumps(line | ({"scores": [0.0] * frames} if d == "Q3" else {})) + "\n")
+    r = compare(tmp_path, f"out={tmp_path / 'cmp.json'}")
+    assert r.returncode == 2 and "Traceback" not in r.stderr and not (tmp_path / "cmp.json").exists()
+    (line,) = r.stderr.strip().splitlines()
+    assert line.startswith("error: b: ") and "weighs 12 frames in its Q3 reply to p0-ok_Q3" in line
+    assert "the dataset's grid shows 8" in line
+    (tmp_path / "b" / "eval_val" / "predictions.jsonl").write_text(
+        (tmp_path / "a" / "eval_val" / "predictions.jsonl").read_text()
+    )
+    assert compare(tmp_path).returncode == 0  # 8 options on 8-frame grids: compared
+
+
 def test_one_model_at_two_operating_points(tmp_path):
     """b_threshold=val reads the model's eval_<split>_opval bench (the cut chosen on val), beside its 0.5 bench; a
     bad operating point or a missing bench at it is one line naming it."""

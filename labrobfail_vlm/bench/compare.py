@@ -90,14 +90,30 @@ def _check_args(cfg: Any) -> None:
 
 
 def read_replies(
-    side: str, root: str, split: str, limit: int | None, recs: list[dict], threshold: Any = 0.5
+    side: str,
+    root: str,
+    split: str,
+    limit: int | None,
+    recs: list[dict],
+    threshold: Any = 0.5,
+    traj: dict[str, dict] | None = None,
 ) -> ev.Predictions:
     """`root`'s replies (at operating point `threshold`) to every record of the split, or a one-line error naming
-    what is missing."""
+    what is missing. With the split's trajectories (`traj`), a scored Q3 reply must weigh one option per keyframe
+    the dataset's grid shows: a bench made on grids of another frame count (the same records built with another
+    grid.max_frames) would have its Q3 scored against frame numbers it never saw, so it is refused."""
     f = eval_dir(root, split, limit, threshold) / "predictions.jsonl"
     preds = ev.read_predictions(f)
     if missing := sum(r["id"] not in preds for r in recs):
         raise ConfigError(f"{side}: {f} has no reply for {missing} of the split's {len(recs)} records")
+    for r in recs if traj else ():
+        shown = traj.get(Q.traj_of(r["id"]), {}).get("frames")
+        scores = preds.option_scores.get(r["id"])
+        if Q.dim_of(r["id"]) == "Q3" and scores is not None and shown is not None and len(scores) != int(shown):
+            raise ConfigError(
+                f"{side}: {f} weighs {len(scores)} frames in its Q3 reply to {r['id']} where the dataset's grid "
+                f"shows {int(shown)}: benched on grids of another frame count, not this dataset's"
+            )
     return preds
 
 
@@ -235,7 +251,9 @@ def main(argv: list[str]) -> int:
         recs, traj = ev.load_split(cfg.dataset_dir, split, cfg.max_trajectories)
         if not recs:
             raise ConfigError(f"splits: {split} has no records in {cfg.dataset_dir}")
-        a, b = (read_replies(k, str(cfg[k]), split, cfg.max_trajectories, recs, cfg[f"{k}_threshold"]) for k in "ab")
+        a, b = (
+            read_replies(k, str(cfg[k]), split, cfg.max_trajectories, recs, cfg[f"{k}_threshold"], traj) for k in "ab"
+        )
         res["splits"][split] = compare_split(recs, traj, a, b, cfg.resamples, cfg.seed)
     print(markdown(res))
     if cfg.out is not None:
