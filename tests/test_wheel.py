@@ -4,6 +4,7 @@ only project-named packages and diagnoses a real PyBullet episode with a tiny ch
 import json
 import os
 import shutil
+import subprocess
 import sys
 import zipfile
 from pathlib import Path
@@ -40,13 +41,18 @@ print(json.dumps({"scenario": ep.scenario, "diagnosis": json.loads(d.to_json())}
 
 
 def source_copy(dest: Path) -> Path:
-    """What the wheel is built from: pyproject.toml and the three packages, copied outside the checkout. A build in
-    the checkout itself leaves build/ and labrobfail.egg-info/ there, and that stale metadata shadows the editable
-    install's (a console script added later stays invisible to importlib.metadata until the folder is deleted)."""
-    dest.mkdir()
-    shutil.copy2(ROOT / "pyproject.toml", dest)
-    for package in PACKAGES:
-        shutil.copytree(ROOT / package, dest / package, ignore=shutil.ignore_patterns("__pycache__"))
+    """What the wheel is built from: the checkout as a fresh clone has it (git's tracked and not-ignored files, so
+    scripts/, tests/ and the root scripts are there for the package finder to leave out), copied outside it. A
+    build in the checkout itself leaves build/ and labrobfail.egg-info/ there, and that stale metadata shadows the
+    editable install's (a console script added later stays invisible to importlib.metadata until it is deleted)."""
+    git = ["git", "ls-files", "-co", "--exclude-standard", "-z"]
+    listed = subprocess.run(git, cwd=ROOT, capture_output=True) if shutil.which("git") else None
+    if listed is None or listed.returncode != 0:  # not a git checkout: everything but what .gitignore names
+        skip = shutil.ignore_patterns(".git", ".venv", "outputs", "build", "*.egg-info", "__pycache__", "wandb")
+        return Path(shutil.copytree(ROOT, dest, symlinks=True, ignore=skip))
+    for name in filter(None, listed.stdout.decode().split("\0")):
+        (dest / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(ROOT / name, dest / name, follow_symlinks=False)  # configs/ stays a link into the package
     return dest
 
 
