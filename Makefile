@@ -140,15 +140,18 @@ same_layers = @$(PY) -c "from labrobfail_vlm.config import cli_main; from labrob
 stamp           = echo "$(1) $$(date +%s)" >> $(R)/timeline.txt
 # resume=true where a checkpoint was left in the folder when make started (an interrupted run); none: train afresh
 resume_in       = $(if $(wildcard $(1)/checkpoint-*),resume=true)
+# make reproduce's episodes, generated with settings $(1) into folder $(2): two seen runs of REPRO_SEEN (the second's
+# pairs numbered after the first's) and REPRO_UNSEEN of each held-out variant in $(3)
+define generate_recipe
+$(BIN)/labrobfail-generate $(1) num_episodes=$(REPRO_SEEN) out_dir=$(2)/seen
+$(BIN)/labrobfail-generate $(1) num_episodes=$(REPRO_SEEN) first_pair=$$(($(REPRO_SEEN) / 2)) out_dir=$(2)/seen2
+for v in $(3); do $(BIN)/labrobfail-generate $(1) num_episodes=$(REPRO_UNSEEN) variant=$$v out_dir=$(2)/$$v || exit 1; done
+endef
 bench          = for s in $(2); do $(BIN)/labrobfail-evaluate model=$(1)/final dataset_dir=$(3) split=$$s batch_size=8 \
   progress=false $(4) || exit 1; done
 reproduce: $(STAMP)
 	mkdir -p $(R) && rm -f $(R)/timeline.txt && $(call stamp,generate)
-	$(BIN)/labrobfail-generate $(REPRO_GEN) num_episodes=$(REPRO_SEEN) out_dir=$(R)/shards/seen
-	$(BIN)/labrobfail-generate $(REPRO_GEN) num_episodes=$(REPRO_SEEN) first_pair=$$(($(REPRO_SEEN) / 2)) \
-	  out_dir=$(R)/shards/seen2
-	for v in $(HELD_OUT); do \
-	  $(BIN)/labrobfail-generate $(REPRO_GEN) num_episodes=$(REPRO_UNSEEN) variant=$$v out_dir=$(R)/shards/$$v || exit 1; done
+	$(call generate_recipe,$(REPRO_GEN),$(R)/shards,$(HELD_OUT))
 	$(call stamp,dataset)
 	$(BIN)/labrobfail-build-dataset $(REPRO_SHARDS) out_dir=$(R)/dataset $(DEMO_GRID) 'views=[front,side]' progress=false
 	$(call stamp,train)
@@ -192,12 +195,8 @@ VAL_SPLITS     := val val_object val_scene val_both
 reproduce-grid16: $(STAMP)
 	@test -f $(R)/train/train_summary.json || { echo "reproduce-grid16: run make reproduce first" >&2; exit 2; }
 	$(call same_layers,reproduce-grid16)
-	$(BIN)/labrobfail-generate $(REPRO_GEN) render_frames=16 backend_kwargs.wrist=false num_episodes=$(REPRO_SEEN) \
-	  out_dir=$(R)/shards16/seen
-	$(BIN)/labrobfail-generate $(REPRO_GEN) render_frames=16 backend_kwargs.wrist=false num_episodes=$(REPRO_SEEN) \
-	  first_pair=$$(($(REPRO_SEEN) / 2)) out_dir=$(R)/shards16/seen2
-	for v in val_object val_scene val_both; do $(BIN)/labrobfail-generate $(REPRO_GEN) render_frames=16 \
-	  backend_kwargs.wrist=false num_episodes=$(REPRO_UNSEEN) variant=$$v out_dir=$(R)/shards16/$$v || exit 1; done
+	$(call generate_recipe,$(REPRO_GEN) render_frames=16 backend_kwargs.wrist=false,$(R)/shards16,val_object val_scene \
+	  val_both)
 	$(BIN)/labrobfail-build-dataset 'shards=[$(subst $(space),$(comma),$(addprefix $(R)/shards16/,seen seen2 val_object \
 	  val_scene val_both))]' out_dir=$(R)/dataset_g16 $(GRID16) 'views=[front,side]' progress=false
 	$(BIN)/labrobfail-train $(REPRO_TRAIN) dataset_dir=$(R)/dataset_g16 output_dir=$(R)/rows/g16 \
