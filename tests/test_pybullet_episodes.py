@@ -209,3 +209,42 @@ def test_button_lamp_lights_on_a_press_and_not_on_a_press_beside_the_button(tmp_
             generate.load_config(["backend=pybullet", "backend_kwargs.button_lamp=maybe", f"out_dir={out}"])
         )
     assert not out.exists()
+
+
+def test_broken_glass_renders_shards_once_a_dropped_bottle_has_landed():
+    """`broken_glass=true`: a bottle let go mid-carry (an impact the labeler calls breakage, Fatal) is drawn as shards
+    in every keyframe rendered once it has landed, the whole bottle hidden; the trace and labels are those of the same
+    episode with the option off, and so are the images before the failure's keyframe. A grasp that never closes
+    breaks nothing: every image the same bytes."""
+    import pybullet as p
+
+    from labrobfail_vlm.config import ConfigError
+    from sim_backends import generate
+
+    on = make_backend("pybullet", image_size=64, cameras=["front"], max_distractors=0, broken_glass=True)
+    off = make_backend("pybullet", image_size=64, cameras=["front"], max_distractors=0)
+    try:
+
+        def episode(src, names):
+            rng = np.random.default_rng(0)
+            return _run(src, "pick_place_bottle", 1, lambda k: control.corrupt_gripper(k, names, 1.0, rng))
+
+        def alpha(src) -> float:
+            return p.getVisualShapeData(src.scene.objects["obj"].body, physicsClientId=src.cid)[0][7][3]
+
+        broken, whole = episode(on, ["s1_carry"]), episode(off, ["s1_carry"])
+        assert broken.labels == whole.labels and broken.labels.severity == 3  # Fatal
+        assert broken.state_trace == whole.state_trace
+        shown = [a != b for a, b in zip(broken.images[0], whole.images[0])]
+        k = broken.labels.failure_keyframe
+        first = shown.index(True)  # the keyframe whose end finds the bottle landed: the drop's own, or later
+        assert first >= k and all(shown[first:]) and len(shown) - first >= 2, (k, shown)
+        assert alpha(on) == 0.0 and alpha(off) == 1.0
+        assert p.getNumBodies(physicsClientId=on.cid) == p.getNumBodies(physicsClientId=off.cid) + 1  # the shards
+        fault, same = episode(on, ["s0_close"]), episode(off, ["s0_close"])
+        assert fault.labels.severity != 3 and fault.images == same.images and alpha(on) == 1.0
+    finally:
+        on.close()
+        off.close()
+    with pytest.raises(ConfigError, match=r"^backend_kwargs.broken_glass: expected true or false, got 'maybe'$"):
+        generate.validate(generate.load_config(["backend=pybullet", "backend_kwargs.broken_glass=maybe"]))

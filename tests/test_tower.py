@@ -217,8 +217,8 @@ def test_the_card_names_how_each_shard_folder_was_rendered(tmp_path):
         return str(tmp_path / name)
 
     assert shard_origin(folder("plain", scene_family=None, button_lamp=False)).endswith("(seen, seed 7)")
-    assert shard_origin(folder("both", scene_family="randomised", button_lamp=True)).endswith(
-        "(seen, seed 7, scene family randomised, button lamp on)"
+    assert shard_origin(folder("both", scene_family="randomised", button_lamp=True, broken_glass=True)).endswith(
+        "(seen, seed 7, scene family randomised, button lamp on, broken glass drawn)"
     )
     assert shard_origin(str(tmp_path / "absent")) == str(tmp_path / "absent")  # no run.json: the folder alone
 

@@ -25,14 +25,17 @@ TRAINING_KEYS = (
 
 def shard_origin(shard_dir: str) -> str:
     """How a shard folder was generated (its run.json), in words for the card: the variant, seed, any scene family
-    other than the variant's own (so a reader sees which frames were domain-randomised) and a lit button lamp."""
+    other than the variant's own (so a reader sees which frames were domain-randomised), a lit button lamp and broken
+    glass drawn."""
     try:
         run = json.loads((Path(shard_dir) / "run.json").read_text())
     except (OSError, ValueError):
         return shard_dir
     kw = run.get("backend_kwargs") or {}
-    extra = (f", scene family {kw['scene_family']}" if kw.get("scene_family") else "") + (
-        ", button lamp on" if kw.get("button_lamp") else ""
+    extra = (
+        (f", scene family {kw['scene_family']}" if kw.get("scene_family") else "")
+        + (", button lamp on" if kw.get("button_lamp") else "")
+        + (", broken glass drawn" if kw.get("broken_glass") else "")
     )
     return f"{shard_dir} ({run.get('variant')}, seed {run.get('seed')}{extra})"
 

@@ -211,6 +211,40 @@ def particles(
     return ids
 
 
+def shards(cid: int, centre, radius: float, rgba) -> int:
+    """Broken glassware, drawn only: the stub of a vessel's bottom with three short jagged walls, and six flat pieces
+    scattered around it, on the surface at `centre` (x, y, z of the lowest point). A visual shape without a
+    collision shape or mass, so the physics and every label stay as they were (`broken_glass`). Deterministic: no
+    random draw, so the episode's stream is untouched."""
+    parts: list[tuple] = [("cyl", 0.8 * radius, 0.006, (0.0, 0.0, 0.003))]
+    for k in range(3):  # wall stubs on the rim, 15-27 mm high
+        a = 2.1 * k + 0.4
+        h = 0.0075 + 0.003 * k
+        rim = (0.75 * radius * math.cos(a), 0.75 * radius * math.sin(a), h)
+        parts.append(((0.006, 0.0015, h), rim, _yaw(a + 1.57)))
+    for k in range(6):  # flat pieces 1.5-2.5 r out
+        a = 1.05 * k + 0.2 * (k % 2)
+        d = radius * (1.5 + 0.2 * (k % 3) + 0.1 * k)
+        half = (0.009 + 0.002 * (k % 3), 0.005 + 0.002 * (k % 2), 0.0012)
+        parts.append((half, (d * math.cos(a), d * math.sin(a), 0.0012), _yaw(1.7 * a)))
+    shapes = [p.GEOM_CYLINDER if q[0] == "cyl" else p.GEOM_BOX for q in parts]
+    vis = p.createVisualShapeArray(
+        shapeTypes=shapes,
+        halfExtents=[[0, 0, 0] if q[0] == "cyl" else q[0] for q in parts],
+        radii=[q[1] if q[0] == "cyl" else 0 for q in parts],
+        lengths=[q[2] if q[0] == "cyl" else 0 for q in parts],
+        visualFramePositions=[q[3] if q[0] == "cyl" else q[1] for q in parts],
+        visualFrameOrientations=[(0, 0, 0, 1) if q[0] == "cyl" else q[2] for q in parts],
+        rgbaColors=[tuple(rgba)] * len(parts),
+        physicsClientId=cid,
+    )
+    return p.createMultiBody(0, -1, vis, centre, physicsClientId=cid)
+
+
+def _yaw(a: float) -> tuple[float, float, float, float]:
+    return (0.0, 0.0, math.sin(a / 2), math.cos(a / 2))
+
+
 def oven(
     cid: int,
     pos,

@@ -12,6 +12,7 @@ from omegaconf import OmegaConf
 
 from labrobfail_vlm.config import CONFIG_DIR, is_int
 from sim_backends.goals import GOALS
+from sim_backends.labeler import BREAK_SPEED, impact_speed
 from sim_backends.perturbations.physics import PhysicsEvent
 from sim_backends.pybullet import (
     assets,
@@ -33,6 +34,7 @@ SOLVER_ITERATIONS = 50  # contact solver iterations per physics step (grasps nee
 # resting contacts): a third less time per step with the same nominal success (measured over all scenarios).
 SOLVER_RESIDUAL = 1e-3
 TRACE_EVERY = 6  # physics steps per trace sample: 240 Hz / 6 = 40 Hz
+LANDED = 0.2  # m/s: glassware falling slower than this over the last trace sample has landed (broken_glass)
 TRACE_RATE_HZ = round(1.0 / (DT * TRACE_EVERY), 6)  # recorded in every trace as `rate_hz`; the labeler reads it there
 
 
@@ -74,6 +76,7 @@ def _flag(name: str, value: Any) -> bool:
     lowpoly_robot=True,
     scene_family=None,
     button_lamp=False,
+    broken_glass=False,
     layered_render=True,
 )
 class PyBulletSource(ScenarioConfig, FailureSource):
@@ -96,6 +99,7 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         lowpoly_robot: bool = True,
         scene_family: str | None = None,
         button_lamp: bool = False,
+        broken_glass: bool = False,
         layered_render: bool = True,
     ):
         super().__init__()
@@ -110,6 +114,12 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         # pressed goal holds on the trace so far, so a grid shows a press that happened and a press beside the
         # button. Off by default: the page's data were rendered without it.
         self.button_lamp = _flag("button_lamp", button_lamp)
+        # Glassware that the labeler calls broken (an impact at >= BREAK_SPEED: the Fatal severity) renders as
+        # shards from the first keyframe rendered after it lands, instead of standing whole where it fell, so a
+        # grid shows the breakage its label claims. Drawn only (no collision, no mass): the trace and labels are the
+        # same. Off by default: the page's data were rendered without it.
+        self.broken_glass = _flag("broken_glass", broken_glass)
+        self._broken: set[str] = set()
         self.cfg = self.load_task_config(tasks_file)
         self.cid = p.connect(p.DIRECT)
         if egl:
@@ -158,7 +168,8 @@ class PyBulletSource(ScenarioConfig, FailureSource):
                 raise ValueError(f"custom_scene: missing {k!r}")
         if scene is not None and "vary" in scene:
             scene_mod.vary_keys(scene["vary"])
-        for flag in ("button_lamp", "layered_render"):  # checked before run.json is written (a resume compares it)
+        # checked before run.json is written (a resume compares it)
+        for flag in ("button_lamp", "broken_glass", "layered_render"):
             _flag(flag, out.get(flag, False))
         if out.get("scene_family") is not None:
             scene_mod.scene_family("seen", out["scene_family"])  # an unknown family fails here, before any episode
@@ -169,6 +180,7 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         sc = self._scenario(scenario)
         cid = self.cid
         self._trace = None  # the last episode's: a lamp must not read it for the new scene
+        self._broken = set()
         p.resetSimulation(physicsClientId=cid)
         if self.renderer is not None:
             self.renderer.forget_scene()  # a build that fails must not leave the old backdrops on new body ids
@@ -244,6 +256,8 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         assert self.scene is not None
         if self.button_lamp and self._trace is not None:
             self._light_pressed_buttons()
+        if self.broken_glass and self._trace is not None:
+            self._break_glass()
         return self.renderer.render(self.scene.robot.id) if self.renderer is not None else []
 
     def _light_pressed_buttons(self) -> None:
@@ -254,6 +268,25 @@ class PyBulletSource(ScenarioConfig, FailureSource):
             if goal.kind == "button" and GOALS["button"](self._trace.cols, {}, g := goal.to_dict()):
                 body = self.scene.objects[g["object"]].body
                 p.changeVisualShape(body, -1, rgbaColor=assets.LAMP_RGBA, physicsClientId=self.cid)
+
+    def _break_glass(self) -> None:
+        """Draw each task object whose trace so far holds a breaking impact (the labeler's `impact_speed`) as shards
+        where it lies, once it has landed (falling slower than LANDED m/s over the last sample), and hide the
+        whole vessel. It stays broken; a new episode rebuilds the scene."""
+        cols, rate = self._trace.cols, 1.0 / (TRACE_EVERY * DT)
+        for name, obj in self._trace.movables.items():
+            z = [q[2] for q in cols.get(f"{name}.pos", [])]
+            if name in self._broken or len(z) < 2 or (z[-2] - z[-1]) * rate > LANDED:
+                continue
+            if impact_speed({f"{name}.pos": cols[f"{name}.pos"], "rate_hz": rate}, name) < BREAK_SPEED:
+                continue
+            cid = self.cid
+            lo, hi = p.getAABB(obj.body, physicsClientId=cid)
+            centre = (*p.getBasePositionAndOrientation(obj.body, physicsClientId=cid)[0][:2], lo[2])
+            rgba = p.getVisualShapeData(obj.body, physicsClientId=cid)[0][7]
+            p.changeVisualShape(obj.body, -1, rgbaColor=(*rgba[:3], 0.0), physicsClientId=cid)
+            assets.shards(cid, centre, obj.dims.get("radius", 0.02), rgba)
+            self._broken.add(name)
 
     def camera_matrices(self) -> list[list[float]] | None:
         assert self.scene is not None
