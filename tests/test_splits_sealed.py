@@ -148,10 +148,18 @@ def test_make_reproduce_resumes_training_only_where_a_checkpoint_was_left(tmp_pa
     assert train_line().endswith("resume=true")
 
 
-def test_the_16_keyframe_candidate_draws_the_recipes_pairs_and_never_a_sealed_split(tmp_path):
-    """`make reproduce-grid16` (a dry run): every episode set it generates is one of `make reproduce`'s (the same
-    seed, variant, count and first pair; only the rendering differs, set last so it wins), it builds 16-keyframe
-    grids of the front and side views, and it neither generates nor benches a sealed (test_*) split or seen test."""
+@pytest.mark.parametrize(
+    "target, rendering, grid",
+    [
+        ("reproduce-grid16", "render_frames=16", "grid.max_frames=16"),
+        ("reproduce-glass", "backend_kwargs.broken_glass=true", "grid.max_frames=8"),
+    ],
+)
+def test_a_rendering_candidate_draws_the_recipes_pairs_and_never_a_sealed_split(tmp_path, target, rendering, grid):
+    """`make reproduce-grid16` and `make reproduce-glass` (dry runs): every episode set they generate is one of `make
+    reproduce`'s (the same seed, variant, count and first pair; only the rendering differs, set last so it wins), they
+    build grids of the front and side views, and they neither generate nor bench a sealed (test_*) split or seen
+    test."""
 
     def plan(target: str) -> list[str]:
         got = _make_dry(target, f"R={tmp_path}")
@@ -167,18 +175,19 @@ def test_the_16_keyframe_candidate_draws_the_recipes_pairs_and_never_a_sealed_sp
             words = line.split()
             if not any(w.endswith("labrobfail-generate") for w in words):
                 continue
-            drop = ("render_frames=", "backend_kwargs.wrist=", "out_dir=", "progress=")
+            drop = ("render_frames=", "backend_kwargs.wrist=", "backend_kwargs.broken_glass=", "out_dir=", "progress=")
             out.append(tuple(sorted(w for w in words if "=" in w and not w.startswith(drop))))
         return out
 
-    grid16, recipe = plan("reproduce-grid16"), plan("reproduce")
-    assert episodes(grid16) and set(episodes(grid16)) <= set(episodes(recipe))
-    gen = [line for line in grid16 if "labrobfail-generate" in line]
-    assert all(line.split("render_frames=")[-1].startswith("16") for line in gen)
+    lever, recipe = plan(target), plan("reproduce")
+    assert episodes(lever) and set(episodes(lever)) <= set(episodes(recipe))
+    gen = [line for line in lever if "labrobfail-generate" in line]
+    key, value = rendering.split("=")
+    assert all(line.split(key + "=")[-1].startswith(value) for line in gen)
     assert all(line.split("backend_kwargs.wrist=")[-1].startswith("false") for line in gen)
-    (build,) = [line for line in grid16 if "labrobfail-build-dataset" in line]
-    assert "grid.max_frames=16" in build and "'views=[front,side]'" in build and "test_" not in build
-    benches = [line for line in grid16 if "labrobfail-evaluate" in line]
+    (build,) = [line for line in lever if "labrobfail-build-dataset" in line]
+    assert grid in build and "'views=[front,side]'" in build and "test_" not in build
+    benches = [line for line in lever if "labrobfail-evaluate" in line]
     assert benches and not any("test" in line.split("split=")[0] for line in benches)
     assert all("for s in val" in line for line in benches)
     assert not any("test" in line for line in gen)
