@@ -274,9 +274,11 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         where it lies, once it has landed (falling slower than LANDED m/s over the last sample), and hide the
         whole vessel. It stays broken; a new episode rebuilds the scene."""
         cols, rate = self._trace.cols, 1.0 / (TRACE_EVERY * DT)
+        t = cols["t"]
         for name, obj in self._trace.movables.items():
             z = [q[2] for q in cols.get(f"{name}.pos", [])]
-            if name in self._broken or len(z) < 2 or (z[-2] - z[-1]) * rate > LANDED:
+            # the last interval's own length: a keyframe's end is sampled off the 40 Hz clock, often a step after
+            if name in self._broken or len(z) < 2 or (z[-2] - z[-1]) > LANDED * max(t[-1] - t[-2], DT):
                 continue
             if impact_speed({f"{name}.pos": cols[f"{name}.pos"], "rate_hz": rate}, name) < BREAK_SPEED:
                 continue
