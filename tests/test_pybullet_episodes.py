@@ -213,16 +213,20 @@ def test_button_lamp_lights_on_a_press_and_not_on_a_press_beside_the_button(tmp_
 
 def test_broken_glass_renders_shards_once_a_dropped_bottle_has_landed():
     """`broken_glass=true`: a bottle let go mid-carry (an impact the labeler calls breakage, Fatal) is drawn as shards
-    in every keyframe rendered once it has landed, the whole bottle hidden; the trace and labels are those of the same
-    episode with the option off, and so are the images before the failure's keyframe. A grasp that never closes
-    breaks nothing: every image the same bytes."""
+    on the bench in every keyframe rendered once it has come to rest, the whole bottle hidden; the trace and labels
+    are those of the same episode with the option off, and so are the images before the failure's keyframe; the
+    layered renderer draws the shards as the whole scene does. A grasp that never closes breaks nothing: every image
+    the same bytes."""
     import pybullet as p
 
     from labrobfail_vlm.config import ConfigError
     from sim_backends import generate
+    from sim_backends.pybullet.assets import BENCH_TOP
 
-    on = make_backend("pybullet", image_size=64, cameras=["front"], max_distractors=0, broken_glass=True)
-    off = make_backend("pybullet", image_size=64, cameras=["front"], max_distractors=0)
+    kw = {"image_size": 64, "cameras": ["front"], "max_distractors": 0}
+    on = make_backend("pybullet", broken_glass=True, **kw)
+    off = make_backend("pybullet", **kw)
+    whole = make_backend("pybullet", broken_glass=True, layered_render=False, **kw)
     try:
 
         def episode(src, names):
@@ -232,19 +236,23 @@ def test_broken_glass_renders_shards_once_a_dropped_bottle_has_landed():
         def alpha(src) -> float:
             return p.getVisualShapeData(src.scene.objects["obj"].body, physicsClientId=src.cid)[0][7][3]
 
-        broken, whole = episode(on, ["s1_carry"]), episode(off, ["s1_carry"])
-        assert broken.labels == whole.labels and broken.labels.severity == 3  # Fatal
-        assert broken.state_trace == whole.state_trace
-        shown = [a != b for a, b in zip(broken.images[0], whole.images[0])]
-        k = broken.labels.failure_keyframe
-        first = shown.index(True)  # the keyframe whose end finds the bottle landed: the drop's own, or later
+        broken, plain = episode(on, ["s1_carry"]), episode(off, ["s1_carry"])
+        assert broken.labels == plain.labels and broken.labels.severity == 3  # Fatal
+        assert broken.state_trace == plain.state_trace
+        shown = [a != b for a, b in zip(broken.images[0], plain.images[0])]
+        first, k = shown.index(True), broken.labels.failure_keyframe
         assert first >= k and all(shown[first:]) and len(shown) - first >= 2, (k, shown)
         assert alpha(on) == 0.0 and alpha(off) == 1.0
-        assert p.getNumBodies(physicsClientId=on.cid) == p.getNumBodies(physicsClientId=off.cid) + 1  # the shards
+        n = p.getNumBodies(physicsClientId=on.cid)
+        assert n == p.getNumBodies(physicsClientId=off.cid) + 1  # the shards, drawn on the bench (not in the air)
+        shards = p.getBodyUniqueId(n - 1, physicsClientId=on.cid)
+        assert abs(p.getBasePositionAndOrientation(shards, physicsClientId=on.cid)[0][2] - BENCH_TOP) < 0.003
+        assert len(p.getVisualShapeData(shards, physicsClientId=on.cid)) == 10
+        assert episode(whole, ["s1_carry"]).images == broken.images  # layered = whole scene, shards included
         fault, same = episode(on, ["s0_close"]), episode(off, ["s0_close"])
         assert fault.labels.severity != 3 and fault.images == same.images and alpha(on) == 1.0
     finally:
-        on.close()
-        off.close()
+        for src in (on, off, whole):
+            src.close()
     with pytest.raises(ConfigError, match=r"^backend_kwargs.broken_glass: expected true or false, got 'maybe'$"):
         generate.validate(generate.load_config(["backend=pybullet", "backend_kwargs.broken_glass=maybe"]))

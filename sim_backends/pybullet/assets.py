@@ -19,45 +19,43 @@ FLOOR_Z = -0.75
 LIQUID_DAMPING = 1.5  # viscous drag on liquid particles; low values let a tilt fling them off the bench
 
 
+def _part_arrays(parts: Sequence[tuple]) -> dict[str, list]:
+    """The shape arrays of a part list: (half_extents, local_pos, local_orn) boxes, or ('cyl', radius, length,
+    local_pos) cylinders; the keyword names `createCollisionShapeArray` and `createVisualShapeArray` share."""
+    assert len(parts) <= 16, "compound shapes above 16 parts crash PyBullet's visual arrays"
+    cyl = [q[0] == "cyl" for q in parts]
+    return {
+        "shapeTypes": [p.GEOM_CYLINDER if c else p.GEOM_BOX for c in cyl],
+        "halfExtents": [[0, 0, 0] if c else q[0] for c, q in zip(cyl, parts)],
+        "radii": [q[1] if c else 0 for c, q in zip(cyl, parts)],
+        "lengths": [q[2] if c else 0 for c, q in zip(cyl, parts)],
+        "framePositions": [q[3] if c else q[1] for c, q in zip(cyl, parts)],
+        "frameOrientations": [(0, 0, 0, 1) if c else q[2] for c, q in zip(cyl, parts)],
+    }
+
+
+def _visual_array(cid: int, parts: Sequence[tuple], rgba) -> int:
+    a = _part_arrays(parts)
+    pos, orn = a.pop("framePositions"), a.pop("frameOrientations")
+    return p.createVisualShapeArray(
+        **a,
+        visualFramePositions=pos,
+        visualFrameOrientations=orn,
+        rgbaColors=[tuple(rgba)] * len(parts),
+        physicsClientId=cid,
+    )
+
+
 def _compound(
     cid: int, parts: Sequence[tuple], mass: float, pos, orn=(0, 0, 0, 1), rgba=GLASS, friction: float = 0.8
 ) -> int:
     """parts: (half_extents, local_pos, local_orn) boxes, or ('cyl', radius, length, local_pos) cylinders."""
-    assert len(parts) <= 16, "compound shapes above 16 parts crash PyBullet's visual arrays"
-    shapes, poss, orns, kw_v = [], [], [], []
-    for part in parts:
-        if part[0] == "cyl":
-            _, r, ln, lp = part
-            shapes.append(p.GEOM_CYLINDER)
-            poss.append(lp)
-            orns.append((0, 0, 0, 1))
-            kw_v.append({"radius": r, "length": ln})
-        else:
-            he, lp, lo = part
-            shapes.append(p.GEOM_BOX)
-            poss.append(lp)
-            orns.append(lo)
-            kw_v.append({"halfExtents": he})
+    a = _part_arrays(parts)
+    poss, orns = a.pop("framePositions"), a.pop("frameOrientations")
     col = p.createCollisionShapeArray(
-        shapeTypes=shapes,
-        halfExtents=[k.get("halfExtents", [0, 0, 0]) for k in kw_v],
-        radii=[k.get("radius", 0) for k in kw_v],
-        lengths=[k.get("length", 0) for k in kw_v],
-        collisionFramePositions=poss,
-        collisionFrameOrientations=orns,
-        physicsClientId=cid,
+        **a, collisionFramePositions=poss, collisionFrameOrientations=orns, physicsClientId=cid
     )
-    vis_id = p.createVisualShapeArray(
-        shapeTypes=shapes,
-        halfExtents=[k.get("halfExtents", [0, 0, 0]) for k in kw_v],
-        radii=[k.get("radius", 0) for k in kw_v],
-        lengths=[k.get("length", 0) for k in kw_v],
-        visualFramePositions=poss,
-        visualFrameOrientations=orns,
-        rgbaColors=[rgba] * len(parts),
-        physicsClientId=cid,
-    )
-    body = p.createMultiBody(mass, col, vis_id, pos, orn, physicsClientId=cid)
+    body = p.createMultiBody(mass, col, _visual_array(cid, parts, rgba), pos, orn, physicsClientId=cid)
     p.changeDynamics(
         body, -1, lateralFriction=friction, spinningFriction=0.002, rollingFriction=0.0005, physicsClientId=cid
     )
@@ -211,38 +209,24 @@ def particles(
     return ids
 
 
-def shards(cid: int, centre, radius: float, rgba) -> int:
-    """Broken glassware, drawn only: the stub of a vessel's bottom with three short jagged walls, and six flat pieces
-    scattered around it, on the surface at `centre` (x, y, z of the lowest point). A visual shape without a
-    collision shape or mass, so the physics and every label stay as they were (`broken_glass`). Deterministic: no
-    random draw, so the episode's stream is untouched."""
-    parts: list[tuple] = [("cyl", 0.8 * radius, 0.006, (0.0, 0.0, 0.003))]
-    for k in range(3):  # wall stubs on the rim, 15-27 mm high
-        a = 2.1 * k + 0.4
-        h = 0.0075 + 0.003 * k
-        rim = (0.75 * radius * math.cos(a), 0.75 * radius * math.sin(a), h)
-        parts.append(((0.006, 0.0015, h), rim, _yaw(a + 1.57)))
-    for k in range(6):  # flat pieces 1.5-2.5 r out
+def shards(cid: int, centre, radius: float, rgba, stub: bool = True) -> int:
+    """Broken glassware, drawn only: six flat pieces scattered 1.5-2.4 radii around `centre` (x, y, z of the surface
+    it lies on), with a vessel's bottom stub and three short jagged walls in the middle (`stub`; a rod has none). A
+    visual shape without a collision shape or mass, so the physics and every label stay as they were
+    (`broken_glass`). Deterministic: no random draw, so the episode's stream is untouched."""
+    yaw = lambda a: p.getQuaternionFromEuler([0.0, 0.0, a])  # noqa: E731
+    parts: list[tuple] = []
+    if stub:
+        parts.append(("cyl", 0.8 * radius, 0.006, (0.0, 0.0, 0.003)))
+        for k in range(3):  # wall stubs on the rim, 15-27 mm high
+            a, h = 2.1 * k + 0.4, 0.0075 + 0.003 * k
+            parts.append(((0.006, 0.0015, h), (0.75 * radius * math.cos(a), 0.75 * radius * math.sin(a), h), yaw(a)))
+    for k in range(6):
         a = 1.05 * k + 0.2 * (k % 2)
         d = radius * (1.5 + 0.2 * (k % 3) + 0.1 * k)
         half = (0.009 + 0.002 * (k % 3), 0.005 + 0.002 * (k % 2), 0.0012)
-        parts.append((half, (d * math.cos(a), d * math.sin(a), 0.0012), _yaw(1.7 * a)))
-    shapes = [p.GEOM_CYLINDER if q[0] == "cyl" else p.GEOM_BOX for q in parts]
-    vis = p.createVisualShapeArray(
-        shapeTypes=shapes,
-        halfExtents=[[0, 0, 0] if q[0] == "cyl" else q[0] for q in parts],
-        radii=[q[1] if q[0] == "cyl" else 0 for q in parts],
-        lengths=[q[2] if q[0] == "cyl" else 0 for q in parts],
-        visualFramePositions=[q[3] if q[0] == "cyl" else q[1] for q in parts],
-        visualFrameOrientations=[(0, 0, 0, 1) if q[0] == "cyl" else q[2] for q in parts],
-        rgbaColors=[tuple(rgba)] * len(parts),
-        physicsClientId=cid,
-    )
-    return p.createMultiBody(0, -1, vis, centre, physicsClientId=cid)
-
-
-def _yaw(a: float) -> tuple[float, float, float, float]:
-    return (0.0, 0.0, math.sin(a / 2), math.cos(a / 2))
+        parts.append((half, (d * math.cos(a), d * math.sin(a), 0.0012), yaw(1.7 * a)))
+    return p.createMultiBody(0, -1, _visual_array(cid, parts, rgba), centre, physicsClientId=cid)
 
 
 def oven(

@@ -34,7 +34,7 @@ SOLVER_ITERATIONS = 50  # contact solver iterations per physics step (grasps nee
 # resting contacts): a third less time per step with the same nominal success (measured over all scenarios).
 SOLVER_RESIDUAL = 1e-3
 TRACE_EVERY = 6  # physics steps per trace sample: 240 Hz / 6 = 40 Hz
-LANDED = 0.2  # m/s: glassware falling slower than this over the last trace sample has landed (broken_glass)
+LANDED = 0.05  # m/s: glassware whose base moves slower than this has come to rest (broken_glass)
 TRACE_RATE_HZ = round(1.0 / (DT * TRACE_EVERY), 6)  # recorded in every trace as `rate_hz`; the labeler reads it there
 
 
@@ -114,10 +114,10 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         # pressed goal holds on the trace so far, so a grid shows a press that happened and a press beside the
         # button. Off by default: the page's data were rendered without it.
         self.button_lamp = _flag("button_lamp", button_lamp)
-        # Glassware that the labeler calls broken (an impact at >= BREAK_SPEED: the Fatal severity) renders as
-        # shards from the first keyframe rendered after it lands, instead of standing whole where it fell, so a
-        # grid shows the breakage its label claims. Drawn only (no collision, no mass): the trace and labels are the
-        # same. Off by default: the page's data were rendered without it.
+        # Glassware that hit something at >= BREAK_SPEED (the labeler's breakage: the Fatal severity) renders as
+        # shards from the first keyframe rendered after it comes to rest, instead of standing whole where it fell, so
+        # a grid shows the breakage its label claims. Drawn only (no collision, no mass): the trace and labels are
+        # the same. Off by default: the page's data were rendered without it.
         self.broken_glass = _flag("broken_glass", broken_glass)
         self._broken: set[str] = set()
         self.cfg = self.load_task_config(tasks_file)
@@ -271,23 +271,26 @@ class PyBulletSource(ScenarioConfig, FailureSource):
 
     def _break_glass(self) -> None:
         """Draw each task object whose trace so far holds a breaking impact (the labeler's `impact_speed`) as shards
-        where it lies, once it has landed (falling slower than LANDED m/s over the last sample), and hide the
-        whole vessel. It stays broken; a new episode rebuilds the scene."""
-        cols, rate = self._trace.cols, 1.0 / (TRACE_EVERY * DT)
-        t = cols["t"]
+        where it lies, once it has come to rest (its base slower than LANDED m/s, read from the simulator, which
+        changes nothing), and hide the whole object. It stays broken; a new episode rebuilds the scene. Drawn from
+        the physics, not the label: a break after the last rendered keyframe (the settling) is in no frame, and a
+        breaking drop onto a goal that still holds shows shards in an episode the labeler calls a success."""
+        cols, cid = self._trace.cols, self.cid
         for name, obj in self._trace.movables.items():
-            z = [q[2] for q in cols.get(f"{name}.pos", [])]
-            # the last interval's own length: a keyframe's end is sampled off the 40 Hz clock, often a step after
-            if name in self._broken or len(z) < 2 or (z[-2] - z[-1]) > LANDED * max(t[-1] - t[-2], DT):
+            if name in self._broken or f"{name}.pos" not in cols:
                 continue
-            if impact_speed({f"{name}.pos": cols[f"{name}.pos"], "rate_hz": rate}, name) < BREAK_SPEED:
+            v = p.getBaseVelocity(obj.body, physicsClientId=cid)[0]
+            if math.hypot(*v) > LANDED:
                 continue
-            cid = self.cid
+            if impact_speed({f"{name}.pos": cols[f"{name}.pos"], "rate_hz": TRACE_RATE_HZ}, name) < BREAK_SPEED:
+                continue
             lo, hi = p.getAABB(obj.body, physicsClientId=cid)
-            centre = (*p.getBasePositionAndOrientation(obj.body, physicsClientId=cid)[0][:2], lo[2])
+            # the surface it lies on: the AABB of a tipped compound is loose (up to 12 mm under a vessel on its side)
+            touch = [c[5][2] for c in p.getContactPoints(bodyA=obj.body, physicsClientId=cid)]
+            centre = ((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, min(touch) if touch else lo[2])
             rgba = p.getVisualShapeData(obj.body, physicsClientId=cid)[0][7]
             p.changeVisualShape(obj.body, -1, rgbaColor=(*rgba[:3], 0.0), physicsClientId=cid)
-            assets.shards(cid, centre, obj.dims.get("radius", 0.02), rgba)
+            assets.shards(cid, centre, obj.dims["radius"], rgba, stub=obj.kind == "vessel")
             self._broken.add(name)
 
     def camera_matrices(self) -> list[list[float]] | None:
