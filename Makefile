@@ -4,7 +4,7 @@ PY    := $(VENV)/bin/python
 BIN   := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: install browser vulkan demo demo-bench demo-supervise demo-diagnosis demo-online reproduce reproduce-rows reproduce-more reproduce-grid16 reproduce-glass ablate reproduce-online reproduce-tuned report-tuned online-bench recovery recovery-scripted tower sim20k lint test test-fast bench clean
+.PHONY: install browser vulkan demo demo-bench demo-supervise demo-diagnosis demo-online reproduce reproduce-rows reproduce-more reproduce-grid16 ablate reproduce-online reproduce-tuned report-tuned online-bench recovery recovery-scripted tower sim20k lint test test-fast bench clean
 APT_STAMP := $(VENV)/.apt-stamp
 VULKAN_STAMP := $(VENV)/.vulkan-stamp
 BACKPORTS := /etc/apt/sources.list.d/bookworm-backports.sources
@@ -124,8 +124,9 @@ REPRO_EPOCHS   ?= 6
 # The tiny decoder's layers: 4 chosen over 2 and 6 on the validation splits (docs/EXPERIMENTS.md, 3 Dec).
 REPRO_LAYERS   ?= 4
 RESULTS        ?= docs/RESULTS.md
-# Broken glass drawn (shards where the labeler reads a breaking impact): adopted on the validation splits by its rule
-# (`make reproduce-glass`, docs/EXPERIMENTS.md 5 Dec night); the page's models before it were rendered without.
+# Broken glass drawn (shards where the labeler reads a breaking impact): adopted by its rule on the validation splits
+# (then `make reproduce-glass`, the recipe's pairs rendered with it against the recipe without; docs/EXPERIMENTS.md
+# 5 Dec night); the page's models before it were rendered without.
 REPRO_GEN      := backend=pybullet seed=0 workers=2 image_size=128 render_frames=8 backend_kwargs.wrist=true \
   backend_kwargs.broken_glass=true progress=false
 HELD_OUT       := val_object val_scene val_both test_object test_scene test_both
@@ -209,13 +210,6 @@ VAL_SPLITS     := val val_object val_scene val_both
 GRID16         := grid.width=1024 grid.height=512 grid.max_frames=16 grid.columns=8
 reproduce-grid16: $(STAMP)
 	$(call val_lever,g16,$(R)/shards16,render_frames=16,$(GRID16))
-# Broken glass drawn (backend_kwargs.broken_glass: shards where the labeler reads a breaking impact, the Fatal
-# severity), the recipe's grid. The rule, written before its figures (5 Dec): adopted if seen-val Q2 rises and AUROC
-# rises on at least three of the four validation splits (failure-only Q4 read beside). Against the recipe rendered
-# without it (5 Dec night): seen val Q2 80.62 -> 81.62, AUROC up on three of four (no interval clear of zero):
-# adopted into REPRO_GEN, so this target now repeats the recipe's rendering (docs/EXPERIMENTS.md, 5 Dec night).
-reproduce-glass: $(STAMP)
-	$(call val_lever,glass,$(R)/shards_glass,backend_kwargs.broken_glass=true,$(DEMO_GRID))
 
 # After make reproduce, on its data: the more-episodes row (docs/EXPERIMENTS.md, 4 Dec): MORE_SEEN new seen episodes,
 # pairs numbered after the recipe's so none is shared with a split, built all-train and added with extra_train, for
