@@ -125,7 +125,7 @@ REPRO_EPOCHS   ?= 6
 REPRO_LAYERS   ?= 4
 RESULTS        ?= docs/RESULTS.md
 # Broken glass drawn (shards where the labeler reads a breaking impact): adopted by its rule on the validation splits
-# (then `make reproduce-glass`, the recipe's pairs rendered with it against the recipe without; docs/EXPERIMENTS.md
+# (val_lever's commands with backend_kwargs.broken_glass=true, against the recipe without it; docs/EXPERIMENTS.md
 # 5 Dec night); the page's models before it were rendered without.
 REPRO_GEN      := backend=pybullet seed=0 workers=2 image_size=128 render_frames=8 backend_kwargs.wrist=true \
   backend_kwargs.broken_glass=true progress=false

@@ -19,9 +19,10 @@ FLOOR_Z = -0.75
 LIQUID_DAMPING = 1.5  # viscous drag on liquid particles; low values let a tilt fling them off the bench
 
 
-def _part_arrays(parts: Sequence[tuple]) -> dict[str, list]:
-    """The shape arrays of a part list: (half_extents, local_pos, local_orn) boxes, or ('cyl', radius, length,
-    local_pos) cylinders; the keyword names `createCollisionShapeArray` and `createVisualShapeArray` share."""
+def _part_arrays(parts: Sequence[tuple], frame: str) -> dict[str, list]:
+    """A part list's shape arrays, as the keywords of `createCollisionShapeArray` (`frame="collision"`) or
+    `createVisualShapeArray` (`frame="visual"`): (half_extents, local_pos, local_orn) boxes, or ('cyl', radius,
+    length, local_pos) cylinders."""
     assert len(parts) <= 16, "compound shapes above 16 parts crash PyBullet's visual arrays"
     cyl = [q[0] == "cyl" for q in parts]
     return {
@@ -29,20 +30,14 @@ def _part_arrays(parts: Sequence[tuple]) -> dict[str, list]:
         "halfExtents": [[0, 0, 0] if c else q[0] for c, q in zip(cyl, parts)],
         "radii": [q[1] if c else 0 for c, q in zip(cyl, parts)],
         "lengths": [q[2] if c else 0 for c, q in zip(cyl, parts)],
-        "framePositions": [q[3] if c else q[1] for c, q in zip(cyl, parts)],
-        "frameOrientations": [(0, 0, 0, 1) if c else q[2] for c, q in zip(cyl, parts)],
+        f"{frame}FramePositions": [q[3] if c else q[1] for c, q in zip(cyl, parts)],
+        f"{frame}FrameOrientations": [(0, 0, 0, 1) if c else q[2] for c, q in zip(cyl, parts)],
     }
 
 
 def _visual_array(cid: int, parts: Sequence[tuple], rgba) -> int:
-    a = _part_arrays(parts)
-    pos, orn = a.pop("framePositions"), a.pop("frameOrientations")
     return p.createVisualShapeArray(
-        **a,
-        visualFramePositions=pos,
-        visualFrameOrientations=orn,
-        rgbaColors=[tuple(rgba)] * len(parts),
-        physicsClientId=cid,
+        **_part_arrays(parts, "visual"), rgbaColors=[tuple(rgba)] * len(parts), physicsClientId=cid
     )
 
 
@@ -50,11 +45,7 @@ def _compound(
     cid: int, parts: Sequence[tuple], mass: float, pos, orn=(0, 0, 0, 1), rgba=GLASS, friction: float = 0.8
 ) -> int:
     """parts: (half_extents, local_pos, local_orn) boxes, or ('cyl', radius, length, local_pos) cylinders."""
-    a = _part_arrays(parts)
-    poss, orns = a.pop("framePositions"), a.pop("frameOrientations")
-    col = p.createCollisionShapeArray(
-        **a, collisionFramePositions=poss, collisionFrameOrientations=orns, physicsClientId=cid
-    )
+    col = p.createCollisionShapeArray(**_part_arrays(parts, "collision"), physicsClientId=cid)
     body = p.createMultiBody(mass, col, _visual_array(cid, parts, rgba), pos, orn, physicsClientId=cid)
     p.changeDynamics(
         body, -1, lateralFriction=friction, spinningFriction=0.002, rollingFriction=0.0005, physicsClientId=cid
