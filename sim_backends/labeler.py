@@ -6,7 +6,8 @@ steps and goals, object geometry; schema in sim_backends/schema.py). The control
 program counter (which step the arm executes) is part of the recorded state,
 as in a real robot log. Decision, in order:
 
-1. success = every task goal holds on the settled final state;
+1. success = every task goal holds on the settled final state and no glassware broke (`broken`: an impact at
+   >= BREAK_SPEED is the Fatal severity's breakage, whether or not the piece ended where its goal wanted it);
 2. otherwise each detector scans the trace for its state signature and
    reports the sample where it first shows; the earliest wins (ties broken by
    the order below), giving the failure type and its onset: the first failure keyframe (the keyframe that
@@ -419,6 +420,11 @@ def irreversible_sample(trace: Trace, meta: Meta) -> Optional[tuple[int, str]]:
     return None
 
 
+def broken(trace: Trace, meta: Meta) -> list[str]:
+    """The task's movable objects whose trace holds a breaking impact (`impact_speed` >= BREAK_SPEED)."""
+    return [k for k, o in meta["objects"].items() if o["kind"] in MOVABLE and impact_speed(trace, k) >= BREAK_SPEED]
+
+
 def severity(trace: Trace, meta: Meta, failure_type: str) -> Severity:
     """The severity rule table (first match wins; docs/ARCHITECTURE.md quotes it):
 
@@ -427,9 +433,7 @@ def severity(trace: Trace, meta: Meta, failure_type: str) -> Severity:
     Management incident: an oven door left open, equipment not returned.
     Dangerous: anything else (the task cannot proceed without someone stepping in)."""
     movables = [k for k, o in meta["objects"].items() if o["kind"] in MOVABLE]
-    if any(trace[f"{m}.pos"][-1][2] < meta["bench_top"] + OFF_BENCH for m in movables) or any(
-        impact_speed(trace, m) >= BREAK_SPEED for m in movables
-    ):
+    if any(trace[f"{m}.pos"][-1][2] < meta["bench_top"] + OFF_BENCH for m in movables) or broken(trace, meta):
         return Severity.FATAL
     vessels = [m for m in movables if meta["objects"][m]["kind"] == "vessel"]
     if (
@@ -447,10 +451,13 @@ def severity(trace: Trace, meta: Meta, failure_type: str) -> Severity:
 def derive_labels(trace: Trace, meta: Union[TaskMeta, Meta]) -> Labels:
     meta = meta_dict(meta)
     bad = failed_goals(trace, meta)
-    if not bad:
+    # A breaking drop onto a goal that still holds (a beaker released 10 cm up that lands upright on its mark) is
+    # no success: the same impact is Fatal everywhere else, and a grid drawing broken glass shows shards.
+    shattered = broken(trace, meta)
+    if not bad and not shattered:
         return Labels(success=True, evidence="all goals hold")
     events = [(e, rank) for rank, d in enumerate(DETECTORS) if (e := d(trace, meta)) is not None]
-    failed = ", ".join(g["kind"] for g in bad)
+    failed = ", ".join([g["kind"] for g in bad] + [f"{m} broken" for m in shattered])
     if not events:  # never guessed: the episode is left out of the dataset and counted
         return Labels(success=False, evidence=f"unexplained: no detector fired; failed goals: {failed}")
     (j, ftype, why), _ = min(events, key=lambda er: (er[0][0], er[1]))

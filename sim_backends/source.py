@@ -171,6 +171,11 @@ class FailureSource(ABC):
     def render(self) -> list[np.ndarray]:
         """One HxWx3 uint8 image per camera view of the current state."""
 
+    def _settled_images(self) -> list[np.ndarray] | None:
+        """After the settling: images that replace the last keyframe's when the settling changed what they must show
+        (a backend drawing broken glass: a break in the settling). None (the default): the last images stand."""
+        return None
+
     @abstractmethod
     def trace_so_far(self) -> Trace:
         """The state trace recorded since `begin` (a copy: columns, `kf_end`, `rate_hz`)."""
@@ -234,6 +239,11 @@ class FailureSource(ABC):
         """Settle the scene, then derive the labels once from the recorded trace and the task metadata."""
         run = self._active()
         self._settle()
+        last = len(run.executed) - 1
+        if self.camera_names and last >= 0 and (run.render is None or last in run.render):
+            if (imgs := self._settled_images()) is not None:
+                for v, img in enumerate(imgs):
+                    run.images[v][last] = png_bytes(img)
         self._run = None
         trace = self.trace_so_far()
         meta = self.task_meta(run.executed)

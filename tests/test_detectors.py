@@ -304,6 +304,31 @@ def test_irreversible_events_are_found_where_they_happen_and_not_in_a_success():
     assert (z[j - 1] - z[j]) * RATE + 9.81 / (2 * RATE) >= BREAK_SPEED
 
 
+def test_a_breaking_drop_onto_a_goal_that_holds_is_no_success():
+    """Released 10 cm above its mark, the object lands there upright and let go: every goal holds, but the impact
+    is a breakage (the Fatal severity's), so no success; no detector explains a drop onto the mark, so the episode is
+    unexplained (left out). Released 2 cm up, it breaks nothing and succeeds. A recovery family's success agrees."""
+    from sim_backends.goals import failed_goals
+    from sim_backends.labeler import broken
+
+    meta = _pick_place_meta(list(NOMINAL))
+    high = {"s1_lower": (0, 0, 0.1), "s1_release": (0, 0, 0.1)}
+    tr = _simulate(meta, shift=high)
+    assert failed_goals(tr, meta.to_dict()) == [] and broken(tr, meta.to_dict()) == ["obj"]
+    lab = derive_labels(tr, meta)
+    assert not lab.success and lab.failure_type is None and lab.evidence.endswith("failed goals: obj broken")
+    low = {"s1_lower": (0, 0, 0.02), "s1_release": (0, 0, 0.02)}
+    assert derive_labels(_simulate(meta, shift=low), meta).success
+    # a recovery family judged by goals of its own applies the same rule
+    from types import SimpleNamespace
+
+    from sim_backends.supervision.loop import TaskFamily
+
+    family = TaskFamily("place", [], goals=meta.to_dict()["goals"])
+    assert not family.success(SimpleNamespace(state_trace=tr, task_meta=meta))
+    assert family.success(SimpleNamespace(state_trace=_simulate(meta, shift=low), task_meta=meta))
+
+
 def test_a_vessel_rocked_out_of_the_hand_is_no_fall_unless_it_stays_tipped():
     """An open hand retreating from a placed beaker can catch its rim and rock it past UPRIGHT_TILT; it rights
     itself, which is no fall. Tipped for TIPPED_FOR (k samples after the first) it is, from the first tipped sample;

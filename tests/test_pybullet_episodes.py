@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from sim_backends import make_backend
-from sim_backends.labeler import derive_labels
+from sim_backends.labeler import derive_labels, irreversible_sample
 from sim_backends.perturbations import control
 
 
@@ -216,7 +216,10 @@ def test_broken_glass_renders_shards_once_a_dropped_bottle_has_landed():
     on the bench in every keyframe rendered once it has come to rest, the whole bottle hidden; the trace and labels
     are those of the same episode with the option off, and so are the images before the failure's keyframe; the
     layered renderer draws the shards as the whole scene does. A grasp that never closes breaks nothing: every image
-    the same bytes."""
+    the same bytes. A bottle that breaks in the settling after the last keyframe is drawn broken in that keyframe,
+    the one its label names."""
+    import dataclasses
+
     import pybullet as p
 
     from labrobfail_vlm.config import ConfigError
@@ -251,6 +254,20 @@ def test_broken_glass_renders_shards_once_a_dropped_bottle_has_landed():
         assert episode(whole, ["s1_carry"]).images == broken.images  # layered = whole scene, shards included
         fault, same = episode(on, ["s0_close"]), episode(off, ["s0_close"])
         assert fault.labels.severity != 3 and fault.images == same.images and alpha(on) == 1.0
+
+        def let_go_last(src):  # the plan ends by opening the hand at carry height: the bottle falls in the settling
+            src.reset("pick_place_bottle", 1)
+            kfs = src.scripted_keyframes()
+            i, release = [k.name for k in kfs].index("s1_carry"), next(k for k in kfs if k.name == "s1_release")
+            return src.execute([*kfs[: i + 1], dataclasses.replace(release, pos=kfs[i].pos, settle_steps=10)])
+
+        late, before = let_go_last(on), let_go_last(off)
+        end = late.state_trace["kf_end"][-1]
+        assert late.labels == before.labels and late.labels.severity == 3  # Fatal at the last keyframe
+        assert late.labels.failure_keyframe == len(late.images[0]) - 1
+        assert irreversible_sample(late.state_trace, late.task_meta)[0] > end  # it breaks after that keyframe's end
+        assert late.images[0][:-1] == before.images[0][:-1] and late.images[0][-1] != before.images[0][-1]
+        assert alpha(on) == 0.0  # drawn again at the settled state, the bottle hidden and its shards shown
     finally:
         for src in (on, off, whole):
             src.close()

@@ -269,24 +269,37 @@ class PyBulletSource(ScenarioConfig, FailureSource):
                 body = self.scene.objects[g["object"]].body
                 p.changeVisualShape(body, -1, rgbaColor=assets.LAMP_RGBA, physicsClientId=self.cid)
 
-    def _break_glass(self) -> None:
+    def _settled_images(self) -> list[np.ndarray] | None:
+        # A piece that broke, or came to rest broken, in the settling after the last keyframe (a tube released over
+        # its rack that falls after the retreat) is in no keyframe; the labeler calls it Fatal at the last keyframe,
+        # so that keyframe is drawn again at the settled state, the one the labels are read on.
+        if not self.broken_glass or self.renderer is None or self._trace is None:
+            return None
+        drawn = len(self._broken)
+        self._break_glass(settled=True)
+        return self.renderer.render(self.scene.robot.id) if len(self._broken) > drawn else None
+
+    def _break_glass(self, settled: bool = False) -> None:
         """Draw each task object whose trace so far holds a breaking impact (the labeler's `impact_speed`) as shards
         where it lies, once it has come to rest (its base slower than LANDED m/s, read from the simulator, which
-        changes nothing), and hide the whole object. It stays broken; a new episode rebuilds the scene. Drawn from
-        the physics, not the label: a break after the last rendered keyframe (the settling) is in no frame, and a
-        breaking drop onto a goal that still holds shows shards in an episode the labeler calls a success."""
+        changes nothing; `settled`: the episode's end, where touching anything will do, as a piece still rolling on
+        the bench lies there), and hide the whole object. It stays broken; a new episode rebuilds the scene. Drawn
+        from the physics as the labeler reads it (`labeler.broken`): a grid shows shards where its label's Fatal
+        severity is a breakage, but for a piece still in the air at the end (falling off the bench)."""
         cols, cid = self._trace.cols, self.cid
         for name, obj in self._trace.movables.items():
             if name in self._broken or f"{name}.pos" not in cols:
                 continue
-            v = p.getBaseVelocity(obj.body, physicsClientId=cid)[0]
-            if math.hypot(*v) > LANDED:
+            moving = math.hypot(*p.getBaseVelocity(obj.body, physicsClientId=cid)[0]) > LANDED
+            if moving and not settled:
                 continue
             if impact_speed({f"{name}.pos": cols[f"{name}.pos"], "rate_hz": TRACE_RATE_HZ}, name) < BREAK_SPEED:
                 continue
-            lo, hi = p.getAABB(obj.body, physicsClientId=cid)
             # the surface it lies on: the AABB of a tipped compound is loose (up to 12 mm under a vessel on its side)
             touch = [c[5][2] for c in p.getContactPoints(bodyA=obj.body, physicsClientId=cid)]
+            if moving and not touch:
+                continue
+            lo, hi = p.getAABB(obj.body, physicsClientId=cid)
             centre = ((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, min(touch) if touch else lo[2])
             rgba = p.getVisualShapeData(obj.body, physicsClientId=cid)[0][7]
             p.changeVisualShape(obj.body, -1, rgbaColor=(*rgba[:3], 0.0), physicsClientId=cid)

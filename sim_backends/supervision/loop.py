@@ -30,6 +30,7 @@ import numpy as np
 from labrobfail_vlm.grid import GridConfig
 from sim_backends.executor import CorrectionExecutor
 from sim_backends.goals import failed_goals
+from sim_backends.labeler import broken
 from sim_backends.policies.base import Action, EpisodeContext, Policy, PolicyError
 from sim_backends.source import FailureSource, Observation
 from sim_backends.supervision.base import Supervisor, live_grid
@@ -74,7 +75,8 @@ class TaskFamily:
     def success(self, ep: Episode) -> bool:
         if self.goals is None:
             return bool(ep.labels.success)
-        return not failed_goals(ep.state_trace, {**ep.task_meta.to_dict(), "goals": self.goals})
+        meta = {**ep.task_meta.to_dict(), "goals": self.goals}
+        return not failed_goals(ep.state_trace, meta) and not broken(ep.state_trace, meta)  # the labeler's rule
 
 
 def _matches(pos: Any, quat: Any, grip: int, k: Keyframe) -> bool:
