@@ -242,8 +242,10 @@ class FailureSource(ABC):
         last = len(run.executed) - 1
         if self.camera_names and last >= 0 and (run.render is None or last in run.render):
             if (imgs := self._settled_images()) is not None:
+                mats = self.camera_matrices()  # a wrist view follows the hand, which may still have moved
                 for v, img in enumerate(imgs):
                     run.images[v][last] = png_bytes(img)
+                    run.cameras[v][last] = mats[v] if mats else None
         self._run = None
         trace = self.trace_so_far()
         meta = self.task_meta(run.executed)
