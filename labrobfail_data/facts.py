@@ -1,8 +1,8 @@
 """Dense per-frame state facts: auxiliary training records that the simulator gives for free.
 
 A Yes/No per grid says little about where to look; a from-scratch vision tower learns more from many small,
-visible facts about single frames. For each grid frame k (the state when that keyframe's images were taken,
-sample `kf_end`) this reads the state trace and the task metadata, through the backend-neutral trace schema
+visible facts about single frames. For each grid frame k (the state its images show, the sample
+`image_samples` gives: its keyframe's end) this reads the state trace and the task metadata, through the backend-neutral trace schema
 (sim_backends/schema.py) and the goal predicates (sim_backends/goals.py), never the injected perturbation:
 
   lifted   "In frame k, is the <object> lifted above the bench?"        object z over its start + 3 cm
@@ -23,7 +23,7 @@ import numpy as np
 
 from labrobfail_vlm import questions as Q
 from sim_backends.goals import GOALS
-from sim_backends.schema import MOVABLE
+from sim_backends.schema import MOVABLE, image_samples
 
 LIFT = 0.03  # m above the object's start height: lifted off the bench
 
@@ -56,8 +56,9 @@ def frame_facts(trace: dict[str, Any], meta: dict[str, Any], picks: list[int]) -
     word = lambda role: labels.get(role, str(role).replace("_", " "))  # noqa: E731
     out: list[tuple[int, str, bool]] = []
     movable = [o for o, info in meta["objects"].items() if info["kind"] in MOVABLE and f"{o}.pos" in trace]
+    shots = image_samples(trace)
     for frame, kf in enumerate(picks, 1):
-        j = trace["kf_end"][kf]
+        j = shots[kf]
         for o in movable:
             z0 = meta["objects"][o]["home"][2]
             out.append((frame, f"is the {word(o)} lifted above the bench?", trace[f"{o}.pos"][j][2] > z0 + LIFT))

@@ -1,6 +1,6 @@
 """Dense per-frame targets for the vision tower's pretraining, read from simulator state (never from the injection).
 
-For each grid frame k (the state at sample `kf_end[picks[k]]`, when that keyframe's images were taken) and each
+For each grid frame k (the state at the sample its images show, `image_samples(trace)[picks[k]]`) and each
 camera view, two kinds of target:
 
   cell targets   one value per frame, 1 / 0, or -1 where the task has no such thing (no oven, no liquid, ...):
@@ -22,7 +22,7 @@ import numpy as np
 
 from sim_backends.goals import FALLEN_TILT, GOALS, OFF_BENCH, UPRIGHT_TILT, tilt
 from sim_backends.labeler import OPEN_WIDTH, POSE_ERR, SPILL_PARTICLES, spilled
-from sim_backends.schema import MOVABLE
+from sim_backends.schema import MOVABLE, image_samples
 from sim_backends.types import rotation_angle
 
 CELL_TARGETS: tuple[str, ...] = (
@@ -137,8 +137,9 @@ def row_targets(
     points = np.full((len(picks), len(views), len(TOKEN_TARGETS), MAX_POINTS, 2), np.nan, np.float32)
     prev = None
     plan = {k["name"]: k["quat"] for k in meta["nominal"]}
+    shots = image_samples(trace)
     for f, kf in enumerate(picks):
-        j = trace["kf_end"][kf]
+        j = shots[kf]
         failed = failure_frame is not None and f + 1 >= failure_frame
         name = meta["executed"][kf] if kf < len(meta["executed"]) else None
         cells[f, :, :] = _cell_values(trace, meta, j, prev, failed, plan.get(name))

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from sim_backends.labeler import irreversible_sample
+from sim_backends.schema import image_samples
 
 # the features of one grid frame, in order (robot_baseline.py adds the running maxima and the frame's position)
 SIGNALS = (
@@ -38,8 +39,9 @@ def _seconds(trace: dict[str, Any], j: int) -> float:
 
 
 def frame_times(trace: dict[str, Any], picks: list[int]) -> list[float]:
-    """The sim time (s since the trace began) at which each grid frame's images were taken: its keyframe's end."""
-    ends = trace["kf_end"]
+    """The sim time (s since the trace began) at which each grid frame's images were taken (its keyframe's end, or
+    the settled state for a last keyframe drawn again: `image_samples`)."""
+    ends = image_samples(trace)
     return [_seconds(trace, ends[min(p, len(ends) - 1)]) for p in picks]
 
 
@@ -81,10 +83,10 @@ def dense_table(trace: dict[str, Any], keyframes_json: str) -> np.ndarray:
 def robot_signals(
     trace: dict[str, Any], keyframes_json: str, picks: list[int], dense: np.ndarray | None = None
 ) -> list[list[float]]:
-    """Per grid frame, the SIGNALS at its keyframe's end (rounded to 0.1 mm: the file stays small): the dense rows
-    (`dense`: dense_table's, computed here when not given) at the frames' samples."""
+    """Per grid frame, the SIGNALS at the sample its images show (`image_samples`; rounded to 0.1 mm: the file stays
+    small): the dense rows (`dense`: dense_table's, computed here when not given) at the frames' samples."""
     dense = (dense_table(trace, keyframes_json) if dense is None else dense)[:, 2:]
-    ends = trace["kf_end"]
+    ends = image_samples(trace)
     n_kf = len(json.loads(keyframes_json))
     rows = [dense[ends[min(p, len(ends) - 1, n_kf - 1)]] for p in picks]
     return [[round(float(x), 4) for x in row] for row in rows]

@@ -19,8 +19,11 @@ from typing import Any
 # A trace is a JSON object of columns (lists, one entry per sample) plus two non-sample entries:
 # `kf_end` (sample index at which each executed keyframe ended and its images were taken) and
 # `rate_hz` (samples per second). The labeler converts its time windows with `rate_hz`, so a
-# backend sampling at another rate keeps the same detection behaviour.
+# backend sampling at another rate keeps the same detection behaviour. Optional `images_at`: the sample each
+# keyframe's images show, written only where one differs from `kf_end` (a last keyframe drawn again at the settled
+# state, `FailureSource._settled_images`); `image_samples` reads either.
 Trace = dict[str, Any]
+NON_SAMPLE = ("kf_end", "rate_hz", "images_at")  # trace entries that are not one value per sample
 TRACE_COLUMNS = ("t", "kf", "ee_pos", "ee_quat", "width", "grip_cmd")  # every backend records these
 MOVABLE = ("vessel", "rod")  # object kinds a gripper picks up and carries (the rest: ovens, buttons, zones)
 OBJECT_COLUMNS = (".pos", ".quat", ".contacts")  # per MOVABLE object, prefixed with its name
@@ -37,12 +40,19 @@ def samples_in(trace: Trace, seconds: float) -> int:
     return int(seconds * trace_rate(trace))
 
 
+def image_samples(trace: Trace) -> list[int]:
+    """The sample each executed keyframe's images show (its end, `kf_end`, unless `images_at` says otherwise)."""
+    return list(trace.get("images_at") or trace["kf_end"])
+
+
 def trace_until(trace: Trace, keyframe: int) -> Trace:
-    """The trace as it stood when executed keyframe `keyframe` (0-based) ended: its samples up to that one."""
+    """The trace as it stood when executed keyframe `keyframe` (0-based) ended: its samples up to that one (every
+    image then showed its keyframe's end, so `images_at` is dropped)."""
     j = trace["kf_end"][keyframe]
     return {
         c: (v if c == "rate_hz" else [e for e in v if e <= j] if c == "kf_end" else v[: j + 1])
         for c, v in trace.items()
+        if c != "images_at"
     }
 
 
@@ -57,10 +67,15 @@ def check_trace(trace: Trace, meta: "TaskMeta | None" = None) -> list[str]:
     errs += [
         f"column {c!r} has {len(v)} samples, not {n}"
         for c, v in trace.items()
-        if c not in ("kf_end", "rate_hz") and len(v) != n
+        if c not in NON_SAMPLE and len(v) != n
     ]
     if any(not 0 <= j < n for j in trace["kf_end"]) or trace["kf_end"] != sorted(trace["kf_end"]):
         errs.append("kf_end must be increasing sample indices")
+    shots = trace.get("images_at")
+    if shots is not None and (
+        len(shots) != len(trace["kf_end"]) or any(not e <= j < n for e, j in zip(trace["kf_end"], shots))
+    ):
+        errs.append("images_at must give each keyframe a sample from its end on")
     if meta is not None:
         if len(trace["kf_end"]) != len(meta.executed):
             errs.append(f"kf_end has {len(trace['kf_end'])} entries for {len(meta.executed)} executed keyframes")

@@ -34,7 +34,7 @@ from labrobfail_vlm.grid import sample_keyframes
 from labrobfail_vlm.taxonomy import check_variant, horizon_of
 from sim_backends.labeler import derive_labels
 from sim_backends.perturbations.physics import PhysicsEvent
-from sim_backends.schema import TaskMeta, Trace
+from sim_backends.schema import NON_SAMPLE, TaskMeta, Trace
 from sim_backends.types import Episode, Keyframe
 
 
@@ -232,22 +232,25 @@ class FailureSource(ABC):
         run = self._active()
         imgs = run.last if run.last is not None else (self.render() if self.camera_names else [])
         trace = self.trace_so_far()
-        state = {k: v[-1] for k, v in trace.items() if k not in ("kf_end", "rate_hz")}
+        state = {k: v[-1] for k, v in trace.items() if k not in NON_SAMPLE}
         return Observation(dict(zip(self.camera_names, imgs)), state, len(run.executed))
 
     def finish(self) -> Episode:
         """Settle the scene, then derive the labels once from the recorded trace and the task metadata."""
         run = self._active()
         self._settle()
-        last = len(run.executed) - 1
+        last, redrawn = len(run.executed) - 1, False
         if self.camera_names and last >= 0 and (run.render is None or last in run.render):
             if (imgs := self._settled_images()) is not None:
                 mats = self.camera_matrices()  # a wrist view follows the hand, which may still have moved
                 for v, img in enumerate(imgs):
                     run.images[v][last] = png_bytes(img)
                     run.cameras[v][last] = mats[v] if mats else None
+                redrawn = True
         self._run = None
         trace = self.trace_so_far()
+        if redrawn:  # readers of a frame's state and time (tower targets, facts, the online bench) read it there
+            trace["images_at"] = [*trace["kf_end"][:-1], len(trace["t"]) - 1]
         meta = self.task_meta(run.executed)
         nominal = self.scripted_keyframes()
         scenario, seed, variant = self._key

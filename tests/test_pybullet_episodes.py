@@ -222,6 +222,9 @@ def test_broken_glass_renders_shards_once_a_dropped_bottle_has_landed():
 
     import pybullet as p
 
+    from labrobfail_data.robot_signals import frame_times, irreversible
+    from sim_backends.schema import check_trace, trace_until
+
     from labrobfail_vlm.config import ConfigError
     from sim_backends import generate
     from sim_backends.pybullet.assets import BENCH_TOP
@@ -268,6 +271,28 @@ def test_broken_glass_renders_shards_once_a_dropped_bottle_has_landed():
         assert irreversible_sample(late.state_trace, late.task_meta)[0] > end  # it breaks after that keyframe's end
         assert late.images[0][:-1] == before.images[0][:-1] and late.images[0][-1] != before.images[0][-1]
         assert alpha(on) == 0.0  # drawn again at the settled state, the bottle hidden and its shards shown
+        tr = late.state_trace  # the frame's state and time are read where its images show it
+        assert tr["images_at"] == [*tr["kf_end"][:-1], len(tr["t"]) - 1] and "images_at" not in before.state_trace
+        assert check_trace(tr, late.task_meta) == [] and "images_at" not in trace_until(tr, len(tr["kf_end"]) - 1)
+        picks = list(range(len(tr["kf_end"])))
+        assert frame_times(tr, picks)[:-1] == frame_times(before.state_trace, picks)[:-1]
+        broke_s = irreversible(tr, late.task_meta.to_dict())["irreversible_s"]
+        assert frame_times(before.state_trace, picks)[-1] < broke_s < frame_times(tr, picks)[-1]  # shown after it
+        # At the episode's end a piece still moving is drawn if it lies on something, not while in the air
+        body = on.scene.objects["obj"].body
+        on._broken.clear()  # as if not drawn yet: its trace holds the breaking impact
+        p.resetBaseVelocity(body, [0.3, 0.0, 0.0], physicsClientId=on.cid)
+        on._break_glass()
+        assert not on._broken  # rolling: not at rest during the episode
+        on._break_glass(settled=True)
+        assert on._broken == {"obj"}  # lying on the bench at the end
+        on._broken.clear()
+        pos, quat = p.getBasePositionAndOrientation(body, physicsClientId=on.cid)
+        p.resetBasePositionAndOrientation(body, (pos[0], pos[1], pos[2] + 0.3), quat, physicsClientId=on.cid)
+        p.resetBaseVelocity(body, [0.3, 0.0, 0.0], physicsClientId=on.cid)
+        p.performCollisionDetection(physicsClientId=on.cid)
+        on._break_glass(settled=True)
+        assert not on._broken  # in the air
     finally:
         for src in (on, off, whole):
             src.close()

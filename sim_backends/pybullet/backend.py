@@ -277,13 +277,13 @@ class PyBulletSource(ScenarioConfig, FailureSource):
             return None
         drawn = len(self._broken)
         self._break_glass(settled=True)
-        return self.renderer.render(self.scene.robot.id) if len(self._broken) > drawn else None
+        return self.render() if len(self._broken) > drawn else None  # lamps lit as in every keyframe
 
     def _break_glass(self, settled: bool = False) -> None:
         """Draw each task object whose trace so far holds a breaking impact (the labeler's `impact_speed`) as shards
         where it lies, once it has come to rest (its base slower than LANDED m/s, read from the simulator, which
-        changes nothing; `settled`: the episode's end, where touching anything will do, as a piece still rolling on
-        the bench lies there), and hide the whole object. It stays broken; a new episode rebuilds the scene. Drawn
+        changes nothing; `settled`: the episode's end, where lying on something will do, as a piece still rolling on
+        the bench lies there: a contact from below, not the hand's), and hide the whole object. It stays broken; a new episode rebuilds the scene. Drawn
         from the physics as the labeler reads it (`labeler.broken`): a grid shows shards where its label's Fatal
         severity is a breakage, but for a piece still in the air at the end (falling off the bench)."""
         cols, cid = self._trace.cols, self.cid
@@ -296,8 +296,10 @@ class PyBulletSource(ScenarioConfig, FailureSource):
             if impact_speed({f"{name}.pos": cols[f"{name}.pos"], "rate_hz": TRACE_RATE_HZ}, name) < BREAK_SPEED:
                 continue
             # the surface it lies on: the AABB of a tipped compound is loose (up to 12 mm under a vessel on its side)
-            touch = [c[5][2] for c in p.getContactPoints(bodyA=obj.body, physicsClientId=cid)]
-            if moving and not touch:
+            contacts = p.getContactPoints(bodyA=obj.body, physicsClientId=cid)
+            touch = [c[5][2] for c in contacts]
+            robot = self.scene.robot.id
+            if moving and not any(c[2] != robot and c[7][2] > 0.7 for c in contacts):  # normal on B: up from below
                 continue
             lo, hi = p.getAABB(obj.body, physicsClientId=cid)
             centre = ((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, min(touch) if touch else lo[2])

@@ -14,7 +14,8 @@ Every query is a JSONL record (latency, diagnosis, primitives, the executor's ou
 every trial ends with an `episode` record, whose `outcome` is success, failure or policy_error (the policy
 could not act: a bad reply from a policy server, a dead server; `error` holds its one-line reason: the trial
 ends there, the run goes on). Success is judged by the task family's goals on the settled
-final state (`TaskFamily`: "pick" is the grasp step of a pick-and-place scenario, judged by "held").
+final state, with nothing broken (`TaskFamily`: "pick" is the grasp step of a pick-and-place scenario, judged by
+"held").
 """
 
 from __future__ import annotations

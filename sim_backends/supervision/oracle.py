@@ -89,11 +89,11 @@ class OracleSupervisor(Supervisor):
         trace = src.trace_so_far()
         meta = src.task_meta(src.executed_so_far())
         if final:
-            # The policy has stopped, so the labeler's first rule decides: every goal holds = nothing to correct,
-            # whatever a detector saw on the way (a placement made with a twisted wrist that still stands on the
-            # target); correcting it could only undo it (glass broken on the way fails the episode, but no
-            # correction mends it). Otherwise the earliest signature names the failure; a
-            # failed goal with no signature is an incomplete trajectory.
+            # The policy has stopped, so the goals decide: every goal holds = nothing to correct, whatever a detector
+            # saw on the way (a placement made with a twisted wrist that still stands on the target); correcting it
+            # could only undo it (glass broken on the way fails the episode by the labeler's rule, but no correction
+            # mends it). Otherwise the earliest signature names the failure; a failed goal with no signature is an
+            # incomplete trajectory.
             unmet = unmet_goal(trace, meta, self.ctx.goals)
             ev = None if unmet is None else live_failure(trace, meta, self.after_sample) or unmet
         else:

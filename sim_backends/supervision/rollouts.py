@@ -5,7 +5,8 @@ Why: a supervisor trained only on the scripted policy's injected failures meets 
 policy's stops (the pour ACT stops with nothing poured, and the model names a grasp-and-place; docs/EXPERIMENTS.md,
 2 Dec). Its rollouts, built with `labrobfail-build-dataset` and added to a training run (`labrobfail-train
 extra_train=[...]`), show the model those failures on the very grid it is shown when the policy stops
-(`labrobfail_vlm.grid.whole_grid_picks`, one rule for both).
+(`labrobfail_vlm.grid.whole_grid_picks`, one rule for both; with `broken_glass`, a piece that breaks in the
+settling redraws the last frame, as in generated shards).
 
 Only the images of the keyframes a `frames`-frame grid shows are kept (a 400-tick rollout renders 400 per view), and
 run.json says so (`render_frames`), so the dataset builder refuses another grid size. Both runs of one seed (with and
