@@ -1,8 +1,8 @@
 """Dense per-frame state facts: auxiliary training records that the simulator gives for free.
 
 A Yes/No per grid says little about where to look; a from-scratch vision tower learns more from many small,
-visible facts about single frames. For each grid frame k (the state its images show, the sample
-`image_samples` gives: its keyframe's end) this reads the state trace and the task metadata, through the backend-neutral trace schema
+visible facts about single frames. For each grid frame k (the state its images show, the sample `image_samples`
+gives: its keyframe's end) this reads the state trace and the task metadata, through the backend-neutral trace schema
 (sim_backends/schema.py) and the goal predicates (sim_backends/goals.py), never the injected perturbation:
 
   lifted   "In frame k, is the <object> lifted above the bench?"        object z over its start + 3 cm

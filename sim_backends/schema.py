@@ -65,9 +65,7 @@ def check_trace(trace: Trace, meta: "TaskMeta | None" = None) -> list[str]:
         return errs
     n = len(trace["t"])
     errs += [
-        f"column {c!r} has {len(v)} samples, not {n}"
-        for c, v in trace.items()
-        if c not in NON_SAMPLE and len(v) != n
+        f"column {c!r} has {len(v)} samples, not {n}" for c, v in trace.items() if c not in NON_SAMPLE and len(v) != n
     ]
     if any(not 0 <= j < n for j in trace["kf_end"]) or trace["kf_end"] != sorted(trace["kf_end"]):
         errs.append("kf_end must be increasing sample indices")

@@ -282,10 +282,10 @@ class PyBulletSource(ScenarioConfig, FailureSource):
     def _break_glass(self, settled: bool = False) -> None:
         """Draw each task object whose trace so far holds a breaking impact (the labeler's `impact_speed`) as shards
         where it lies, once it has come to rest (its base slower than LANDED m/s, read from the simulator, which
-        changes nothing; `settled`: the episode's end, where lying on something will do, as a piece still rolling on
-        the bench lies there: a contact from below, not the hand's), and hide the whole object. It stays broken; a new episode rebuilds the scene. Drawn
-        from the physics as the labeler reads it (`labeler.broken`): a grid shows shards where its label's Fatal
-        severity is a breakage, but for a piece still in the air at the end (falling off the bench)."""
+        changes nothing; `settled`: the episode's end, where lying on something will do, as a piece still rolling
+        on the bench lies there: a contact from below, not the hand's), and hide the whole object. It stays broken;
+        a new episode rebuilds the scene. Drawn from the physics as the labeler reads it (`labeler.broken`): a grid
+        shows shards where its label's Fatal severity is a breakage, but for a piece in the air at the end."""
         cols, cid = self._trace.cols, self.cid
         for name, obj in self._trace.movables.items():
             if name in self._broken or f"{name}.pos" not in cols:
