@@ -4,7 +4,7 @@ PY    := $(VENV)/bin/python
 BIN   := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: install browser vulkan demo demo-bench demo-supervise demo-diagnosis demo-online reproduce reproduce-rows reproduce-more reproduce-grid16 reproduce-lamp ablate reproduce-online reproduce-tuned report-tuned online-bench recovery recovery-scripted tower sim20k lint test test-fast bench clean
+.PHONY: install browser vulkan demo demo-bench demo-supervise demo-diagnosis demo-online reproduce reproduce-rows reproduce-more reproduce-grid16 ablate reproduce-online reproduce-tuned report-tuned online-bench recovery recovery-scripted tower sim20k lint test test-fast bench clean
 APT_STAMP := $(VENV)/.apt-stamp
 VULKAN_STAMP := $(VENV)/.vulkan-stamp
 BACKPORTS := /etc/apt/sources.list.d/bookworm-backports.sources
@@ -124,11 +124,11 @@ REPRO_EPOCHS   ?= 6
 # The tiny decoder's layers: 4 chosen over 2 and 6 on the validation splits (docs/EXPERIMENTS.md, 3 Dec).
 REPRO_LAYERS   ?= 4
 RESULTS        ?= docs/RESULTS.md
-# Broken glass drawn (shards where the labeler reads a breaking impact): adopted by its rule on the validation splits
-# (val_lever's commands with backend_kwargs.broken_glass=true, against the recipe without it; docs/EXPERIMENTS.md
-# 5 Dec night); the page's models before it were rendered without.
+# Broken glass drawn (shards where the labeler reads a breaking impact) and the button lamp (a pressed button's
+# housing lit), each adopted by its rule on the validation splits (val_lever's commands with the option set, against
+# the recipe without it; docs/EXPERIMENTS.md 5 Dec night and late night); the page's models were rendered without.
 REPRO_GEN      := backend=pybullet seed=0 workers=2 image_size=128 render_frames=8 backend_kwargs.wrist=true \
-  backend_kwargs.broken_glass=true progress=false
+  backend_kwargs.broken_glass=true backend_kwargs.button_lamp=true progress=false
 HELD_OUT       := val_object val_scene val_both test_object test_scene test_both
 # the splits a row adopted at the cut chosen on its seen-val bench is benched on again at that cut (threshold=val)
 OPVAL_SPLITS   := test $(HELD_OUT)
@@ -210,15 +210,6 @@ VAL_SPLITS     := val val_object val_scene val_both
 GRID16         := grid.width=1024 grid.height=512 grid.max_frames=16 grid.columns=8
 reproduce-grid16: $(STAMP)
 	$(call val_lever,g16,$(R)/shards16,render_frames=16,$(GRID16))
-
-# The button lamp: a pressed button's housing lit from the first keyframe its goal holds (a 12-mm press no 128-px cell
-# shows; operation-position errors are the type the best row misses most, 17 of 36 on seen val). The rule, written
-# before its figures (5 Dec late night): adopted into REPRO_GEN if seen-val Q2 rises and AUROC rises on at least three
-# of the four validation splits, against the recipe with broken glass on the same pairs (in a clone that ran the
-# glass lever: rows/glass; after a fresh make reproduce: train); read beside, not compared: seen-val recall of
-# operation-position errors and Q2 over the press-button episodes.
-reproduce-lamp: $(STAMP)
-	$(call val_lever,lamp,$(R)/shards_lamp,backend_kwargs.button_lamp=true,$(DEMO_GRID))
 
 # After make reproduce, on its data: the more-episodes row (docs/EXPERIMENTS.md, 4 Dec): MORE_SEEN new seen episodes,
 # pairs numbered after the recipe's so none is shared with a split, built all-train and added with extra_train, for
