@@ -23,15 +23,9 @@ import numpy as np
 
 from labrobfail_vlm import questions as Q
 from sim_backends.goals import GOALS
-from sim_backends.schema import MOVABLE, image_samples
+from sim_backends.schema import MOVABLE, image_samples, trace_at
 
 LIFT = 0.03  # m above the object's start height: lifted off the bench
-
-
-def _upto(trace: dict[str, Any], j: int) -> dict[str, Any]:
-    """The trace as it stood at sample j (goal predicates read its last sample)."""
-    n = len(trace["t"])
-    return {c: (v[: j + 1] if isinstance(v, list) and len(v) == n else v) for c, v in trace.items()}
 
 
 def _goal_question(g: dict[str, Any], word) -> str | None:
@@ -62,7 +56,7 @@ def frame_facts(trace: dict[str, Any], meta: dict[str, Any], picks: list[int]) -
         for o in movable:
             z0 = meta["objects"][o]["home"][2]
             out.append((frame, f"is the {word(o)} lifted above the bench?", trace[f"{o}.pos"][j][2] > z0 + LIFT))
-        upto = _upto(trace, j)
+        upto = trace_at(trace, j)
         for g in meta["goals"]:
             q = _goal_question(g, word)
             if q is not None:

@@ -22,7 +22,7 @@ import numpy as np
 
 from sim_backends.goals import FALLEN_TILT, GOALS, OFF_BENCH, UPRIGHT_TILT, tilt
 from sim_backends.labeler import OPEN_WIDTH, POSE_ERR, SPILL_PARTICLES, spilled
-from sim_backends.schema import MOVABLE, image_samples
+from sim_backends.schema import MOVABLE, image_samples, trace_at
 from sim_backends.types import rotation_angle
 
 CELL_TARGETS: tuple[str, ...] = (
@@ -46,12 +46,6 @@ TOKEN_TARGETS: tuple[str, ...] = ("gripper", "object", "goal_place")
 LIFT, MOVED, DOOR_OPEN, CLOSED_WIDTH = 0.03, 0.02, 0.3, 0.06
 
 
-def _upto(trace: dict[str, Any], j: int) -> dict[str, Any]:
-    """The trace as it stood at sample j (goal predicates read its last sample)."""
-    n = len(trace["t"])
-    return {c: (v[: j + 1] if isinstance(v, list) and len(v) == n else v) for c, v in trace.items()}
-
-
 def movables(trace: dict[str, Any], meta: dict[str, Any]) -> list[str]:
     return [o for o, info in meta["objects"].items() if info["kind"] in MOVABLE and f"{o}.pos" in trace]
 
@@ -69,7 +63,7 @@ def _cell_values(
     pos = {o: np.asarray(trace[f"{o}.pos"][j], float) for o in objs}
     home = {o: float(meta["objects"][o]["home"][2]) for o in objs}
     bench = float(meta["bench_top"])
-    upto = _upto(trace, j)
+    upto = trace_at(trace, j)
     goals = meta["goals"]
 
     def goal_kinds(*kinds: str) -> float:

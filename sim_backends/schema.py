@@ -45,6 +45,13 @@ def image_samples(trace: Trace) -> list[int]:
     return list(trace.get("images_at") or trace["kf_end"])
 
 
+def trace_at(trace: Trace, j: int) -> Trace:
+    """The trace as it stood at sample j: every per-sample column cut after it, the rest as is (a goal predicate
+    reads the last sample)."""
+    n = len(trace["t"])
+    return {c: (v[: j + 1] if isinstance(v, list) and len(v) == n else v) for c, v in trace.items()}
+
+
 def trace_until(trace: Trace, keyframe: int) -> Trace:
     """The trace as it stood when executed keyframe `keyframe` (0-based) ended: its samples up to that one (every
     image then showed its keyframe's end, so `images_at` is dropped)."""
