@@ -127,8 +127,10 @@ RESULTS        ?= docs/RESULTS.md
 # Broken glass drawn (shards where the labeler reads a breaking impact) and the button lamp (a pressed button's
 # housing lit), each adopted by its rule on the validation splits (val_lever's commands with the option set, against
 # the recipe without it; docs/EXPERIMENTS.md 5 Dec night and late night); the page's models were rendered without.
+# The supervised trials draw them too (RECOVERY_RUN, the pour ACT's rollouts): the supervisor sees what it was taught on.
+REPRO_LOOK     := backend_kwargs.broken_glass=true backend_kwargs.button_lamp=true
 REPRO_GEN      := backend=pybullet seed=0 workers=2 image_size=128 render_frames=8 backend_kwargs.wrist=true \
-  backend_kwargs.broken_glass=true backend_kwargs.button_lamp=true progress=false
+  $(REPRO_LOOK) progress=false
 HELD_OUT       := val_object val_scene val_both test_object test_scene test_both
 # the splits a row adopted at the cut chosen on its seen-val bench is benched on again at that cut (threshold=val)
 OPVAL_SPLITS   := test $(HELD_OUT)
@@ -389,7 +391,7 @@ report-tuned: $(STAMP)
 # finished trial when run again; after a new model, remove its out folder (a run with other settings is refused).
 RECOVERY_TRIALS ?= 100
 RECOVERY_SEED ?= 20000
-RECOVERY_RUN = trials=$(RECOVERY_TRIALS) seed=$(RECOVERY_SEED) progress=false loop.query_every=-1
+RECOVERY_RUN = trials=$(RECOVERY_TRIALS) seed=$(RECOVERY_SEED) progress=false loop.query_every=-1 $(REPRO_LOOK)
 VLM ?= $(R)/train/final
 # Per task: the ACT's training arguments and the supervised run's settings. A pour must find the source and the
 # destination: a hand camera, DART-style drift of every free and carrying move, keypoint tokens, a cosine schedule,
@@ -417,7 +419,7 @@ VLM_ACT_pour := $(R)/actft/final
 $(R)/actft/final/labrobfail.json: $(VLM)/labrobfail.json | $(call act_dir,pour)/final/model.safetensors
 	rm -rf $(R)/rollouts/act_pour $(R)/rollouts/dataset $(R)/actft
 	$(BIN)/labrobfail-supervise policy=act act.checkpoint=$(call act_dir,pour)/final $(ACT_SUP_pour) supervisor=none \
-	  task=pour trials=$(ROLLOUTS) seed=$(ROLLOUT_SEED) shards=true loop.query_every=-1 progress=false \
+	  task=pour trials=$(ROLLOUTS) seed=$(ROLLOUT_SEED) shards=true loop.query_every=-1 progress=false $(REPRO_LOOK) \
 	  out_dir=$(R)/rollouts/act_pour
 	$(BIN)/labrobfail-build-dataset shards=$(R)/rollouts/act_pour/shards/none out_dir=$(R)/rollouts/dataset \
 	  $(DEMO_GRID) 'views=[front,side]' progress=false

@@ -264,6 +264,27 @@ def test_the_randomised_rows_tuned_stages_train_on_its_data_and_report_at_its_cu
         assert "TUNED_ROW is rand, rand2 or rand3" in line and f"'{row}'" in line
 
 
+def test_supervised_trials_draw_what_the_recipes_grids_draw(tmp_path):
+    """`make recovery` (a dry run): every drawing option the recipe's generation sets beside the scene (broken glass,
+    the button lamp) reaches each supervised run, scripted and ACT, and the pour ACT's rollouts that teach its
+    supervisor, so the supervisor never sees grids unlike those it was taught on."""
+    vlm, act = tmp_path / "vlm", tmp_path / "act" / "pour_hold" / "final"  # the pour cell's rollouts need both
+    for folder, name in ((vlm, "labrobfail.json"), (act, "model.safetensors")):
+        folder.mkdir(parents=True)
+        (folder / name).write_text("{}")
+    plan = _make_dry("recovery", f"R={tmp_path}", f"VLM={vlm}")
+    assert plan.returncode == 0, plan.stderr
+    text = plan.stdout.replace("\\\n", "").replace(";", "\n")
+    gen = _make_dry("reproduce", f"R={tmp_path}").stdout.replace("\\\n", "")
+    gen_line = next(line for line in gen.splitlines() if "labrobfail-generate" in line)
+    looks = {w for w in gen_line.split() if w.startswith("backend_kwargs.") and "wrist" not in w}
+    assert looks == {"backend_kwargs.broken_glass=true", "backend_kwargs.button_lamp=true"}
+    runs = [line for line in text.splitlines() if "labrobfail-supervise" in line]
+    assert len(runs) == 5 and sum("policy=act" in r for r in runs) == 4 and "supervisor=none" in "".join(runs)
+    for run in runs:
+        assert looks <= set(run.split()), run
+
+
 def test_the_sealed_catalogue_has_shapes_sizes_and_colours_of_its_own():
     from sim_backends.pybullet.scene import SEALED_OBJECTS, SEEN_OBJECTS, VAL_OBJECTS
 
