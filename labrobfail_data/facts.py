@@ -23,7 +23,7 @@ import numpy as np
 
 from labrobfail_vlm import questions as Q
 from sim_backends.goals import GOALS
-from sim_backends.schema import MOVABLE, image_samples, trace_at
+from sim_backends.schema import image_samples, movables, trace_at
 
 LIFT = 0.03  # m above the object's start height: lifted off the bench
 
@@ -49,7 +49,7 @@ def frame_facts(trace: dict[str, Any], meta: dict[str, Any], picks: list[int]) -
     labels = meta.get("labels", {})
     word = lambda role: labels.get(role, str(role).replace("_", " "))  # noqa: E731
     out: list[tuple[int, str, bool]] = []
-    movable = [o for o, info in meta["objects"].items() if info["kind"] in MOVABLE and f"{o}.pos" in trace]
+    movable = movables(trace, meta)
     shots = image_samples(trace)
     for frame, kf in enumerate(picks, 1):
         j = shots[kf]

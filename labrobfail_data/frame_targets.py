@@ -22,7 +22,7 @@ import numpy as np
 
 from sim_backends.goals import FALLEN_TILT, GOALS, OFF_BENCH, UPRIGHT_TILT, tilt
 from sim_backends.labeler import OPEN_WIDTH, POSE_ERR, SPILL_PARTICLES, spilled
-from sim_backends.schema import MOVABLE, image_samples, trace_at
+from sim_backends.schema import image_samples, movables, trace_at
 from sim_backends.types import rotation_angle
 
 CELL_TARGETS: tuple[str, ...] = (
@@ -44,10 +44,6 @@ CELL_TARGETS: tuple[str, ...] = (
 )
 TOKEN_TARGETS: tuple[str, ...] = ("gripper", "object", "goal_place")
 LIFT, MOVED, DOOR_OPEN, CLOSED_WIDTH = 0.03, 0.02, 0.3, 0.06
-
-
-def movables(trace: dict[str, Any], meta: dict[str, Any]) -> list[str]:
-    return [o for o, info in meta["objects"].items() if info["kind"] in MOVABLE and f"{o}.pos" in trace]
 
 
 def _cell_values(

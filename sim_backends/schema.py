@@ -45,22 +45,25 @@ def image_samples(trace: Trace) -> list[int]:
     return list(trace.get("images_at") or trace["kf_end"])
 
 
+def movables(trace: Trace, meta: dict[str, Any]) -> list[str]:
+    """The task's MOVABLE objects that the trace records."""
+    return [o for o, info in meta["objects"].items() if info["kind"] in MOVABLE and f"{o}.pos" in trace]
+
+
 def trace_at(trace: Trace, j: int) -> Trace:
-    """The trace as it stood at sample j: every per-sample column cut after it, the rest as is (a goal predicate
-    reads the last sample)."""
-    n = len(trace["t"])
-    return {c: (v[: j + 1] if isinstance(v, list) and len(v) == n else v) for c, v in trace.items()}
+    """The trace as it stood at sample j: every per-sample column cut after it, the NON_SAMPLE entries as they are
+    (a goal predicate reads the last sample)."""
+    return {c: (v if c in NON_SAMPLE else v[: j + 1]) for c, v in trace.items()}
 
 
 def trace_until(trace: Trace, keyframe: int) -> Trace:
-    """The trace as it stood when executed keyframe `keyframe` (0-based) ended: its samples up to that one (every
-    image then showed its keyframe's end, so `images_at` is dropped)."""
+    """The trace as it stood when executed keyframe `keyframe` (0-based) ended: its samples and keyframe ends up to
+    that one (every image then showed its keyframe's end, so `images_at` is dropped)."""
     j = trace["kf_end"][keyframe]
-    return {
-        c: (v if c == "rate_hz" else [e for e in v if e <= j] if c == "kf_end" else v[: j + 1])
-        for c, v in trace.items()
-        if c != "images_at"
-    }
+    cut = trace_at(trace, j)
+    cut["kf_end"] = [e for e in trace["kf_end"] if e <= j]
+    cut.pop("images_at", None)
+    return cut
 
 
 def check_trace(trace: Trace, meta: "TaskMeta | None" = None) -> list[str]:
