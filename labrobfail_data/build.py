@@ -29,6 +29,7 @@ from tqdm import tqdm
 from labrobfail_data.annotate import PREFIX_QUESTIONS, Annotated, annotate, check_record, grid_failure_frame, grid_picks
 from labrobfail_data.paraphrase import Paraphraser
 from labrobfail_data.splits import assign
+from labrobfail_vlm import drawing
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.bench import robot_baseline
 from labrobfail_vlm.config import ConfigError, make_dir, names, require_ints
@@ -90,11 +91,14 @@ def check_unique(files: list[Path]) -> None:
             seen[traj] = f
 
 
+def _shard_dirs(cfg: DictConfig) -> list[str]:
+    return [cfg.shards] if isinstance(cfg.shards, str) else [str(d) for d in cfg.shards]
+
+
 def check_rendered(cfg: DictConfig, max_frames: int) -> None:
     """Shards generated with `render_frames=M` hold the images of the keyframes an M-frame grid shows (the
     picks of a smaller grid are not always among them): refuse another grid size before anything is written."""
-    dirs = [cfg.shards] if isinstance(cfg.shards, str) else list(cfg.shards)
-    for d in dirs:
+    for d in _shard_dirs(cfg):
         run = Path(d) / "run.json"
         rendered = json.loads(run.read_text()).get("render_frames") if run.is_file() else None
         if rendered is not None and rendered != max_frames:
@@ -374,6 +378,7 @@ def build(cfg: DictConfig) -> dict[str, Any]:
         "grids": sum(len(a.prefixes) for a in kept),
     }
     stats["views"] = views  # the camera views in each grid, in order (null: every view of the shards)
+    stats["drawing"] = drawing.merge([drawing.of_shards(d) for d in _shard_dirs(cfg)])  # lamp, glass
     stats["aux"] = {
         "per_trajectory": int(cfg.aux.per_trajectory),
         "records": sum(len(a.aux) for a in kept if a.meta["split"] == "train"),

@@ -225,6 +225,7 @@ def check_injection_summary(rows: list[dict]) -> None:
 SLOW_FILES = {
     "test_act.py",
     "test_checkpoint_guard.py",
+    "test_drawing.py",
     "test_endpoint.py",
     "test_executable.py",
     "test_faults.py",

@@ -4,7 +4,8 @@ Layout of a checkpoint directory:
   adapter_config.json, adapter_model.safetensors   the decoder's LoRA (peft format)
   vision_merger.safetensors                        model.visual.* weights (hybrid mode)
   model.safetensors + config.json                  full weights instead (full mode)
-  labrobfail.json                                  {"base_model": DIR, "tuning": mode, "grid": {...}}
+  labrobfail.json                                  {"base_model": DIR, "tuning": mode, "grid": {...},
+                                                   "drawing": {...} (labrobfail_vlm/drawing.py)}
   processor files                                  tokenizer, chat template, image processor
 `load_finetuned` rebuilds the model from the base directory; scripts/merge.py writes a standalone model.
 `validate_checkpoint` checks any model directory (base, merged or fine-tuned) before a tensor is built: the one
@@ -50,10 +51,12 @@ def save_trainable(
     base_model: str,
     tuning: str,
     grid: dict[str, Any] | None = None,
+    drawing: dict[str, Any] | None = None,
 ) -> None:
     """Write adapter + vision/merger (or full) weights from a state dict gathered on every rank.
 
-    `grid` is the dataset's grid config; inference builds its grids (and bounds Q3) the same way.
+    `grid` is the dataset's grid config; inference builds its grids (and bounds Q3) the same way. `drawing`: what
+    the simulator drew into the training grids (labrobfail_vlm/drawing.py), checked by labrobfail-supervise.
     """
     out.mkdir(parents=True, exist_ok=True)
     # Full model: every weight. PeftModel: it keeps only the lora_ keys of the state dict.
@@ -65,7 +68,8 @@ def save_trainable(
             if group_of(k) in ("vision", "merger")
         }
         save_file(vis, str(out / VISION_FILE), metadata={"format": "pt"})
-    atomic_write_json(out / MANIFEST, {"base_model": str(base_model), "tuning": tuning, "grid": grid})
+    manifest = {"base_model": str(base_model), "tuning": tuning, "grid": grid}
+    atomic_write_json(out / MANIFEST, manifest | ({"drawing": drawing} if drawing is not None else {}))
 
 
 def is_finetuned(path: str | Path) -> bool:
@@ -81,6 +85,15 @@ def trained_grid(path: str | Path) -> GridConfig | None:
     if not isinstance(grid, dict):
         return None
     return GridConfig.from_dict(grid)
+
+
+def trained_drawing(path: str | Path) -> dict[str, Any] | None:
+    """What the simulator drew into a checkpoint's training grids (None: not recorded, or not a fine-tuned one)."""
+    try:
+        drawing = json.loads((Path(path) / MANIFEST).read_text()).get("drawing")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return drawing if isinstance(drawing, dict) else None
 
 
 def last_complete_checkpoint(output_dir: str | Path) -> tuple[Path | None, list[Path]]:

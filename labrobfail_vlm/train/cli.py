@@ -73,6 +73,14 @@ def _check_dataset(cfg: Any) -> dict[str, Any]:
     return grid
 
 
+def _drawing(cfg: Any) -> dict[str, Any] | None:
+    """What the simulator drew into every grid the run trains on (labrobfail_vlm/drawing.py), for the checkpoint."""
+    from labrobfail_vlm import drawing
+
+    dirs = [cfg.dataset_dir, *(cfg.extra_train or [])]
+    return drawing.merge([json.loads(dataset_stats(d).read_text()).get("drawing") for d in dirs])
+
+
 def _augment(cfg: Any, grid: dict[str, Any]) -> Any:
     """Twin-consistent grid augmentation for training (labrobfail_vlm/augment.py), or None when off."""
     a = cfg.augment
@@ -344,6 +352,7 @@ def _build_trainer(
         tuning=str(cfg.tuning),
         loss_mode=str(cfg.loss.mode),
         grid=grid,
+        drawing=_drawing(cfg),
         pair_batches=pairs,
         grounding=grounding,
         callbacks=callbacks,

@@ -42,6 +42,7 @@ class HybridTrainer(Trainer):
         tuning: str,
         loss_mode: str = "token",
         grid: dict[str, Any] | None = None,
+        drawing: dict[str, Any] | None = None,
         pair_batches: bool = False,
         grounding: dict[str, Any] | None = None,
         **kwargs: Any,
@@ -59,7 +60,7 @@ class HybridTrainer(Trainer):
         self.group_lrs, self.base_model, self.tuning = group_lrs, base_model, tuning
         self.pair_batches = pair_batches
         self.loss_mode = check_loss_mode(loss_mode)
-        self.grid = grid
+        self.grid, self.drawing = grid, drawing
         if loss_mode == "record":
             self.loss_is_scaled_for_ga = False  # a mean over this micro-batch's records: Trainer divides by GA
 
@@ -129,6 +130,7 @@ class HybridTrainer(Trainer):
             self.base_model,
             self.tuning,
             self.grid,
+            self.drawing,
         )
         if self.processing_class is not None:
             self.processing_class.save_pretrained(out)

@@ -66,6 +66,10 @@ class Supervisor(ABC):
     def check_cameras(self, rendered: list[str]) -> None:  # noqa: B027 - optional hook
         """Called before the first trial with the views the backend renders: refuse (ConfigError) a view it needs."""
 
+    def check_drawing(self, options: dict[str, Any]) -> None:  # noqa: B027 - optional hook
+        """Called before the first trial with the backend's own options: refuse (ConfigError) a run that draws its
+        grids otherwise than the supervisor learned from (labrobfail_vlm/drawing.py)."""
+
     @abstractmethod
     def query(self, src: FailureSource, final: bool = False) -> Verdict:
         """Has a (new) failure shown up in the episode so far? `final`: the policy has stopped."""

@@ -145,6 +145,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         supervisors = {n: build_supervisor(cfg, n) for n in sups}
         for s in supervisors.values():
             s.check_cameras(list(src.camera_names))
+            s.check_drawing(own)
         out = make_dir("out_dir", cfg.out_dir)
         sinks = rollout_sinks(cfg, tasks, sups, out)
         done = finished_trials(out, fingerprint(cfg, [*POLICIES.names(), *SUPERVISORS.names()]))

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.drawing import mismatches
 from sim_backends.policies.base import EpisodeContext
 from sim_backends.source import FailureSource
 from sim_backends.supervision.base import Supervisor, Verdict, live_grid, register_supervisor, view_indices
@@ -54,8 +55,10 @@ class VLMSupervisor(Supervisor):
         views: list[str] | None = None,
         alarm: str | None = None,
         alpha: float | None = None,
+        check_drawing: bool = True,
     ):
         from labrobfail_vlm.analyzer import FailureAnalyzer, check_threshold
+        from labrobfail_vlm.train.checkpoint import trained_drawing
 
         if alarm is not None or alpha is not None:
             threshold = calibrated_threshold(alarm, alpha)
@@ -69,10 +72,22 @@ class VLMSupervisor(Supervisor):
             analyzer = FailureAnalyzer.from_pretrained(model, device=device, q6_mode=q6_mode)
         analyzer.threshold = threshold  # intervene when P(failure) >= threshold
         self.fa = analyzer
+        if not isinstance(check_drawing, bool):
+            raise ConfigError(f"vlm.check_drawing: true or false, got {check_drawing!r}")
+        self.trained_drawing = trained_drawing(model) if model and check_drawing else None
         self.views = None if views is None else [str(v) for v in views]
 
     def check_cameras(self, rendered: list[str]) -> None:
         view_indices(rendered, self.views)
+
+    def check_drawing(self, options: dict[str, Any]) -> None:
+        off = mismatches(self.trained_drawing, options)
+        if off:
+            raise ConfigError(
+                "vlm.model: trained on grids drawn with "
+                + ", ".join(off)
+                + "; set backend_kwargs the same way (or vlm.check_drawing=false to supervise anyway)"
+            )
 
     def reset(self, ctx: EpisodeContext) -> None:
         super().reset(ctx)
