@@ -20,14 +20,16 @@ MIXED = "mixed"
 
 
 def of_shards(shard_dir: str | Path) -> dict[str, Any] | None:
-    """The drawing options of one generation run (its run.json), or None when the folder has no readable run.json."""
+    """The drawing options of one generation run or a supervised run's rollouts (their run.json's backend_kwargs),
+    or None when the folder's run.json is missing, unreadable or does not say."""
     try:
         run = json.loads((Path(shard_dir) / "run.json").read_text())
     except (OSError, ValueError):
         return None
     kw = run.get("backend_kwargs") if isinstance(run, dict) else None
-    kw = kw if isinstance(kw, dict) else {}
-    return {k: bool(kw.get(k, False)) for k in DRAWING_KEYS}
+    if kw is not None and not isinstance(kw, dict):
+        return None
+    return None if kw is None else {k: bool(kw.get(k, False)) for k in DRAWING_KEYS}
 
 
 def merge(drawings: list[dict[str, Any] | None]) -> dict[str, Any] | None:
@@ -48,7 +50,5 @@ def mismatches(trained: dict[str, Any] | None, options: dict[str, Any]) -> list[
     if not isinstance(trained, dict):
         return []
     return [
-        f"{k}={str(v).lower()}"
-        for k, v in trained.items()
-        if k in DRAWING_KEYS and isinstance(v, bool) and bool(options.get(k, False)) != v
+        k for k, v in trained.items() if k in DRAWING_KEYS and isinstance(v, bool) and bool(options.get(k, False)) != v
     ]

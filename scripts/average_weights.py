@@ -114,6 +114,9 @@ def main(argv: list[str]) -> int:
     files = _checked(src)
     from safetensors.torch import save_file
 
+    from labrobfail_vlm.drawing import merge as merge_drawing
+    from labrobfail_vlm.train.checkpoint import trained_drawing
+
     tmp = out.with_name(out.name + ".tmp")
     if tmp.exists():
         raise ConfigError(f"out: {tmp} exists (a run still going, or one to look at); nothing was written")
@@ -125,6 +128,11 @@ def main(argv: list[str]) -> int:
         for p in src[0].iterdir():
             if p.is_file() and p.suffix != ".safetensors":
                 shutil.copy2(p, tmp / p.name)
+        if (tmp / "labrobfail.json").is_file():  # what every source's grids drew, as one record
+            man = json.loads((tmp / "labrobfail.json").read_text())
+            drawn = merge_drawing([trained_drawing(s) for s in src])
+            man = {k: v for k, v in man.items() if k != "drawing"} | ({"drawing": drawn} if drawn else {})
+            (tmp / "labrobfail.json").write_text(json.dumps(man, indent=1))
         info = {"src": [str(s) for s in src], "weights": weights}
         (tmp / "averaged_from.json").write_text(json.dumps(info, indent=1))
     except BaseException:

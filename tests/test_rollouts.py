@@ -138,7 +138,7 @@ def test_a_resumed_rollout_run_adds_its_trials_shards_beside_the_first_runs(tmp_
     run.json over both trials (the first not run again: its shard's bytes are the first run's)."""
     out = tmp_path / "run"
     argv = [cli("supervise"), "shards=true", "baseline=false", "supervisor=none", "task=pick_place_beaker_small"]
-    argv += [f"out_dir={out}", "progress=false", "image_size=48", "cameras=[front]"]
+    argv += [f"out_dir={out}", "progress=false", "image_size=48", "cameras=[front]", "backend_kwargs.broken_glass=true"]
     assert run_here([*argv, "trials=1"]).returncode == 0
     d = out / "shards" / "none"
     first = {p.name: p.read_bytes() for p in d.glob("shard-*.parquet")}
@@ -149,6 +149,9 @@ def test_a_resumed_rollout_run_adds_its_trials_shards_beside_the_first_runs(tmp_
     assert set(shards) <= {"shard-pick_place_beaker_small-00000.parquet", "shard-pick_place_beaker_small-00001.parquet"}
     assert len(shards) + unexplained == 2 and all(shards[n] == b for n, b in first.items())
     assert json.loads((d / "manifest.json").read_text())["episodes"] == len(shards)
+    from labrobfail_vlm.drawing import of_shards
+
+    assert of_shards(d) == {"broken_glass": True, "button_lamp": False}  # what its grids drew, for a dataset of them
 
 
 @pytest.mark.parametrize(

@@ -74,11 +74,15 @@ def _check_dataset(cfg: Any) -> dict[str, Any]:
 
 
 def _drawing(cfg: Any) -> dict[str, Any] | None:
-    """What the simulator drew into every grid the run trains on (labrobfail_vlm/drawing.py), for the checkpoint."""
+    """What the simulator drew into every grid the model learned from (labrobfail_vlm/drawing.py), for the
+    checkpoint: the run's datasets and, for a stage that starts from a fine-tuned model, that model's."""
     from labrobfail_vlm import drawing
+    from labrobfail_vlm.train.checkpoint import is_finetuned, trained_drawing
 
     dirs = [cfg.dataset_dir, *(cfg.extra_train or [])]
-    return drawing.merge([json.loads(dataset_stats(d).read_text()).get("drawing") for d in dirs])
+    seen = [json.loads(dataset_stats(d).read_text()).get("drawing") for d in dirs]
+    parent = str(cfg.model.path)
+    return drawing.merge(seen + ([trained_drawing(parent)] if is_finetuned(parent) else []))
 
 
 def _augment(cfg: Any, grid: dict[str, Any]) -> Any:

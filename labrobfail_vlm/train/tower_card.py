@@ -8,6 +8,7 @@ import shlex
 from pathlib import Path
 from typing import Any
 
+from labrobfail_vlm import drawing
 from labrobfail_vlm.train import tower as T
 
 TRAINING_KEYS = (
@@ -31,11 +32,11 @@ def shard_origin(shard_dir: str) -> str:
         run = json.loads((Path(shard_dir) / "run.json").read_text())
     except (OSError, ValueError):
         return shard_dir
-    kw = run.get("backend_kwargs") or {}
+    kw, drawn = run.get("backend_kwargs") or {}, drawing.of_shards(shard_dir) or {}
     extra = (
         (f", scene family {kw['scene_family']}" if kw.get("scene_family") else "")
-        + (", button lamp on" if kw.get("button_lamp") else "")
-        + (", broken glass drawn" if kw.get("broken_glass") else "")
+        + (", button lamp on" if drawn.get("button_lamp") else "")
+        + (", broken glass drawn" if drawn.get("broken_glass") else "")
     )
     return f"{shard_dir} ({run.get('variant')}, seed {run.get('seed')}{extra})"
 

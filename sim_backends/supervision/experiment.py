@@ -103,7 +103,9 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def rollout_sinks(cfg: DictConfig, tasks: list[TaskFamily], sups: list[str], out: Path) -> dict[str, Any]:
+def rollout_sinks(
+    cfg: DictConfig, tasks: list[TaskFamily], sups: list[str], out: Path, own: dict[str, Any]
+) -> dict[str, Any]:
     """`shards=true`: per supervisor run, the trials' episodes as shards in out_dir/shards/<supervisor>/ (one per
     trial, named after it: a resumed run's trials add theirs beside the earlier ones)."""
     if cfg.shards not in (True, False):
@@ -116,7 +118,7 @@ def rollout_sinks(cfg: DictConfig, tasks: list[TaskFamily], sups: list[str], out
         raise ConfigError(f"shard_frames: a positive number of grid frames, got {cfg.shard_frames!r}")
     for fam in tasks:
         check_family(fam)
-    return {n: RolloutShards(out / "shards" / n, int(cfg.shard_frames), str(cfg.policy), n) for n in sups}
+    return {n: RolloutShards(out / "shards" / n, int(cfg.shard_frames), str(cfg.policy), n, own) for n in sups}
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
@@ -147,7 +149,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             s.check_cameras(list(src.camera_names))
             s.check_drawing(own)
         out = make_dir("out_dir", cfg.out_dir)
-        sinks = rollout_sinks(cfg, tasks, sups, out)
+        sinks = rollout_sinks(cfg, tasks, sups, out, own)
         done = finished_trials(out, fingerprint(cfg, [*POLICIES.names(), *SUPERVISORS.names()]))
     except BaseException:
         src.close()

@@ -52,6 +52,8 @@ def fingerprint(cfg: DictConfig, sections: list[str]) -> dict[str, Any]:
     used = {str(cfg.policy), str(cfg.supervisor)}
     for k in [*PER_RUN, *(s for s in sections if s not in used)]:
         conf.pop(k, None)
+    if isinstance(conf.get("vlm"), dict):
+        conf["vlm"].pop("check_drawing", None)  # a check before the first trial: no trial runs otherwise
     return {"config": _digested(conf)}
 
 

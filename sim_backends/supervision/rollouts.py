@@ -39,8 +39,9 @@ class RolloutShards:
     """One supervisor's trials' episodes under `out_dir`, each written as its trial ends (shard-<task>-<trial>.parquet),
     so that a trial the run log records as finished has its shard (sim_backends/supervision/resume.py)."""
 
-    def __init__(self, out_dir: Path, frames: int, policy: str, supervisor: str):
+    def __init__(self, out_dir: Path, frames: int, policy: str, supervisor: str, backend_kwargs: dict | None = None):
         self.dir, self.frames, self.policy, self.supervisor = Path(out_dir), frames, policy, supervisor
+        self.backend_kwargs = dict(backend_kwargs or {})  # in run.json: what the grids drew (labrobfail_vlm/drawing.py)
         self.dir.mkdir(parents=True, exist_ok=True)
 
     def add(self, ep: Episode, family: str, trial: int) -> None:
@@ -58,6 +59,7 @@ class RolloutShards:
         """run.json and manifest.json over every shard in the folder; `trials`: the run log's episode records of
         this supervisor's trials (this run's and a resumed run's earlier ones), whose unexplained failures it counts."""
         run = {"source": "rollouts", "policy": self.policy, "render_frames": self.frames}
+        run["backend_kwargs"] = self.backend_kwargs
         labels = [Labels(t["labels"]["success"], t["labels"]["failure_type"]) for t in trials]
         run["unexplained"] = sum(not x.explained for x in labels)
         atomic_write_json(self.dir / "run.json", run)

@@ -66,14 +66,14 @@ class VLMSupervisor(Supervisor):
             threshold = check_threshold(threshold)
         except ValueError as e:
             raise ConfigError(f"vlm.{e}") from None
+        if not isinstance(check_drawing, bool):
+            raise ConfigError(f"vlm.check_drawing: true or false, got {check_drawing!r}")
         if analyzer is None:
             if not model or not Path(model).is_dir():
                 raise ConfigError(f"vlm.model: no such model directory {model!r}")
             analyzer = FailureAnalyzer.from_pretrained(model, device=device, q6_mode=q6_mode)
         analyzer.threshold = threshold  # intervene when P(failure) >= threshold
         self.fa = analyzer
-        if not isinstance(check_drawing, bool):
-            raise ConfigError(f"vlm.check_drawing: true or false, got {check_drawing!r}")
         self.trained_drawing = trained_drawing(model) if model and check_drawing else None
         self.views = None if views is None else [str(v) for v in views]
 
@@ -83,10 +83,11 @@ class VLMSupervisor(Supervisor):
     def check_drawing(self, options: dict[str, Any]) -> None:
         off = mismatches(self.trained_drawing, options)
         if off:
+            was = ", ".join(f"{k}={str(self.trained_drawing[k]).lower()}" for k in off)  # type: ignore[index]
+            now = ", ".join(f"{k}={str(not self.trained_drawing[k]).lower()}" for k in off)  # type: ignore[index]
             raise ConfigError(
-                "vlm.model: trained on grids drawn with "
-                + ", ".join(off)
-                + "; set backend_kwargs the same way (or vlm.check_drawing=false to supervise anyway)"
+                f"vlm.model: its training grids were drawn with {was}, this run's with {now} (give backend_kwargs "
+                "the same, or vlm.check_drawing=false to supervise anyway)"
             )
 
     def reset(self, ctx: EpisodeContext) -> None:
