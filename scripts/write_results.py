@@ -14,16 +14,16 @@ the recovery table), the paper-comparable tables
 (Q3-Q6 over failed trajectories) with 95 % intervals, failure detection as a score, the all-trajectory tables,
 Q2 recall per failure type, the learning curve.
 
-With `sections=[tuned]`, `[rows]`, `[ablation]` or `[supervision]` it replaces only those sections of the existing
-page, from a run that holds just those folders (a fresh machine's regeneration with the same seed, say): it checks
-first that the run's data are the page's (the same trajectories and splits line); a run that ran sealed splits brings
-its datasets' ledgers of sealed runs, whose runs join the page's list (which keeps every run it had; `sealed` alone
-splices nothing else, for a regeneration that re-ran only the recipe's sealed benches). What such a run lacks is
-carried from the page and said so: the rows table keeps the page's line for every row the run has no seen test
-bench for (with its line at the val-chosen cut), the ablation's frozen row is the page's shipped front + side row (the
-recipe's model is the frozen one), the online model's table and the online bench stay when the run has only recovery
-tables, the online model's table and every recovery row stay when it has only the online bench, and the page's
-recovery rows stay for cells the run did not re-measure (the table's lead line names them as carried).
+With `sections=[lit]`, `[tuned]`, `[rows]`, `[ablation]` or `[supervision]` it replaces only those sections of the
+existing page, from a run that holds just those folders (a fresh machine's regeneration with the same seed, say): it
+checks first that the run's data are the page's (the same trajectories and splits line); a run that ran sealed
+splits brings its datasets' ledgers of sealed runs, whose runs join the page's list (which keeps every run it had;
+`sealed` alone splices nothing else, for a regeneration that re-ran only the recipe's sealed benches). What such a
+run lacks is carried from the page and said so: the rows table keeps the page's line for every row the run has no
+seen test bench for (with its line at the val-chosen cut), the ablation's frozen row is the page's shipped front +
+side row (the recipe's model is the frozen one), the online model's table and the online bench stay when the run has
+only recovery tables, the online model's table and every recovery row stay when it has only the online bench, and
+the page's recovery rows stay for cells the run did not re-measure (the table's lead line names them as carried).
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ from labrobfail_vlm.bench.page import (
     ablation_table,
     all_trajectory_tables,
     ci_cell,
+    lit_table,
     named_rows,
     paper_tables,
     per_type,
@@ -57,10 +58,20 @@ from sim_backends.supervision.report import LEAD, block, page_recovery, recovery
 DEFAULTS = """
 run: outputs/reproduce     # the make reproduce run folder
 out: docs/RESULTS.md       # the page to write
-sections: null             # null: the whole page; any of [tuned, rows, ablation, supervision, sealed]: only those
+sections: null             # null: the whole page; any of [lit, tuned, rows, ablation, supervision, sealed]: only those
 """
 # the sections a run beside the main one can add: heading, opening sentence, the run folders that feed it
 SECTIONS = {
+    "lit": (
+        "## The tuned chain drawn lit (the best front + side model so far)",
+        "The principal issue's targets for `rows/lit` of the rows table below, then its scores on every split it ran "
+        "(95 % intervals by pair): the randomised row and its four tuned stages remade on the same episodes drawn as "
+        "`make reproduce` draws them since 5 Dec (broken glass, the button lamp), adopted over the unlit chain by a "
+        "rule written before its figures and run once on seen test and the sealed splits (docs/EXPERIMENTS.md, 6 "
+        "Dec). Its seen test differs from the page's in one trajectory's label (relabelled a Fatal failure by the "
+        "5 Dec labeler).",
+        ("rows/lit",),
+    ),
     "tuned": (
         "## The tuned continuation (make reproduce-tuned)",
         "`make reproduce-tuned`: the model above taught more one-epoch stages with the vision tower and merger tuned "
@@ -167,6 +178,7 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
         "ablation": lambda: ablation_table(run, [cells[1], cells[3], cells[4], cells[5]] if cells else None),
         "supervision": lambda: supervision(run, old_sv),
         "tuned": lambda: tuned_table(run),
+        "lit": lambda: lit_table(run),
     }
     tables = [n for n in names if n != "sealed"]  # sealed: the ledgers alone, spliced below
     for name in tables:
@@ -437,7 +449,8 @@ def main(argv: list[str]) -> int:
     lines += ["## Targets of the principal issue (main row: front + side)", "", *targets(evals), ""]
     absent = []
     bodies = (("tuned", tuned_table(run) if _ran(run, "tuned") else []), ("rows", rows_table(run)))
-    for name, body in (*bodies, ("ablation", ablation_table(run)), ("supervision", supervision(run))):
+    lit = [("lit", lit_table(run))] if _ran(run, "rows/lit") else []  # made by hand (page.BY_HAND): never "not run"
+    for name, body in (*lit, *bodies, ("ablation", ablation_table(run)), ("supervision", supervision(run))):
         if body:
             lines += _section(name, body)
         else:

@@ -528,3 +528,30 @@ def test_a_spliced_section_leaves_the_not_run_line_and_brings_a_sealed_list_the_
     sealed = text.split("## Sealed test runs\n")[1].split("## Paper-comparable tables")[0]
     assert "(1 in all;" in sealed and "| test_scene | `outputs/r/tuned/stage2/final` | 84.0 |" in sealed
     assert "| test | 84.0 | – |" in text  # no AUROC in this result: a dash, not "None"
+
+
+def test_the_lit_chain_gets_its_own_targets_section_and_a_row_it_never_lists_as_not_run(tmp_path: Path) -> None:
+    """`sections=[lit,rows]` from a run holding rows/lit (the tuned chain remade on lit episodes): its targets table
+    goes before the rows table and its row into it; a run without rows/lit never names it as missing."""
+    from labrobfail_vlm.bench.page import ROWS
+    from scripts.write_results import main
+
+    page, run = _page_and_run(tmp_path)
+    test = {
+        **_scores(92.0, 80.0, 85.0, 75.0, 0.76),
+        "baselines": {b: _scores(64.0, 60.0, 74.0, 30.0, 0.43) for b in ("majority class", "blind (grey grid)")},
+        "q2_by_type": {"success": {"q2": 99, "n": 400}},
+        "ci95": {"q2": [90.9, 93.0]},
+    }
+    (run / "rows" / "lit" / "final" / "eval_test").mkdir(parents=True)
+    (run / "rows" / "lit" / "final" / "eval_test" / "results.json").write_text(json.dumps(test))
+    assert main([f"run={run}", f"out={page}", "sections=[lit,rows]"]) == 0
+    text = page.read_text()
+    lit, rows = text.index("## The tuned chain drawn lit"), text.index("## Tower and sensor rows")
+    assert lit < rows and "| seen Q2 | 92.0 | >= 90.8 | yes | 92.0 [90.9, 93.0]" in text[lit:rows]
+    assert f"| {ROWS['rows/lit']} | 92.0 [90.9, 93.0] |" in text[rows:]
+    page.write_text(PAGE)
+    shutil.rmtree(run / "rows" / "lit")
+    _eval(run / "rows" / "more" / "final" / "eval_test", 81.0)
+    assert main([f"run={run}", f"out={page}", "sections=[rows]"]) == 0
+    assert "rows/lit" not in page.read_text()
