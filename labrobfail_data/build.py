@@ -58,15 +58,20 @@ READ_COLUMNS = [
 ]
 
 
-def _shard_files(cfg: DictConfig) -> list[Path]:
+def _shard_dirs(cfg: DictConfig) -> list[str]:
+    """The `shards` setting as a list of folders (one given alone, or a list); a ConfigError for anything else."""
     dirs = cfg.shards
     if dirs is None:
         raise ConfigError("shards: give a shard directory (shards=DIR) or a list of them")
-    dirs = [dirs] if isinstance(dirs, str) else list(dirs) if OmegaConf.is_list(dirs) else None
+    dirs = [dirs] if isinstance(dirs, str) else [str(d) for d in dirs] if OmegaConf.is_list(dirs) else None
     if dirs is None:
         raise ConfigError(f"shards: give a shard directory (shards=DIR) or a list of them, got {cfg.shards!r}")
+    return dirs
+
+
+def _shard_files(cfg: DictConfig) -> list[Path]:
     files: list[Path] = []
-    for d in dirs:
+    for d in _shard_dirs(cfg):
         if not Path(d).is_dir():
             raise ConfigError(f"shards: no such directory {d!r}")
         found = sorted(Path(d).glob("shard-*.parquet"))
@@ -89,10 +94,6 @@ def check_unique(files: list[Path]) -> None:
                     "generation runs numbered alike: give the second its own first_pair)"
                 )
             seen[traj] = f
-
-
-def _shard_dirs(cfg: DictConfig) -> list[str]:
-    return [cfg.shards] if isinstance(cfg.shards, str) else [str(d) for d in cfg.shards]
 
 
 def check_rendered(cfg: DictConfig, max_frames: int) -> None:

@@ -118,3 +118,17 @@ def test_supervise_refuses_a_world_drawn_otherwise(lit_model, tmp_path):
     VLMSupervisor(model=str(lit_model), analyzer=fa, check_drawing=False).check_drawing({})
     with pytest.raises(ConfigError, match="vlm.check_drawing: true or false"):
         VLMSupervisor(model=str(lit_model), analyzer=fa, check_drawing="no")
+
+
+def test_the_drawing_check_is_not_part_of_a_runs_settings_digest():
+    """vlm.check_drawing only refuses a run before its first trial: flipping it resumes the same trials (a dotted
+    PER_RUN key), while a setting inside the same section that changes trials still tells runs apart."""
+    from labrobfail_vlm.config import load_config
+    from sim_backends.supervision.resume import fingerprint
+
+    base = ["supervisor=vlm", "vlm.model=outputs/none"]
+    a, b, c = (
+        load_config("supervise.yaml", [*base, *x]) for x in ([], ["vlm.check_drawing=false"], ["vlm.threshold=0.3"])
+    )
+    assert fingerprint(a, ["vlm", "oracle"]) == fingerprint(b, ["vlm", "oracle"])
+    assert fingerprint(a, ["vlm", "oracle"]) != fingerprint(c, ["vlm", "oracle"])

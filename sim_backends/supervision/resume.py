@@ -30,7 +30,9 @@ from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json, sha256_file
 
 RUN_CONFIG = "run_config.json"
 LOG = "log.jsonl"
-PER_RUN = ("trials", "progress", "out_dir")  # settings that do not change what any one trial does
+# settings that do not change what any one trial does (a dotted key names one inside a section: vlm.check_drawing
+# only refuses a run before its first trial)
+PER_RUN = ("trials", "progress", "out_dir", "vlm.check_drawing")
 
 
 def content_digest(path: Path) -> str:
@@ -51,9 +53,12 @@ def fingerprint(cfg: DictConfig, sections: list[str]) -> dict[str, Any]:
     conf: dict[str, Any] = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
     used = {str(cfg.policy), str(cfg.supervisor)}
     for k in [*PER_RUN, *(s for s in sections if s not in used)]:
-        conf.pop(k, None)
-    if isinstance(conf.get("vlm"), dict):
-        conf["vlm"].pop("check_drawing", None)  # a check before the first trial: no trial runs otherwise
+        *outer, last = k.split(".")
+        node: Any = conf
+        for part in outer:
+            node = node.get(part) if isinstance(node, dict) else None
+        if isinstance(node, dict):
+            node.pop(last, None)
     return {"config": _digested(conf)}
 
 
