@@ -10,7 +10,8 @@ Accepts a fine-tuned checkpoint (labrobfail.json: base + adapter + vision weight
 model, or any local Qwen3-VL directory. Answers are decoded under constraints
 (labrobfail_vlm.decoding), so a Diagnosis is always well-formed; after a "no failure"
 answer, Q3-Q5 are not asked a failure-only option, and vice versa. Q2 also comes as a score:
-`Diagnosis.p_failure`, the constrained decoder's probability of "Yes" (a failure) against "No".
+`Diagnosis.p_failure`, the constrained decoder's probability of "Yes" (a failure) against "No", or with
+`failure_score="questions"` the mean of that and each closed failure-only question's probability of not "None".
 """
 
 from __future__ import annotations
@@ -49,8 +50,9 @@ class Diagnosis:
     raw: dict[str, str] = field(default_factory=dict)  # the six decoded answers
     # the same level as the paper's main text names it (taxonomy.SEVERITY_MAIN_TEXT: paired by position)
     severity_main_text: str | None = None
-    # P(failure): softmax over the log-likelihoods of the two admissible Q2 replies; `failure` is p_failure > 0.5
-    # (the argmax). None where the answers came without scores (an endpoint, a replayed reply).
+    # P(failure): softmax over the log-likelihoods of the two admissible Q2 replies (failure_score "q2"), or the
+    # mean of that and 1 - P("None") on Q3, Q4 and Q5 ("questions"); `failure` is p_failure >= the operating
+    # point. None where the answers came without scores (an endpoint, a replayed reply).
     p_failure: float | None = None
 
     def to_json(self) -> str:
@@ -73,6 +75,26 @@ def p_yes(options: Sequence[str], scores: Sequence[float]) -> float:
     z = np.asarray(scores, dtype=np.float64)
     e = np.exp(z - z.max())
     return float(e[list(options).index("Yes")] / e.sum())
+
+
+# How P(failure) is read. "q2": Q2's own Yes/No. "questions": the mean of that and, for each closed failure-only
+# question, 1 - P("None") among "None" and its numbered options. The model is taught "None" as the Q3-Q5 reply to
+# every successful grid, so these are three more detectors on the same grid under other wording.
+FAILURE_SCORES = ("q2", "questions")
+SCORE_DIMS = ("Q3", "Q4", "Q5")
+
+
+def check_failure_score(value: Any) -> str:
+    if value not in FAILURE_SCORES:
+        raise ValueError(f"failure_score: expected one of {', '.join(FAILURE_SCORES)}, got {value!r}")
+    return str(value)
+
+
+def p_not_none(scores: Sequence[float]) -> float:
+    """1 - softmax probability of the first scored reply ("None") among "None" and the numbered options."""
+    z = np.asarray(scores, dtype=np.float64)
+    e = np.exp(z - z.max())
+    return float(1.0 - e[0] / e.sum())
 
 
 def nearest_strategy(text: str) -> str | None:
@@ -184,8 +206,8 @@ def load_checkpoint(
     path: str | Path, dtype: Any, device: str | None, max_model_gb: float | None, kwargs: dict[str, Any]
 ) -> tuple[Any, Any]:
     """FailureAnalyzer.from_pretrained's model and processor, on `device` (default: cuda when there is one); the
-    analyzer's `kwargs` gain what the checkpoint's manifest names (its grid, and `fit`; its option biases) unless
-    the caller set them."""
+    analyzer's `kwargs` gain what the checkpoint's manifest names (its grid, and `fit`; its option biases and
+    failure score) unless the caller set them."""
     import torch
 
     from labrobfail_vlm.config import ConfigError
@@ -204,9 +226,13 @@ def load_checkpoint(
     if "grid" not in kwargs and (grid := trained_grid(path)) is not None:
         kwargs["grid"] = grid
         kwargs.setdefault("fit", True)
-    if is_finetuned(path) and "option_bias" not in kwargs:
+    if is_finetuned(path):
+        man = read_manifest(Path(path), "model.path")
         try:
-            kwargs["option_bias"] = check_option_bias(read_manifest(Path(path), "model.path").get("option_bias"))
+            if "option_bias" not in kwargs:
+                kwargs["option_bias"] = check_option_bias(man.get("option_bias"))
+            if "failure_score" not in kwargs:
+                kwargs["failure_score"] = check_failure_score(man.get("failure_score", "q2"))
         except ValueError as e:
             raise ConfigError(f"model.path: {Path(path) / 'labrobfail.json'}: {e}") from None
     return model.to(dev), load_processor(path)
@@ -228,7 +254,8 @@ class FailureAnalyzer:
     `threshold`: Q2 answers "Yes" (a failure, and Q3-Q6 are asked as one) when P(failure) >= threshold; 0.5 is
     the decoder's argmax, a lower value makes a supervisor intervene earlier. `option_bias`: per closed failure-only
     question, a bias per option added to its log-likelihood before the argmax (labrobfail_vlm.option_bias; a
-    checkpoint's labrobfail.json may carry one, fitted on validation by labrobfail-calibrate)."""
+    checkpoint's labrobfail.json may carry one, fitted on validation by labrobfail-calibrate). `failure_score`:
+    how P(failure) is read (FAILURE_SCORES; a checkpoint's labrobfail.json may name one)."""
 
     fit_grid = False  # subclasses that answer over HTTP (EndpointAnalyzer) take the grid as given
 
@@ -241,6 +268,7 @@ class FailureAnalyzer:
         threshold: float = 0.5,
         fit: bool = False,
         option_bias: Mapping[str, Sequence[float]] | None = None,
+        failure_score: str = "q2",
     ):
         from labrobfail_vlm.decoding import Decoder
 
@@ -249,6 +277,7 @@ class FailureAnalyzer:
         self.q6_mode = q6_mode
         self.threshold = check_threshold(threshold)
         self.option_bias = check_option_bias(option_bias)
+        self.failure_score = check_failure_score(failure_score)
         self.model, self.processor = model.eval(), processor
         self.processor.tokenizer.padding_side = "left"
         self.decoder = Decoder(self.model, processor)
@@ -299,13 +328,24 @@ class FailureAnalyzer:
                 out[i] = g
         return out
 
-    def _decide_q2(self, pre: Any, rows: int) -> tuple[list[str], list[float]]:
-        """Q2 for each row of `pre`: the reply at the operating point and P("Yes"). At 0.5 the reply is the argmax
-        that `choose_rows` picks (a tie goes to "Yes", its first option, in both)."""
-        ask = plan_reply("Q2", None, 0)
-        assert isinstance(ask, Ask)
-        probs = [p_yes(ask.options, sc) for sc in self.decoder.option_scores_rows(pre, [ask.options] * rows)]
+    def _score_dim(self, dim: str, pre: Any, frames: Sequence[int]) -> list[float]:
+        """Per row of `pre` (the model after `dim`'s prompt): P("Yes") for Q2, 1 - P("None") for Q3-Q5."""
+        if dim == "Q2":
+            ask = plan_reply("Q2", None, 0)
+            assert isinstance(ask, Ask)
+            return [p_yes(ask.options, sc) for sc in self.decoder.option_scores_rows(pre, [ask.options] * len(frames))]
+        opts = [(Q.NO_FAILURE, *(str(i) for i in range(1, option_count(dim, f) + 1))) for f in frames]
+        return [p_not_none(sc) for sc in self.decoder.option_scores_rows(pre, opts)]
+
+    def _decide_q2(self, per_dim: Sequence[Sequence[float]]) -> tuple[list[str], list[float]]:
+        """Q2 for each row from its scores per scored dimension (`_score_dims`): the reply at the operating point
+        and P(failure), their mean. At 0.5 with Q2 alone the reply is the argmax that `choose_rows` picks (a tie
+        goes to "Yes", its first option, in both)."""
+        probs = [float(np.mean(col)) for col in zip(*per_dim)]
         return ["Yes" if p >= self.threshold else "No" for p in probs], probs
+
+    def _score_dims(self) -> tuple[str, ...]:
+        return ("Q2", *SCORE_DIMS) if self.failure_score == "questions" else ("Q2",)
 
     def _answer(
         self,
@@ -346,14 +386,15 @@ class FailureAnalyzer:
         frames = frames or self.num_frames
         need = asked_dims(dims, self.q6_mode)
         prompts = {dim: self._prompt(dim, task) for dim in Q.DIMENSIONS if dim in need}
+        # the verdict first, from each scored dimension's own prompt (a Q3-Q5 prefix is prefilled again below)
+        scoring = {dim: self._prompt(dim, task) for dim in self._score_dims()}
+        scored = [self._score_dim(dim, pre, [frames]) for dim, pre in self._prefixes(image, scoring)]
+        (reply,), (p,) = self._decide_q2(scored)
         out = Answers()
-        failed: bool | None = None
-        for dim, pre in self._prefixes(image, prompts):
-            if dim == "Q2":
-                (out[dim],), (out.p_failure,) = self._decide_q2(pre, 1)
-                failed = out[dim] == "Yes"
-            else:
-                out[dim] = self._answer(dim, pre, failed, frames, objects, out)
+        out.p_failure, failed = p, reply == "Yes"
+        rest = self._prefixes(image, {d: t for d, t in prompts.items() if d != "Q2"})
+        for dim in prompts:  # the replies in the questions' order
+            out[dim] = reply if dim == "Q2" else self._answer(dim, next(rest)[1], failed, frames, objects, out)
         return out
 
     def answers_batch(
@@ -400,7 +441,11 @@ class FailureAnalyzer:
         a question's own tokens are fed only for the rows whose reply needs the model (Q3-Q6 follow Q2)."""
         d = self.decoder
         needs = [asked_dims(ds, self.q6_mode) for ds in dims]
-        prompts = [{dim: self._prompt(dim, t) for dim in Q.DIMENSIONS if dim in need} for t, need in zip(tasks, needs)]
+        scoring = self._score_dims()  # their prompts are fed to every row before the verdict
+        prompts = [
+            {dim: self._prompt(dim, t) for dim in Q.DIMENSIONS if dim in need or dim in scoring}
+            for t, need in zip(tasks, needs)
+        ]
         import torch
 
         # one image per call: the image processor on a list of large grids is ~3x slower per image (measured)
@@ -419,34 +464,56 @@ class FailureAnalyzer:
         failed: list[bool | None] = [None] * len(images)
         for dim in Q.DIMENSIONS:
             plans = [
-                plan_reply(dim, failed[i], frames[i], objects[i], self.q6_mode, out[i]) if dim in ids[i] else None
+                plan_reply(dim, failed[i], frames[i], objects[i], self.q6_mode, out[i]) if dim in needs[i] else None
                 for i in range(len(images))
             ]
             replies: list[str | None] = [p if isinstance(p, str) else None for p in plans]
             rows = [i for i, p in enumerate(plans) if isinstance(p, Ask)]
             if rows:  # only these rows are fed the question: the others' replies follow from Q2
                 base = pre if len(rows) == len(images) else d.select(pre, rows)
-                q, _ = d.extend_rows(base, [ids[i][dim][lcp[i] :] for i in rows])
+                sel = [out[i] for i in rows]
                 if dim == "Q2":
-                    got, probs = self._decide_q2(q, len(rows))
-                    for i, p in zip(rows, probs):
-                        out[i].p_failure = p
-                elif dim in BIASED_DIMS:  # always a choice among options (plan_reply)
-                    asks = [plans[i] for i in rows]
-                    got, scores = choose_biased(self.decoder, q, asks, self.option_bias.get(dim, ()))  # type: ignore[arg-type]
-                    for i, sc in zip(rows, scores):
-                        out[i].option_scores[dim] = sc
+                    got = self._verdict_rows(
+                        base, [ids[i] for i in rows], [lcp[i] for i in rows], [frames[i] for i in rows], sel
+                    )
                 else:
-                    got = self._decode(q, [plans[i] for i in rows])
+                    q, _ = d.extend_rows(base, [ids[i][dim][lcp[i] :] for i in rows])
+                    got = self._reply_rows(dim, q, [plans[i] for i in rows], sel)  # type: ignore[misc]
+                    d.rewind(q, base)
                 for i, r in zip(rows, got):
                     replies[i] = r
-                d.rewind(q, base)
             for i, r in enumerate(replies):
                 if r is not None:
                     out[i][dim] = r
             if dim == "Q2":
                 failed = [o.get("Q2") == "Yes" for o in out]
         return out
+
+    def _verdict_rows(
+        self, base: Any, ids: list[dict[str, list[int]]], lcp: list[int], frames: list[int], out: list[Answers]
+    ) -> list[str]:
+        """Q2's reply for each row of `base` (the rows' shared preamble): each scored dimension's question fed in
+        turn and rewound, their scores averaged (`_decide_q2`); P(failure) goes into the row's Answers."""
+        d = self.decoder
+        per_dim = []
+        for dim in self._score_dims():
+            q, _ = d.extend_rows(base, [x[dim][k:] for x, k in zip(ids, lcp)])
+            per_dim.append(self._score_dim(dim, q, frames))
+            d.rewind(q, base)
+        got, probs = self._decide_q2(per_dim)
+        for a, p in zip(out, probs):
+            a.p_failure = p
+        return got
+
+    def _reply_rows(self, dim: str, q: Any, plans: list[Ask], out: list[Answers]) -> list[str | None]:
+        """`dim`'s reply for each row of `q` (the model after the question); a closed failure-only question's
+        option scores go into the row's Answers."""
+        if dim not in BIASED_DIMS:
+            return self._decode(q, plans)
+        got, scores = choose_biased(self.decoder, q, plans, self.option_bias.get(dim, ()))
+        for a, sc in zip(out, scores):
+            a.option_scores[dim] = sc
+        return list(got)
 
     def _prepare(
         self, grid_or_frames: Image.Image | np.ndarray | Sequence[Sequence[Any]], task: str, frames: int | None

@@ -6,6 +6,7 @@ Run as:
     labrobfail-evaluate model=M dataset_dir=D split=val            # the bench it fits on (its predictions' scores)
     labrobfail-calibrate model=M dataset_dir=D out=M_cal           # M's files, labrobfail.json with option_bias
     labrobfail-calibrate model=M dataset_dir=D out=M_cal objective=accuracy dims=[Q4]
+    labrobfail-calibrate model=M dataset_dir=D out=M_q dims=[] failure_score=questions   # no bias: Q2 from Q2-Q5
 
 Fits on the seen-val failures whose Q2 the model called a failure (the only rows it answers Q3-Q5 on; their
 options' log-likelihoods are in M/eval_val/predictions.jsonl), one dimension at a time, and writes `out`: a new
@@ -14,6 +15,8 @@ failure-only score on seen val (the split fitted on: optimistic) and on each `ch
 splits M was already benched on) before and after, from M's own predictions with the biases applied (no model run;
 the scores are stored to 5 decimals, so a near-tie may fall the other way in a real run). Whether to take the
 calibrated model is then decided on validation like any choice (labrobfail-compare on benches of `out`).
+`failure_score=` also writes how the copy reads P(failure) (labrobfail_vlm.analyzer.FAILURE_SCORES): nothing is
+fitted for it, and its effect is seen only by benching `out`.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ dims: [Q3, Q4, Q5]          # the closed failure-only questions to bias
 objective: likelihood       # likelihood (the prior correction: convex, smooth) | accuracy (coordinate ascent)
 ridge: 0.01                 # likelihood: keeps an option no val failure has finite
 check: [val_object, val_scene, val_both]   # held-out validation benches of model= re-scored with the biases
+failure_score: null         # q2 | questions: written into the copy (null: the model's own); dims=[] fits no bias
 """
 
 
@@ -74,7 +78,14 @@ def _check_args(cfg: Any) -> None:
         raise ConfigError(f"out: {cfg.out} is inside model= (the copy would hold copies)")
     if cfg.objective not in OBJECTIVES:
         raise ConfigError(f"objective: expected one of {', '.join(OBJECTIVES)}, got {cfg.objective!r}")
-    if not cfg.dims or any(d not in BIASED_DIMS for d in cfg.dims):
+    if cfg.failure_score is not None:
+        from labrobfail_vlm.analyzer import check_failure_score
+
+        try:
+            check_failure_score(cfg.failure_score)
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+    if (not cfg.dims and cfg.failure_score is None) or any(d not in BIASED_DIMS for d in cfg.dims or []):
         raise ConfigError(f"dims: expected a list of {', '.join(BIASED_DIMS)}, got {cfg.dims!r}")
     if cfg.check is None or isinstance(cfg.check, str) or not all(isinstance(s, str) for s in cfg.check):
         raise ConfigError(f"check: expected a list of validation splits (or []), got {cfg.check!r}")
@@ -99,18 +110,24 @@ def _bench(
     return recs, traj, preds
 
 
-def write_checkpoint(model: str | Path, out: str | Path, bias: dict[str, list[float]], fit: dict[str, Any]) -> None:
+def write_checkpoint(
+    model: str | Path, out: str | Path, bias: dict[str, list[float]], fit: dict[str, Any], score: str | None = None
+) -> None:
     """`model`'s files (benches, checkpoints and logs left out; linked files copied) in a new folder `out`, its
-    labrobfail.json with `bias` over any biases it had (a dimension not refitted keeps its own) and `fit`; written
-    beside as <out>.tmp and renamed, so a stopped run leaves no half folder under `out`'s name."""
+    labrobfail.json with `bias` over any biases it had (a dimension not refitted keeps its own), `fit`, and the
+    failure score `score` if given; written beside as <out>.tmp and renamed, so a stopped run leaves no half
+    folder under `out`'s name."""
     src, dst = Path(model), Path(out)
     tmp = dst.with_name(dst.name + ".tmp")
     skip = shutil.ignore_patterns("eval_*", "checkpoint-*", "wandb", "*.log")
     try:
         shutil.copytree(src, tmp, ignore=skip, symlinks=False)
         man = json.loads((tmp / "labrobfail.json").read_text())
-        man["option_bias"] = {**(man.get("option_bias") or {}), **bias}
-        man["option_bias_fit"] = fit
+        if bias:  # dims=[] with a failure score: the biases the model had, if any, stay as they were
+            man["option_bias"] = {**(man.get("option_bias") or {}), **bias}
+            man["option_bias_fit"] = fit
+        if score is not None:
+            man["failure_score"] = score
         (tmp / "labrobfail.json").write_text(json.dumps(man, indent=1))
         tmp.rename(dst)
     except (OSError, ValueError) as e:
@@ -122,6 +139,10 @@ def main(argv: list[str]) -> int:
     cfg = load_config(DEFAULTS, argv)
     _check_args(cfg)
     dims = list(cfg.dims)
+    if not dims:  # a failure score alone: nothing is fitted, no bench is read
+        write_checkpoint(str(cfg.model), str(cfg.out), {}, {}, cfg.failure_score)
+        print(f"wrote {cfg.out} (failure_score {cfg.failure_score})")
+        return 0
     recs, traj, preds = _bench(str(cfg.model), str(cfg.dataset_dir), "val", dims)
     bias: dict[str, list[float]] = {}
     report = []
@@ -145,7 +166,7 @@ def main(argv: list[str]) -> int:
             tag = " (fitted on)" if split == "val" else ""
             report.append(f"| {split}{tag} | {d} | {before[d.lower()]} | {after[d.lower()]} |")
     fit = {"on": f"{cfg.dataset_dir} val", "objective": cfg.objective, "dims": dims}
-    write_checkpoint(str(cfg.model), str(cfg.out), bias, fit)
+    write_checkpoint(str(cfg.model), str(cfg.out), bias, fit, cfg.failure_score)
     print("\n".join(report))
     print(f"wrote {cfg.out}")
     return 0

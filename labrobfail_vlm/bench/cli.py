@@ -352,6 +352,7 @@ def main(argv: list[str]) -> int:
             else {}
         ),
         **({"option_bias": {k: list(v) for k, v in bias.items()}} if bias else {}),
+        **({"failure_score": fs} if (fs := getattr(analyzer, "failure_score", "q2")) != "q2" else {}),
         "baselines": {k: v for k, v in results.items() if k != name},
     }
     if executable_rows:
