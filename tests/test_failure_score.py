@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import cli, run_here
+from conftest import cli, evaluate, run_here
 from PIL import Image
 from test_option_bias import _checkpoint
 from test_train import small_ds, tiny  # noqa: F401  (session fixtures)
@@ -55,6 +55,11 @@ def test_the_checkpoint_names_its_failure_score_and_calibrate_writes_it(tiny, sm
     ck = _checkpoint(tiny, tmp_path / "q", {"tuning": "full", "failure_score": "questions"})
     assert FailureAnalyzer.from_pretrained(ck).failure_score == "questions"
     assert FailureAnalyzer.from_pretrained(ck, failure_score="q2").failure_score == "q2"  # the caller's wins
+    # the bench reads it from the checkpoint and says so in its results
+    fast = ("baselines=[]", "q6_template=false", "progress=false", "split=test")
+    r = evaluate(f"model={ck}", small_ds, *fast, call=run_here)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads((ck / "eval_test" / "results.json").read_text())["failure_score"] == "questions"
     bad = _checkpoint(tiny, tmp_path / "bad", {"tuning": "full", "failure_score": "vibes"})
     with pytest.raises(ConfigError, match="labrobfail.json: failure_score: expected one of q2, questions"):
         FailureAnalyzer.from_pretrained(bad)

@@ -549,7 +549,14 @@ def test_the_lit_chain_gets_its_own_targets_section_and_a_row_it_never_lists_as_
     text = page.read_text()
     lit, rows = text.index("## The tuned chain drawn lit"), text.index("## Tower and sensor rows")
     assert lit < rows and "| seen Q2 | 92.0 | >= 90.8 | yes | 92.0 [90.9, 93.0]" in text[lit:rows]
-    assert f"| {ROWS['rows/lit']} | 92.0 [90.9, 93.0] |" in text[rows:]
+    assert f"| {ROWS['rows/lit']} | 92.0 [90.9, 93.0] |" in text[rows:] and "rows/lit_q" not in text
+    # the lit row read from all four questions: its own section, after the lit row's and before the rows table
+    (run / "rows" / "lit_q" / "final" / "eval_test").mkdir(parents=True)
+    (run / "rows" / "lit_q" / "final" / "eval_test" / "results.json").write_text(json.dumps(test))
+    assert main([f"run={run}", f"out={page}", "sections=[lit_q,rows]"]) == 0
+    text = page.read_text()
+    q = text.index("## The lit row with detection from all four closed questions")
+    assert lit < q < text.index("## Tower and sensor rows") and f"| {ROWS['rows/lit_q']} | 92.0 [90.9, 93.0] |" in text
     page.write_text(PAGE)
     shutil.rmtree(run / "rows" / "lit")
     _eval(run / "rows" / "more" / "final" / "eval_test", 81.0)

@@ -352,7 +352,7 @@ def main(argv: list[str]) -> int:
             else {}
         ),
         **({"option_bias": {k: list(v) for k, v in bias.items()}} if bias else {}),
-        **({"failure_score": fs} if (fs := getattr(analyzer, "failure_score", "q2")) != "q2" else {}),
+        **({"failure_score": analyzer.failure_score} if getattr(analyzer, "failure_score", "q2") != "q2" else {}),
         "baselines": {k: v for k, v in results.items() if k != name},
     }
     if executable_rows:
@@ -365,6 +365,8 @@ def main(argv: list[str]) -> int:
         source += f" at P(failure) >= {threshold:.4g}" + (" (chosen on val)" if cfg.threshold == "val" else "")
     if bias:
         source += " with option biases on " + ", ".join(bias)
+    if (fs := getattr(analyzer, "failure_score", "q2")) != "q2":
+        source += f", P(failure) from {fs}"
     ev.count_sealed_run(cfg.dataset_dir, cfg.split, source, main_res)
     atomic_write_bytes(out / "unparseable.log", "\n".join(log_lines).encode())
     _write_pngs(out, cfg.split, results, name)

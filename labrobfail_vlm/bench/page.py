@@ -256,8 +256,9 @@ HELD_OUT_COLUMNS = ("val_object", "val_scene", "val_both", "test_object", "test_
 # midnight; `make reproduce-tuned TUNED_ROW=rand2`); rows/rand3_tuned: one more stage from that row on the seen data
 # plus 4,000 further new randomised episodes (5 Dec; `TUNED_ROW=rand3`); rows/lit: the same chain of commands on the
 # episodes drawn as `make reproduce` draws them since 5 Dec (broken glass, the button lamp; 6 Dec, docs/EXPERIMENTS.md);
-# rows/lit_cal: that model with option biases fitted on its seen val (labrobfail-calibrate). No make target makes
-# rows/deep4 or the lit rows alone, so a page never lists them as not run (BY_HAND).
+# rows/lit_cal: that model with option biases fitted on its seen val (labrobfail-calibrate); rows/lit_q: that model
+# reading P(failure) from Q2-Q5 (failure_score questions). No make target makes rows/deep4 or the lit rows alone, so
+# a page never lists them as not run (BY_HAND).
 ROWS = {
     "rows/scratch": "scratch tower (random init, stage A grounding: the pre-tower recipe)",
     "train": "sim-pretrained tower (shipped), front + side",
@@ -298,8 +299,12 @@ ROWS = {
         "the lit row above with option biases for Q3-Q5 fitted on its seen-val bench (`labrobfail-calibrate`, "
         "likelihood; Q2 untouched; chosen on validation, 6 Dec)"
     ),
+    "rows/lit_q": (
+        "the lit row above reading P(failure) from all four closed questions (the mean of Q2's P(Yes) and Q3-Q5's "
+        "P(not None): `failure_score: questions`; nothing fitted; chosen on validation, 6 Dec)"
+    ),
 }
-BY_HAND = ("rows/deep4", "rows/lit", "rows/lit_cal")
+BY_HAND = ("rows/deep4", "rows/lit", "rows/lit_cal", "rows/lit_q")
 # rows also shown at the operating point chosen on their own seen-val bench (eval_<split>_opval, `labrobfail-evaluate
 # threshold=val`), with the date the cut was adopted on validation (docs/EXPERIMENTS.md); make reproduce-more
 # (rows/rand) and make report-tuned (the tuned rows) bench it
@@ -322,9 +327,10 @@ def run_evals(folder: Path, splits: tuple[str, ...] = tuple(SPLIT_TITLES), suffi
     return {s: json.loads(f.read_text()) for s, f in files.items() if f.is_file()} or None
 
 
-def lit_table(run: Path) -> list[str]:
-    """The tuned chain remade on lit episodes (rows/lit): the principal issue's targets again, then every split."""
-    return model_section(run_evals(run / "rows" / "lit", ("val", *SPLIT_TITLES)) or {})
+def lit_table(run: Path, row: str = "rows/lit") -> list[str]:
+    """A model made by hand on lit episodes (rows/lit: the tuned chain remade; rows/lit_q: it with detection from
+    all four closed questions): the principal issue's targets again, then every split."""
+    return model_section(run_evals(run / row, ("val", *SPLIT_TITLES)) or {})
 
 
 def tuned_table(run: Path) -> list[str]:
