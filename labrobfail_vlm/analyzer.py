@@ -79,9 +79,19 @@ def p_yes(options: Sequence[str], scores: Sequence[float]) -> float:
 
 # How P(failure) is read. "q2": Q2's own Yes/No. "questions": the mean of that and, for each closed failure-only
 # question, 1 - P("None") among "None" and its numbered options. The model is taught "None" as the Q3-Q5 reply to
-# every successful grid, so these are three more detectors on the same grid under other wording.
-FAILURE_SCORES = ("q2", "questions")
+# every successful grid, so these are three more detectors on the same grid under other wording. "wordings": the
+# same mean over every wording of Q2-Q5 the model was taught (questions.VARIANTS: 18), a Q2 wording that asks about
+# success read as its P("No").
+FAILURE_SCORES = ("q2", "questions", "wordings")
 SCORE_DIMS = ("Q3", "Q4", "Q5")
+
+
+def score_reads(failure_score: str) -> tuple[tuple[str, str, int], ...]:
+    """The question reads P(failure) averages under `failure_score`: (key, dimension, wording); the first wording's
+    key is the dimension itself (the prompt its reply is asked with), another's "<dim>#<wording>"."""
+    dims = ("Q2",) if failure_score == "q2" else ("Q2", *SCORE_DIMS)
+    every = failure_score == "wordings"
+    return tuple((d if v == 0 else f"{d}#{v}", d, v) for d in dims for v in range(len(Q.VARIANTS[d]) if every else 1))
 
 
 def check_failure_score(value: Any) -> str:
@@ -302,10 +312,10 @@ class FailureAnalyzer:
         return cls(model, processor, **kwargs)
 
     # ---- prompts -----------------------------------------------------------------------------------------
-    def _prompt(self, dim: str, task: str) -> str:
+    def _prompt(self, dim: str, task: str, variant: int = 0) -> str:
         from labrobfail_vlm.train.data import messages
 
-        q = Q.question_text(dim, 0, task, self.time_axis, self.index)
+        q = Q.question_text(dim, variant, task, self.time_axis, self.index)
         return self.processor.apply_chat_template(messages(q), tokenize=False, add_generation_prompt=True)
 
     def _decode(self, pre: Any, plans: Sequence[str | Ask | None]) -> list[str | None]:
@@ -328,24 +338,23 @@ class FailureAnalyzer:
                 out[i] = g
         return out
 
-    def _score_dim(self, dim: str, pre: Any, frames: Sequence[int]) -> list[float]:
-        """Per row of `pre` (the model after `dim`'s prompt): P("Yes") for Q2, 1 - P("None") for Q3-Q5."""
+    def _score_dim(self, dim: str, pre: Any, frames: Sequence[int], variant: int = 0) -> list[float]:
+        """Per row of `pre` (the model after `dim`'s prompt in wording `variant`): P(failure) by that question:
+        P("Yes") for Q2 (P("No") for a wording asking about success), 1 - P("None") for Q3-Q5."""
         if dim == "Q2":
             ask = plan_reply("Q2", None, 0)
             assert isinstance(ask, Ask)
-            return [p_yes(ask.options, sc) for sc in self.decoder.option_scores_rows(pre, [ask.options] * len(frames))]
+            ps = [p_yes(ask.options, sc) for sc in self.decoder.option_scores_rows(pre, [ask.options] * len(frames))]
+            return [1.0 - p for p in ps] if Q.VARIANTS["Q2"][variant].positive else ps
         opts = [(Q.NO_FAILURE, *(str(i) for i in range(1, option_count(dim, f) + 1))) for f in frames]
         return [p_not_none(sc) for sc in self.decoder.option_scores_rows(pre, opts)]
 
     def _decide_q2(self, per_dim: Sequence[Sequence[float]]) -> tuple[list[str], list[float]]:
-        """Q2 for each row from its scores per scored dimension (`_score_dims`): the reply at the operating point
+        """Q2 for each row from its scores per question read (`score_reads`): the reply at the operating point
         and P(failure), their mean. At 0.5 with Q2 alone the reply is the argmax that `choose_rows` picks (a tie
         goes to "Yes", its first option, in both)."""
         probs = [float(np.mean(col)) for col in zip(*per_dim)]
         return ["Yes" if p >= self.threshold else "No" for p in probs], probs
-
-    def _score_dims(self) -> tuple[str, ...]:
-        return ("Q2", *SCORE_DIMS) if self.failure_score == "questions" else ("Q2",)
 
     def _answer(
         self,
@@ -386,9 +395,11 @@ class FailureAnalyzer:
         frames = frames or self.num_frames
         need = asked_dims(dims, self.q6_mode)
         prompts = {dim: self._prompt(dim, task) for dim in Q.DIMENSIONS if dim in need}
-        # the verdict first, from each scored dimension's own prompt (a Q3-Q5 prefix is prefilled again below)
-        scoring = {dim: self._prompt(dim, task) for dim in self._score_dims()}
-        scored = [self._score_dim(dim, pre, [frames]) for dim, pre in self._prefixes(image, scoring)]
+        # the verdict first, from each question read's own prompt (a Q3-Q5 prefix is prefilled again below)
+        reads = score_reads(self.failure_score)
+        scoring = {key: self._prompt(dim, task, v) for key, dim, v in reads}
+        pres = self._prefixes(image, scoring)
+        scored = [self._score_dim(dim, next(pres)[1], [frames], v) for _, dim, v in reads]
         (reply,), (p,) = self._decide_q2(scored)
         out = Answers()
         out.p_failure, failed = p, reply == "Yes"
@@ -441,9 +452,10 @@ class FailureAnalyzer:
         a question's own tokens are fed only for the rows whose reply needs the model (Q3-Q6 follow Q2)."""
         d = self.decoder
         needs = [asked_dims(ds, self.q6_mode) for ds in dims]
-        scoring = self._score_dims()  # their prompts are fed to every row before the verdict
+        reads = score_reads(self.failure_score)  # their prompts are fed to every row before the verdict
         prompts = [
-            {dim: self._prompt(dim, t) for dim in Q.DIMENSIONS if dim in need or dim in scoring}
+            {dim: self._prompt(dim, t) for dim in Q.DIMENSIONS if dim in need}
+            | {key: self._prompt(dim, t, v) for key, dim, v in reads}
             for t, need in zip(tasks, needs)
         ]
         import torch
@@ -492,13 +504,13 @@ class FailureAnalyzer:
     def _verdict_rows(
         self, base: Any, ids: list[dict[str, list[int]]], lcp: list[int], frames: list[int], out: list[Answers]
     ) -> list[str]:
-        """Q2's reply for each row of `base` (the rows' shared preamble): each scored dimension's question fed in
-        turn and rewound, their scores averaged (`_decide_q2`); P(failure) goes into the row's Answers."""
+        """Q2's reply for each row of `base` (the rows' shared preamble): each question read's prompt fed in turn
+        and rewound, their scores averaged (`_decide_q2`); P(failure) goes into the row's Answers."""
         d = self.decoder
         per_dim = []
-        for dim in self._score_dims():
-            q, _ = d.extend_rows(base, [x[dim][k:] for x, k in zip(ids, lcp)])
-            per_dim.append(self._score_dim(dim, q, frames))
+        for key, dim, v in score_reads(self.failure_score):
+            q, _ = d.extend_rows(base, [x[key][k:] for x, k in zip(ids, lcp)])
+            per_dim.append(self._score_dim(dim, q, frames, v))
             d.rewind(q, base)
         got, probs = self._decide_q2(per_dim)
         for a, p in zip(out, probs):

@@ -15,12 +15,13 @@ from test_train import small_ds, tiny  # noqa: F401  (session fixtures)
 TASK = "pick up the beaker"
 
 
-def _alone(fa, img, dim):  # noqa: ANN001
-    """The softmax over `dim`'s admissible replies, its prompt prefilled alone (the reference path's state)."""
+def _alone(fa, img, dim, variant=0):  # noqa: ANN001
+    """The softmax over `dim`'s admissible replies, its prompt (in wording `variant`) prefilled alone."""
     from labrobfail_vlm.option_bias import option_count
 
     opts = ("Yes", "No") if dim == "Q2" else ("None", *map(str, range(1, option_count(dim, fa.num_frames) + 1)))
-    pre = fa.decoder.prefill(dict(fa.processor(text=[fa._prompt(dim, TASK)], images=[img], return_tensors="pt")))
+    prompt = fa._prompt(dim, TASK, variant)
+    pre = fa.decoder.prefill(dict(fa.processor(text=[prompt], images=[img], return_tensors="pt")))
     z = np.asarray(fa.decoder.option_scores_rows(pre, [opts])[0])
     return np.exp(z - z.max()) / np.exp(z - z.max()).sum()
 
@@ -43,6 +44,20 @@ def test_the_questions_score_is_the_mean_of_four_detectors_on_both_paths(tiny, s
             at = FailureAnalyzer.from_pretrained(tiny, failure_score="questions", threshold=cut)
             a = at.answers(img, TASK)
             assert a["Q2"] == reply and (a["Q3"] == "None") == (reply == "No")
+    # every wording: 18 reads, a Q2 wording that asks about success read as its P("No")
+    from labrobfail_vlm.questions import VARIANTS
+
+    wf = FailureAnalyzer.from_pretrained(tiny, failure_score="wordings")
+    reads = [
+        (_alone(wf, imgs[0], d, v)[1] if VARIANTS[d][v].positive else _alone(wf, imgs[0], d, v)[0])
+        if d == "Q2"
+        else 1.0 - _alone(wf, imgs[0], d, v)[0]
+        for d in ("Q2", "Q3", "Q4", "Q5")
+        for v in range(len(VARIANTS[d]))
+    ]
+    w1, w6 = wf.answers(imgs[0], TASK), wf.answers(imgs[0], TASK, one_pass=False)
+    assert len(reads) == 18 and w1.p_failure == pytest.approx(float(np.mean(reads)), abs=1e-4)
+    assert w6.p_failure == pytest.approx(w1.p_failure, abs=1e-4) and dict(w6) == dict(w1)
     batch = fa.answers_batch(imgs, [TASK] * 3)  # batched rows read as one at a time
     assert [b.p_failure for b in batch] == pytest.approx([fa.answers(i, TASK).p_failure for i in imgs], abs=1e-4)
     assert fa.answers(imgs[0], TASK, dims=["Q2"]).keys() == {"Q2"}  # Q3-Q5 scored, not answered, when not asked
