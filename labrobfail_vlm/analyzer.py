@@ -11,7 +11,8 @@ model, or any local Qwen3-VL directory. Answers are decoded under constraints
 (labrobfail_vlm.decoding), so a Diagnosis is always well-formed; after a "no failure"
 answer, Q3-Q5 are not asked a failure-only option, and vice versa. Q2 also comes as a score:
 `Diagnosis.p_failure`, the constrained decoder's probability of "Yes" (a failure) against "No", or with
-`failure_score="questions"` the mean of that and each closed failure-only question's probability of not "None".
+`failure_score` "questions" (or "wordings": in every taught wording) the mean of that and each closed failure-only
+question's probability of not "None".
 """
 
 from __future__ import annotations
@@ -51,8 +52,8 @@ class Diagnosis:
     # the same level as the paper's main text names it (taxonomy.SEVERITY_MAIN_TEXT: paired by position)
     severity_main_text: str | None = None
     # P(failure): softmax over the log-likelihoods of the two admissible Q2 replies (failure_score "q2"), or the
-    # mean of that and 1 - P("None") on Q3, Q4 and Q5 ("questions"); `failure` is p_failure >= the operating
-    # point. None where the answers came without scores (an endpoint, a replayed reply).
+    # mean of that and 1 - P("None") on Q3, Q4 and Q5 ("questions"; "wordings": in each wording of each); `failure`
+    # is p_failure >= the operating point. None where the answers came without scores (an endpoint, a replayed reply).
     p_failure: float | None = None
 
     def to_json(self) -> str:
@@ -86,12 +87,13 @@ FAILURE_SCORES = ("q2", "questions", "wordings")
 SCORE_DIMS = ("Q3", "Q4", "Q5")
 
 
-def score_reads(failure_score: str) -> tuple[tuple[str, str, int], ...]:
+def score_reads(failure_score: str, index: bool = True) -> tuple[tuple[str, str, int], ...]:
     """The question reads P(failure) averages under `failure_score`: (key, dimension, wording); the first wording's
-    key is the dimension itself (the prompt its reply is asked with), another's "<dim>#<wording>"."""
+    key is the dimension itself (the prompt its reply is asked with), another's "<dim>#<wording>". `index`: whether
+    the grid draws frame numbers (Q3's wordings differ)."""
     dims = ("Q2",) if failure_score == "q2" else ("Q2", *SCORE_DIMS)
-    every = failure_score == "wordings"
-    return tuple((d if v == 0 else f"{d}#{v}", d, v) for d in dims for v in range(len(Q.VARIANTS[d]) if every else 1))
+    n = {d: len(Q.variants(d, index)) if failure_score == "wordings" else 1 for d in dims}
+    return tuple((d if v == 0 else f"{d}#{v}", d, v) for d in dims for v in range(n[d]))
 
 
 def check_failure_score(value: Any) -> str:
@@ -396,7 +398,7 @@ class FailureAnalyzer:
         need = asked_dims(dims, self.q6_mode)
         prompts = {dim: self._prompt(dim, task) for dim in Q.DIMENSIONS if dim in need}
         # the verdict first, from each question read's own prompt (a Q3-Q5 prefix is prefilled again below)
-        reads = score_reads(self.failure_score)
+        reads = score_reads(self.failure_score, self.index)
         scoring = {key: self._prompt(dim, task, v) for key, dim, v in reads}
         pres = self._prefixes(image, scoring)
         scored = [self._score_dim(dim, next(pres)[1], [frames], v) for _, dim, v in reads]
@@ -452,7 +454,7 @@ class FailureAnalyzer:
         a question's own tokens are fed only for the rows whose reply needs the model (Q3-Q6 follow Q2)."""
         d = self.decoder
         needs = [asked_dims(ds, self.q6_mode) for ds in dims]
-        reads = score_reads(self.failure_score)  # their prompts are fed to every row before the verdict
+        reads = score_reads(self.failure_score, self.index)  # their prompts are fed to every row before the verdict
         prompts = [
             {dim: self._prompt(dim, t) for dim in Q.DIMENSIONS if dim in need}
             | {key: self._prompt(dim, t, v) for key, dim, v in reads}
@@ -508,7 +510,7 @@ class FailureAnalyzer:
         and rewound, their scores averaged (`_decide_q2`); P(failure) goes into the row's Answers."""
         d = self.decoder
         per_dim = []
-        for key, dim, v in score_reads(self.failure_score):
+        for key, dim, v in score_reads(self.failure_score, self.index):
             q, _ = d.extend_rows(base, [x[key][k:] for x, k in zip(ids, lcp)])
             per_dim.append(self._score_dim(dim, q, frames, v))
             d.rewind(q, base)

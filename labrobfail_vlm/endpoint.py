@@ -43,6 +43,8 @@ class EndpointAnalyzer(FailureAnalyzer):
     unless `frames` is given). `one_pass` arguments are accepted and ignored: every question is its own request
     and the server's prefix cache shares the image between them."""
 
+    failure_score = "q2"  # the server's replies come without option scores: Q2's reply is the verdict
+
     def __init__(
         self,
         base_url: str,

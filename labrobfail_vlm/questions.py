@@ -130,9 +130,14 @@ def preamble(task_name: str, time_axis: str = "columns", index: bool = True) -> 
     return (text if index else text.replace(LABEL_CLAUSE, "")).format(task_name=task_name)
 
 
+def variants(dim: str, index: bool = True) -> tuple[Variant, ...]:
+    """The wordings of `dim` as asked of a grid with (`index`) or without drawn frame numbers (Q3 differs)."""
+    return VARIANTS[dim] if index or dim != "Q3" else Q3_NO_INDEX
+
+
 def question_text(dim: str, variant: int, task_name: str, time_axis: str = "columns", index: bool = True) -> str:
     """The human turn: image token, preamble, question and (Q4/Q5) the option list."""
-    q = (VARIANTS[dim] if index or dim != "Q3" else Q3_NO_INDEX)[variant].text
+    q = variants(dim, index)[variant].text
     opts = OPTIONS.get(dim)
     return f"<image>\n{preamble(task_name, time_axis, index)} {q}" + (f"\n{opts}" if opts else "")
 

@@ -27,7 +27,16 @@ def _alone(fa, img, dim, variant=0):  # noqa: ANN001
 
 
 def test_the_questions_score_is_the_mean_of_four_detectors_on_both_paths(tiny, small_ds):  # noqa: F811
-    from labrobfail_vlm.analyzer import FailureAnalyzer
+    from labrobfail_vlm.analyzer import FailureAnalyzer, score_reads
+
+    assert [len(score_reads(f, i)) for f in ("q2", "questions", "wordings") for i in (True, False)] == [
+        1,
+        1,
+        4,
+        4,
+        18,
+        18,
+    ]
 
     imgs = [Image.open(p).convert("RGB") for p in sorted((small_ds / "images").glob("*.png"))[:3]]
     q2 = FailureAnalyzer.from_pretrained(tiny)
@@ -40,10 +49,12 @@ def test_the_questions_score_is_the_mean_of_four_detectors_on_both_paths(tiny, s
         assert list(one) == ["Q1", "Q2", "Q3", "Q4", "Q5", "Q6"]  # the replies in the questions' order
         assert q2.answers(img, TASK).p_failure == pytest.approx(probs[0], abs=1e-4)  # the default: Q2 alone
         # the verdict is the mean's: an operating point just over it says "No", just under it "Yes"
-        for cut, reply in ((min(one.p_failure + 1e-3, 0.999), "No"), (max(one.p_failure - 1e-3, 0.001), "Yes")):
-            at = FailureAnalyzer.from_pretrained(tiny, failure_score="questions", threshold=cut)
-            a = at.answers(img, TASK)
-            assert a["Q2"] == reply and (a["Q3"] == "None") == (reply == "No")
+        for cut, reply in ((one.p_failure + 1e-3, "No"), (one.p_failure - 1e-3, "Yes")):
+            if 0.0 < cut < 1.0:
+                fa.threshold = cut
+                a = fa.answers(img, TASK)
+                assert a["Q2"] == reply and (a["Q3"] == "None") == (reply == "No")
+        fa.threshold = 0.5
     # every wording: 18 reads, a Q2 wording that asks about success read as its P("No")
     from labrobfail_vlm.questions import VARIANTS
 
@@ -58,8 +69,10 @@ def test_the_questions_score_is_the_mean_of_four_detectors_on_both_paths(tiny, s
     w1, w6 = wf.answers(imgs[0], TASK), wf.answers(imgs[0], TASK, one_pass=False)
     assert len(reads) == 18 and w1.p_failure == pytest.approx(float(np.mean(reads)), abs=1e-4)
     assert w6.p_failure == pytest.approx(w1.p_failure, abs=1e-4) and dict(w6) == dict(w1)
-    batch = fa.answers_batch(imgs, [TASK] * 3)  # batched rows read as one at a time
-    assert [b.p_failure for b in batch] == pytest.approx([fa.answers(i, TASK).p_failure for i in imgs], abs=1e-4)
+    batch = fa.answers_batch(imgs, [TASK] * 3, frames=[None, 4, None])  # rows read as one at a time, Q3's
+    alone = [fa.answers(i, TASK, frames=f) for i, f in zip(imgs, (None, 4, None))]  # options per row's frames
+    assert [b.p_failure for b in batch] == pytest.approx([a.p_failure for a in alone], abs=1e-4)
+    assert [dict(b) for b in batch] == [dict(a) for a in alone]
     assert fa.answers(imgs[0], TASK, dims=["Q2"]).keys() == {"Q2"}  # Q3-Q5 scored, not answered, when not asked
 
 
@@ -84,7 +97,11 @@ def test_the_checkpoint_names_its_failure_score_and_calibrate_writes_it(tiny, sm
     model = _checkpoint(tiny, tmp_path / "m", {"tuning": "full", "option_bias": {"Q4": [0.0, 1.0, 0.0, 0.0]}})
     out = tmp_path / "m_q"
     base = [cli("calibrate"), f"model={model}", f"dataset_dir={small_ds}", "check=[]", f"out={out}", "dims=[]"]
-    for extra, needle in ((["failure_score=vibes"], "failure_score: expected one of"), ([], "dims: expected")):
+    for extra, needle in (
+        (["failure_score=vibes"], "failure_score: expected one of"),
+        ([], "dims: expected"),
+        (["dims=null", "failure_score=questions"], "dims: expected"),
+    ):
         r = run_here([*base, *extra])
         assert r.returncode == 2 and needle in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert not out.exists()

@@ -164,7 +164,9 @@ def test_token_is_required_and_checked(server):
     info = server.client().info()
     assert info["serve"]["token_required"] is True and "token" not in info["serve"]
     assert info["grid"]["max_frames"] == 16 and info["version"]
-    assert info["threshold"] == 0.5 and info["option_bias"] == {}  # the operating points a reply was decided at
+    assert (
+        info["threshold"] == 0.5 and info["option_bias"] == {} and info["failure_score"] == "q2"
+    )  # the operating points a reply was decided at
 
 
 def test_concurrent_requests_are_batched_with_the_same_answers(server, fa, grids):  # noqa: F811

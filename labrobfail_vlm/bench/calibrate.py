@@ -26,6 +26,8 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+from omegaconf import ListConfig
+
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.bench import evaluate as ev
 from labrobfail_vlm.bench.compare import read_replies
@@ -41,7 +43,7 @@ dims: [Q3, Q4, Q5]          # the closed failure-only questions to bias
 objective: likelihood       # likelihood (the prior correction: convex, smooth) | accuracy (coordinate ascent)
 ridge: 0.01                 # likelihood: keeps an option no val failure has finite
 check: [val_object, val_scene, val_both]   # held-out validation benches of model= re-scored with the biases
-failure_score: null         # q2 | questions: written into the copy (null: the model's own); dims=[] fits no bias
+failure_score: null         # q2 | questions | wordings: written into the copy (null: the model's own); dims=[]: no bias
 """
 
 
@@ -85,8 +87,15 @@ def _check_args(cfg: Any) -> None:
             check_failure_score(cfg.failure_score)
         except ValueError as e:
             raise ConfigError(str(e)) from None
-    if (not cfg.dims and cfg.failure_score is None) or any(d not in BIASED_DIMS for d in cfg.dims or []):
-        raise ConfigError(f"dims: expected a list of {', '.join(BIASED_DIMS)}, got {cfg.dims!r}")
+    dims = cfg.dims
+    if (
+        not isinstance(dims, ListConfig)
+        or (not dims and cfg.failure_score is None)
+        or any(d not in BIASED_DIMS for d in dims)
+    ):
+        raise ConfigError(
+            f"dims: expected a list of {', '.join(BIASED_DIMS)} (or [] with failure_score=), got {cfg.dims!r}"
+        )
     if cfg.check is None or isinstance(cfg.check, str) or not all(isinstance(s, str) for s in cfg.check):
         raise ConfigError(f"check: expected a list of validation splits (or []), got {cfg.check!r}")
     if any(s in SEALED_SPLITS or s.startswith("test") for s in cfg.check):

@@ -280,7 +280,7 @@ def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
             "q6_mode": analyzer.q6_mode,
             "threshold": analyzer.threshold,  # the Q2 operating point
             "option_bias": {k: list(v) for k, v in analyzer.option_bias.items()},  # Q3-Q5, if fitted
-            "failure_score": analyzer.failure_score,  # how P(failure) is read (q2, or questions: Q2-Q5)
+            "failure_score": analyzer.failure_score,  # how P(failure) is read (analyzer.FAILURE_SCORES)
             "device": str(p.device),
             "dtype": str(p.dtype).removeprefix("torch."),
             "serve": cfg.public(),
