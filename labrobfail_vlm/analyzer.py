@@ -29,6 +29,7 @@ from PIL import Image
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.actions import to_primitives
 from labrobfail_vlm.corrections import STRATEGIES, candidates
+from labrobfail_vlm.failure_score import check_failure_score, read_rows, score_reads, shared_rows, verdicts
 from labrobfail_vlm.grid import GridConfig, build_grid, fit_grid, sample_keyframes
 from labrobfail_vlm.model.processor import common_prefix_len
 from labrobfail_vlm.option_bias import BIASED_DIMS, biased_choice, check_option_bias, option_count
@@ -71,49 +72,35 @@ class Answers(dict[str, str]):
         self.option_scores: dict[str, list[float]] = {}
 
 
-def p_yes(options: Sequence[str], scores: Sequence[float]) -> float:
-    """Softmax probability of "Yes" among the scored Yes/No replies."""
-    z = np.asarray(scores, dtype=np.float64)
-    e = np.exp(z - z.max())
-    return float(e[list(options).index("Yes")] / e.sum())
-
-
-# How P(failure) is read. "q2": Q2's own Yes/No. "questions": the mean of that and, for each closed failure-only
-# question, 1 - P("None") among "None" and its numbered options. The model is taught "None" as the Q3-Q5 reply to
-# every successful grid, so these are three more detectors on the same grid under other wording. "wordings": the
-# same mean over every wording of Q2-Q5 the model was taught (questions.VARIANTS: 18), a Q2 wording that asks about
-# success read as its P("No").
-FAILURE_SCORES = ("q2", "questions", "wordings")
-SCORE_DIMS = ("Q3", "Q4", "Q5")
-
-
-def score_reads(failure_score: str, index: bool = True) -> tuple[tuple[str, str, int], ...]:
-    """The question reads P(failure) averages under `failure_score`: (key, dimension, wording); the first wording's
-    key is the dimension itself (the prompt its reply is asked with), another's "<dim>#<wording>". `index`: whether
-    the grid draws frame numbers (Q3's wordings differ)."""
-    dims = ("Q2",) if failure_score == "q2" else ("Q2", *SCORE_DIMS)
-    n = {d: len(Q.variants(d, index)) if failure_score == "wordings" else 1 for d in dims}
-    return tuple((d if v == 0 else f"{d}#{v}", d, v) for d in dims for v in range(n[d]))
-
-
-def check_failure_score(value: Any) -> str:
-    if value not in FAILURE_SCORES:
-        raise ValueError(f"failure_score: expected one of {', '.join(FAILURE_SCORES)}, got {value!r}")
-    return str(value)
-
-
-def p_not_none(scores: Sequence[float]) -> float:
-    """1 - softmax probability of the first scored reply ("None") among "None" and the numbered options."""
-    z = np.asarray(scores, dtype=np.float64)
-    e = np.exp(z - z.max())
-    return float(1.0 - e[0] / e.sum())
-
-
 def nearest_strategy(text: str) -> str | None:
     if not text or text == Q.NO_CORRECTION:
         return None
     scores = {k: difflib.SequenceMatcher(None, text.lower(), t.lower()).ratio() for k, (_, t) in STRATEGIES.items()}
     return max(scores, key=scores.__getitem__)
+
+
+def diagnosis_of(a: Mapping[str, str], task: str, objects: Sequence[str] = ()) -> Diagnosis:
+    """The Diagnosis the six replies `a` (an Answers, or a plain mapping without P(failure)) make for `task`;
+    `objects` name the scene's things for the correction's primitives."""
+    failed = a["Q2"] == "Yes"
+    sev = int(a["Q4"]) if failed and a["Q4"].isdigit() else None
+    cat = int(a["Q5"]) if failed and a["Q5"].isdigit() else None
+    return Diagnosis(
+        task=task,
+        actions=[s.strip() for s in a["Q1"].split(",") if s.strip()],
+        failure=failed,
+        failure_frame=int(a["Q3"]) if failed and a["Q3"].isdigit() else None,
+        severity=sev,
+        severity_name=Severity(sev).title if sev else None,
+        category=cat,
+        category_name=Category(cat).title if cat else None,
+        correction=a["Q6"],
+        correction_strategy=nearest_strategy(a["Q6"]) if failed else None,
+        primitives=to_primitives(a["Q6"], objects) if failed else [],
+        raw=dict(a),
+        severity_main_text=Severity(sev).main_text if sev else None,
+        p_failure=None if getattr(a, "p_failure", None) is None else round(float(a.p_failure), 6),  # type: ignore[attr-defined]
+    )
 
 
 def frames_to_grid(
@@ -340,24 +327,6 @@ class FailureAnalyzer:
                 out[i] = g
         return out
 
-    def _score_dim(self, dim: str, pre: Any, frames: Sequence[int], variant: int = 0) -> list[float]:
-        """Per row of `pre` (the model after `dim`'s prompt in wording `variant`): P(failure) by that question:
-        P("Yes") for Q2 (P("No") for a wording asking about success), 1 - P("None") for Q3-Q5."""
-        if dim == "Q2":
-            ask = plan_reply("Q2", None, 0)
-            assert isinstance(ask, Ask)
-            ps = [p_yes(ask.options, sc) for sc in self.decoder.option_scores_rows(pre, [ask.options] * len(frames))]
-            return [1.0 - p for p in ps] if Q.VARIANTS["Q2"][variant].positive else ps
-        opts = [(Q.NO_FAILURE, *(str(i) for i in range(1, option_count(dim, f) + 1))) for f in frames]
-        return [p_not_none(sc) for sc in self.decoder.option_scores_rows(pre, opts)]
-
-    def _decide_q2(self, per_dim: Sequence[Sequence[float]]) -> tuple[list[str], list[float]]:
-        """Q2 for each row from its scores per question read (`score_reads`): the reply at the operating point
-        and P(failure), their mean. At 0.5 with Q2 alone the reply is the argmax that `choose_rows` picks (a tie
-        goes to "Yes", its first option, in both)."""
-        probs = [float(np.mean(col)) for col in zip(*per_dim)]
-        return ["Yes" if p >= self.threshold else "No" for p in probs], probs
-
     def _answer(
         self,
         dim: str,
@@ -399,10 +368,9 @@ class FailureAnalyzer:
         prompts = {dim: self._prompt(dim, task) for dim in Q.DIMENSIONS if dim in need}
         # the verdict first, from each question read's own prompt (a Q3-Q5 prefix is prefilled again below)
         reads = score_reads(self.failure_score, self.index)
-        scoring = {key: self._prompt(dim, task, v) for key, dim, v in reads}
-        pres = self._prefixes(image, scoring)
-        scored = [self._score_dim(dim, next(pres)[1], [frames], v) for _, dim, v in reads]
-        (reply,), (p,) = self._decide_q2(scored)
+        pres = self._prefixes(image, {key: self._prompt(dim, task, v) for key, dim, v in reads})
+        p = float(np.mean([read_rows(self.decoder, dim, next(pres)[1], [frames], v)[0] for _, dim, v in reads]))
+        (reply,) = verdicts([p], self.threshold)
         out = Answers()
         out.p_failure, failed = p, reply == "Yes"
         rest = self._prefixes(image, {d: t for d, t in prompts.items() if d != "Q2"})
@@ -507,17 +475,11 @@ class FailureAnalyzer:
         self, base: Any, ids: list[dict[str, list[int]]], lcp: list[int], frames: list[int], out: list[Answers]
     ) -> list[str]:
         """Q2's reply for each row of `base` (the rows' shared preamble): each question read's prompt fed in turn
-        and rewound, their scores averaged (`_decide_q2`); P(failure) goes into the row's Answers."""
-        d = self.decoder
-        per_dim = []
-        for key, dim, v in score_reads(self.failure_score, self.index):
-            q, _ = d.extend_rows(base, [x[key][k:] for x, k in zip(ids, lcp)])
-            per_dim.append(self._score_dim(dim, q, frames, v))
-            d.rewind(q, base)
-        got, probs = self._decide_q2(per_dim)
+        and rewound, their scores averaged (`failure_score.shared_rows`); P(failure) goes into the row's Answers."""
+        probs = shared_rows(self.decoder, base, ids, lcp, frames, score_reads(self.failure_score, self.index))
         for a, p in zip(out, probs):
             a.p_failure = p
-        return got
+        return verdicts(probs, self.threshold)
 
     def _reply_rows(self, dim: str, q: Any, plans: list[Ask], out: list[Answers]) -> list[str | None]:
         """`dim`'s reply for each row of `q` (the model after the question); a closed failure-only question's
@@ -581,23 +543,4 @@ class FailureAnalyzer:
         """`objects`: the scene's object and place names (used by q6_mode="template"); `answers`: replies already
         decoded for this grid (analyze_batch)."""
         img, task, frames = self._prepare(grid_or_frames, task, frames)
-        a = answers or self.answers(img, task, one_pass, frames, objects)
-        failed = a["Q2"] == "Yes"
-        sev = int(a["Q4"]) if failed and a["Q4"].isdigit() else None
-        cat = int(a["Q5"]) if failed and a["Q5"].isdigit() else None
-        return Diagnosis(
-            task=task,
-            actions=[s.strip() for s in a["Q1"].split(",") if s.strip()],
-            failure=failed,
-            failure_frame=int(a["Q3"]) if failed and a["Q3"].isdigit() else None,
-            severity=sev,
-            severity_name=Severity(sev).title if sev else None,
-            category=cat,
-            category_name=Category(cat).title if cat else None,
-            correction=a["Q6"],
-            correction_strategy=nearest_strategy(a["Q6"]) if failed else None,
-            primitives=to_primitives(a["Q6"], objects) if failed else [],
-            raw=dict(a),
-            severity_main_text=Severity(sev).main_text if sev else None,
-            p_failure=None if getattr(a, "p_failure", None) is None else round(float(a.p_failure), 6),
-        )
+        return diagnosis_of(answers or self.answers(img, task, one_pass, frames, objects), task, objects)

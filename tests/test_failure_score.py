@@ -27,7 +27,8 @@ def _alone(fa, img, dim, variant=0):  # noqa: ANN001
 
 
 def test_the_questions_score_is_the_mean_of_four_detectors_on_both_paths(tiny, small_ds):  # noqa: F811
-    from labrobfail_vlm.analyzer import FailureAnalyzer, score_reads
+    from labrobfail_vlm.analyzer import FailureAnalyzer
+    from labrobfail_vlm.failure_score import score_reads
 
     assert [len(score_reads(f, i)) for f in ("q2", "questions", "wordings") for i in (True, False)] == [
         1,

@@ -72,7 +72,8 @@ def test_one_pass_matches_six_prompts(tiny, small_ds):  # noqa: F811
 
 def test_threshold_moves_the_verdict_and_q3_q6_follow_it(tiny, grid):  # noqa: F811
     """P(failure) is the softmax of the Yes/No scores; the operating point decides Q2, and Q3-Q6 follow it."""
-    from labrobfail_vlm.analyzer import FailureAnalyzer, p_yes
+    from labrobfail_vlm.analyzer import FailureAnalyzer
+    from labrobfail_vlm.failure_score import p_yes
 
     fa = FailureAnalyzer.from_pretrained(tiny)
     img = Image.open(grid).convert("RGB")

@@ -15,7 +15,7 @@ failure-only score on seen val (the split fitted on: optimistic) and on each `ch
 splits M was already benched on) before and after, from M's own predictions with the biases applied (no model run;
 the scores are stored to 5 decimals, so a near-tie may fall the other way in a real run). Whether to take the
 calibrated model is then decided on validation like any choice (labrobfail-compare on benches of `out`).
-`failure_score=` also writes how the copy reads P(failure) (labrobfail_vlm.analyzer.FAILURE_SCORES): nothing is
+`failure_score=` also writes how the copy reads P(failure) (labrobfail_vlm.failure_score): nothing is
 fitted for it, and its effect is seen only by benching `out`.
 """
 
@@ -81,7 +81,7 @@ def _check_args(cfg: Any) -> None:
     if cfg.objective not in OBJECTIVES:
         raise ConfigError(f"objective: expected one of {', '.join(OBJECTIVES)}, got {cfg.objective!r}")
     if cfg.failure_score is not None:
-        from labrobfail_vlm.analyzer import check_failure_score
+        from labrobfail_vlm.failure_score import check_failure_score
 
         try:
             check_failure_score(cfg.failure_score)

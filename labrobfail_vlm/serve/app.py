@@ -280,7 +280,7 @@ def create_app(analyzer: Any, cfg: ServeConfig = ServeConfig()) -> Guard:
             "q6_mode": analyzer.q6_mode,
             "threshold": analyzer.threshold,  # the Q2 operating point
             "option_bias": {k: list(v) for k, v in analyzer.option_bias.items()},  # Q3-Q5, if fitted
-            "failure_score": analyzer.failure_score,  # how P(failure) is read (analyzer.FAILURE_SCORES)
+            "failure_score": analyzer.failure_score,  # how P(failure) is read (failure_score.py)
             "device": str(p.device),
             "dtype": str(p.dtype).removeprefix("torch."),
             "serve": cfg.public(),
