@@ -26,6 +26,11 @@ def of_shards(shard_dir: str | Path) -> dict[str, Any] | None:
         run = json.loads((Path(shard_dir) / "run.json").read_text())
     except (OSError, ValueError):
         return None
+    return of_run(run)
+
+
+def of_run(run: Any) -> dict[str, Any] | None:
+    """`of_shards` of a run.json already read (its parsed contents)."""
     kw = run.get("backend_kwargs") if isinstance(run, dict) else None
     if kw is not None and not isinstance(kw, dict):
         return None

@@ -123,6 +123,8 @@ SECTIONS = {
         ("online", "recovery", "train/final/eval_online_*"),
     ),
 }
+# the sections of rows made by hand (page.BY_HAND): each a lit_table of its one folder, never named as not run
+BY_HAND_SECTIONS = ("lit", "lit_q", "lit5_q")
 
 
 def _load(path: Path) -> Any:
@@ -196,9 +198,7 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
         "ablation": lambda: ablation_table(run, [cells[1], cells[3], cells[4], cells[5]] if cells else None),
         "supervision": lambda: supervision(run, old_sv),
         "tuned": lambda: tuned_table(run),
-        "lit": lambda: lit_table(run),
-        "lit_q": lambda: lit_table(run, "rows/lit_q"),
-        "lit5_q": lambda: lit_table(run, "rows/lit5_q"),
+        **{n: (lambda n=n: lit_table(run, SECTIONS[n][2][0])) for n in BY_HAND_SECTIONS},
     }
     tables = [n for n in names if n != "sealed"]  # sealed: the ledgers alone, spliced below
     for name in tables:
@@ -469,8 +469,7 @@ def main(argv: list[str]) -> int:
     lines += ["## Targets of the principal issue (main row: front + side)", "", *targets(evals), ""]
     absent = []
     bodies = (("tuned", tuned_table(run) if _ran(run, "tuned") else []), ("rows", rows_table(run)))
-    # made by hand (page.BY_HAND): never "not run"
-    lit = [(n, lit_table(run, SECTIONS[n][2][0])) for n in ("lit", "lit_q", "lit5_q") if _ran(run, SECTIONS[n][2][0])]
+    lit = [(n, lit_table(run, SECTIONS[n][2][0])) for n in BY_HAND_SECTIONS if _ran(run, SECTIONS[n][2][0])]
     for name, body in (*lit, *bodies, ("ablation", ablation_table(run)), ("supervision", supervision(run))):
         if body:
             lines += _section(name, body)

@@ -341,6 +341,7 @@ def main(argv: list[str]) -> int:
                 results[k]["q6_executable"] = v
     main_res = results[name]
     bias = getattr(analyzer, "option_bias", None)  # fitted on validation (labrobfail-calibrate), from the checkpoint
+    score = getattr(analyzer, "failure_score", "q2")  # how P(failure) was read (labrobfail_vlm/failure_score.py)
     md = _results_markdown(cfg, recs, results, name)
     payload = {
         **main_res,
@@ -352,7 +353,7 @@ def main(argv: list[str]) -> int:
             else {}
         ),
         **({"option_bias": {k: list(v) for k, v in bias.items()}} if bias else {}),
-        **({"failure_score": analyzer.failure_score} if getattr(analyzer, "failure_score", "q2") != "q2" else {}),
+        **({"failure_score": score} if score != "q2" else {}),
         "baselines": {k: v for k, v in results.items() if k != name},
     }
     if executable_rows:
@@ -365,8 +366,8 @@ def main(argv: list[str]) -> int:
         source += f" at P(failure) >= {threshold:.4g}" + (" (chosen on val)" if cfg.threshold == "val" else "")
     if bias:
         source += " with option biases on " + ", ".join(bias)
-    if (fs := getattr(analyzer, "failure_score", "q2")) != "q2":
-        source += f", P(failure) from {fs}"
+    if score != "q2":
+        source += f", P(failure) from {score}"
     ev.count_sealed_run(cfg.dataset_dir, cfg.split, source, main_res)
     atomic_write_bytes(out / "unparseable.log", "\n".join(log_lines).encode())
     _write_pngs(out, cfg.split, results, name)

@@ -333,8 +333,8 @@ def run_evals(folder: Path, splits: tuple[str, ...] = tuple(SPLIT_TITLES), suffi
 
 
 def lit_table(run: Path, row: str = "rows/lit") -> list[str]:
-    """A model made by hand on lit episodes (rows/lit: the tuned chain remade; rows/lit_q: it with detection from
-    all four closed questions): the principal issue's targets again, then every split."""
+    """A model row made by hand on lit episodes (rows/lit, rows/lit_q, rows/lit5_q: see ROWS): the principal
+    issue's targets again, then every split."""
     return model_section(run_evals(run / row, ("val", *SPLIT_TITLES)) or {})
 
 

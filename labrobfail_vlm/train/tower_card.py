@@ -32,7 +32,7 @@ def shard_origin(shard_dir: str) -> str:
         run = json.loads((Path(shard_dir) / "run.json").read_text())
     except (OSError, ValueError):
         return shard_dir
-    kw, drawn = run.get("backend_kwargs") or {}, drawing.of_shards(shard_dir) or {}
+    kw, drawn = run.get("backend_kwargs") or {}, drawing.of_run(run) or {}
     extra = (
         (f", scene family {kw['scene_family']}" if kw.get("scene_family") else "")
         + (", button lamp on" if drawn.get("button_lamp") else "")
