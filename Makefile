@@ -129,8 +129,12 @@ RESULTS        ?= docs/RESULTS.md
 # the recipe without it; docs/EXPERIMENTS.md 5 Dec night and late night); the page's models were rendered without.
 # The supervised trials draw them too (RECOVERY_RUN, the pour ACT's rollouts): the supervisor sees what it was taught on.
 REPRO_LOOK     := backend_kwargs.broken_glass=true backend_kwargs.button_lamp=true
+# The solver every page row's episodes were simulated with (50 iterations), named in the generation commands so a
+# later default never changes the page's data line. Supervised runs and ACT demonstrations take the backend's
+# default (the same preset): naming it there would change the identity their cached runs resume by.
+REPRO_PHYSICS  := backend_kwargs.physics=reference
 REPRO_GEN      := backend=pybullet seed=0 workers=2 image_size=128 render_frames=8 backend_kwargs.wrist=true \
-  $(REPRO_LOOK) progress=false
+  $(REPRO_LOOK) $(REPRO_PHYSICS) progress=false
 HELD_OUT       := val_object val_scene val_both test_object test_scene test_both
 # the splits a row adopted at the cut chosen on its seen-val bench is benched on again at that cut (threshold=val)
 OPVAL_SPLITS   := test $(HELD_OUT)
@@ -469,7 +473,8 @@ TOWER_DR_SEEN ?= 3000
 TOWER_RAND_SEEN ?= 3000
 TOWER_DR     := epochs=4 lr=5e-4 augment.colour=0.75 augment.hue=0.5
 TOWER_EXPORT ?= labrobfail_vlm/assets/tower
-TOWER_VIEWS  := backend=pybullet workers=2 image_size=128 render_frames=8 backend_kwargs.wrist=true progress=false
+TOWER_VIEWS  := backend=pybullet workers=2 image_size=128 render_frames=8 backend_kwargs.wrist=true progress=false \
+  $(REPRO_PHYSICS)
 TOWER_GEN    := $(TOWER_VIEWS) seed=1000
 TOWER_RAND_GEN := $(TOWER_VIEWS) seed=2000 backend_kwargs.scene_family=randomised
 TOWER_HELD   := $(T)/shards/val_object,$(T)/shards/val_scene

@@ -11,7 +11,8 @@ physics only (no camera), two rendered views with each rendering variant the bac
 (PyBullet: the stock Panda meshes against the low-poly ones, and the whole scene at every keyframe against the
 layered backdrop) at every keyframe, the default rendering at only the keyframes the generator's default
 `render_frames` grid shows, and end to end into shards (the generator's defaults) with 1 worker and with 2
-workers (speed-up = ratio), and on 1 worker with the whole scene rendered. Peak memory of the main process and of
+workers (speed-up = ratio), and on 1 worker with the whole scene rendered; each physics preset other than the
+generator's default, physics only and end to end on 1 worker. Peak memory of the main process and of
 a worker.
 """
 
@@ -43,6 +44,9 @@ RENDER_VARIANTS = {
         "whole_scene": {"layered_render": False},  # every keyframe renders every body (before the backdrop)
     }
 }
+# Physics presets timed beside the generator's default one, physics only and end to end (sim_backends/pybullet/
+# backend.py PHYSICS; whether a preset keeps the labels is scripts/check_physics.py's question, not this one's).
+PHYSICS_VARIANTS = {"pybullet": ("reference", "fast")}
 
 
 def per_hour(n: int, seconds: float) -> float:
@@ -102,6 +106,14 @@ def main(argv: list[str]) -> int:
         "scenarios": len(backend_spec(backend).cls.list_scenarios()),
         "physics_only_episodes_per_hour_per_core": in_process(backend, pairs, cameras=[]),
     }
+    default_physics = generate_config([]).backend_kwargs.get("physics")
+    others = [v for v in PHYSICS_VARIANTS.get(backend, ()) if v != default_physics]
+    if others:  # the unnamed rows run the generator's default preset
+        res["physics_default"] = default_physics
+    for name in others:
+        res[f"physics_only_{name}_physics_episodes_per_hour_per_core"] = in_process(
+            backend, pairs, cameras=[], physics=name
+        )
     for name, kw in RENDER_VARIANTS.get(backend, {"default": {}}).items():
         res[f"rendered_2x{size}_{name}_episodes_per_hour_per_core"] = in_process(backend, pairs, image_size=size, **kw)
     # The backend's default rendering, only at the keyframes a grid of `render_frames` shows (the generator's
@@ -116,6 +128,9 @@ def main(argv: list[str]) -> int:
         if kw.get("layered_render") is False:
             flags = tuple(f"backend_kwargs.{k}={str(v).lower()}" for k, v in kw.items())
             res[f"end_to_end_{name}_episodes_per_hour_per_core"] = per_hour(n, end_to_end(backend, 1, n, size, flags))
+    for name in others:
+        t = end_to_end(backend, 1, n, size, (f"backend_kwargs.physics={name}",))
+        res[f"end_to_end_{name}_physics_episodes_per_hour_per_core"] = per_hour(n, t)
     t2 = end_to_end(backend, 2, n, size)
     res.update(
         {

@@ -88,6 +88,10 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
     return kwargs
 
 
+# What a run.json written before a key existed was made with, where that may not be the key's default.
+LEGACY_BACKEND_KWARGS = {"physics": "reference"}
+
+
 def _default_backend_kwargs() -> dict[str, Any]:
     return OmegaConf.to_container(OmegaConf.load(DEFAULTS).backend_kwargs, resolve=True) or {}
 
@@ -120,14 +124,15 @@ def _file_contents(section: dict[str, Any], kwargs: dict[str, Any]) -> dict[str,
 
 def _upgrade_identity(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
     """A run.json written before `backend_kwargs` existed kept its PyBullet keys top level: move them there;
-    keys added to the section since a run was written read as their defaults. One written before
-    `backend_files` existed is taken to hold today's file contents (nothing else is known of them)."""
+    keys added to the section since a run was written read as their defaults, or as LEGACY_BACKEND_KWARGS says
+    where the runs before the key were made otherwise. One written before `backend_files` existed is taken to
+    hold today's file contents (nothing else is known of them)."""
     if "backend_kwargs" not in old:
         legacy = {k: old.get(k) for k in ("wrist", "custom_objects", "custom_scene")}
-        old = {**old, "backend_kwargs": {**(new["backend_kwargs"] or {}), **legacy}}
+        old = {**old, "backend_kwargs": {**(new["backend_kwargs"] or {}), **LEGACY_BACKEND_KWARGS, **legacy}}
     return {
         **old,
-        "backend_kwargs": {**_default_backend_kwargs(), **(old["backend_kwargs"] or {})},
+        "backend_kwargs": {**_default_backend_kwargs(), **LEGACY_BACKEND_KWARGS, **(old["backend_kwargs"] or {})},
         "backend_files": old.get("backend_files", new["backend_files"]),
         "first_pair": old.get("first_pair", 0),
         "replay_seen": old.get("replay_seen", False),
