@@ -1,20 +1,21 @@
 """Check that a PyBullet physics preset keeps the labels of another on a fixed set of episodes, and write JSON.
 
 Run as:
-    python scripts/check_physics.py [a=reference] [b=fast] [pairs=200] [first_pair=0] [seed=0]
+    python scripts/check_physics.py [a=reference] [b=fast] [pairs=200] [first_pair=0] [seed=0] [variant=seen]
                                     [out=outputs/check_physics.json]
 
-The set: pairs first_pair .. first_pair + pairs - 1 of the generator's seed-`seed` plan in seen scenes, each
-pair's nominal run and its first injected draw from the pair's first initial state (no redraws, so both presets
-run the same episodes), physics only (labels read the simulator's trace, never an image). Each preset runs in its
-own process, the two side by side. Cheaper physics changes every episode a little; what must not change is the
-data's make-up, so five distributions are tested, each two-sided with the two runs as samples (within noise:
-p >= 0.05): the nominal success rate (Fisher's exact test), the injected runs' outcome (success, explained
-failure, failure no detector explains), and among the injected failures the failure type, the category and the
-severity (chi-square homogeneity by permutation, fixed seed; a failure no detector explains counts as a type,
-category and severity "None" of its own). Beside them, not ruled on: the nominal successes' paired test (exact
-McNemar on the runs one preset won and the other lost, which reads a one-sided loss the unpaired test misses), the
-paired agreement (episodes whose label is the same) and every changed episode, for a person to look at.
+The set: pairs first_pair .. first_pair + pairs - 1 of the generator's seed-`seed` plan in `variant`'s scenes
+(seen, or a validation variant's glassware and benches; the sealed ones run for reported rows only), each pair's
+nominal run and its first injected draw from the pair's first initial state (no redraws, so both presets run the
+same episodes), physics only (labels read the simulator's trace, never an image). Each preset runs in its own
+process, the two side by side. Cheaper physics changes every episode a little; what must not change is the data's
+make-up, so five distributions are tested, each two-sided with the two runs as samples (within noise: p >= 0.05):
+the nominal success rate (Fisher's exact test), the injected runs' outcome (success, explained failure, failure no
+detector explains), and among the injected failures the failure type, the category and the severity (chi-square
+homogeneity by permutation, fixed seed; a failure no detector explains counts as a type, category and severity
+"None" of its own). Beside them, not ruled on: the nominal successes' paired test (exact McNemar on the runs one
+preset won and the other lost, which reads a one-sided loss the unpaired test misses), the paired agreement
+(episodes whose label is the same) and every changed episode, for a person to look at.
 """
 
 from __future__ import annotations
@@ -36,13 +37,14 @@ b: fast                            # the candidate
 pairs: 200                         # pairs of the plan: 2 x pairs episodes per preset
 first_pair: 0                      # the set's first pair (a later candidate is judged on a set no choice has seen)
 seed: 0                            # the generator's seed whose pair plan is run
+variant: seen                      # seen | val_object | val_scene | val_both
 out: outputs/check_physics.json
 """
 ALPHA = 0.05
 RESAMPLES = 9999
 
 
-def run_preset(args: tuple[str, range, int, int]) -> dict[str, Any]:
+def run_preset(args: tuple[str, range, int, str, int]) -> dict[str, Any]:
     """The labels of the fixed set under one preset (in a worker process), with its physics-only speed."""
     from tqdm import tqdm
 
@@ -50,15 +52,15 @@ def run_preset(args: tuple[str, range, int, int]) -> dict[str, Any]:
     from sim_backends.generate import pair_seed, scenario_order
     from sim_backends.registry import backend_spec, make_backend
 
-    preset, pairs, seed, position = args
+    preset, pairs, seed, variant, position = args
     src = make_backend("pybullet", cameras=[], physics=preset)
     order = scenario_order(src.scenarios(), seed, pairs.stop, backend_spec("pybullet").cls.scenario_repeats())
     rows, t = [], time.perf_counter()
     for j in tqdm(pairs, desc=preset, position=position, leave=False):
-        s = pair_seed(seed, j, 0, "seen")
+        s = pair_seed(seed, j, 0, variant)
         for role, ep in (
-            ("nominal", run_nominal(src, order[j], s, "seen")),
-            ("injected", run_injected(src, order[j], s, "seen")),
+            ("nominal", run_nominal(src, order[j], s, variant)),
+            ("injected", run_injected(src, order[j], s, variant)),
         ):
             lab = ep.labels
             outcome = "success" if lab.success else ("explained" if lab.explained else "unexplained")
@@ -147,10 +149,15 @@ def main(argv: list[str]) -> int:
             iterations[str(cfg[key])] = physics_preset(cfg[key])
         except ValueError as e:
             raise ConfigError(f"{key}: {e}") from None
+    from labrobfail_vlm.taxonomy import SCENE_VARIANTS, SEALED_SPLITS
+
+    allowed = [v for v in SCENE_VARIANTS if v not in SEALED_SPLITS]
+    if cfg.variant not in allowed:
+        raise ConfigError(f"variant: expected one of {', '.join(allowed)} (sealed ones run for reported rows only)")
     if cfg.a == cfg.b:
         raise ConfigError(f"b: the same preset as a ({cfg.a!r}); name two")
     pairs = range(int(cfg.first_pair), int(cfg.first_pair) + int(cfg.pairs))
-    jobs = [(str(cfg.a), pairs, int(cfg.seed), 0), (str(cfg.b), pairs, int(cfg.seed), 1)]
+    jobs = [(str(cfg[k]), pairs, int(cfg.seed), str(cfg.variant), i) for i, k in enumerate(("a", "b"))]
     with mp.get_context("spawn").Pool(2) as pool:
         res_a, res_b = pool.map(run_preset, jobs)
     report = {
@@ -158,7 +165,7 @@ def main(argv: list[str]) -> int:
         "b": str(cfg.b),
         "solver_iterations": iterations,  # what each preset meant when this ran
         "episodes": 2 * len(pairs),
-        "set": f"pairs {pairs.start}-{pairs.stop - 1} of the seed-{int(cfg.seed)} plan, seen: nominal + first draw",
+        "set": f"pairs {pairs.start}-{pairs.stop - 1} of the seed-{cfg.seed} plan, {cfg.variant}: nominal + first draw",
         "physics_only_episodes_per_hour_per_core": {
             str(cfg.a): res_a["episodes_per_hour_per_core"],
             str(cfg.b): res_b["episodes_per_hour_per_core"],

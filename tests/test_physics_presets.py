@@ -117,12 +117,15 @@ def test_the_label_check_reads_a_one_sided_loss_in_pairs_and_refuses_unpaired_ru
         compare(_rows(0, types), _rows(0, types)[2:] + _rows(0, types)[:2])
 
 
-def test_the_check_refuses_one_preset_twice_in_one_line():
+@pytest.mark.parametrize(
+    "args, says", [(["a=fast", "b=fast"], "same preset"), (["variant=test_both"], "sealed"), (["b=quick"], "quick")]
+)
+def test_the_check_refuses_bad_settings_in_one_line(args, says):
     from conftest import ROOT, run
 
-    r = run([sys.executable, str(ROOT / "scripts/check_physics.py"), "a=fast", "b=fast"])
+    r = run([sys.executable, str(ROOT / "scripts/check_physics.py"), *args])
     assert r.returncode == 2 and "Traceback" not in r.stderr and r.stderr.strip().count("\n") == 0
-    assert "same preset" in r.stderr
+    assert says in r.stderr
 
 
 def test_the_generator_and_the_backend_default_to_the_same_preset():
