@@ -96,13 +96,9 @@ class Panda:
         return sum(p.getJointState(self.id, f, physicsClientId=self.cid)[0] for f in FINGERS)
 
     def finger_contacts(self, body: int) -> int:
-        """Number of fingers touching `body`."""
-        return sum(
-            1
-            for f in FINGERS
-            if p.getContactPoints(self.id, body, f, -1, physicsClientId=self.cid)
-            or p.getContactPoints(self.id, body, f, physicsClientId=self.cid)
-        )
+        """Number of fingers touching `body` (one query: each point names the robot's link as its link A)."""
+        links = {c[3] for c in p.getContactPoints(self.id, body, physicsClientId=self.cid)}
+        return sum(1 for f in FINGERS if f in links)
 
     def sweep(self, poses, per_move: int = 6) -> np.ndarray:
         """Points (N x 3) that the links from the elbow to the fingertips pass through along a plan of (pos, quat)
