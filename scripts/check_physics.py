@@ -23,6 +23,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import time
 from collections import Counter
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -143,10 +144,10 @@ def main(argv: list[str]) -> int:
     require_ints(cfg, ("seed", "first_pair"), 0)
     from sim_backends.pybullet.backend import physics_preset
 
-    iterations = {}
+    presets = {}
     for key in ("a", "b"):
         try:
-            iterations[str(cfg[key])] = physics_preset(cfg[key])
+            presets[str(cfg[key])] = asdict(physics_preset(cfg[key]))
         except ValueError as e:
             raise ConfigError(f"{key}: {e}") from None
     from labrobfail_vlm.taxonomy import SCENE_VARIANTS, SEALED_SPLITS
@@ -163,7 +164,7 @@ def main(argv: list[str]) -> int:
     report = {
         "a": str(cfg.a),
         "b": str(cfg.b),
-        "solver_iterations": iterations,  # what each preset meant when this ran
+        "presets": presets,  # what each preset meant when this ran
         "episodes": 2 * len(pairs),
         "set": f"pairs {pairs.start}-{pairs.stop - 1} of the seed-{cfg.seed} plan, {cfg.variant}: nominal + first draw",
         "physics_only_episodes_per_hour_per_core": {

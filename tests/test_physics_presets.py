@@ -21,7 +21,9 @@ def test_each_preset_sets_its_solver_and_changes_the_episode():
         try:
             ep = run_nominal(src, "pick_place_beaker_large", 3, "seen")
             params = p.getPhysicsEngineParameters(physicsClientId=src.cid)
-            assert params["numSolverIterations"] == PHYSICS[name]
+            assert params["numSolverIterations"] == PHYSICS[name].solver_iterations
+            spin = p.getDynamicsInfo(src.scene.robot.id, 9, physicsClientId=src.cid)[7]  # a finger's spinning friction
+            assert (spin > 0) == PHYSICS[name].torsional_friction
             traces.setdefault(name, []).append(json.dumps(ep.state_trace, sort_keys=True))
         finally:
             src.close()
