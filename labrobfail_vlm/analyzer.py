@@ -29,7 +29,14 @@ from PIL import Image
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.actions import to_primitives
 from labrobfail_vlm.corrections import STRATEGIES, candidates
-from labrobfail_vlm.failure_score import check_failure_score, read_rows, score_reads, shared_rows, verdicts
+from labrobfail_vlm.failure_score import (
+    Q2_OPTIONS,
+    check_failure_score,
+    read_rows,
+    score_reads,
+    shared_rows,
+    verdicts,
+)
 from labrobfail_vlm.grid import GridConfig, build_grid, fit_grid, sample_keyframes
 from labrobfail_vlm.model.processor import common_prefix_len
 from labrobfail_vlm.option_bias import BIASED_DIMS, biased_choice, check_option_bias, option_count
@@ -140,7 +147,7 @@ def plan_reply(
     if dim == "Q1":
         return Ask("actions")
     if dim == "Q2":
-        return Ask("choose", ("Yes", "No"))
+        return Ask("choose", Q2_OPTIONS)
     if dim == "Q6":  # consistent with Q2: no correction after "no failure"; after a failure an instruction,
         # not the no-correction sentence nor a closed-set reply (Yes/No/None/a number)
         if failed is False:

@@ -98,7 +98,9 @@ def homogeneity(a: list[Any], b: list[Any]) -> dict[str, Any]:
 
 def compare(ra: list[dict[str, Any]], rb: list[dict[str, Any]]) -> dict[str, Any]:
     """The five tests of the module's docstring, the paired agreement and the changed episodes."""
-    from scipy.stats import binomtest, fisher_exact
+    from scipy.stats import fisher_exact
+
+    from sim_backends.supervision.paired import mcnemar_exact
 
     if [(r["pair"], r["role"]) for r in ra] != [(r["pair"], r["role"]) for r in rb]:
         raise ValueError("the two runs do not hold the same episodes in the same order")
@@ -111,7 +113,7 @@ def compare(ra: list[dict[str, Any]], rb: list[dict[str, Any]]) -> dict[str, Any
     fisher = fisher_exact([[sa, len(na) - sa], [sb, len(nb) - sb]]).pvalue
     lost = sum(x == "success" != y for x, y in zip(na, nb))  # a nominal run a succeeds in and b fails
     won = sum(y == "success" != x for x, y in zip(na, nb))
-    paired = binomtest(lost, lost + won).pvalue if lost + won else 1.0
+    paired = mcnemar_exact(lost, won)
     tests = {
         "nominal_success": {"a": [sa, len(na)], "b": [sb, len(nb)], "p": float(fisher)},
         "injected_outcome": homogeneity(of(ra, "injected", "outcome"), of(rb, "injected", "outcome")),
@@ -132,7 +134,7 @@ def compare(ra: list[dict[str, Any]], rb: list[dict[str, Any]]) -> dict[str, Any
     return {
         "tests": tests,
         "keeps_labels": keeps,
-        "nominal_success_paired": {"lost": lost, "won": won, "p": round(float(paired), 4), "ruled_on": False},
+        "nominal_success_paired": {"lost": lost, "won": won, "p": round(paired, 4), "ruled_on": False},
         "paired_agreement": round(1.0 - len(changed) / len(ra), 4),
         "changed": changed,
     }
