@@ -60,7 +60,7 @@ def run_preset(args: tuple[str, range, int, str, int]) -> dict[str, Any]:
     for j in tqdm(pairs, desc=preset, position=position, leave=False):
         s = pair_seed(seed, j, 0, variant)
         for role, ep in (
-            ("nominal", run_nominal(src, order[j], s, variant)),
+            ("nominal", run_nominal(src, order[j], s, variant, then_draw=0)),  # as the generator runs a pair
             ("injected", run_injected(src, order[j], s, variant)),
         ):
             lab = ep.labels

@@ -50,10 +50,15 @@ def apply_spec(
     raise ValueError(f"perturbation: unknown level {level!r}; expected control, physics or semantic")
 
 
-def run_nominal(src: FailureSource, scenario: str, seed: int, variant: str) -> Episode:
-    """The unperturbed plan from the seeded initial state."""
+def run_nominal(src: FailureSource, scenario: str, seed: int, variant: str, then_draw: int | None = None) -> Episode:
+    """The unperturbed plan from the seeded initial state. `then_draw`: the injected draw run next from the same
+    state, which a source that reuses prefixes (`reuse_prefix`) then starts where the two plans part."""
     src.reset(scenario, seed, variant)
-    ep = src.execute(src.scripted_keyframes())
+    then = None
+    if then_draw is not None and src.reuse_prefix:
+        kfs, events, _ = injected_plan(src, scenario, seed, then_draw)
+        then = (kfs, events)
+    ep = src.execute(src.scripted_keyframes(), then=then)
     ep.perturbation = {"level": "none"}
     return ep
 
@@ -70,14 +75,22 @@ def perturbation_rng(seed: int, draw: int = 0) -> np.random.Generator:
     return np.random.default_rng([seed, 0xFA11] + ([draw] if draw else []))
 
 
-def run_injected(src: FailureSource, scenario: str, seed: int, variant: str, draw: int = 0) -> Episode:
-    """The same initial state under one perturbation; `draw` > 0 draws another perturbation."""
+def injected_plan(
+    src: FailureSource, scenario: str, seed: int, draw: int = 0
+) -> tuple[list[Keyframe], list[PhysicsEvent], dict]:
+    """The keyframes, physics events and provenance of the injected episode with this seed and draw, for the
+    scene `reset` built (the perturbation's stream is a function of the seed and draw alone)."""
     rng = perturbation_rng(seed, draw)
     specs = src.scenario_info(scenario)["perturbations"]
+    if not specs:
+        return src.scripted_keyframes(), [], {"level": "none"}
+    return apply_spec(draw_spec(specs, rng), src.scripted_keyframes(), src.object_positions(), rng)
+
+
+def run_injected(src: FailureSource, scenario: str, seed: int, variant: str, draw: int = 0) -> Episode:
+    """The same initial state under one perturbation; `draw` > 0 draws another perturbation."""
     src.reset(scenario, seed, variant)
-    kfs, events, prov = src.scripted_keyframes(), [], {"level": "none"}
-    if specs:
-        kfs, events, prov = apply_spec(draw_spec(specs, rng), kfs, src.object_positions(), rng)
+    kfs, events, prov = injected_plan(src, scenario, seed, draw)
     injected = src.execute(kfs, events)
     injected.perturbation = prov
     return injected

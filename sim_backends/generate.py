@@ -186,7 +186,7 @@ def labelable_pair(
     records: list[dict[str, Any]] = []
     for a in range(MAX_DRAWS):
         s = pair_seed(seed, j, a, stream or variant)
-        nominal = run_nominal(src, scenario, s, variant)
+        nominal = run_nominal(src, scenario, s, variant, then_draw=0)
         if not nominal.labels.success:
             records.append(
                 {

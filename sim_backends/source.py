@@ -25,7 +25,7 @@ from __future__ import annotations
 import io
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 from PIL import Image
@@ -64,6 +64,45 @@ class _Run:
     cameras: list[list[list[float] | None]] = field(default_factory=list)  # [view][keyframe]: see camera_matrices
     last: list[np.ndarray] | None = None  # images rendered at the end of the last step
     render: set[int] | None = None  # keyframe indices to render at the end of their step (None: every one)
+    checkpoints: dict[int, Any] | None = None  # a recorded run's saved states: [k] before keyframe k (_Prefix)
+    keep: set[int] | None = None  # the k whose state a recorded run saves (None: every one)
+
+
+@dataclass
+class _Prefix:
+    """An open-loop run recorded for prefix reuse: the saved state before each of its keyframes, and its images.
+
+    A pair's injected run repeats its nominal run's keyframes up to the first one the perturbation changes (or a
+    physics event fires at). With `reuse_prefix` on, `reset()` of the same (scenario, seed, variant) rewinds the
+    world to the recorded start instead of rebuilding it, and the next `execute` rewinds to the state before the
+    first keyframe that differs (the latest saved state at or before it) and copies the images before it. The
+    saved state is positions, velocities and contacts, not the solver's warm start, so the continuation differs a
+    little from a fresh run's (which is why it is a physics preset of its own, checked like one:
+    scripts/check_physics.py). Saving a state costs about 3 ms in a lab scene, so a run told which run follows it
+    (`execute(then=...)`) saves only the state that run restarts from."""
+
+    key: tuple[str, int, str]
+    keyframes: list[Keyframe]
+    render: set[int] | None
+    checkpoints: dict[int, Any]
+    images: list[list[bytes]]
+    cameras: list[list[list[float] | None]]
+    armed: bool = False  # reset() rewound the world to checkpoint 0: the next execute() may fast-forward
+
+
+def shared_prefix(
+    a: Sequence[Keyframe], a_render: set[int] | None, b: Sequence[Keyframe], b_render: set[int] | None, events=()
+) -> int:
+    """How many leading keyframes a run of `b` under `events` can take from a run of `a`: the same keyframes, no
+    event before them, the same of them rendered, and never the last one (a backend may draw the last keyframe
+    again after the settling)."""
+    k, limit = 0, min(len(a), len(b), *(e.at_keyframe for e in events)) - 1
+    while k < limit and a[k] == b[k]:
+        k += 1
+    below = lambda r: None if r is None else {i for i in r if i < k}  # noqa: E731
+    while k > 0 and below(a_render) != below(b_render):
+        k -= 1
+    return max(k, 0)
 
 
 class FailureSource(ABC):
@@ -78,6 +117,10 @@ class FailureSource(ABC):
         self._key: tuple[str, int, str] = ("", 0, "")
         self._fresh = False
         self._run: _Run | None = None
+        self._prefix: _Prefix | None = None
+
+    # Prefix reuse (_Prefix): off unless a backend that can save and restore its state turns it on.
+    reuse_prefix: bool = False
 
     # ---- configuration (class level: checked before any simulator starts) ---------------------------
     # the fixed views this backend renders (name -> its camera); empty: names checked only when a source is built
@@ -184,13 +227,40 @@ class FailureSource(ABC):
     def task_meta(self, executed: Sequence[Keyframe]) -> TaskMeta:
         """The task metadata of the current scene, for an episode that executed `executed`."""
 
+    # ---- prefix reuse (backends that can save and restore their state) ------------------------------
+    def _checkpoint(self) -> Any:
+        """The simulator's state now, to `_rewind` to (backends with `reuse_prefix`)."""
+        raise NotImplementedError(f"{self.name}: no prefix reuse")
+
+    def _rewind(self, checkpoint: Any) -> None:
+        """Put the world back in a state `_checkpoint` saved during the recorded run, as the run saw it then."""
+        raise NotImplementedError(f"{self.name}: no prefix reuse")
+
+    def _release(self, checkpoints: Iterable[Any]) -> None:  # noqa: B027 - optional hook
+        """Free saved states that will not be rewound to."""
+
+    def _world_clean(self) -> bool:
+        """Whether the world since the recorded run began holds only what its checkpoints restore."""
+        return True
+
+    def _drop_prefix(self) -> None:
+        if self._prefix is not None:
+            self._release(self._prefix.checkpoints.values())
+            self._prefix = None
+
     # ---- the stepping contract ---------------------------------------------------------------------
     def reset(self, scenario: str, seed: int, variant: str = "seen") -> None:
         check_variant(variant)
         self._run = None
-        self._reset(scenario, seed, variant)
+        pre, key = self._prefix, (scenario, seed, variant)
+        if pre is not None and pre.key == key and not pre.armed and self._world_clean():
+            self._rewind(pre.checkpoints[0])  # the world the recorded run started from, without rebuilding it
+            pre.armed = True
+        else:
+            self._drop_prefix()
+            self._reset(scenario, seed, variant)
         self._fresh = True
-        self._key = (scenario, seed, variant)
+        self._key = key
 
     def begin(self, physics_events: Sequence[PhysicsEvent] = (), render: set[int] | None = None) -> None:
         """Start recording an episode from the state `reset` built; `physics_events` fire before the
@@ -215,6 +285,8 @@ class FailureSource(ABC):
                 self._apply_physics(ev)
         self._move(kf, i)
         run.executed.append(kf)
+        if run.checkpoints is not None and (run.keep is None or i + 1 in run.keep):
+            run.checkpoints[i + 1] = self._checkpoint()
         if run.render is not None and i not in run.render:
             run.last = None  # observe() renders on demand
             for v, c in zip(run.images, run.cameras):
@@ -275,13 +347,49 @@ class FailureSource(ABC):
             cameras=run.cameras,
         )
 
-    def execute(self, keyframes: Sequence[Keyframe], physics_events: Sequence[PhysicsEvent] = ()) -> Episode:
-        """Run keyframes from the state set by the last `reset`, render and label (open loop)."""
-        picks = sample_keyframes([kf.segment for kf in keyframes], self.render_frames) if self.render_frames else None
-        self.begin(physics_events, None if picks is None else set(picks))
-        for kf in keyframes:
+    def _picks(self, keyframes: Sequence[Keyframe]) -> set[int] | None:
+        """The keyframes an open-loop run renders (None: every one)."""
+        if not self.render_frames:
+            return None
+        return set(sample_keyframes([kf.segment for kf in keyframes], self.render_frames))
+
+    def execute(
+        self,
+        keyframes: Sequence[Keyframe],
+        physics_events: Sequence[PhysicsEvent] = (),
+        then: tuple[Sequence[Keyframe], Sequence[PhysicsEvent]] | None = None,
+    ) -> Episode:
+        """Run keyframes from the state set by the last `reset`, render and label (open loop). With `reuse_prefix`,
+        a run from a rebuilt world is recorded for the next run from the same reset (`then`: that run's keyframes
+        and events, so that only the state it restarts from is saved), and a run after such a reset starts from
+        the recorded run's state where their keyframes part (_Prefix)."""
+        render = self._picks(keyframes)
+        pre = self._prefix if self._prefix is not None and self._prefix.armed else None
+        if pre is None:
+            self._drop_prefix()
+        self.begin(physics_events, render)
+        run, k = self._active(), 0
+        if pre is not None:
+            k = shared_prefix(pre.keyframes, pre.render, keyframes, render, physics_events)
+            k = max(i for i in pre.checkpoints if i <= k)
+            if k:
+                self._rewind(pre.checkpoints[k])
+                run.executed = list(keyframes[:k])
+                run.images = [list(v[:k]) for v in pre.images]
+                run.cameras = [list(c[:k]) for c in pre.cameras]
+        self._drop_prefix()  # used once: the run below may change what a checkpoint does not restore
+        record = self.reuse_prefix and pre is None and not physics_events
+        if record:
+            run.checkpoints = {0: self._checkpoint()}
+            if then is not None:
+                run.keep = {shared_prefix(keyframes, render, then[0], self._picks(then[0]), then[1])}
+        for kf in keyframes[k:]:
             self.step(kf)
-        return self.finish()
+        images, cameras = [list(v) for v in run.images], [list(c) for c in run.cameras]  # before a settled redraw
+        ep = self.finish()
+        if record:
+            self._prefix = _Prefix(self._key, list(keyframes), render, dict(run.checkpoints or {}), images, cameras)
+        return ep
 
     # ---- supervision hooks (closed loop: a supervisor and a correction executor read the episode so far) --
     def executed_so_far(self) -> list[Keyframe]:

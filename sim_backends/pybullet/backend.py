@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 import pybullet as p
@@ -44,6 +44,10 @@ class Physics:
 
     solver_iterations: int = 50  # contact solver iterations per physics step (20 drops half the grasps)
     torsional_friction: bool = True  # False: every link's spinning and rolling friction 0 once the scene is built
+    # True: an injected run continues from its nominal run's saved state at the first keyframe they differ in
+    # (source._Prefix); PyBullet's saveState keeps positions, velocities and contacts but not the solver's warm
+    # start, so the continuation differs a little from a fresh run's
+    reuse_prefix: bool = False
 
 
 # `reference` (default): every dataset so far (a run.json without the key reads as it). `fast`: no spinning or
@@ -51,7 +55,12 @@ class Physics:
 # fixed 400-episode sets both in seen scenes and on val_object's glassware (scripts/check_physics.py; 30 or 40
 # iterations, Bullet's pyramid friction and IK at 30 Hz each cut the nominal success); opt-in, as the sealed
 # catalogue is not checked and seen scenes lost 7 nominal runs and won none (docs/EXPERIMENTS.md, 6 Dec).
-PHYSICS = {"reference": Physics(), "fast": Physics(torsional_friction=False)}
+PHYSICS = {
+    "reference": Physics(),
+    "fast": Physics(torsional_friction=False),
+    "prefix": Physics(reuse_prefix=True),
+    "fast_prefix": Physics(torsional_friction=False, reuse_prefix=True),
+}
 DEFAULT_PHYSICS = "reference"
 
 
@@ -137,6 +146,7 @@ class PyBulletSource(ScenarioConfig, FailureSource):
     ):
         super().__init__()
         self.physics = physics_preset(physics)
+        self.reuse_prefix = self.physics.reuse_prefix
         self.camera_jitter, self.max_distractors, self.lowpoly_robot = (
             camera_jitter,
             int(max_distractors),
@@ -154,6 +164,8 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         # the same. Off by default: the page's data were rendered without it.
         self.broken_glass = _flag("broken_glass", broken_glass)
         self._broken: set[str] = set()
+        self._lit: dict[int, list[tuple[int, tuple[float, ...]]]] = {}  # lamp body -> its shapes' unlit colours
+        self._changed = False  # a physics event changed a parameter since the scene was built
         self.cfg = self.load_task_config(tasks_file)
         self.cid = p.connect(p.DIRECT)
         if egl:
@@ -215,7 +227,7 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         sc = self._scenario(scenario)
         cid = self.cid
         self._trace = None  # the last episode's: a lamp must not read it for the new scene
-        self._broken = set()
+        self._broken, self._lit, self._changed = set(), {}, False
         p.resetSimulation(physicsClientId=cid)
         if self.renderer is not None:
             self.renderer.forget_scene()  # a build that fails must not leave the old backdrops on new body ids
@@ -304,6 +316,9 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         for goal in self.plan.goals:  # the trace holds every button's travel from its first sample (_begin)
             if goal.kind == "button" and GOALS["button"](self._trace.cols, {}, g := goal.to_dict()):
                 body = self.scene.objects[g["object"]].body
+                if body not in self._lit:  # its unlit colours, for a rewind to before the press (_rewind)
+                    shapes = p.getVisualShapeData(body, physicsClientId=self.cid)
+                    self._lit[body] = [(k, tuple(v[7])) for k, v in enumerate(x for x in shapes if x[1] == -1)]
                 p.changeVisualShape(body, -1, rgbaColor=assets.LAMP_RGBA, physicsClientId=self.cid)
 
     def _settled_images(self) -> list[np.ndarray] | None:
@@ -362,9 +377,44 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         self.cid = None  # type: ignore[assignment]
 
     # -- helpers -------------------------------------------------------------------------------------
+    # -- prefix reuse (source._Prefix) ------------------------------------------------------------------
+    def _checkpoint(self) -> _Checkpoint:
+        robot = self.scene.robot
+        return _Checkpoint(
+            p.saveState(physicsClientId=self.cid),
+            self._steps,
+            {k: list(v) for k, v in self._trace.cols.items()},
+            list(self._trace.kf_end),
+            list(robot.q_target),
+            robot.gripper_cmd,
+            robot.grip_force,
+        )
+
+    def _rewind(self, cp: _Checkpoint) -> None:
+        p.restoreState(cp.state, physicsClientId=self.cid)
+        self._steps = cp.steps
+        self._trace.cols = {k: list(v) for k, v in cp.cols.items()}
+        self._trace.kf_end = list(cp.kf_end)
+        robot = self.scene.robot
+        robot.q_target, robot.gripper_cmd, robot.grip_force = list(cp.q_target), cp.gripper_cmd, cp.grip_force
+        for body, shapes in self._lit.items():  # unlit: the next render lights what the rewound trace has pressed
+            for k, rgba in shapes:
+                p.changeVisualShape(body, -1, shapeIndex=k, rgbaColor=rgba, physicsClientId=self.cid)
+        self._lit = {}
+
+    def _release(self, checkpoints: Iterable[_Checkpoint]) -> None:
+        if self.cid is not None and p.isConnected(self.cid):
+            for cp in checkpoints:
+                p.removeState(cp.state, physicsClientId=self.cid)
+
+    def _world_clean(self) -> bool:
+        # shards are bodies a saved state does not hold; a changed friction or mass is not in it either
+        return not self._broken and not self._changed
+
     def _apply_physics(self, ev: PhysicsEvent) -> None:
         scene, cid = self.scene, self.cid
         assert scene is not None
+        self._changed = True
         if ev.param == "grip_force":
             scene.robot.grip_force *= ev.scale
             scene.robot.set_gripper(scene.robot.gripper_cmd)
@@ -402,6 +452,19 @@ class PyBulletSource(ScenarioConfig, FailureSource):
             description=self.describe(self._key[0], self.scene.labels),
             robot_base=list(scene.robot.base),
         )
+
+
+@dataclass
+class _Checkpoint:
+    """A saved simulator state (PyBullet's saveState id) and the recorder's own state at that moment."""
+
+    state: int
+    steps: int
+    cols: dict[str, list]
+    kf_end: list[int]
+    q_target: list[float]
+    gripper_cmd: int
+    grip_force: float
 
 
 class _Trace:
