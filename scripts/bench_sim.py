@@ -46,7 +46,7 @@ RENDER_VARIANTS = {
 }
 # Physics presets timed beside the generator's default one, physics only and end to end (sim_backends/pybullet/
 # backend.py PHYSICS; whether a preset keeps the labels is scripts/check_physics.py's question, not this one's).
-PHYSICS_VARIANTS = {"pybullet": ("reference", "fast")}
+PHYSICS_VARIANTS = {"pybullet": ("reference", "fast", "prefix")}
 
 
 def per_hour(n: int, seconds: float) -> float:

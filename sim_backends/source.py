@@ -75,9 +75,9 @@ class _Prefix:
     A pair's injected run repeats its nominal run's keyframes up to the first one the perturbation changes (or a
     physics event fires at). With `reuse_prefix` on, `reset()` of the same (scenario, seed, variant) rewinds the
     world to the recorded start instead of rebuilding it, and the next `execute` rewinds to the state before the
-    first keyframe that differs (the latest saved state at or before it) and copies the images before it. The
-    saved state is positions, velocities and contacts, not the solver's warm start, so the continuation differs a
-    little from a fresh run's (which is why it is a physics preset of its own, checked like one:
+    first keyframe that differs (the latest saved state at or before it) and copies the images before it. A saved
+    state may not restore everything the simulator carries from step to step (PyBullet's: the joint motors' last
+    torques), so the continuation may differ a little from a fresh run's (a physics preset of its own, checked like one:
     scripts/check_physics.py). Saving a state costs about 3 ms in a lab scene, so a run told which run follows it
     (`execute(then=...)`) saves only the state that run restarts from."""
 
@@ -96,7 +96,7 @@ def shared_prefix(
     """How many leading keyframes a run of `b` under `events` can take from a run of `a`: the same keyframes, no
     event before them, the same of them rendered, and never the last one (a backend may draw the last keyframe
     again after the settling)."""
-    k, limit = 0, min(len(a), len(b), *(e.at_keyframe for e in events)) - 1
+    k, limit = 0, min(len(a) - 1, len(b) - 1, *(e.at_keyframe for e in events))
     while k < limit and a[k] == b[k]:
         k += 1
     below = lambda r: None if r is None else {i for i in r if i < k}  # noqa: E731
