@@ -1,7 +1,7 @@
 """Benchmark LabRobFail-Sim throughput on this machine and write JSON.
 
 Run as:
-    python scripts/bench_sim.py [backend=pybullet] [episodes=48] [image_size=192]
+    python scripts/bench_sim.py [backend=pybullet] [episodes=48] [image_size=192] [rounds=2]
                                 [out=outputs/bench_sim_BACKEND.json]
     python scripts/bench_sim.py --backend maniskill --episodes 8
 
@@ -13,19 +13,25 @@ layered backdrop) at every keyframe, the default rendering at only the keyframes
 `render_frames` grid shows, and end to end into shards (the generator's defaults) with 1 worker and with 2
 workers (speed-up = ratio), and on 1 worker with the whole scene rendered; each physics preset other than the
 generator's default, physics only and end to end on 1 worker. Peak memory of the main process and of
-a worker.
+a worker. This machine's speed drifts by more than a lever's gain within minutes, so the rows run interleaved,
+`rounds` times, each row's figure is its median, and each variant's speed is also given as a ratio to its base row
+measured in the same round (median over rounds): the figure to compare variants by.
 """
 
 from __future__ import annotations
 
 import resource
+import statistics
 import tempfile
 import time
 from pathlib import Path
+from typing import Callable
+
+from tqdm import tqdm
 
 from labrobfail_vlm.config import ConfigError, cli_main, load_config, require_ints
 from labrobfail_vlm.io import write_report
-from sim_backends.generate import generate, labelable_pair, scenario_order
+from sim_backends.generate import close_sources, generate, labelable_pair, scenario_order
 from sim_backends.generate import load_config as generate_config
 from sim_backends.registry import available_backends, backend_spec, make_backend
 
@@ -33,6 +39,7 @@ DEFAULTS = """
 backend: pybullet                       # registered FailureSource (sim_backends/registry.py)
 episodes: 48                            # episodes per row (even: they run as nominal/injected pairs)
 image_size: 192                         # square rendered views, px
+rounds: 2                               # every row once per round, rows interleaved; a row's figure is its median
 out: outputs/bench_sim_${backend}.json  # the JSON result (${backend}: the backend above)
 """
 
@@ -54,7 +61,7 @@ def per_hour(n: int, seconds: float) -> float:
 
 
 def in_process(backend: str, pairs: int, render_frames: int | None = None, **kwargs) -> float:
-    """Episodes/hour of the generator's pairs (redraws included) in this process."""
+    """Seconds for the generator's pairs (redraws included) in this process."""
     src = make_backend(backend, **kwargs)
     src.render_frames = render_frames
     order = scenario_order(src.scenarios(), 0, pairs, backend_spec(backend).cls.scenario_repeats(**kwargs))
@@ -63,10 +70,11 @@ def in_process(backend: str, pairs: int, render_frames: int | None = None, **kwa
         labelable_pair(src, scenario, 0, j, "seen")
     dt = time.perf_counter() - t
     src.close()
-    return per_hour(2 * pairs, dt)
+    return dt
 
 
 def end_to_end(backend: str, workers: int, n: int, image_size: int, extra: tuple[str, ...] = ()) -> float:
+    close_sources()  # every round starts its simulator, as a generation does (and the 2-worker row's pool)
     with tempfile.TemporaryDirectory() as d:
         cfg = generate_config(
             [
@@ -86,6 +94,45 @@ def end_to_end(backend: str, workers: int, n: int, image_size: int, extra: tuple
         return time.perf_counter() - t
 
 
+def rows(backend: str, n: int, size: int) -> tuple[dict[str, Callable[[], float]], dict[str, str]]:
+    """Each row's timing (seconds for the n episodes) by its JSON key, and the row each other row is a ratio to."""
+    pairs, out, base = n // 2, {}, {}
+    out["physics_only"] = lambda: in_process(backend, pairs, cameras=[])
+    default_physics = generate_config([]).backend_kwargs.get("physics")
+    others = [v for v in PHYSICS_VARIANTS.get(backend, ()) if v != default_physics]
+    for name in others:  # the unnamed rows run the generator's default preset
+        key = f"physics_only_{name}_physics"
+        out[key], base[key] = (lambda name=name: in_process(backend, pairs, cameras=[], physics=name)), "physics_only"
+    render = RENDER_VARIANTS.get(backend, {"default": {}})
+    first = f"rendered_2x{size}_{next(iter(render))}"
+    for name, kw in render.items():
+        key = f"rendered_2x{size}_{name}"
+        out[key] = lambda kw=kw: in_process(backend, pairs, image_size=size, **kw)
+        if key != first:
+            base[key] = first
+    # The backend's default rendering, only at the keyframes a grid of `render_frames` shows (the generator's
+    # default), against every keyframe in the row above.
+    rf = int(generate_config([]).render_frames)
+    out[f"rendered_2x{size}_grid_keyframes_{rf}"] = lambda: in_process(
+        backend, pairs, render_frames=rf, image_size=size
+    )
+    base[f"rendered_2x{size}_grid_keyframes_{rf}"] = first
+    out["end_to_end"] = lambda: end_to_end(backend, 1, n, size)
+    for name, kw in render.items():  # before the backdrop, end to end beside it
+        if kw.get("layered_render") is False:
+            flags = tuple(f"backend_kwargs.{k}={str(v).lower()}" for k, v in kw.items())
+            out[f"end_to_end_{name}"], base[f"end_to_end_{name}"] = (
+                (lambda flags=flags: end_to_end(backend, 1, n, size, flags)),
+                "end_to_end",
+            )
+    for name in others:
+        key = f"end_to_end_{name}_physics"
+        out[key] = lambda name=name: end_to_end(backend, 1, n, size, (f"backend_kwargs.physics={name}",))
+        base[key] = "end_to_end"
+    out["end_to_end_2_workers"] = lambda: end_to_end(backend, 2, n, size)
+    return out, base
+
+
 def main(argv: list[str]) -> int:
     cfg = load_config(DEFAULTS, argv)
     backend = str(cfg.backend)
@@ -94,53 +141,37 @@ def main(argv: list[str]) -> int:
     require_ints(cfg, ("episodes",), 2)
     if cfg.episodes % 2:  # the end-to-end timing runs the generator, which takes whole pairs
         raise ConfigError(f"episodes: must be even (success/failure pairs), got {cfg.episodes}")
-    require_ints(cfg, ("image_size",))
-    n, size = cfg.episodes, cfg.image_size
-    out = Path(str(cfg.out))
-    pairs = n // 2
+    require_ints(cfg, ("image_size", "rounds"))
+    n, size, rounds = cfg.episodes, cfg.image_size, cfg.rounds
+    timed, base = rows(backend, n, size)
+    seconds: dict[str, list[float]] = {k: [] for k in timed}
+    for _ in tqdm(range(rounds), desc="rounds"):  # every row once per round: a drift reaches every row alike
+        for key, run in timed.items():
+            seconds[key].append(run())
     res: dict = {
         "backend": backend,
         "episodes": n,
         "image_size": size,
+        "rounds": rounds,
         "scenario_mix": "the generator's pair plan for seed 0 (all scenarios, oversampled by horizon)",
         "scenarios": len(backend_spec(backend).cls.list_scenarios()),
-        "physics_only_episodes_per_hour_per_core": in_process(backend, pairs, cameras=[]),
+        "physics_default": generate_config([]).backend_kwargs.get("physics"),
     }
-    default_physics = generate_config([]).backend_kwargs.get("physics")
-    others = [v for v in PHYSICS_VARIANTS.get(backend, ()) if v != default_physics]
-    if others:  # the unnamed rows run the generator's default preset
-        res["physics_default"] = default_physics
-    for name in others:
-        res[f"physics_only_{name}_physics_episodes_per_hour_per_core"] = in_process(
-            backend, pairs, cameras=[], physics=name
-        )
-    for name, kw in RENDER_VARIANTS.get(backend, {"default": {}}).items():
-        res[f"rendered_2x{size}_{name}_episodes_per_hour_per_core"] = in_process(backend, pairs, image_size=size, **kw)
-    # The backend's default rendering, only at the keyframes a grid of `render_frames` shows (the generator's
-    # default), against every keyframe in the row above.
-    rf = int(generate_config([]).render_frames)
-    res[f"rendered_2x{size}_grid_keyframes_{rf}_episodes_per_hour_per_core"] = in_process(
-        backend, pairs, render_frames=rf, image_size=size
+    for key, t in seconds.items():
+        workers = 2 if key.endswith("_2_workers") else 1
+        res[f"{key}_episodes_per_hour" + ("" if workers > 1 else "_per_core")] = per_hour(n, statistics.median(t))
+    # per round, the row's speed over its base row's (>1: faster), then the median over rounds
+    res["speed_ratio_to_base"] = {
+        f"{key} / {b}": round(statistics.median(tb / tk for tb, tk in zip(seconds[b], seconds[key])), 3)
+        for key, b in base.items()
+    }
+    res["speedup_2_workers"] = round(
+        statistics.median(a / b for a, b in zip(seconds["end_to_end"], seconds["end_to_end_2_workers"])), 2
     )
-    t1 = end_to_end(backend, 1, n, size)
-    res["end_to_end_episodes_per_hour_per_core"] = per_hour(n, t1)
-    for name, kw in RENDER_VARIANTS.get(backend, {}).items():  # before the backdrop, end to end beside it
-        if kw.get("layered_render") is False:
-            flags = tuple(f"backend_kwargs.{k}={str(v).lower()}" for k, v in kw.items())
-            res[f"end_to_end_{name}_episodes_per_hour_per_core"] = per_hour(n, end_to_end(backend, 1, n, size, flags))
-    for name in others:
-        t = end_to_end(backend, 1, n, size, (f"backend_kwargs.physics={name}",))
-        res[f"end_to_end_{name}_physics_episodes_per_hour_per_core"] = per_hour(n, t)
-    t2 = end_to_end(backend, 2, n, size)
-    res.update(
-        {
-            "end_to_end_2_workers_episodes_per_hour": per_hour(n, t2),
-            "speedup_2_workers": round(t1 / t2, 2),
-            "peak_rss_mb_main_process": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
-            "peak_rss_mb_worker": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1),
-        }
-    )
-    return write_report(out, res)
+    res["seconds_per_round"] = {k: [round(x, 2) for x in v] for k, v in seconds.items()}
+    res["peak_rss_mb_main_process"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+    res["peak_rss_mb_worker"] = round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1)
+    return write_report(Path(str(cfg.out)), res)
 
 
 if __name__ == "__main__":

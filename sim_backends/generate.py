@@ -274,6 +274,12 @@ def run_shard(job: dict[str, Any], backend: str, kwargs: dict[str, Any], variant
 _SOURCES: dict[str, Any] = {}
 
 
+def close_sources() -> None:
+    """Close this process's cached simulators (a benchmark that times start-up again)."""
+    while _SOURCES:
+        _SOURCES.popitem()[1].close()
+
+
 def _worker_source(backend: str, kwargs: dict[str, Any]):
     """One simulator per worker process, reused across shards."""
     from sim_backends.registry import make_backend

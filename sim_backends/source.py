@@ -78,10 +78,12 @@ class _Prefix:
     first keyframe that differs (the latest saved state at or before it) and copies the images before it. A saved
     state may not restore everything the simulator carries from step to step (PyBullet's: the joint motors' last
     torques), so the continuation may differ a little from a fresh run's (a physics preset of its own, checked like one:
-    scripts/check_physics.py). Saving a state costs about 3 ms in a lab scene, so a run told which run follows it
-    (`execute(then=...)`) saves only the state that run restarts from."""
+    scripts/check_physics.py). Only a run told which run follows it (`execute(then=...)`) is recorded, and it saves
+    only the state that run restarts from (a saved state costs about 3 ms in a lab scene); any other run after the
+    rewind finds the world rebuilt, as `reset` alone builds it."""
 
     key: tuple[str, int, str]
+    then: tuple[list[Keyframe], list[PhysicsEvent]]  # the run the recording is for
     keyframes: list[Keyframe]
     render: set[int] | None
     checkpoints: dict[int, Any]
@@ -254,7 +256,9 @@ class FailureSource(ABC):
         self._run = None
         pre, key = self._prefix, (scenario, seed, variant)
         if pre is not None and pre.key == key and not pre.armed and self._world_clean():
-            self._rewind(pre.checkpoints[0])  # the world the recorded run started from, without rebuilding it
+            # the world the recorded run started from, without rebuilding it (its recorder rewound too, so what a
+            # backend reads between reset and begin is the initial state's); kept for the planned run only
+            self._rewind(pre.checkpoints[0])
             pre.armed = True
         else:
             self._drop_prefix()
@@ -267,6 +271,9 @@ class FailureSource(ABC):
         keyframe whose index they name; `render`: the keyframe indices whose images are taken (None: all)."""
         if not self._fresh:
             raise RuntimeError("begin() needs a fresh reset(): every episode starts from the seeded initial state")
+        if self._prefix is not None and self._prefix.armed:  # rewound for the planned run, and this is another
+            self._drop_prefix()
+            self._reset(*self._key)
         self._fresh = False
         self._run = _Run(
             list(physics_events),
@@ -364,9 +371,11 @@ class FailureSource(ABC):
         and events, so that only the state it restarts from is saved), and a run after such a reset starts from
         the recorded run's state where their keyframes part (_Prefix)."""
         render = self._picks(keyframes)
-        pre = self._prefix if self._prefix is not None and self._prefix.armed else None
-        if pre is None:
-            self._drop_prefix()
+        pre = self._prefix
+        if pre is not None and pre.armed and pre.then == (list(keyframes), list(physics_events)):
+            self._prefix = None  # this run's: begin() rebuilds a world rewound for any other run
+        else:
+            pre = None
         self.begin(physics_events, render)
         run, k = self._active(), 0
         if pre is not None:
@@ -377,18 +386,25 @@ class FailureSource(ABC):
                 run.executed = list(keyframes[:k])
                 run.images = [list(v[:k]) for v in pre.images]
                 run.cameras = [list(c[:k]) for c in pre.cameras]
-        self._drop_prefix()  # used once: the run below may change what a checkpoint does not restore
-        record = self.reuse_prefix and pre is None and not physics_events
+            self._release(pre.checkpoints.values())
+        self._drop_prefix()
+        record = self.reuse_prefix and then is not None and pre is None and not physics_events
         if record:
             run.checkpoints = {0: self._checkpoint()}
-            if then is not None:
-                run.keep = {shared_prefix(keyframes, render, then[0], self._picks(then[0]), then[1])}
-        for kf in keyframes[k:]:
-            self.step(kf)
-        images, cameras = [list(v) for v in run.images], [list(c) for c in run.cameras]  # before a settled redraw
-        ep = self.finish()
-        if record:
-            self._prefix = _Prefix(self._key, list(keyframes), render, dict(run.checkpoints or {}), images, cameras)
+            run.keep = {shared_prefix(keyframes, render, then[0], self._picks(then[0]), then[1])}
+        try:
+            for kf in keyframes[k:]:
+                self.step(kf)
+            images, cameras = [list(v) for v in run.images], [list(c) for c in run.cameras]  # before a redraw
+            ep = self.finish()
+        except BaseException:
+            self._release((run.checkpoints or {}).values())
+            raise
+        if record and then is not None:
+            plan = (list(then[0]), list(then[1]))
+            self._prefix = _Prefix(
+                self._key, plan, list(keyframes), render, dict(run.checkpoints or {}), images, cameras
+            )
         return ep
 
     # ---- supervision hooks (closed loop: a supervisor and a correction executor read the episode so far) --

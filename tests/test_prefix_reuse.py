@@ -1,8 +1,8 @@
-"""Prefix reuse (physics presets `prefix` and `fast_prefix`, source._Prefix): a pair's injected run starts from its
-nominal run's saved state where the two plans part. What must hold: the nominal run is the preset's physics run as
-it was, the injected run takes the nominal's images and trace before the parting point and simulates only after it,
-a pair comes out the same whatever ran before it, only what may be shared is shared, and a rewound world shows a
-button's lamp unlit."""
+"""Prefix reuse (physics preset `prefix`, source._Prefix): a pair's injected run starts from its nominal run's saved
+state where the two plans part. What must hold: the nominal run is the reference run byte for byte, the injected run
+takes the nominal's images and trace before the parting point and simulates only after it, a pair comes out the same
+whatever ran before it, only what may be shared is shared, any run but the planned one finds the world rebuilt, and a
+rewound world shows a button's lamp unlit."""
 
 import dataclasses
 import hashlib
@@ -113,6 +113,36 @@ def test_a_rewound_world_shows_the_lamp_unlit():
     finally:
         src.close()
         fresh.close()
+
+
+def _by_hand(src, seed: int) -> str:
+    """The nominal run stepped keyframe by keyframe (as supervision steps), its trace."""
+    src.reset(SCENARIO, seed, "seen")
+    src.begin(render=set())
+    for kf in src.scripted_keyframes():
+        src.step(kf)
+    return json.dumps(src.finish().state_trace, sort_keys=True)
+
+
+def test_any_run_but_the_planned_one_finds_the_world_rebuilt():
+    """After a recorded nominal run, the same nominal run again (through execute, or stepped by hand) is the
+    reference run, not a continuation of a world rewound for the injected run."""
+    seed = pair_seed(0, PAIR, 0, "seen")
+    ref = _source("reference")
+    try:
+        want, want_by_hand = _digest(run_nominal(ref, SCENARIO, seed, "seen")), _by_hand(ref, seed)
+    finally:
+        ref.close()
+    src = _source("prefix")
+    try:
+        run_nominal(src, SCENARIO, seed, "seen", then_draw=0)
+        assert src._prefix is not None
+        assert _digest(run_nominal(src, SCENARIO, seed, "seen")) == want
+        run_nominal(src, SCENARIO, seed, "seen", then_draw=0)
+        assert _by_hand(src, seed) == want_by_hand
+        assert src._prefix is None
+    finally:
+        src.close()
 
 
 @pytest.mark.parametrize("physics", ["reference", "fast"])
