@@ -25,7 +25,7 @@ from __future__ import annotations
 import io
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any, Iterable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 from PIL import Image
@@ -34,6 +34,7 @@ from labrobfail_vlm.grid import sample_keyframes
 from labrobfail_vlm.taxonomy import check_variant, horizon_of
 from sim_backends.labeler import derive_labels
 from sim_backends.perturbations.physics import PhysicsEvent
+from sim_backends.prefix import Prefix, PrefixReuse
 from sim_backends.schema import NON_SAMPLE, TaskMeta, Trace
 from sim_backends.types import Episode, Keyframe
 
@@ -64,50 +65,11 @@ class _Run:
     cameras: list[list[list[float] | None]] = field(default_factory=list)  # [view][keyframe]: see camera_matrices
     last: list[np.ndarray] | None = None  # images rendered at the end of the last step
     render: set[int] | None = None  # keyframe indices to render at the end of their step (None: every one)
-    checkpoints: dict[int, Any] | None = None  # a recorded run's saved states: [k] before keyframe k (_Prefix)
+    checkpoints: dict[int, Any] | None = None  # a recorded run's saved states: [k] before keyframe k (prefix.Prefix)
     keep: set[int] | None = None  # the k whose state a recorded run saves (None: every one)
 
 
-@dataclass
-class _Prefix:
-    """An open-loop run recorded for prefix reuse: the saved state before each of its keyframes, and its images.
-
-    A pair's injected run repeats its nominal run's keyframes up to the first one the perturbation changes (or a
-    physics event fires at). With `reuse_prefix` on, `reset()` of the same (scenario, seed, variant) rewinds the
-    world to the recorded start instead of rebuilding it, and the next `execute` rewinds to the state before the
-    first keyframe that differs (the latest saved state at or before it) and copies the images before it. A saved
-    state may not restore everything the simulator carries from step to step (PyBullet's: the joint motors' last
-    torques), so the continuation may differ a little from a fresh run's (a physics preset of its own, checked like one:
-    scripts/check_physics.py). Only a run told which run follows it (`execute(then=...)`) is recorded, and it saves
-    only the state that run restarts from (a saved state costs about 3 ms in a lab scene); any other run after the
-    rewind finds the world rebuilt, as `reset` alone builds it."""
-
-    key: tuple[str, int, str]
-    then: tuple[list[Keyframe], list[PhysicsEvent]]  # the run the recording is for
-    keyframes: list[Keyframe]
-    render: set[int] | None
-    checkpoints: dict[int, Any]
-    images: list[list[bytes]]
-    cameras: list[list[list[float] | None]]
-    armed: bool = False  # reset() rewound the world to checkpoint 0: the next execute() may fast-forward
-
-
-def shared_prefix(
-    a: Sequence[Keyframe], a_render: set[int] | None, b: Sequence[Keyframe], b_render: set[int] | None, events=()
-) -> int:
-    """How many leading keyframes a run of `b` under `events` can take from a run of `a`: the same keyframes, no
-    event before them, the same of them rendered, and never the last one (a backend may draw the last keyframe
-    again after the settling)."""
-    k, limit = 0, min(len(a) - 1, len(b) - 1, *(e.at_keyframe for e in events))
-    while k < limit and a[k] == b[k]:
-        k += 1
-    below = lambda r: None if r is None else {i for i in r if i < k}  # noqa: E731
-    while k > 0 and below(a_render) != below(b_render):
-        k -= 1
-    return max(k, 0)
-
-
-class FailureSource(ABC):
+class FailureSource(PrefixReuse, ABC):
     name: str = "abstract"
     # Open-loop `execute` renders only the keyframes that a keyframe grid of this many frames shows
     # (labrobfail_vlm.grid.sample_keyframes picks them from the keyframes' steps, known before the run);
@@ -119,10 +81,7 @@ class FailureSource(ABC):
         self._key: tuple[str, int, str] = ("", 0, "")
         self._fresh = False
         self._run: _Run | None = None
-        self._prefix: _Prefix | None = None
-
-    # Prefix reuse (_Prefix): off unless a backend that can save and restore its state turns it on.
-    reuse_prefix: bool = False
+        self._prefix: Prefix | None = None
 
     # ---- configuration (class level: checked before any simulator starts) ---------------------------
     # the fixed views this backend renders (name -> its camera); empty: names checked only when a source is built
@@ -229,39 +188,12 @@ class FailureSource(ABC):
     def task_meta(self, executed: Sequence[Keyframe]) -> TaskMeta:
         """The task metadata of the current scene, for an episode that executed `executed`."""
 
-    # ---- prefix reuse (backends that can save and restore their state) ------------------------------
-    def _checkpoint(self) -> Any:
-        """The simulator's state now, to `_rewind` to (backends with `reuse_prefix`)."""
-        raise NotImplementedError(f"{self.name}: no prefix reuse")
-
-    def _rewind(self, checkpoint: Any) -> None:
-        """Put the world back in a state `_checkpoint` saved during the recorded run, as the run saw it then."""
-        raise NotImplementedError(f"{self.name}: no prefix reuse")
-
-    def _release(self, checkpoints: Iterable[Any]) -> None:  # noqa: B027 - optional hook
-        """Free saved states that will not be rewound to."""
-
-    def _world_clean(self) -> bool:
-        """Whether the world since the recorded run began holds only what its checkpoints restore."""
-        return True
-
-    def _drop_prefix(self) -> None:
-        if self._prefix is not None:
-            self._release(self._prefix.checkpoints.values())
-            self._prefix = None
-
     # ---- the stepping contract ---------------------------------------------------------------------
     def reset(self, scenario: str, seed: int, variant: str = "seen") -> None:
         check_variant(variant)
         self._run = None
-        pre, key = self._prefix, (scenario, seed, variant)
-        if pre is not None and pre.key == key and not pre.armed and self._world_clean():
-            # the world the recorded run started from, without rebuilding it (its recorder rewound too, so what a
-            # backend reads between reset and begin is the initial state's); kept for the planned run only
-            self._rewind(pre.checkpoints[0])
-            pre.armed = True
-        else:
-            self._drop_prefix()
+        key = (scenario, seed, variant)
+        if not self._rewound_for(key):
             self._reset(scenario, seed, variant)
         self._fresh = True
         self._key = key
@@ -369,29 +301,13 @@ class FailureSource(ABC):
         """Run keyframes from the state set by the last `reset`, render and label (open loop). With `reuse_prefix`,
         a run from a rebuilt world is recorded for the next run from the same reset (`then`: that run's keyframes
         and events, so that only the state it restarts from is saved), and a run after such a reset starts from
-        the recorded run's state where their keyframes part (_Prefix)."""
+        the recorded run's state where their keyframes part (sim_backends/prefix.py)."""
         render = self._picks(keyframes)
-        pre = self._prefix
-        if pre is not None and pre.armed and pre.then == (list(keyframes), list(physics_events)):
-            self._prefix = None  # this run's: begin() rebuilds a world rewound for any other run
-        else:
-            pre = None
+        pre = self._planned(keyframes, physics_events)
         self.begin(physics_events, render)
-        run, k = self._active(), 0
-        if pre is not None:
-            k = shared_prefix(pre.keyframes, pre.render, keyframes, render, physics_events)
-            k = max(i for i in pre.checkpoints if i <= k)
-            if k:
-                self._rewind(pre.checkpoints[k])
-                run.executed = list(keyframes[:k])
-                run.images = [list(v[:k]) for v in pre.images]
-                run.cameras = [list(c[:k]) for c in pre.cameras]
-            self._release(pre.checkpoints.values())
-        self._drop_prefix()
-        record = self.reuse_prefix and then is not None and pre is None and not physics_events
-        if record:
-            run.checkpoints = {0: self._checkpoint()}
-            run.keep = {shared_prefix(keyframes, render, then[0], self._picks(then[0]), then[1])}
+        run = self._active()
+        k = self._fast_forward(pre, run, keyframes, physics_events) if pre is not None else 0
+        record = pre is None and self._start_recording(run, keyframes, physics_events, then)
         try:
             for kf in keyframes[k:]:
                 self.step(kf)
@@ -401,9 +317,14 @@ class FailureSource(ABC):
             self._release((run.checkpoints or {}).values())
             raise
         if record and then is not None:
-            plan = (list(then[0]), list(then[1]))
-            self._prefix = _Prefix(
-                self._key, plan, list(keyframes), render, dict(run.checkpoints or {}), images, cameras
+            self._prefix = Prefix(
+                self._key,
+                (list(then[0]), list(then[1])),
+                list(keyframes),
+                render,
+                dict(run.checkpoints or {}),
+                images,
+                cameras,
             )
         return ep
 

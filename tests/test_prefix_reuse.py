@@ -1,8 +1,8 @@
-"""Prefix reuse (physics preset `prefix`, source._Prefix): a pair's injected run starts from its nominal run's saved
-state where the two plans part. What must hold: the nominal run is the reference run byte for byte, the injected run
-takes the nominal's images and trace before the parting point and simulates only after it, a pair comes out the same
-whatever ran before it, only what may be shared is shared, any run but the planned one finds the world rebuilt, and a
-rewound world shows a button's lamp unlit."""
+"""Prefix reuse (physics preset `prefix`, sim_backends/prefix.py): a pair's injected run starts from its nominal
+run's saved state where the two plans part. What must hold: the nominal run is the reference run byte for byte, the
+injected run takes the nominal's images and trace before the parting point and simulates only after it, a pair comes
+out the same whatever ran before it, only what may be shared is shared, any run but the planned one finds the world
+rebuilt, and a rewound world shows a button's lamp unlit."""
 
 import dataclasses
 import hashlib
@@ -15,9 +15,9 @@ from sim_backends import make_backend
 from sim_backends.failure_generator import run_injected, run_nominal
 from sim_backends.generate import pair_seed
 from sim_backends.perturbations.physics import PhysicsEvent
+from sim_backends.prefix import shared_prefix
 from sim_backends.pybullet.robot import DT
 from sim_backends.pybullet.trace import TRACE_EVERY
-from sim_backends.source import shared_prefix
 from sim_backends.types import Keyframe
 
 SCENARIO, PAIR = "pick_place_right_bottle", 11  # its first draw translates a keyframe after four shared ones
@@ -57,6 +57,7 @@ def test_what_a_run_may_take_from_another():
     assert shared_prefix(a, None, [], None) == 0
 
 
+@pytest.mark.slow  # episodes by the dozen
 def test_the_injected_run_starts_where_the_plans_part_and_a_pair_is_self_contained():
     ref = _source("reference")
     try:
@@ -99,6 +100,7 @@ def test_the_injected_run_starts_where_the_plans_part_and_a_pair_is_self_contain
     assert [_digest(e) for e in again] == [_digest(nominal), _digest(injected)]  # the same pair, the same bytes
 
 
+@pytest.mark.slow  # episodes by the dozen
 def test_a_rewound_world_shows_the_lamp_unlit():
     """press_button's nominal run lights the lamp; the injected run's world is rewound to before the press."""
     seed = pair_seed(0, 3, 0, "seen")
@@ -124,6 +126,7 @@ def _by_hand(src, seed: int) -> str:
     return json.dumps(src.finish().state_trace, sort_keys=True)
 
 
+@pytest.mark.slow  # episodes by the dozen
 def test_any_run_but_the_planned_one_finds_the_world_rebuilt():
     """After a recorded nominal run, the same nominal run again (through execute, or stepped by hand) is the
     reference run, not a continuation of a world rewound for the injected run."""

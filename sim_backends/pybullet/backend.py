@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import pybullet as p
@@ -23,7 +23,7 @@ from sim_backends.pybullet import scene as scene_mod
 from sim_backends.pybullet.plan import Plan
 from sim_backends.pybullet.render import CAMERAS, Renderer
 from sim_backends.pybullet.robot import DT
-from sim_backends.pybullet.trace import TRACE_EVERY, TRACE_RATE_HZ, Checkpoint, Trace
+from sim_backends.pybullet.trace import TRACE_EVERY, TRACE_RATE_HZ, Rewinder, Trace
 from sim_backends.registry import register_backend, task_templates
 from sim_backends.scenario_config import ScenarioConfig
 from sim_backends.schema import MOVABLE, NominalKeyframe, ObjectInfo, TaskMeta
@@ -44,7 +44,7 @@ class Physics:
     solver_iterations: int = 50  # contact solver iterations per physics step (20 drops half the grasps)
     torsional_friction: bool = True  # False: every link's spinning and rolling friction 0 once the scene is built
     # True: an injected run continues from its nominal run's saved state at the first keyframe they differ in
-    # (source._Prefix); PyBullet's restoreState brings back positions and velocities exactly but not the joint
+    # (sim_backends/prefix.py); PyBullet's restoreState brings back positions and velocities exactly but not the joint
     # motors' last applied torques, so the continuation differs a little from a fresh run's
     reuse_prefix: bool = False
 
@@ -121,7 +121,7 @@ def _flag(name: str, value: Any) -> bool:
     layered_render=True,
     physics=DEFAULT_PHYSICS,
 )
-class PyBulletSource(ScenarioConfig, FailureSource):
+class PyBulletSource(ScenarioConfig, Rewinder, FailureSource):
     name = "pybullet"
     TASKS_FILE = TASKS_FILE
     CAMERAS = CAMERAS
@@ -378,40 +378,6 @@ class PyBulletSource(ScenarioConfig, FailureSource):
         self.cid = None  # type: ignore[assignment]
 
     # -- helpers -------------------------------------------------------------------------------------
-    # -- prefix reuse (source._Prefix) ------------------------------------------------------------------
-    def _checkpoint(self) -> Checkpoint:
-        robot = self.scene.robot
-        return Checkpoint(
-            p.saveState(physicsClientId=self.cid),
-            self._steps,
-            {k: list(v) for k, v in self._trace.cols.items()},
-            list(self._trace.kf_end),
-            list(robot.q_target),
-            robot.gripper_cmd,
-            robot.grip_force,
-        )
-
-    def _rewind(self, cp: Checkpoint) -> None:
-        p.restoreState(cp.state, physicsClientId=self.cid)
-        self._steps = cp.steps
-        self._trace.cols = {k: list(v) for k, v in cp.cols.items()}
-        self._trace.kf_end = list(cp.kf_end)
-        robot = self.scene.robot
-        robot.q_target, robot.gripper_cmd, robot.grip_force = list(cp.q_target), cp.gripper_cmd, cp.grip_force
-        for body, shapes in self._lit.items():  # unlit: the next render lights what the rewound trace has pressed
-            for k, rgba in shapes:
-                p.changeVisualShape(body, -1, shapeIndex=k, rgbaColor=rgba, physicsClientId=self.cid)
-        self._lit = {}
-
-    def _release(self, checkpoints: Iterable[Checkpoint]) -> None:
-        if self.cid is not None and p.isConnected(self.cid):
-            for cp in checkpoints:
-                p.removeState(cp.state, physicsClientId=self.cid)
-
-    def _world_clean(self) -> bool:
-        # shards are bodies a saved state does not hold; a changed friction or mass is not in it either
-        return not self._broken and not self._changed
-
     def _apply_physics(self, ev: PhysicsEvent) -> None:
         scene, cid = self.scene, self.cid
         assert scene is not None

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Iterable
 
 import pybullet as p
 
@@ -85,3 +85,50 @@ class Trace:
     def to_dict(self) -> dict[str, Any]:
         # Copies, so that a trace handed out mid-episode (supervision) does not grow under its reader.
         return {**{k: list(v) for k, v in self.cols.items()}, "kf_end": list(self.kf_end), "rate_hz": TRACE_RATE_HZ}
+
+
+class Rewinder:
+    """PyBulletSource's prefix-reuse hooks (sim_backends/prefix.py): a checkpoint is PyBullet's saved state plus the
+    recorder's own; a rewind also unlights the lamps lit since (the next render lights what the rewound trace has
+    pressed)."""
+
+    cid: int
+    scene: Any
+    _trace: Trace
+    _steps: int
+    _lit: dict[int, list[tuple[int, tuple[float, ...]]]]
+    _broken: set[str]
+    _changed: bool
+
+    def _checkpoint(self) -> Checkpoint:
+        robot = self.scene.robot
+        return Checkpoint(
+            p.saveState(physicsClientId=self.cid),
+            self._steps,
+            {k: list(v) for k, v in self._trace.cols.items()},
+            list(self._trace.kf_end),
+            list(robot.q_target),
+            robot.gripper_cmd,
+            robot.grip_force,
+        )
+
+    def _rewind(self, cp: Checkpoint) -> None:
+        p.restoreState(cp.state, physicsClientId=self.cid)
+        self._steps = cp.steps
+        self._trace.cols = {k: list(v) for k, v in cp.cols.items()}
+        self._trace.kf_end = list(cp.kf_end)
+        robot = self.scene.robot
+        robot.q_target, robot.gripper_cmd, robot.grip_force = list(cp.q_target), cp.gripper_cmd, cp.grip_force
+        for body, shapes in self._lit.items():  # unlit: the next render lights what the rewound trace has pressed
+            for k, rgba in shapes:
+                p.changeVisualShape(body, -1, shapeIndex=k, rgbaColor=rgba, physicsClientId=self.cid)
+        self._lit = {}
+
+    def _release(self, checkpoints: Iterable[Checkpoint]) -> None:
+        if self.cid is not None and p.isConnected(self.cid):
+            for cp in checkpoints:
+                p.removeState(cp.state, physicsClientId=self.cid)
+
+    def _world_clean(self) -> bool:
+        # shards are bodies a saved state does not hold; a changed friction or mass is not in it either
+        return not self._broken and not self._changed
