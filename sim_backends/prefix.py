@@ -79,6 +79,7 @@ class PrefixReuse:
         return True
 
     def _picks(self, keyframes: Sequence[Keyframe]) -> set[int] | None:
+        """The keyframes an open-loop run of `keyframes` renders (FailureSource's)."""
         raise NotImplementedError
 
     def _drop_prefix(self) -> None:
