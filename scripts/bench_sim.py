@@ -94,11 +94,13 @@ def end_to_end(backend: str, workers: int, n: int, image_size: int, extra: tuple
         return time.perf_counter() - t
 
 
-def rows(backend: str, n: int, size: int) -> tuple[dict[str, Callable[[], float]], dict[str, str]]:
-    """Each row's timing (seconds for the n episodes) by its JSON key, and the row each other row is a ratio to."""
+def rows(
+    backend: str, n: int, size: int, default_physics: str | None, rf: int
+) -> tuple[dict[str, Callable[[], float]], dict[str, str]]:
+    """Each row's timing (seconds for the n episodes) by its JSON key, and the row each other row is a ratio to
+    (`default_physics`, `rf`: the generator's physics preset and `render_frames`)."""
     pairs, out, base = n // 2, {}, {}
     out["physics_only"] = lambda: in_process(backend, pairs, cameras=[])
-    default_physics = generate_config([]).backend_kwargs.get("physics")
     others = [v for v in PHYSICS_VARIANTS.get(backend, ()) if v != default_physics]
     for name in others:  # the unnamed rows run the generator's default preset
         key = f"physics_only_{name}_physics"
@@ -112,7 +114,6 @@ def rows(backend: str, n: int, size: int) -> tuple[dict[str, Callable[[], float]
             base[key] = first
     # The backend's default rendering, only at the keyframes a grid of `render_frames` shows (the generator's
     # default), against every keyframe in the row above.
-    rf = int(generate_config([]).render_frames)
     out[f"rendered_2x{size}_grid_keyframes_{rf}"] = lambda: in_process(
         backend, pairs, render_frames=rf, image_size=size
     )
@@ -143,7 +144,9 @@ def main(argv: list[str]) -> int:
         raise ConfigError(f"episodes: must be even (success/failure pairs), got {cfg.episodes}")
     require_ints(cfg, ("image_size", "rounds"))
     n, size, rounds = cfg.episodes, cfg.image_size, cfg.rounds
-    timed, base = rows(backend, n, size)
+    defaults = generate_config([])
+    default_physics = defaults.backend_kwargs.get("physics")
+    timed, base = rows(backend, n, size, default_physics, int(defaults.render_frames))
     seconds: dict[str, list[float]] = {k: [] for k in timed}
     for _ in tqdm(range(rounds), desc="rounds"):  # every row once per round: a drift reaches every row alike
         for key, run in timed.items():
@@ -155,7 +158,7 @@ def main(argv: list[str]) -> int:
         "rounds": rounds,
         "scenario_mix": "the generator's pair plan for seed 0 (all scenarios, oversampled by horizon)",
         "scenarios": len(backend_spec(backend).cls.list_scenarios()),
-        "physics_default": generate_config([]).backend_kwargs.get("physics"),
+        "physics_default": default_physics,
     }
     for key, t in seconds.items():
         workers = 2 if key.endswith("_2_workers") else 1

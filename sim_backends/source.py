@@ -311,21 +311,18 @@ class FailureSource(PrefixReuse, ABC):
         try:
             for kf in keyframes[k:]:
                 self.step(kf)
-            images, cameras = [list(v) for v in run.images], [list(c) for c in run.cameras]  # before a redraw
+            if record and then is not None:  # its images before finish() may draw the last keyframe again
+                images, cameras = [list(v) for v in run.images], [list(c) for c in run.cameras]
+                plan = (list(then[0]), list(then[1]))
+                recorded = Prefix(
+                    self._key, plan, list(keyframes), render, dict(run.checkpoints or {}), images, cameras
+                )
             ep = self.finish()
         except BaseException:
             self._release((run.checkpoints or {}).values())
             raise
-        if record and then is not None:
-            self._prefix = Prefix(
-                self._key,
-                (list(then[0]), list(then[1])),
-                list(keyframes),
-                render,
-                dict(run.checkpoints or {}),
-                images,
-                cameras,
-            )
+        if record:
+            self._prefix = recorded
         return ep
 
     # ---- supervision hooks (closed loop: a supervisor and a correction executor read the episode so far) --
