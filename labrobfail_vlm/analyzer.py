@@ -39,7 +39,7 @@ from labrobfail_vlm.failure_score import (
 )
 from labrobfail_vlm.grid import GridConfig, build_grid, fit_grid, sample_keyframes
 from labrobfail_vlm.model.processor import common_prefix_len
-from labrobfail_vlm.option_bias import BIASED_DIMS, biased_choice, check_option_bias, option_count
+from labrobfail_vlm.option_bias import BIASED_DIMS, biased_choice, check_option_bias, numbered_options
 from labrobfail_vlm.taxonomy import Category, Severity
 
 
@@ -160,7 +160,7 @@ def plan_reply(
         return Ask("free", closed if failed else ())
     if failed is False:
         return Q.NO_FAILURE
-    return Ask("choose", tuple(str(i) for i in range(1, option_count(dim, frames) + 1)))
+    return Ask("choose", numbered_options(dim, frames))
 
 
 def _option(reply: str | None, n: int) -> int | None:

@@ -16,7 +16,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from labrobfail_vlm import questions as Q
-from labrobfail_vlm.option_bias import option_count
+from labrobfail_vlm.option_bias import numbered_options
 
 FAILURE_SCORES = ("q2", "questions", "wordings")
 SCORE_DIMS = ("Q3", "Q4", "Q5")
@@ -60,7 +60,7 @@ def read_rows(decoder: Any, dim: str, pre: Any, frames: Sequence[int], variant: 
     if dim == "Q2":
         ps = [p_yes(Q2_OPTIONS, sc) for sc in decoder.option_scores_rows(pre, [Q2_OPTIONS] * len(frames))]
         return [1.0 - p for p in ps] if Q.VARIANTS["Q2"][variant].positive else ps
-    opts = [(Q.NO_FAILURE, *(str(i) for i in range(1, option_count(dim, f) + 1))) for f in frames]
+    opts = [(Q.NO_FAILURE, *numbered_options(dim, f)) for f in frames]
     return [p_not_none(sc) for sc in decoder.option_scores_rows(pre, opts)]
 
 

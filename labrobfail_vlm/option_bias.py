@@ -28,6 +28,12 @@ def option_count(dim: str, frames: int) -> int:
     return {"Q3": frames, "Q4": len(Severity), "Q5": len(Category)}[dim]
 
 
+def numbered_options(dim: str, frames: int) -> tuple[str, ...]:
+    """A closed failure-only question's numbered replies, "1" .. its option count (what the model chooses among
+    after a failure; with "None" before them, the replies P(failure) reads)."""
+    return tuple(str(i) for i in range(1, option_count(dim, frames) + 1))
+
+
 def check_option_bias(value: Any) -> dict[str, tuple[float, ...]]:
     """`value` as {dim: (bias of option 1, option 2, ...)} for dims of BIASED_DIMS; a one-line ValueError for
     anything else (another key, a non-list, a non-finite number, a Q4 or Q5 list of another length than its

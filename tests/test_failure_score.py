@@ -17,9 +17,9 @@ TASK = "pick up the beaker"
 
 def _alone(fa, img, dim, variant=0):  # noqa: ANN001
     """The softmax over `dim`'s admissible replies, its prompt (in wording `variant`) prefilled alone."""
-    from labrobfail_vlm.option_bias import option_count
+    from labrobfail_vlm.option_bias import numbered_options
 
-    opts = ("Yes", "No") if dim == "Q2" else ("None", *map(str, range(1, option_count(dim, fa.num_frames) + 1)))
+    opts = ("Yes", "No") if dim == "Q2" else ("None", *numbered_options(dim, fa.num_frames))
     prompt = fa._prompt(dim, TASK, variant)
     pre = fa.decoder.prefill(dict(fa.processor(text=[prompt], images=[img], return_tensors="pt")))
     z = np.asarray(fa.decoder.option_scores_rows(pre, [opts])[0])
