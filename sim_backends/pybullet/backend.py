@@ -55,8 +55,9 @@ class Physics:
 # 30 or 40 iterations, Bullet's pyramid friction and IK at 30 Hz each cut the nominal success); opt-in: seen scenes
 # lose nominal grasps under it (7 lost / 0 won on pairs 400-599, 8 / 0 and Fisher p 0.036 on pairs 600-799, which
 # fails the rule there) and the sealed catalogue is not checked. `prefix`: `reference` physics with prefix reuse,
-# the nominal runs byte for byte, the injected runs' label make-up kept on seen pairs 600-799 and val_object pairs
-# 400-599 (98-99 % of injected labels the same), physics alone about 1.3x; opt-in (docs/EXPERIMENTS.md, 6 Dec).
+# the nominal runs byte for byte, the injected runs' label make-up kept on seen pairs 600-799 and on pairs 400-599 of
+# val_object, val_scene and val_both (98-99 % of injected labels the same), physics alone about 1.3x; opt-in (the
+# sealed catalogue is not checked; docs/EXPERIMENTS.md, 6 Dec).
 PHYSICS = {
     "reference": Physics(),
     "fast": Physics(torsional_friction=False),
