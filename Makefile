@@ -113,8 +113,9 @@ demo-online: $(STAMP)
 # trajectories and 150 per held-out split (seen: two generation runs of REPRO_SEEN episodes, the second's pairs
 # numbered after the first's, so a larger recipe extends the smaller one's data instead of redrawing it). Each
 # held-out variant draws episodes of its own; the sealed test_* splits are benched once here, for the page's rows. Resumable: generation resumes its
-# shards, training its newest checkpoint; delete outputs/reproduce to start over (and before changing its settings). 115 min on 2 cores from a fresh clone, the install included
-# (docs/EXPERIMENTS.md, 4 Dec: generation 51.5, dataset 3.4, training 46.7, benches 7.9, learning curve 4.5). Then, on
+# shards, training its newest checkpoint; delete outputs/reproduce to start over (and before changing its settings).
+# 65 to 115 min on 2 cores from a fresh clone, the install included (docs/EXPERIMENTS.md; 6 Dec: generation 34.7,
+# dataset 2.2, training 21.2, benches 3.8, learning curve 2.4; 4 Dec: 51.5, 3.4, 46.7, 7.9, 4.5). Then, on
 # the same data: make reproduce-rows (the scratch-tower and front + wrist rows) and make ablate (the paper's ablation
 # table); each rewrites docs/RESULTS.md with what exists.
 R              ?= outputs/reproduce

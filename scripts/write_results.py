@@ -19,7 +19,7 @@ those sections of the existing page, from a run that holds just those folders (a
 the same seed, say): it checks first that the run's data are the page's (the same trajectories and splits line); a
 run that ran sealed splits brings its datasets' ledgers of sealed runs, whose runs join the page's list (which keeps
 every run it had; `sealed` alone splices nothing else, for a regeneration that re-ran only the recipe's sealed
-benches). What such a run lacks is carried from the page and said so: the rows table keeps the page's line for every
+benches, and takes a run whose data line differs from the page's: every look at a sealed split is listed). What such a run lacks is carried from the page and said so: the rows table keeps the page's line for every
 row the run has no seen test bench for (with its line at the val-chosen cut), the ablation's frozen row is the page's
 shipped front + side row (the recipe's model is the frozen one), the online model's table and the online bench stay
 when the run has only recovery tables, the online model's table and every recovery row stay when it has only the
@@ -187,7 +187,9 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
     if not out.is_file():
         raise ConfigError(f"sections: {out} does not exist; write the whole page first (sections=null)")
     parts = _sections(out.read_text())
-    if _data_line(_load(run / "dataset" / "stats.json")) not in (line for p in parts for line in p):
+    tables = [n for n in names if n != "sealed"]  # sealed: the ledgers alone, spliced below
+    # a table must be of the page's data; a sealed run is listed whatever data it was made on (every look counts)
+    if tables and _data_line(_load(run / "dataset" / "stats.json")) not in (line for p in parts for line in p):
         raise ConfigError(f"sections: {run}'s data are not {out}'s (its trajectories and splits line differs)")
     shipped = next((line for p in parts for line in p if line.startswith(f"| {ROWS['train']} |")), None)
     cells = [c.strip() for c in shipped.strip("|").split("|")] if shipped else None
@@ -200,7 +202,6 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
         "tuned": lambda: tuned_table(run),
         **{n: (lambda n=n: lit_table(run, SECTIONS[n][2][0])) for n in BY_HAND_SECTIONS},
     }
-    tables = [n for n in names if n != "sealed"]  # sealed: the ledgers alone, spliced below
     for name in tables:
         heading, _, folders = SECTIONS[name]
         if not any(_ran(run, f) for f in folders):

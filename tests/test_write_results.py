@@ -264,8 +264,11 @@ def test_a_row_chosen_at_an_operating_point_on_val_gets_a_second_row_at_that_cut
 
 
 def test_a_run_of_other_data_or_without_the_section_is_refused(tmp_path: Path) -> None:
+    """A section from a run of other data is refused, the page as it was; the sealed list alone takes that run's
+    sealed runs (every look at a sealed split is listed, whatever data it was made on)."""
     import pytest
 
+    from labrobfail_vlm.bench.evaluate import count_sealed_run
     from labrobfail_vlm.config import ConfigError
     from scripts.write_results import main
 
@@ -276,6 +279,16 @@ def test_a_run_of_other_data_or_without_the_section_is_refused(tmp_path: Path) -
     _eval(run / "ablate" / "tuned" / "final" / "eval_test", 83.0)
     with pytest.raises(ConfigError, match="data are not"):
         main([f"run={run}", f"out={page}", "sections=[ablation]"])
+    with pytest.raises(ConfigError, match="data are not"):  # a table with the ledger: still the page's data only
+        main([f"run={run}", f"out={page}", "sections=[ablation,sealed]"])
+    assert page.read_text() == PAGE
+    # the ledger alone: a run of other data (a later recipe's drawing of the same pairs) still looked at sealed splits
+    count_sealed_run(run / "dataset", "test_scene", "outputs/later/train/final", _scores(70, 50, 60, 50, 0.5))
+    assert main([f"run={run}", f"out={page}", "sections=[sealed]"]) == 0
+    listed = page.read_text()
+    assert "| test_scene | `outputs/later/train/final` | 70 |" in listed and "(1 in all;" in listed
+    assert listed.split("## Sealed test runs")[0] == PAGE.split("## Paper-comparable tables")[0]  # nothing else moved
+    page.write_text(PAGE)
     (run / "dataset" / "stats.json").write_text(json.dumps(STATS))
     with pytest.raises(ConfigError, match="no results under rows/scratch"):
         main([f"run={run}", f"out={page}", "sections=[rows]"])
