@@ -19,7 +19,8 @@ those sections of the existing page, from a run that holds just those folders (a
 the same seed, say): it checks first that the run's data are the page's (the same trajectories and splits line); a
 run that ran sealed splits brings its datasets' ledgers of sealed runs, whose runs join the page's list (which keeps
 every run it had; `sealed` alone splices nothing else, for a regeneration that re-ran only the recipe's sealed
-benches, and takes a run whose data line differs from the page's: every look at a sealed split is listed). What such a run lacks is carried from the page and said so: the rows table keeps the page's line for every
+benches, and takes a run whose data line differs from the page's: every look at a sealed split is listed). What
+such a run lacks is carried from the page and said so: the rows table keeps the page's line for every
 row the run has no seen test bench for (with its line at the val-chosen cut), the ablation's frozen row is the page's
 shipped front + side row (the recipe's model is the frozen one), the online model's table and the online bench stay
 when the run has only recovery tables, the online model's table and every recovery row stay when it has only the
