@@ -46,6 +46,7 @@ from labrobfail_vlm.bench.page import (
     named_rows,
     paper_tables,
     per_type,
+    restate_verdict,
     rows_table,
     run_evals,
     sealed_section,
@@ -219,7 +220,8 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
     _drop_absent(parts, tables)
     if not _splice_ledger(run, parts) and "sealed" in names:
         raise ConfigError(f"sections: {run} has no sealed runs in its datasets' ledgers")
-    atomic_write_bytes(out, ("\n".join(line for p in parts for line in p) + "\n").encode())
+    # a targets table the splice kept from an older page reads by today's rule (`page.restate_verdict`)
+    atomic_write_bytes(out, ("\n".join(restate_verdict(line) for p in parts for line in p) + "\n").encode())
     print(out)
     return 0
 

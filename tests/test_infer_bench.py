@@ -631,3 +631,12 @@ def test_robot_signal_baseline_reads_each_prefix_and_scores_held_out_trajectorie
     whole = robot_baseline.dense_features(tab)
     for cut in (1, 2, len(tab) // 2, len(tab) - 1):
         assert np.allclose(robot_baseline.dense_features(tab[:cut]), whole[:cut]), cut
+
+
+def test_a_score_on_a_bin_edge_falls_in_the_bin_it_opens() -> None:
+    """ECE's ten bins are [0, 0.1), [0.1, 0.2), ...: a score of exactly 0.3, 0.6 or 0.7 opens its bin (the edges
+    np.linspace makes are 0.30000000000000004, ... and put it one bin low)."""
+    from labrobfail_vlm.bench.detection import detection_metrics
+
+    bins = detection_metrics([True, False, False], [0.3, 0.6, 0.7])["bins"]
+    assert [(b["lo"], b["n"]) for b in bins] == [(0.3, 1), (0.6, 1), (0.7, 1)]

@@ -24,7 +24,7 @@ def detection_metrics(y: Sequence[bool], p: Sequence[float], score: str = "proba
 
     yt, pt = np.asarray(y, dtype=bool), np.asarray(p, dtype=np.float64)
     both = 0 < int(yt.sum()) < len(yt)
-    edges = np.linspace(0.0, 1.0, ECE_BINS + 1)
+    edges = np.round(np.linspace(0.0, 1.0, ECE_BINS + 1), 10)  # linspace's 0.30000000000000004 put 0.3 one bin low
     idx = np.clip(np.digitize(pt, edges[1:-1]), 0, ECE_BINS - 1)
     bins = []
     ece = 0.0

@@ -7,6 +7,7 @@ ablation). scripts/write_results.py lays them out with the supervision section i
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -73,6 +74,9 @@ def _lower(res: dict[str, Any], key: str, fo: bool) -> float | None:
     return float(ci[0]) if ci else None
 
 
+WITHIN = "no: within its interval"  # a target's point reached, its 95 % interval reaching under it: not met
+
+
 def targets(evals: dict[str, Any]) -> list[str]:
     """The principal issue's targets, each with its 95 % interval (by pair) and, on seen test, its margin over the
     majority class and the blind model; a split that was not run reads "not run". A target whose interval reaches
@@ -86,11 +90,12 @@ def targets(evals: dict[str, Any]) -> list[str]:
         if res and split == "test":
             bases = res["baselines"]
             over = {b: v for b in MARGIN_BASELINES if b in bases and (v := _value(bases[b], key, fo)) is not None}
-            ok = ok and len(over) == 2 and all(got - v >= margin for v in over.values())
+            # rounded: 0.85 - 0.75 is 0.0999... in floating point, and a tie at the margin passes
+            ok = ok and len(over) == 2 and all(round(got - v, 6) >= margin for v in over.values())
             note += "; " + ", ".join(f"{b} {over[b]}" if b in over else f"{b} not run" for b in MARGIN_BASELINES)
         met = "yes" if ok else "no"
         if ok and (lo := _lower(res, key, fo)) is not None and lo < want:
-            met = "no: within its interval"  # reached, but the interval reaches under the target: not met
+            met = WITHIN
         out.append(f"| {name} | {got if got is not None else '–'} | >= {want} | {met} | {note} |")
     q4 = [
         s
@@ -114,6 +119,19 @@ def targets(evals: dict[str, Any]) -> list[str]:
         + f" | >= 80 | {'yes' if not low else 'no'} | |"
     )
     return out
+
+
+def restate_verdict(row: str) -> str:
+    """A targets row as a page holds it, its verdict restated by `targets`' rule where the row reads "yes" and the
+    lower end of its own printed interval is under the target (rows written before 3 Dec's rule read "yes" by the
+    point alone, and a splice keeps them); any other line as it is."""
+    cells = [c.strip() for c in row.strip().strip("|").split("|")] if row.startswith("| ") else []
+    if len(cells) != 5 or cells[3] != "yes" or not cells[2].startswith(">= "):
+        return row
+    lo = re.match(r"-?[\d.]+ \[(-?[\d.]+), -?[\d.]+\]", cells[4])
+    if lo is None or float(lo.group(1)) >= float(cells[2][3:]):
+        return row
+    return row.replace("| yes |", f"| {WITHIN} |", 1)
 
 
 def per_type(res: dict[str, Any]) -> list[str]:
