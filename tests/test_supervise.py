@@ -1,6 +1,7 @@
 """The supervised loop and labrobfail-supervise on real PyBullet episodes."""
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -420,3 +421,11 @@ def test_the_vlm_supervisor_takes_the_threshold_the_online_bench_calibrated(tmp_
             make_supervisor("vlm", model=str(tiny), alarm=str(alarm), alpha=alpha)
     with pytest.raises(ConfigError, match="give both"):
         make_supervisor("vlm", model=str(tiny), alpha=0.05)
+    # a softmax can read exactly 1.0: a calibrated 1.0 never fires (refused as above); the float under 1 fires at 1.0
+    rows = {"0.01": {"threshold": 1.0}, "0.05": {"threshold": math.nextafter(1.0, 0.0)}, "0.1": {"threshold": "x"}}
+    alarm.write_text(json.dumps({"rows": {"model": rows}}))
+    with pytest.raises(ConfigError, match="is 1.0: it never fires"):
+        make_supervisor("vlm", model=str(tiny), alarm=str(alarm), alpha=0.01)
+    assert make_supervisor("vlm", model=str(tiny), alarm=str(alarm), alpha=0.05).fa.threshold == 1.0
+    with pytest.raises(ConfigError, match="not a P\\(failure\\) in \\[0, 1\\]"):
+        make_supervisor("vlm", model=str(tiny), alarm=str(alarm), alpha=0.1)

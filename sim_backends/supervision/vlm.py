@@ -34,11 +34,16 @@ def calibrated_threshold(alarm: str | None, alpha: float | None) -> float:
     row = rows.get(str(float(alpha)) if isinstance(alpha, (int, float)) else str(alpha))
     if row is None:
         raise ConfigError(f"vlm.alpha: {alpha!r} was not calibrated in {alarm} (it has {', '.join(rows)})")
-    if row.get("threshold") is None:
+    t = row.get("threshold")
+    if t is None:
         raise ConfigError(
             f"vlm.alpha: too few calibration successes in {alarm} for alpha {alpha}: the alarm never fires"
         )
-    return math.nextafter(float(row["threshold"]), math.inf)
+    if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0.0 <= t <= 1.0:
+        raise ConfigError(f"vlm.alarm: {alarm} gives alpha {alpha} the threshold {t!r}, not a P(failure) in [0, 1]")
+    if t >= 1.0:  # no P(failure) is above 1: the bench's alarm never fires at this alpha, and neither would this
+        raise ConfigError(f"vlm.alpha: the alarm calibrated in {alarm} at alpha {alpha} is 1.0: it never fires")
+    return math.nextafter(float(t), math.inf)  # at most 1.0 (an alarm at exactly P = 1), checked by the caller
 
 
 @register_supervisor("vlm")
@@ -60,12 +65,13 @@ class VLMSupervisor(Supervisor):
         from labrobfail_vlm.analyzer import FailureAnalyzer, check_threshold
         from labrobfail_vlm.train.checkpoint import trained_drawing
 
-        if alarm is not None or alpha is not None:
+        if alarm is not None or alpha is not None:  # in (0, 1]: 1.0 when the calibrated one is the float under 1
             threshold = calibrated_threshold(alarm, alpha)
-        try:
-            threshold = check_threshold(threshold)
-        except ValueError as e:
-            raise ConfigError(f"vlm.{e}") from None
+        else:
+            try:
+                threshold = check_threshold(threshold)
+            except ValueError as e:
+                raise ConfigError(f"vlm.{e}") from None
         if not isinstance(check_drawing, bool):
             raise ConfigError(f"vlm.check_drawing: true or false, got {check_drawing!r}")
         if analyzer is None:
