@@ -43,7 +43,7 @@ def calibrated_threshold(alarm: str | None, alpha: float | None) -> float:
         raise ConfigError(f"vlm.alarm: {alarm} gives alpha {alpha} the threshold {t!r}, not a P(failure) in [0, 1]")
     if t >= 1.0:  # no P(failure) is above 1: the bench's alarm never fires at this alpha, and neither would this
         raise ConfigError(f"vlm.alpha: the alarm calibrated in {alarm} at alpha {alpha} is 1.0: it never fires")
-    return math.nextafter(float(t), math.inf)  # at most 1.0 (an alarm at exactly P = 1), checked by the caller
+    return math.nextafter(float(t), math.inf)  # in (0, 1]: 1.0 from the float under it (an alarm at exactly P = 1)
 
 
 @register_supervisor("vlm")
