@@ -38,6 +38,7 @@ from labrobfail_vlm.bench.page import (
     NOT_RUN,
     PAPER_TABLES,
     ROWS,
+    SEALED_CLAIM,
     SPLIT_TITLES,
     ablation_table,
     all_trajectory_tables,
@@ -46,7 +47,7 @@ from labrobfail_vlm.bench.page import (
     named_rows,
     paper_tables,
     per_type,
-    restate_verdict,
+    restate,
     rows_table,
     run_evals,
     sealed_section,
@@ -220,8 +221,8 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
     _drop_absent(parts, tables)
     if not _splice_ledger(run, parts) and "sealed" in names:
         raise ConfigError(f"sections: {run} has no sealed runs in its datasets' ledgers")
-    # a targets table the splice kept from an older page reads by today's rule (`page.restate_verdict`)
-    atomic_write_bytes(out, ("\n".join(restate_verdict(line) for p in parts for line in p) + "\n").encode())
+    # what the splice kept from an older page reads as today's writer puts it (`page.restate`)
+    atomic_write_bytes(out, ("\n".join(restate(line) for p in parts for line in p) + "\n").encode())
     print(out)
     return 0
 
@@ -384,10 +385,9 @@ def _header(run: Path, stats: dict[str, Any], stamps: list[list[str]]) -> list[s
         "catalogue and scene family: from 29 Nov 2026 every recipe, epoch count and threshold is chosen on them and "
         "on seen val; the recipe's tower stages and epoch count are older, chosen on seen test and on these sets' "
         "replayed predecessors, its decoder depth on these (3 Dec), docs/EXPERIMENTS.md); "
-        "`test_object`, `test_scene`, `test_both` (the sealed catalogue and scene family, which nothing trained, "
-        'pretrained or tuned draws from; run only for the rows reported here, and every run is listed in "Sealed '
-        'test runs"). Every variant draws its own episodes. Intervals: 95 %, percentile bootstrap over pairs (both '
-        "twins of a pair drawn together).",
+        f"`test_object`, `test_scene`, `test_both` ({SEALED_CLAIM} run only for the rows reported here, and every "
+        'run is listed in "Sealed test runs"). Every variant draws its own episodes. Intervals: 95 %, percentile '
+        "bootstrap over pairs (both twins of a pair drawn together).",
         "",
     ]
     lines += timing(stamps)
