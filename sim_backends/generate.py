@@ -61,6 +61,13 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
         raise ConfigError(f"backend: unknown backend {cfg.backend!r}; available: {', '.join(available_backends())}")
     require_ints(cfg, ("num_episodes", "first_pair", "seed"), 0)
     require_ints(cfg, ("workers", "episodes_per_shard", "image_size"))
+    # a pair's seed is a SeedSequence of 32-bit words: a larger integer splits into two and can equal another
+    # (seed, pair)'s (pair_seed(2**32, 7) is pair_seed(0, 1, 7)), so seeds and pair numbers stay under 2**32
+    if cfg.seed >= 2**32 or cfg.first_pair + cfg.num_episodes // 2 > 2**32:
+        raise ConfigError(
+            f"seed and first_pair: seeds and pair numbers must stay under 2**32, got seed={cfg.seed}, "
+            f"first_pair={cfg.first_pair}, num_episodes={cfg.num_episodes}"
+        )
     rf = cfg.render_frames
     if rf is not None and not is_int(rf, 1):
         raise ConfigError(f"render_frames: must be a positive integer or null (every keyframe), got {rf!r}")

@@ -110,6 +110,8 @@ def test_first_pair_numbers_ids_and_seeds_so_a_second_run_adds_new_pairs(tmp_pat
         ("cameras=[front,moon]", "cameras"),  # was found by the renderer after run.json recorded it
         ("seed=abc", "seed"),  # likewise: the corrected rerun was then refused
         ("seed=[1]", "seed"),
+        ("seed=4294967296", "seed"),  # 2**32: its seed words would be another (seed, pair)'s
+        ("first_pair=4294967296", "first_pair"),
     ],
 )
 def test_bad_config_is_one_line(tmp_path, arg, field):
