@@ -25,7 +25,7 @@ from omegaconf import DictConfig
 from tqdm import tqdm
 
 from labrobfail_data.annotate import grid_failure_frame, grid_picks
-from labrobfail_data.build import READ_COLUMNS, _rows, _shard_files, fractions
+from labrobfail_data.build import READ_COLUMNS, _rows, _shard_files, check_unique, fractions
 from labrobfail_data.frame_targets import CELL_TARGETS, MAX_POINTS, TOKEN_TARGETS, row_targets
 from labrobfail_data.splits import assign
 from labrobfail_vlm.config import ConfigError, make_dir, require_ints
@@ -85,6 +85,7 @@ def build(cfg: DictConfig) -> dict[str, Any]:
         raise ConfigError(f"max_frames/image_size: expected >= 1 and >= 32, got {max_frames}, {size}")
     ratios = fractions("data.ratios", cfg.ratios, 2, whole=False)  # before a frame file is written
     require_ints(cfg, ("seed",), 0, "data.")
+    check_unique(files)  # two runs numbered alike would merge two pairs into one split group
     out = make_dir("data.out_dir", cfg.out_dir)
     sig = f"{zlib.crc32(json.dumps([CELL_TARGETS, TOKEN_TARGETS, MAX_POINTS, max_frames, size]).encode()):08x}"
     written: list[str] = []

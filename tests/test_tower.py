@@ -242,3 +242,16 @@ def test_tower_data_reads_a_regenerated_shard_again(tower_shards, tmp_path):
     after = json.loads((out / "index.json").read_text())["files"]
     changed = [a for a, b in zip(before, after) if a != b]
     assert len(before) == len(after) > 1 and len(changed) == 1 and f"-{first.stem}-" in changed[0]
+
+
+def test_tower_data_refuses_two_runs_numbered_alike(tower_shards, tmp_path):
+    """The same trajectory id in two shard folders (a folder given twice, or two generation runs numbered alike)
+    would merge two pairs into one split group: refused in one line before anything is written."""
+    import shutil
+
+    twin = tmp_path / "twin"
+    shutil.copytree(tower_shards, twin)
+    out = tmp_path / "data"
+    frames = ["data.max_frames=4", "data.image_size=64", "data.progress=false"]
+    r = run_here([cli("build-tower-data"), f"data.shards=[{tower_shards},{twin}]", f"data.out_dir={out}", *frames])
+    assert r.returncode == 2 and "is in both" in r.stderr and not out.exists()
