@@ -640,3 +640,28 @@ def test_a_score_on_a_bin_edge_falls_in_the_bin_it_opens() -> None:
 
     bins = detection_metrics([True, False, False], [0.3, 0.6, 0.7])["bins"]
     assert [(b["lo"], b["n"]) for b in bins] == [(0.3, 1), (0.6, 1), (0.7, 1)]
+
+
+def test_the_majority_class_of_whole_grids_is_taken_from_whole_trajectories() -> None:
+    """A dataset built with prefix cuts trains on whole grids and prefix grids; a prefix of a failure before its onset
+    answers "no failure yet", so counting it would move a whole grid's failure rate (and could flip its answer). A
+    whole-grid split takes the whole trajectories' answers, a prefix split the prefixes'."""
+    from labrobfail_vlm import questions as Q
+    from labrobfail_vlm.bench.evaluate import majority_predictions, same_kind
+
+    ask = Q.VARIANTS["Q2"][0].text  # "Is there any error ...?": "Yes" = failed
+
+    def rec(t: str, failed: bool) -> dict:
+        return {"id": f"{t}_Q2", "conversations": [{"value": ask}, {"value": "Yes" if failed else "No"}]}
+
+    # two whole failures and a success; three prefixes of the failures, before their onset
+    train = [rec("f1", True), rec("f2", True), rec("s1", False), *(rec(f"f1-p{k}", False) for k in range(3))]
+    train_traj = {"f1": {}, "f2": {}, "s1": {}, **{f"f1-p{k}": {"prefix_of": "f1"} for k in range(3)}}
+    whole, prefix = [rec("t1", False)], [rec("t1-p0", False)]
+    traj = {"t1": {}, "t1-p0": {"prefix_of": "t1"}}
+    kept = same_kind(train, train_traj, whole, traj)
+    assert [r["id"] for r in kept] == ["f1_Q2", "f2_Q2", "s1_Q2"]
+    got = majority_predictions(kept, whole)
+    assert got["t1_Q2"] == "Yes" and abs(got.p_failure["t1"] - 2 / 3) < 1e-9  # all six records: "No", rate 1/3
+    assert [r["id"] for r in same_kind(train, train_traj, prefix, traj)] == [f"f1-p{k}_Q2" for k in range(3)]
+    assert same_kind(train[:3], train_traj, prefix, traj) == train[:3]  # no prefixes to learn from: every record

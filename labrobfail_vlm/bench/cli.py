@@ -205,7 +205,8 @@ def _score_baselines(
         if b == "majority":  # needs training answers: this dataset's train split, or majority_train=DIR's
             train_dir = cfg.majority_train or cfg.dataset_dir
             try:
-                train, _ = ev.load_split(train_dir, "train")
+                train, train_traj = ev.load_split(train_dir, "train")
+                train = ev.same_kind(train, train_traj, recs, traj)
                 results[ev.MAJORITY] = ev.score(
                     recs,
                     ev.majority_predictions(train, recs),

@@ -226,6 +226,19 @@ def model_predictions(
     return out
 
 
+def same_kind(train: list[dict], train_traj: dict[str, dict], recs: list[dict], traj: dict[str, dict]) -> list[dict]:
+    """The training records of the scored records' kind: whole trajectories for a whole-grid split, prefix grids for
+    a prefix split. A dataset built with prefix cuts trains on both, and a whole grid's majority answer and failure
+    rate are its whole trajectories' (a prefix of a failure before its onset answers "no failure yet"). All of them
+    when the training split has none of that kind."""
+
+    def is_prefix(r: dict, meta: dict[str, dict]) -> bool:
+        return "prefix_of" in meta.get(Q.traj_of(r["id"]), {})
+
+    want = any(is_prefix(r, traj) for r in recs)
+    return [r for r in train if is_prefix(r, train_traj) == want] or train
+
+
 def majority_predictions(train: list[dict], recs: list[dict], failures_only: bool = False) -> Predictions:
     """The most frequent training answer per dimension (Q2 as the most frequent outcome, asked either way), with
     P(failure) the training failure rate. `failures_only`: Q3-Q6 take the most frequent answer among training
