@@ -130,10 +130,14 @@ RESULTS        ?= docs/RESULTS.md
 # the recipe without it; docs/EXPERIMENTS.md 5 Dec night and late night); the page's models were rendered without.
 # The supervised trials draw them too (RECOVERY_RUN, the pour ACT's rollouts): the supervisor sees what it was taught on.
 REPRO_LOOK     := backend_kwargs.broken_glass=true backend_kwargs.button_lamp=true
-# The solver every page row's episodes were simulated with (50 iterations), named in the generation commands so a
-# later default never changes the page's data line. Supervised runs and ACT demonstrations take the backend's
-# default (the same preset): naming it there would change the identity their cached runs resume by.
-REPRO_PHYSICS  := backend_kwargs.physics=reference
+# The physics preset of the recipe's episodes, named in the generation commands so a later default never changes
+# the data line. `prefix` (from 6 Dec evening): each injected run restarts from its nominal run's saved state where
+# the two plans part, about 1.2-1.3x end to end; it kept the label make-up on seen pairs and on every validation
+# family (scripts/check_physics.py, docs/EXPERIMENTS.md 6 Dec). The page's older rows were simulated with
+# `reference` (write REPRO_PHYSICS=backend_kwargs.physics=reference to make their data line again). Supervised runs
+# and ACT demonstrations take the backend's default (`reference`): they run no pairs, and naming a preset there
+# would change the identity their cached runs resume by.
+REPRO_PHYSICS  := backend_kwargs.physics=prefix
 REPRO_GEN      := backend=pybullet seed=0 workers=2 image_size=128 render_frames=8 backend_kwargs.wrist=true \
   $(REPRO_LOOK) $(REPRO_PHYSICS) progress=false
 HELD_OUT       := val_object val_scene val_both test_object test_scene test_both

@@ -397,11 +397,15 @@ def _header(run: Path, stats: dict[str, Any], stamps: list[list[str]]) -> list[s
     layers = json.loads(conf.read_text()).get("text_config", {}).get("num_hidden_layers") if conf.is_file() else None
     man_file = run / "shards" / "seen" / "manifest.json"
     inj = json.loads(man_file.read_text()).get("injection") if man_file.is_file() else None
+    run_file = run / "shards" / "seen" / "run.json"
+    kwargs = json.loads(run_file.read_text()).get("backend_kwargs") or {} if run_file.is_file() else {}
+    physics = kwargs.get("physics")
     lines += [
         "## Data and model",
         "",
         _data_line(stats),
         *([_injection_line(inj)] if inj else []),
+        *([f"- Physics: PyBullet preset `{physics}` (sim_backends/pybullet/backend.py PHYSICS)."] if physics else []),
         f"- Grid: {grid['width']}x{grid['height']} px, {grid['max_frames']} keyframes x 2 views "
         f"({', '.join(stats.get('views') or ['every view'])}), {grid['columns']} time steps per band "
         f"({(grid['width'] // 32) * (grid['height'] // 32)} visual tokens).",
