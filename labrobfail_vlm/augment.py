@@ -24,18 +24,24 @@ class AugmentConfig:
     shift_px: float = 8.0  # per view, in pixels of the view image
     scale: float = 0.1  # per view, zoom in [1 - s, 1 + s] about the image centre
     hue: float | None = None  # hue shift up to this many turns (0.5: any hue); None: colour / 5 turn
+    # False: no pixel ends more saturated than it was (hue, brightness and contrast change, saturation only falls), so
+    # training on a family never shows colours more saturated than that family draws: the sealed scene family is
+    # told apart by saturation (sim_backends/pybullet/scene.py), and a contrast or saturation gain reaches it.
+    raise_saturation: bool = True
 
     def __post_init__(self) -> None:
         if not (0 <= self.colour < 1 and self.shift_px >= 0 and 0 <= self.scale < 0.5):
             raise ValueError(f"augment: expected 0 <= colour < 1, shift_px >= 0, 0 <= scale < 0.5, got {self}")
         if self.hue is not None and not 0 <= self.hue <= 0.5:
             raise ValueError(f"augment: expected 0 <= hue <= 0.5 (turns), got {self.hue!r}")
+        if not isinstance(self.raise_saturation, bool):
+            raise ValueError(f"augment: expected raise_saturation true or false, got {self.raise_saturation!r}")
 
     @classmethod
     def from_section(cls, section: Mapping[str, Any]) -> "AugmentConfig":
         """From a config's `augment` section (train.yaml's also holds `enabled`, which is not a setting of the draw);
         YAML numbers arrive as int or float alike."""
-        values: dict[str, float | None] = {}
+        values: dict[str, Any] = {}
         for key in ("colour", "shift_px", "scale", "hue"):
             v = section.get(key)
             if v is None and key == "hue":
@@ -44,7 +50,10 @@ class AugmentConfig:
                 values[key] = float(v)
             else:
                 raise ValueError(f"augment.{key}: expected a number, got {v!r}")
-        return cls(**values)  # type: ignore[arg-type]
+        raise_sat = section.get("raise_saturation", True)  # absent (an older config or tower card): it did raise
+        if not isinstance(raise_sat, bool):
+            raise ValueError(f"augment.raise_saturation: expected true or false, got {raise_sat!r}")
+        return cls(**values, raise_saturation=raise_sat)
 
     @property
     def hue_turns(self) -> float:
@@ -57,6 +66,7 @@ class Augment:
 
     views: tuple[tuple[float, float, float], ...]
     colour: tuple[float, float, float, float]
+    raise_saturation: bool = True  # AugmentConfig.raise_saturation
 
     @classmethod
     def draw(cls, cfg: AugmentConfig, views: int, rng: np.random.Generator) -> "Augment":
@@ -75,7 +85,7 @@ class Augment:
             float(rng.uniform(1 - c, 1 + c)),
             float(rng.uniform(-cfg.hue_turns, cfg.hue_turns)),
         )
-        return cls(v, col)
+        return cls(v, col, cfg.raise_saturation)
 
     def matrix(self, view: int, size: tuple[int, int]) -> np.ndarray:
         """2x3 affine of view `view` for an image of (width, height)."""
@@ -90,6 +100,7 @@ class Augment:
             img, self.matrix(view, (w, h)), (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
         )
         bright, contrast, sat, hue = self.colour
+        before = out
         x = out.astype(np.float32)
         mean = x.mean()
         x = (x - mean) * contrast + mean * bright
@@ -100,12 +111,32 @@ class Augment:
             hsv = cv2.cvtColor(out, cv2.COLOR_RGB2HSV)
             hsv[..., 0] = ((hsv[..., 0].astype(np.int32) + int(round(hue * 180))) % 180).astype(np.uint8)
             out = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
-        return out
+        return out if self.raise_saturation else cap_saturation(out, before)
 
     def points(self, pts: np.ndarray, view: int, size: tuple[int, int]) -> np.ndarray:
         """(..., 2) pixel positions in view `view` -> where the augmented picture shows them (NaN stays NaN)."""
         m = self.matrix(view, size)
         return pts @ m[:, :2].T + m[:, 2]
+
+
+def hsv_saturation(img: np.ndarray) -> np.ndarray:
+    """Per-pixel HSV saturation (max - min) / max of an ...x3 image, 0 where the pixel is black."""
+    x = img.astype(np.float32)
+    hi, lo = x.max(axis=-1), x.min(axis=-1)
+    return np.where(hi > 0, (hi - lo) / np.maximum(hi, 1e-6), 0.0)
+
+
+def cap_saturation(img: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """`img` with each pixel's saturation brought down to at most `ref`'s at that pixel, keeping its hue and value
+    (HSV): the channels move toward the pixel's maximum. Rounded up, so the result is never above `ref`'s."""
+    s_img, s_ref = hsv_saturation(img), hsv_saturation(ref)
+    over = s_img > s_ref
+    if not over.any():
+        return img
+    x = img.astype(np.float32)
+    hi = x.max(axis=-1, keepdims=True)
+    k = np.where(over, s_ref / np.maximum(s_img, 1e-6), 1.0)[..., None]
+    return np.clip(np.ceil(hi - (hi - x) * k), 0, 255).astype(np.uint8)
 
 
 def augment_views(frames: Sequence[Sequence[np.ndarray]], aug: Augment | None) -> list[list[np.ndarray]]:

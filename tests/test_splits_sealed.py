@@ -120,6 +120,70 @@ def test_the_sealed_scene_family_is_outside_every_other_family():
         assert not kinds & {a["texture"] for a in app}, name
 
 
+def _patches(colours: list[list[float]], rng: np.random.Generator) -> np.ndarray:
+    """A 96x96 picture of 16 patches, each one of `colours` under a lighting factor in [0.45, 1] (shade and light on
+    a bench or floor scale its RGB), as a rendered view of that surface shows it."""
+    pick = rng.choice(len(colours), size=16)
+    cells = [np.array(colours[i][:3]) * rng.uniform(0.45, 1.0) * 255 for i in pick]
+    img = np.stack([np.stack([cells[4 * (r // 24) + c // 24] for c in range(96)]) for r in range(96)])
+    return np.round(img).astype(np.uint8)
+
+
+def _trained_augmentations(tmp_path: Path) -> dict:
+    """Every augmentation setting a model of the page trains on: each stage of `make tower` (configs/tower.yaml with
+    the stage's command line, read from a dry run) and the VQA trainer's (configs/train.yaml)."""
+    from omegaconf import OmegaConf
+
+    from labrobfail_vlm.augment import AugmentConfig
+
+    plan = _make_dry("tower", f"T={tmp_path}")
+    assert plan.returncode == 0, plan.stderr
+    root = Path(__file__).resolve().parents[1]
+    stages = [line.split() for line in plan.stdout.splitlines() if "labrobfail-pretrain-tower" in line]
+    assert len(stages) == 3
+    out = {}
+    for k, words in enumerate(stages):
+        cfg = OmegaConf.merge(
+            OmegaConf.load(root / "configs" / "tower.yaml"),
+            OmegaConf.from_dotlist([w for w in words if w.startswith("augment.")]),
+        )
+        out[f"tower stage {k + 1}"] = AugmentConfig.from_section(cfg.augment)
+    out["train.yaml"] = AugmentConfig.from_section(OmegaConf.load(root / "configs" / "train.yaml").augment)
+    return out
+
+
+def test_no_augmentation_a_model_trains_on_brings_a_family_into_the_sealed_saturation(tmp_path):
+    """Whole-picture colour changes (brightness, contrast, saturation, any hue) act on every pixel: a contrast or
+    saturation gain turns a randomised bench (saturation up to 0.7) into a sealed one (0.75 and more), and a grey
+    floor into a coloured one. Every setting that trains a model (the tower's three stages, the VQA trainer) keeps
+    each pixel's saturation at most what it was, so pictures of every other family, augmented as trained, stay out of
+    the sealed family's bench and floor saturation; the setting the shipped tower was trained with did not."""
+    from labrobfail_vlm.augment import Augment, AugmentConfig, hsv_saturation
+    from sim_backends.pybullet import scene
+
+    def colours(variant: str, part: str, family: str | None = None) -> list[list[float]]:
+        return [scene.draw_appearance(variant, np.random.default_rng(i), family)[part] for i in range(300)]
+
+    def reached(cfg: AugmentConfig, part: str, low: float) -> float:
+        """The highest saturation of an augmented picture of another family's `part` (each below `low` before)."""
+        rng, top = np.random.default_rng(0), 0.0
+        for name, fam in (("seen", None), ("val_scene", None), ("seen", "randomised")):
+            cols = colours(name, part, fam)
+            for _ in range(40):
+                img = _patches(cols, rng)
+                assert hsv_saturation(img).max() < low
+                top = max(top, float(hsv_saturation(Augment.draw(cfg, 1, rng).image(img, 0)).max()))
+        return top
+
+    sealed = {part: min(_hsv(c)[1] for c in colours("test_scene", part)) for part in ("bench", "floor")}
+    for name, cfg in _trained_augmentations(tmp_path).items():
+        assert cfg.raise_saturation is False, name
+        for part, low in sealed.items():
+            assert reached(cfg, part, low) < low, f"{name}: an augmented {part} reaches the sealed saturation"
+    shipped = AugmentConfig(colour=0.75, hue=0.5)  # the shipped tower's second and third stages (its card)
+    assert reached(shipped, "bench", sealed["bench"]) >= sealed["bench"]
+
+
 def _make_dry(target: str, *settings: str) -> subprocess.CompletedProcess:
     """`make -n target settings...` in the checkout: what make would run, read by make itself (nothing is built or
     installed)."""

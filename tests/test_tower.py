@@ -162,6 +162,7 @@ def test_bad_tower_settings_are_one_line(tower_data, tmp_path):
         ([f"init={tmp_path / 'none'}"], "tower"),
         (["augment.hue=0.7"], "augment"),
         (["augment.colour=strong"], "augment.colour"),
+        (["augment.raise_saturation=maybe"], "augment.raise_saturation"),
     ):
         r = _pretrain(tower_data, tmp_path / "r", *args, here=key != "epochs")  # the first case as a process
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-2000:]
@@ -189,6 +190,30 @@ def test_hue_range_reaches_any_hue_and_the_default_draw_is_unchanged():
     assert (base == same).all()  # hue=None is colour / 5: the same draws as before the option existed
     wide = hues(AugmentConfig(colour=0.25, shift_px=0, scale=0, hue=0.5))
     assert len(np.unique(wide // 30)) == 6  # every sixth of the hue circle
+
+
+def test_raise_saturation_off_lowers_no_pixel_into_more_colour_and_keeps_the_draws():
+    """With `raise_saturation=false` no pixel ends more saturated than the shifted picture had it, while hue,
+    brightness and contrast still change (the same draws, the same random numbers taken), and a shift-only draw is
+    untouched; on, a contrast gain saturates a dark grey-ish pixel."""
+    from labrobfail_vlm.augment import Augment, AugmentConfig, hsv_saturation
+
+    rng = np.random.default_rng(1)
+    img = (rng.random((48, 48, 3)) * 255).astype(np.uint8)
+    img[:24] = (40, 36, 36)  # a dark, nearly grey floor
+    on, off = AugmentConfig(colour=0.75, hue=0.5), AugmentConfig(colour=0.75, hue=0.5, raise_saturation=False)
+    raised = 0.0
+    for k in range(30):
+        a, b = Augment.draw(on, 1, np.random.default_rng(k)), Augment.draw(off, 1, np.random.default_rng(k))
+        assert a.views == b.views and a.colour == b.colour and not b.raise_saturation
+        plain = Augment(a.views, (1.0, 1.0, 1.0, 0.0)).image(img, 0)  # the shift and zoom alone
+        x, y = a.image(img, 0), b.image(img, 0)
+        assert (hsv_saturation(y) <= hsv_saturation(plain) + 1e-6).all()
+        assert np.abs(y.astype(int) - plain.astype(int)).mean() > 1  # the colour still changed
+        raised = max(raised, float((hsv_saturation(x) - hsv_saturation(plain)).max()))
+    assert raised > 0.3
+    still = Augment(((1.0, 3.0, -2.0),), (1.0, 1.0, 1.0, 0.0), raise_saturation=False)
+    assert (still.image(img, 0) == Augment(still.views, still.colour).image(img, 0)).all()
 
 
 def test_the_shipped_tower_matches_its_card_and_loads():
