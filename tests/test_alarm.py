@@ -164,6 +164,8 @@ def test_mcnemar_and_the_difference_interval_on_known_tables():
     s = cell.summary()
     assert s["gain_points"] == 9.0 and s["mcnemar_p"] == pytest.approx(mcnemar_exact(1, 10))
     assert s["broken_share"] == pytest.approx(1 / 60, abs=1e-4) and s["ci95_points"][0] > 0
+    none_succeed = paired_cell([False] * 5, [False, True, False, False, False]).summary()
+    assert none_succeed["broken_share"] is None and none_succeed["rescued"] == 1  # nothing to break is no 0 %
     with pytest.raises(ValueError, match="same"):
         paired_cell([True], [True, False])
 

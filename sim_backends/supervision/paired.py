@@ -32,17 +32,18 @@ class PairedCell:
         return (self.rescued - self.broken) / self.n
 
     @property
-    def broken_share(self) -> float:
-        """Of the trials that succeed without a supervisor, the share it broke."""
-        return self.broken / self.base_successes if self.base_successes else 0.0
+    def broken_share(self) -> float | None:
+        """Of the trials that succeed without a supervisor, the share it broke (None when none succeeds: nothing
+        to break, which is no 0 % either)."""
+        return self.broken / self.base_successes if self.base_successes else None
 
-    def summary(self) -> dict[str, float | int]:
+    def summary(self) -> dict[str, Any]:
         lo, hi = difference_ci(self.broken, self.rescued, self.n)
         return asdict(self) | {
             "gain_points": round(100 * self.gain, 2),
             "ci95_points": [round(100 * lo, 2), round(100 * hi, 2)],
             "mcnemar_p": mcnemar_exact(self.broken, self.rescued),
-            "broken_share": round(self.broken_share, 4),
+            "broken_share": None if self.broken_share is None else round(self.broken_share, 4),
         }
 
 
