@@ -114,8 +114,9 @@ demo-online: $(STAMP)
 # numbered after the first's, so a larger recipe extends the smaller one's data instead of redrawing it). Each
 # held-out variant draws episodes of its own; the sealed test_* splits are benched once here, for the page's rows. Resumable: generation resumes its
 # shards, training its newest checkpoint; delete outputs/reproduce to start over (and before changing its settings).
-# 65 to 115 min on 2 cores from a fresh clone, the install included (docs/EXPERIMENTS.md; 6 Dec: generation 34.7,
-# dataset 2.2, training 21.2, benches 3.8, learning curve 2.4; 4 Dec: 51.5, 3.4, 46.7, 7.9, 4.5). Then, on
+# 56 to 115 min on 2 cores from a fresh clone, the install included, as this machine's speed varies (docs/EXPERIMENTS.md;
+# 6 Dec evening, physics prefix: 56.4 min, generation 26.9, dataset 2.1, training 20.3, benches 3.7, learning curve
+# 2.4; 6 Dec afternoon, reference: generation 34.7, training 21.2; 4 Dec: 51.5, 3.4, 46.7, 7.9, 4.5). Then, on
 # the same data: make reproduce-rows (the scratch-tower and front + wrist rows) and make ablate (the paper's ablation
 # table); each rewrites docs/RESULTS.md with what exists.
 R              ?= outputs/reproduce
