@@ -4,7 +4,7 @@ PY    := $(VENV)/bin/python
 BIN   := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: install browser vulkan demo demo-bench demo-supervise demo-diagnosis demo-online reproduce reproduce-rows reproduce-more reproduce-grid16 ablate reproduce-online reproduce-tuned report-tuned online-bench recovery recovery-scripted tower sim20k lint test test-fast bench clean
+.PHONY: install browser vulkan demo demo-bench demo-supervise demo-diagnosis demo-online reproduce reproduce-rows reproduce-more reproduce-grid16 reproduce-tower ablate reproduce-online reproduce-tuned report-tuned online-bench recovery recovery-scripted tower sim20k lint test test-fast bench clean
 APT_STAMP := $(VENV)/.apt-stamp
 VULKAN_STAMP := $(VENV)/.vulkan-stamp
 BACKPORTS := /etc/apt/sources.list.d/bookworm-backports.sources
@@ -213,6 +213,19 @@ $(call bench,$(R)/rows/$(1),$(VAL_SPLITS),$(R)/dataset_$(1))
 $(call bench,$(R)/train,val,$(R)/dataset)
 endef
 VAL_SPLITS     := val val_object val_scene val_both
+# After make reproduce and make tower: the recipe on its own data from another tower (TOWER_DIR, a make tower export
+# kept beside the shipped one), trained into rows/tower_new and benched beside the recipe on seen val and the three
+# validation splits only (the rule for the tower without saturation gain: docs/EXPERIMENTS.md, 6 Dec evening).
+TOWER_DIR      ?= outputs/tower/export
+reproduce-tower: $(STAMP)
+	@test -f $(R)/train/train_summary.json || { echo "$@: run make reproduce first" >&2; exit 2; }
+	@test -f $(TOWER_DIR)/tower.safetensors || { echo "$@: no tower in $(TOWER_DIR) (make tower exports it)" >&2; exit 2; }
+	$(call same_layers,$@)
+	$(BIN)/labrobfail-train $(REPRO_TRAIN) tower=$(TOWER_DIR) dataset_dir=$(R)/dataset output_dir=$(R)/rows/tower_new \
+	  $(call resume_in,$(R)/rows/tower_new)
+	$(call bench,$(R)/rows/tower_new,$(VAL_SPLITS),$(R)/dataset)
+	$(call bench,$(R)/train,val,$(R)/dataset)
+
 # The paper's grid: 16 keyframes in its layout (8 columns, front and side bands twice) at the shipped tower's 128-px
 # cells (1024x512; the paper's 1536x768 is 192-px cells, which lost on validation, 5 Dec). The rule, written before
 # its figures (5 Dec): adopted if seen-val Q2 rises and AUROC rises on at least three of the four validation splits

@@ -212,6 +212,19 @@ def test_make_reproduce_resumes_training_only_where_a_checkpoint_was_left(tmp_pa
     assert train_line().endswith("resume=true")
 
 
+def test_a_tower_candidate_trains_the_recipe_on_its_data_and_benches_validation_only(tmp_path):
+    """`make reproduce-tower` (a dry run): the recipe's training on make reproduce's dataset with the other tower, no
+    episode generated, and benches on seen val and the three validation splits only (never seen test or sealed)."""
+    got = _make_dry("reproduce-tower", f"R={tmp_path}", "TOWER_DIR=elsewhere/t")
+    assert got.returncode == 0, got.stderr
+    text = got.stdout.replace("\\\n", "").replace(str(tmp_path), "R")
+    assert "labrobfail-generate" not in text
+    (train,) = [line for line in text.splitlines() if "labrobfail-train" in line]
+    assert "tower=elsewhere/t" in train.split() and "dataset_dir=R/dataset" in train.split()
+    benched = re.findall(r"for s in ([\w ]+); do", text)
+    assert benched == ["val val_object val_scene val_both", "val"]
+
+
 def test_the_16_keyframe_candidate_draws_the_recipes_pairs_and_never_a_sealed_split(tmp_path):
     """`make reproduce-grid16` (a dry run of `val_lever`, the Makefile's validation-only lever): every episode set it
     generates is one of `make reproduce`'s (the same seed, variant, count and first pair; only the rendering differs,
