@@ -111,6 +111,8 @@ def test_pretraining_resumes_exports_and_the_tiny_model_takes_the_tower(tower_da
     assert card["training"]["init"] == str(tmp_path / "x") and card["training"]["augment"]["hue"] == 0.5
     assert card["training"]["init_sha256"] == read_card(tmp_path / "x")["sha256"]
     assert card["training"]["init_sha256"] in (tmp_path / "y" / "TOWER_CARD.md").read_text()
+    assert card["training"]["augment"]["raise_saturation"] is False  # configs/tower.yaml's, said on the card:
+    assert "hue turned up to 0.5 turn; no pixel's saturation raised" in (tmp_path / "y" / "TOWER_CARD.md").read_text()
     # a damaged tower is refused in one line, before any model is built
     (tmp_path / "x" / "tower.safetensors").write_bytes(b"\0" * 64)
     with pytest.raises(Exception, match="does not match the sha256"):

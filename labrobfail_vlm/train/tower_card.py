@@ -46,6 +46,24 @@ def _row(name: str, cells: list[dict[str, float] | None], fmt: str) -> str:
     return f"| {name} | " + " | ".join("–" if c is None else fmt.format(**c) for c in cells) + " |"
 
 
+def augment_line(section: dict[str, Any]) -> str:
+    """What the tower's training augmentation did to each grid, read from its card (a card older than the
+    `raise_saturation` key was trained raising saturation)."""
+    from labrobfail_vlm.augment import AugmentConfig
+
+    a = AugmentConfig.from_section({"hue": None, **section})
+    sat = (
+        "saturation raised by contrast and saturation gains (they reach the sealed scene family's saturation)"
+        if a.raise_saturation
+        else "no pixel's saturation raised (no bench or floor it trains on reaches the sealed family's saturation)"
+    )
+    return (
+        f"Augmentation per grid: each view shifted up to {a.shift_px:g} px and zoomed by up to {a.scale:g}; "
+        f"brightness, contrast and saturation factors in [{1 - a.colour:g}, {1 + a.colour:g}], hue turned up to "
+        f"{a.hue_turns:g} turn; {sat}."
+    )
+
+
 def card_markdown(card: dict[str, Any]) -> str:
     """TOWER_CARD.md: what the tower is, what it learned from, how well it reads each target held out."""
     v = card["vision_config"]
@@ -97,6 +115,8 @@ def card_markdown(card: dict[str, Any]) -> str:
         card["use"],
         "",
         "## Reproduce",
+        "",
+        augment_line(card["training"].get("augment") or {}),
         "",
         *(
             [f"Started from the tower with sha256 `{card['training']['init_sha256']}` (its own card says how).", ""]
