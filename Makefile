@@ -153,6 +153,9 @@ REPRO_TRAIN    := preset=tiny epochs=$(REPRO_EPOCHS) tiny_arch.text.num_hidden_l
 same_layers = @$(PY) -c "from labrobfail_vlm.config import cli_main; from labrobfail_vlm.model.tiny import check_built; \
   cli_main(lambda _: check_built('$(R)/train/final', {'num_hidden_layers': $(REPRO_LAYERS)}, 'REPRO_LAYERS', \
   '$(1) needs the main model\'s size: set REPRO_LAYERS to it') or 0)"
+# Steps that add episodes to make reproduce's data line simulate as its episodes were (REPRO_PHYSICS changed on 6 Dec).
+same_physics = @$(PY) -c "from labrobfail_vlm.config import cli_main; from sim_backends.generate import \
+  check_same_physics; cli_main(lambda _: check_same_physics('$(R)/shards/seen', '$(REPRO_PHYSICS)', '$(1)') or 0)"
 stamp           = echo "$(1) $$(date +%s)" >> $(R)/timeline.txt
 # resume=true where a checkpoint was left in the folder when make started (an interrupted run); none: train afresh
 resume_in       = $(if $(wildcard $(1)/checkpoint-*),resume=true)
@@ -204,6 +207,7 @@ reproduce-rows: $(STAMP)
 define val_lever
 @test -f $(R)/train/train_summary.json || { echo "$@: run make reproduce first" >&2; exit 2; }
 $(call same_layers,$@)
+$(call same_physics,$@)
 $(call generate_recipe,$(REPRO_GEN) backend_kwargs.wrist=false $(3),$(2),val_object val_scene val_both)
 $(BIN)/labrobfail-build-dataset 'shards=[$(subst $(space),$(comma),$(addprefix $(2)/,seen seen2 val_object val_scene \
   val_both))]' out_dir=$(R)/dataset_$(1) $(4) 'views=[front,side]' progress=false
@@ -216,10 +220,10 @@ VAL_SPLITS     := val val_object val_scene val_both
 # After make reproduce and make tower: the recipe on its own data from another tower (TOWER_DIR, a make tower export
 # kept beside the shipped one), trained into rows/tower_new and benched beside the recipe on seen val and the three
 # validation splits only (the rule for the tower without saturation gain: docs/EXPERIMENTS.md, 6 Dec evening).
-TOWER_DIR      ?= outputs/tower/export
+TOWER_DIR      ?= $(T)/export
 reproduce-tower: $(STAMP)
 	@test -f $(R)/train/train_summary.json || { echo "$@: run make reproduce first" >&2; exit 2; }
-	@test -f $(TOWER_DIR)/tower.safetensors || { echo "$@: no tower in $(TOWER_DIR) (make tower exports it)" >&2; exit 2; }
+	@test -f $(TOWER_DIR)/tower.safetensors || { echo "$@: no tower in $(TOWER_DIR) (make tower TOWER_EXPORT=$(TOWER_DIR))" >&2; exit 2; }
 	$(call same_layers,$@)
 	$(BIN)/labrobfail-train $(REPRO_TRAIN) tower=$(TOWER_DIR) dataset_dir=$(R)/dataset output_dir=$(R)/rows/tower_new \
 	  $(call resume_in,$(R)/rows/tower_new)
@@ -263,6 +267,7 @@ endif
 reproduce-more: $(STAMP)
 	@test -f $(R)/train/train_summary.json || { echo "reproduce-more: run make reproduce first" >&2; exit 2; }
 	$(call same_layers,reproduce-more)
+	$(call same_physics,reproduce-more)
 	$(BIN)/labrobfail-generate $(REPRO_GEN) backend_kwargs.wrist=false num_episodes=$(MORE_SEEN) \
 	  $(MORE_SCENE) first_pair=$(REPRO_SEEN) out_dir=$(R)/shards/$(MORE_SHARDS)
 	$(BIN)/labrobfail-build-dataset 'shards=[$(R)/shards/$(MORE_SHARDS)]' out_dir=$(R)/dataset_$(MORE_NAME) \
@@ -379,6 +384,7 @@ bench_once   = for s in $(2); do test -f $(1)/final/eval_$${s}$(if $(filter thre
 reproduce-tuned: $(STAMP)
 	@test -d $(R)/$(TUNED_FROM)/final || \
 	  { echo "reproduce-tuned: run make $(TUNED_PREV) first (no $(R)/$(TUNED_FROM)/final)" >&2; exit 2; }
+	$(if $(TUNED_AFTER),$(call same_physics,reproduce-tuned))
 	$(if $(TUNED_AFTER),$(TUNED_NEW))
 	prev=$(R)/$(TUNED_FROM)/final; for k in $$(seq 1 $(TUNED_COUNT)); do \
 	  test -f $(R)/$(TUNED_DIR)/stage$$k/train_summary.json || $(BIN)/labrobfail-train $(REPRO_TRAIN) epochs=1 \

@@ -24,9 +24,9 @@ class AugmentConfig:
     shift_px: float = 8.0  # per view, in pixels of the view image
     scale: float = 0.1  # per view, zoom in [1 - s, 1 + s] about the image centre
     hue: float | None = None  # hue shift up to this many turns (0.5: any hue); None: colour / 5 turn
-    # False: no pixel ends more saturated than it was (hue, brightness and contrast change, saturation only falls), so
-    # training on a family never shows colours more saturated than that family draws: the sealed scene family is
-    # told apart by saturation (sim_backends/pybullet/scene.py), and a contrast or saturation gain reaches it.
+    # False: no pixel ends more saturated than it was rendered (hue, brightness and contrast change, saturation only
+    # falls), so augmentation adds no saturation the family's pictures lack: the sealed scene family is told apart by
+    # saturation (sim_backends/pybullet/scene.py), and a contrast or saturation gain reaches it from any family.
     raise_saturation: bool = True
 
     def __post_init__(self) -> None:

@@ -56,6 +56,7 @@ from labrobfail_vlm.bench.page import (
 )
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
 from labrobfail_vlm.io import atomic_write_bytes
+from sim_backends.generate import run_physics
 from sim_backends.supervision.report import LEAD, block, page_recovery, recovery_files, recovery_md
 
 DEFAULTS = """
@@ -397,9 +398,7 @@ def _header(run: Path, stats: dict[str, Any], stamps: list[list[str]]) -> list[s
     layers = json.loads(conf.read_text()).get("text_config", {}).get("num_hidden_layers") if conf.is_file() else None
     man_file = run / "shards" / "seen" / "manifest.json"
     inj = json.loads(man_file.read_text()).get("injection") if man_file.is_file() else None
-    run_file = run / "shards" / "seen" / "run.json"
-    kwargs = json.loads(run_file.read_text()).get("backend_kwargs") or {} if run_file.is_file() else {}
-    physics = kwargs.get("physics")
+    physics = run_physics(run / "shards" / "seen")
     lines += [
         "## Data and model",
         "",

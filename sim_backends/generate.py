@@ -99,6 +99,34 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
 LEGACY_BACKEND_KWARGS = {"physics": "reference"}
 
 
+def run_physics(run_dir: str | Path) -> str | None:
+    """The physics preset a PyBullet run folder's episodes were simulated with (a run.json written before the key
+    reads as LEGACY_BACKEND_KWARGS says); None for no run there or another backend."""
+    path = Path(run_dir) / "run.json"
+    if not path.is_file():
+        return None
+    try:
+        run = json.loads(path.read_text())
+    except ValueError as e:
+        raise ConfigError(f"run.json: {path} is not valid JSON ({e})") from None
+    kwargs = run.get("backend_kwargs") if isinstance(run, dict) else None
+    if not isinstance(kwargs, dict) or run.get("backend") != "pybullet":
+        return None
+    return str(kwargs.get("physics", LEGACY_BACKEND_KWARGS["physics"]))
+
+
+def check_same_physics(run_dir: str, setting: str, step: str) -> None:
+    """A step that adds episodes to a run's data line generates with `setting` (`backend_kwargs.physics=NAME`):
+    refused in one line when the run's episodes in `run_dir` were simulated with another preset, which would mix
+    two data lines in one comparison or training set."""
+    have, want = run_physics(run_dir), setting.rpartition("=")[2]
+    if have is not None and have != want:
+        raise ConfigError(
+            f"REPRO_PHYSICS: {step} would simulate with physics={want}, but {run_dir} holds physics={have} episodes; "
+            f"set REPRO_PHYSICS=backend_kwargs.physics={have} (or use a new R)"
+        )
+
+
 def _default_backend_kwargs() -> dict[str, Any]:
     return OmegaConf.to_container(OmegaConf.load(DEFAULTS).backend_kwargs, resolve=True) or {}
 

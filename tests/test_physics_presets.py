@@ -135,3 +135,25 @@ def test_the_generator_and_the_backend_default_to_the_same_preset():
     from sim_backends.pybullet.backend import DEFAULT_PHYSICS
 
     assert _default_backend_kwargs()["physics"] == DEFAULT_PHYSICS
+
+
+def test_a_step_adding_episodes_to_a_run_of_another_preset_is_refused_in_one_line(tmp_path):
+    """make reproduce's later steps (reproduce-more, a validation lever, a tuned row's new pairs) check the preset of
+    the run's seen episodes first: REPRO_PHYSICS moved to prefix on 6 Dec, and an older run's folder holds
+    reference episodes (a run.json without the key reads as reference)."""
+    from labrobfail_vlm.config import ConfigError
+    from sim_backends.generate import check_same_physics, run_physics
+
+    seen = tmp_path / "seen"
+    check_same_physics(str(seen), "backend_kwargs.physics=prefix", "reproduce-more")  # nothing generated yet
+    seen.mkdir()
+    (seen / "run.json").write_text(json.dumps({"backend": "pybullet", "backend_kwargs": {"wrist": True}}))
+    assert run_physics(seen) == "reference"
+    check_same_physics(str(seen), "backend_kwargs.physics=reference", "reproduce-more")
+    with pytest.raises(ConfigError, match=r"^REPRO_PHYSICS: reproduce-more would simulate with physics=prefix, but"):
+        check_same_physics(str(seen), "backend_kwargs.physics=prefix", "reproduce-more")
+    (seen / "run.json").write_text(json.dumps({"backend": "maniskill", "backend_kwargs": {}}))
+    assert run_physics(seen) is None  # no PyBullet preset to compare
+    (seen / "run.json").write_text("{")
+    with pytest.raises(ConfigError, match="not valid JSON"):
+        run_physics(seen)

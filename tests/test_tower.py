@@ -84,6 +84,7 @@ def test_pretraining_resumes_exports_and_the_tiny_model_takes_the_tower(tower_da
     from labrobfail_vlm.model.loading import load_model
     from labrobfail_vlm.model.tiny import build_tiny
     from labrobfail_vlm.model.tower import read_card
+    from labrobfail_vlm.train.tower_card import augment_line
 
     read_card(tmp_path / "x")  # the sha256 on the card is the file's
     m = load_model(build_tiny(tmp_path / "tiny", tower=tmp_path / "x"))
@@ -113,6 +114,7 @@ def test_pretraining_resumes_exports_and_the_tiny_model_takes_the_tower(tower_da
     assert card["training"]["init_sha256"] in (tmp_path / "y" / "TOWER_CARD.md").read_text()
     assert card["training"]["augment"]["raise_saturation"] is False  # configs/tower.yaml's, said on the card:
     assert "hue turned up to 0.5 turn; no pixel's saturation raised" in (tmp_path / "y" / "TOWER_CARD.md").read_text()
+    assert augment_line({}) == "Augmentation: not recorded on this card."
     # a damaged tower is refused in one line, before any model is built
     (tmp_path / "x" / "tower.safetensors").write_bytes(b"\0" * 64)
     with pytest.raises(Exception, match="does not match the sha256"):

@@ -51,11 +51,13 @@ def augment_line(section: dict[str, Any]) -> str:
     `raise_saturation` key was trained raising saturation)."""
     from labrobfail_vlm.augment import AugmentConfig
 
+    if not section:
+        return "Augmentation: not recorded on this card."
     a = AugmentConfig.from_section({"hue": None, **section})
     sat = (
-        "saturation raised by contrast and saturation gains (they reach the sealed scene family's saturation)"
+        "contrast and saturation gains could raise a pixel's saturation (into the sealed scene family's range)"
         if a.raise_saturation
-        else "no pixel's saturation raised (no bench or floor it trains on reaches the sealed family's saturation)"
+        else "no pixel's saturation raised above what was rendered"
     )
     return (
         f"Augmentation per grid: each view shifted up to {a.shift_px:g} px and zoomed by up to {a.scale:g}; "
