@@ -109,7 +109,7 @@ def run_physics(run_dir: str | Path) -> str | None:
         run = json.loads(path.read_text())
     except ValueError as e:
         raise ConfigError(f"run.json: {path} is not valid JSON ({e})") from None
-    kwargs = run.get("backend_kwargs") if isinstance(run, dict) else None
+    kwargs = run.get("backend_kwargs", {}) if isinstance(run, dict) else None  # absent: a run before the section
     if not isinstance(kwargs, dict) or run.get("backend") != "pybullet":
         return None
     return str(kwargs.get("physics", LEGACY_BACKEND_KWARGS["physics"]))

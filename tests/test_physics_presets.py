@@ -149,6 +149,8 @@ def test_a_step_adding_episodes_to_a_run_of_another_preset_is_refused_in_one_lin
     seen.mkdir()
     (seen / "run.json").write_text(json.dumps({"backend": "pybullet", "backend_kwargs": {"wrist": True}}))
     assert run_physics(seen) == "reference"
+    (seen / "run.json").write_text(json.dumps({"backend": "pybullet"}))  # written before backend_kwargs existed
+    assert run_physics(seen) == "reference"
     check_same_physics(str(seen), "backend_kwargs.physics=reference", "reproduce-more")
     with pytest.raises(ConfigError, match=r"^REPRO_PHYSICS: reproduce-more would simulate with physics=prefix, but"):
         check_same_physics(str(seen), "backend_kwargs.physics=prefix", "reproduce-more")
