@@ -100,8 +100,9 @@ LEGACY_BACKEND_KWARGS = {"physics": "reference"}
 
 
 def run_physics(run_dir: str | Path) -> str | None:
-    """The physics preset a PyBullet run folder's episodes were simulated with (a run.json written before the key
-    reads as LEGACY_BACKEND_KWARGS says); None for no run there or another backend."""
+    """The physics preset a PyBullet run folder's episodes were simulated with, read as a resumed run reads its
+    run.json (`_upgrade_identity`: an older one's keys as LEGACY_BACKEND_KWARGS says); None for no run there or
+    another backend."""
     path = Path(run_dir) / "run.json"
     if not path.is_file():
         return None
@@ -109,10 +110,13 @@ def run_physics(run_dir: str | Path) -> str | None:
         run = json.loads(path.read_text())
     except ValueError as e:
         raise ConfigError(f"run.json: {path} is not valid JSON ({e})") from None
-    kwargs = run.get("backend_kwargs", {}) if isinstance(run, dict) else None  # absent: a run before the section
-    if not isinstance(kwargs, dict) or run.get("backend") != "pybullet":
+    if (
+        not isinstance(run, dict)
+        or run.get("backend") != "pybullet"
+        or not isinstance(run.get("backend_kwargs", {}), dict)
+    ):
         return None
-    return str(kwargs.get("physics", LEGACY_BACKEND_KWARGS["physics"]))
+    return str(_upgrade_identity(run, {"backend_kwargs": {}, "backend_files": {}})["backend_kwargs"]["physics"])
 
 
 def check_same_physics(run_dir: str, setting: str, step: str) -> None:
