@@ -485,8 +485,8 @@ recovery: recovery-scripted online-bench
 # how well): seen-catalogue episodes with front, side and wrist views (seed 1000, so none of make reproduce's seed-0
 # episodes), small val-object and val-scene sets (episodes of their own) for the card's held-out accuracy only, dense per-frame
 # targets read from simulator state, then the Qwen3-VL vision tower and merger trained on them in three stages: from
-# random weights; then on a second seen run (same seed, fewer episodes) with any hue and wide brightness, contrast and
-# saturation (the glassware's colour is no cue); then on seen scenes drawn from the randomised scene family (any bench
+# random weights; then on a second seen run (same seed, fewer episodes: the first run's shards copied, not simulated
+# again, reuse_from) with any hue and wide brightness, contrast and saturation (the glassware's colour is no cue); then on seen scenes drawn from the randomised scene family (any bench
 # and floor colour, textures no split uses: the bench is no cue either; docs/EXPERIMENTS.md, 26 Nov), and exported.
 # Every stage's colour augmentation keeps each pixel's saturation at most what it was (configs/tower.yaml
 # augment.raise_saturation, from 6 Dec: no stage sees the sealed scene family's saturation); the shipped tower was
@@ -507,7 +507,8 @@ TOWER_RAND_GEN := $(TOWER_VIEWS) seed=2000 backend_kwargs.scene_family=randomise
 TOWER_HELD   := $(T)/shards/val_object,$(T)/shards/val_scene
 tower: $(STAMP)
 	$(BIN)/labrobfail-generate $(TOWER_GEN) num_episodes=$(TOWER_SEEN) out_dir=$(T)/shards/seen
-	$(BIN)/labrobfail-generate $(TOWER_GEN) num_episodes=$(TOWER_DR_SEEN) out_dir=$(T)/shards/seen_dr
+	$(BIN)/labrobfail-generate $(TOWER_GEN) num_episodes=$(TOWER_DR_SEEN) out_dir=$(T)/shards/seen_dr \
+	  reuse_from=$(T)/shards/seen
 	$(BIN)/labrobfail-generate $(TOWER_RAND_GEN) num_episodes=$(TOWER_RAND_SEEN) out_dir=$(T)/shards/seen_rand
 	for v in val_object val_scene; do $(BIN)/labrobfail-generate $(TOWER_GEN) num_episodes=$(TOWER_UNSEEN) \
 	  variant=$$v out_dir=$(T)/shards/$$v || exit 1; done

@@ -76,6 +76,18 @@ def require_ints(cfg: Any, keys: Iterable[str], low: int = 1, section: str = "")
             raise ConfigError(f"{section}{key}: expected an integer >= {low}, got {cfg[key]!r}")
 
 
+def first_difference(a: Any, b: Any, at: str = "") -> str | None:
+    """The dotted key where two JSON values first differ, or None."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in sorted(set(a) | set(b), key=str):
+            if k not in a or k not in b:
+                return f"{at}{k}"
+            if (d := first_difference(a[k], b[k], f"{at}{k}.")) is not None:
+                return d
+        return None
+    return None if a == b else at.rstrip(".") or "(the whole config)"
+
+
 def make_dir(key: str, path: Any, *subdirs: str, probe: bool = False) -> Path:
     """The folder a setting names (`key`, e.g. out_dir), made with `subdirs` inside it and, with `probe`, a file
     written and removed there; any OSError is a one-line ConfigError naming the setting."""

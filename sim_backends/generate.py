@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -23,7 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from labrobfail_vlm.config import CONFIG_DIR, ConfigError, is_int, make_dir, names, require_ints
 from labrobfail_vlm.config import load_config as _load_config
-from labrobfail_vlm.io import atomic_write_json
+from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
 from labrobfail_vlm.taxonomy import REPLAY_PREFIX, SCENE_VARIANTS, check_variant
 from sim_backends.shards import episode_row, manifest, read_labels, write_shard
 
@@ -91,6 +92,8 @@ def validate(cfg: DictConfig) -> dict[str, Any]:
     for s in cfg.scenarios or []:
         if s not in known:
             raise ConfigError(f"scenarios: unknown task scenario {s!r}")
+    if cfg.reuse_from is not None and Path(str(cfg.reuse_from)).resolve() == Path(str(cfg.out_dir)).resolve():
+        raise ConfigError("reuse_from: names out_dir itself; give the folder of another run")
     make_dir("out_dir", cfg.out_dir, probe=True)  # made last: a bad setting above leaves no folder behind
     return kwargs
 
@@ -366,6 +369,53 @@ def _run_ray(jobs, cfg, kwargs) -> Iterator[int]:
         ray.shutdown()
 
 
+def _reuse_source(cfg: DictConfig, identity: dict[str, Any]) -> dict[str, Any] | None:
+    """The run.json of `reuse_from`, checked to be this run's identity but for num_episodes (refused in one line
+    otherwise, before this run writes anything); None without reuse_from."""
+    if cfg.reuse_from is None:
+        return None
+    src = Path(str(cfg.reuse_from))
+    if not (src / "run.json").is_file():
+        raise ConfigError(f"reuse_from: {str(src)!r} holds no labrobfail-generate run (no run.json)")
+    try:
+        other = _upgrade_identity(json.loads((src / "run.json").read_text()), identity)
+    except (ValueError, TypeError, AttributeError, KeyError) as e:
+        raise ConfigError(f"reuse_from: {src / 'run.json'} is not a run.json ({e})") from None
+    diff = [k for k in (*IDENTITY_KEYS, "backend_files") if k != "num_episodes" and other.get(k) != identity[k]]
+    if diff:
+        raise ConfigError(
+            f"reuse_from: {str(src)!r} was generated with another {diff[0]} ({other.get(diff[0])!r}, "
+            f"here {identity[diff[0]]!r}); its episodes are not this run's"
+        )
+    if not is_int(other.get("num_episodes"), 0):
+        raise ConfigError(f"reuse_from: {src / 'run.json'} has no num_episodes")
+    return other
+
+
+def _reuse_shards(
+    cfg: DictConfig, other: dict[str, Any], todo: list[dict[str, Any]], scenarios: list[str], repeats: Any
+) -> list[dict[str, Any]]:
+    """Copy the shards of `todo` that the run in `reuse_from` (`other`, its run.json) wrote from the very same job
+    (the same pairs, seeds and physics: the same bytes, as generation is deterministic) instead of simulating them
+    again; returns the jobs left."""
+    src = Path(str(cfg.reuse_from))
+    theirs = OmegaConf.merge(cfg, {"num_episodes": other["num_episodes"]})
+    same = {j["shard"]: j for j in shard_jobs(theirs, scenarios, repeats)}
+    left, copied = [], 0
+    for job in todo:
+        name = f"shard-{job['shard']:05d}"
+        parts = [src / f"{name}.rejects.json", src / f"{name}.parquet"]  # the parquet last: then the shard is done
+        if same.get(job["shard"]) != job or not all(f.is_file() for f in parts):
+            left.append(job)
+            continue
+        for f in parts:
+            atomic_write_bytes(Path(cfg.out_dir) / f.name, f.read_bytes())
+        copied += 1
+    if copied:
+        print(f"reuse_from: copied {copied} shard(s) from {src}", file=sys.stderr)
+    return left
+
+
 def generate(cfg: DictConfig) -> dict[str, Any]:
     from tqdm import tqdm
 
@@ -375,6 +425,7 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
     out = Path(cfg.out_dir)
     identity = {k: OmegaConf.to_container(cfg, resolve=True)[k] for k in IDENTITY_KEYS}
     identity["backend_files"] = _file_contents(identity["backend_kwargs"] or {}, kwargs)
+    other = _reuse_source(cfg, identity)
     run_file = out / "run.json"
     if run_file.exists():
         old = _upgrade_identity(json.loads(run_file.read_text()), identity)
@@ -398,6 +449,8 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
     scenarios = list(cfg.scenarios) if cfg.scenarios else list(repeats)
     jobs = shard_jobs(cfg, scenarios, repeats)
     todo = [j for j in jobs if not (out / f"shard-{j['shard']:05d}.parquet").exists()]
+    if other is not None:
+        todo = _reuse_shards(cfg, other, todo, scenarios, repeats)
     done_eps = sum(j["hi"] - j["lo"] for j in jobs) - sum(j["hi"] - j["lo"] for j in todo)
     bar = tqdm(
         total=int(cfg.num_episodes),

@@ -91,6 +91,20 @@ def test_first_pair_numbers_ids_and_seeds_so_a_second_run_adds_new_pairs(tmp_pat
     assert r.returncode == 2 and "first_pair" in r.stderr
 
 
+def test_reuse_from_copies_the_same_jobs_shards_and_refuses_another_run(run6, tmp_path):
+    out = tmp_path / "half"
+    r = gen(out, "num_episodes=4", "seed=5", f"reuse_from={run6}")  # run6's first two shards are this run's
+    assert "copied 2 shard(s)" in r.stderr
+    for name in ("shard-00000.parquet", "shard-00001.parquet", "shard-00000.rejects.json"):
+        assert (out / name).read_bytes() == (run6 / name).read_bytes()
+    assert [x["episode_id"] for x in rows(out)] == [f"ep{i:07d}" for i in range(4)]
+    assert json.loads((out / "manifest.json").read_text())["episodes"] == 4
+    r = gen(tmp_path / "other", "num_episodes=4", "seed=6", f"reuse_from={run6}", check=False)
+    assert r.returncode == 2 and "Traceback" not in r.stderr and "reuse_from" in r.stderr and "seed" in r.stderr
+    r = gen(tmp_path / "x", "num_episodes=2", f"reuse_from={tmp_path / 'nowhere'}", check=False)
+    assert r.returncode == 2 and "reuse_from" in r.stderr and "run.json" in r.stderr
+
+
 @pytest.mark.parametrize(
     "arg, field",
     [
@@ -112,9 +126,11 @@ def test_first_pair_numbers_ids_and_seeds_so_a_second_run_adds_new_pairs(tmp_pat
         ("seed=[1]", "seed"),
         ("seed=4294967296", "seed"),  # 2**32: its seed words would be another (seed, pair)'s
         ("first_pair=4294967296", "first_pair"),
+        ("reuse_from=REUSE_SELF", "reuse_from"),  # the out_dir itself
     ],
 )
 def test_bad_config_is_one_line(tmp_path, arg, field):
+    arg = arg.replace("REUSE_SELF", str(tmp_path / "c"))
     r = gen(tmp_path / "c", "num_episodes=2", arg, check=False, here=arg != "backend=gazebo")  # the first: a process
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip().count("\n") == 0 and field in r.stderr

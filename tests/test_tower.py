@@ -71,6 +71,12 @@ def test_pretraining_resumes_exports_and_the_tiny_model_takes_the_tower(tower_da
     assert "resuming after epoch 1" in r.stderr
     metrics = json.loads((run / "metrics.json").read_text())
     assert [m["epoch"] for m in metrics] == [1, 2] and all(m["loss_cell"] > 0 for m in metrics)
+    before = {f.name: f.read_bytes() for f in (run / "checkpoint").iterdir()}
+    for change in ("augment.raise_saturation=true", "lr=5e-4"):  # a run is not continued under other settings
+        r = _pretrain(tower_data, run, "epochs=3", "layouts=[[front,side],[front,wrist]]", change, here=True)
+        assert r.returncode == 2 and "Traceback" not in r.stderr and r.stderr.strip().count("\n") == 0
+        assert r.stderr.startswith(f"error: {change.partition('=')[0]}:")
+    assert {f.name: f.read_bytes() for f in (run / "checkpoint").iterdir()} == before
     card = json.loads((tmp_path / "x" / "tower.json").read_text())
     assert card["vision_config"]["depth"] == 1 and set(card["heldout"]) == {"front+side", "front+wrist"}
     seen = card["heldout"]["front+side"]["seen"]

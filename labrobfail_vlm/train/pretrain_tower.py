@@ -72,19 +72,44 @@ def _save(out: Path, tower: Any, heads: Any, opt: Any, state: dict[str, Any]) ->
     swap_in(tmp, final)
 
 
-def _resume(out: Path, tower: Any, heads: Any, opt: Any) -> dict[str, Any] | None:
+# Settings a rerun may change and still resume: more epochs extend the run; the rest only report or export.
+RESUME_FREE = ("epochs", "export_dir", "progress", "threads", "max_eval", "eval_every", "out_dir")
+
+
+def _settings(cfg: Any, init_sha: str | None) -> dict[str, Any]:
+    """What decides the trained weights, as the checkpoint records it: the config less RESUME_FREE and
+    data.progress, the starting tower by its content (init's sha256), not its path."""
+    conf = OmegaConf.to_container(cfg, resolve=True)
+    for k in RESUME_FREE:
+        conf.pop(k, None)
+    conf["data"].pop("progress", None)
+    conf["init"] = init_sha
+    return json.loads(json.dumps(conf))  # as state.json reads back (tuples as lists)
+
+
+def _resume(out: Path, tower: Any, heads: Any, opt: Any, settings: dict[str, Any]) -> dict[str, Any] | None:
+    """The checkpoint's state, its weights and optimizer loaded; None for a fresh out_dir. A checkpoint trained with
+    other settings (those it records: checkpoints written before this check record none) is refused before anything
+    loads, so a changed augmentation or learning rate cannot continue a run as if it were the same one."""
     import torch
     from safetensors.torch import load_file
 
+    from labrobfail_vlm.config import first_difference
     from labrobfail_vlm.io import swapped
 
     ck = swapped(out / "checkpoint", "state.json")
     if not (ck / "state.json").is_file():
         return None
+    state = json.loads((ck / "state.json").read_text())
+    if "config" in state and (key := first_difference(state["config"], settings)) is not None:
+        raise ConfigError(
+            f"{key}: {out} holds a run trained with other settings; rerun with its settings "
+            f'({out / "checkpoint" / "state.json"}, "config") or use a new out_dir (nothing was changed)'
+        )
     tower.load_state_dict(load_file(str(ck / "tower.safetensors")))
     heads.load_state_dict(load_file(str(ck / "heads.safetensors")))
     opt.load_state_dict(torch.load(ck / "optimizer.pt", weights_only=True))
-    return json.loads((ck / "state.json").read_text())
+    return state
 
 
 @dataclass
@@ -134,7 +159,8 @@ def setup(cfg: Any) -> Run:
     heads = T.TowerHeads(int(cfg.out_hidden_size), len(train.cell_names), len(train.token_names))
     params = list(tower.parameters()) + list(heads.parameters())
     opt = torch.optim.AdamW(params, lr=float(cfg.lr), weight_decay=float(cfg.weight_decay))
-    resumed = _resume(out, tower, heads, opt)
+    settings = _settings(cfg, init_sha)
+    resumed = _resume(out, tower, heads, opt, settings)
     if resumed:
         print(f"resuming after epoch {resumed['epoch']} (step {resumed['step']})", file=sys.stderr)
     return Run(
@@ -148,7 +174,8 @@ def setup(cfg: Any) -> Run:
         heads=heads,
         opt=opt,
         ip=image_processor(temporal_patch_size=int(cfg.vision.temporal_patch_size)),
-        state=resumed or {"epoch": 0, "step": 0, "metrics": [], "wall_s": 0.0, "cpu_s": 0.0},
+        state={"epoch": 0, "step": 0, "metrics": [], "wall_s": 0.0, "cpu_s": 0.0, **(resumed or {})}
+        | {"config": settings},
         init_sha=init_sha,
     )
 

@@ -25,7 +25,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.config import ConfigError, first_difference
 from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json, sha256_file
 
 RUN_CONFIG = "run_config.json"
@@ -70,18 +70,6 @@ def _digested(v: Any) -> Any:
     if isinstance(v, str) and v and Path(v).exists():
         return f"<content sha256 {content_digest(Path(v))}>"
     return v
-
-
-def first_difference(a: Any, b: Any, at: str = "") -> str | None:
-    """The dotted key where two JSON values first differ, or None."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        for k in sorted(set(a) | set(b), key=str):
-            if k not in a or k not in b:
-                return f"{at}{k}"
-            if (d := first_difference(a[k], b[k], f"{at}{k}.")) is not None:
-                return d
-        return None
-    return None if a == b else at.rstrip(".") or "(the whole config)"
 
 
 def finished_trials(out: Path, fp: dict[str, Any]) -> dict[str, dict[str, Any]]:
