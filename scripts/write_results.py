@@ -38,7 +38,6 @@ from labrobfail_vlm.bench.page import (
     NOT_RUN,
     PAPER_TABLES,
     ROWS,
-    SEALED_CLAIM,
     SPLIT_TITLES,
     ablation_table,
     all_trajectory_tables,
@@ -50,12 +49,14 @@ from labrobfail_vlm.bench.page import (
     restate,
     rows_table,
     run_evals,
+    sealed_claim,
     sealed_section,
     targets,
     tuned_table,
 )
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
 from labrobfail_vlm.io import atomic_write_bytes
+from labrobfail_vlm.model.tower import raised_saturation
 from sim_backends.generate import run_physics
 from sim_backends.supervision.report import LEAD, block, page_recovery, recovery_files, recovery_md
 
@@ -372,6 +373,7 @@ def _header(run: Path, stats: dict[str, Any], stamps: list[list[str]]) -> list[s
     progress = _load(run / "train" / "progress.json")
     grid = stats["grid"]
     card = summary.get("tower")
+    claim = sealed_claim(raised_saturation(card))
     lines = [
         "# LabRobFail-Bench results of the CPU recipe",
         "",
@@ -386,7 +388,7 @@ def _header(run: Path, stats: dict[str, Any], stamps: list[list[str]]) -> list[s
         "catalogue and scene family: from 29 Nov 2026 every recipe, epoch count and threshold is chosen on them and "
         "on seen val; the recipe's tower stages and epoch count are older, chosen on seen test and on these sets' "
         "replayed predecessors, its decoder depth on these (3 Dec), docs/EXPERIMENTS.md); "
-        f"`test_object`, `test_scene`, `test_both` ({SEALED_CLAIM} run only for the rows reported here, and every "
+        f"`test_object`, `test_scene`, `test_both` ({claim} run only for the rows reported here, and every "
         'run is listed in "Sealed test runs"). Every variant draws its own episodes. Intervals: 95 %, percentile '
         "bootstrap over pairs (both twins of a pair drawn together).",
         "",

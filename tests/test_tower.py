@@ -89,7 +89,7 @@ def test_pretraining_resumes_exports_and_the_tiny_model_takes_the_tower(tower_da
 
     from labrobfail_vlm.model.loading import load_model
     from labrobfail_vlm.model.tiny import build_tiny
-    from labrobfail_vlm.model.tower import read_card
+    from labrobfail_vlm.model.tower import raised_saturation, read_card
     from labrobfail_vlm.train.tower_card import augment_line
 
     read_card(tmp_path / "x")  # the sha256 on the card is the file's
@@ -121,6 +121,15 @@ def test_pretraining_resumes_exports_and_the_tiny_model_takes_the_tower(tower_da
     assert card["training"]["augment"]["raise_saturation"] is False  # configs/tower.yaml's, said on the card:
     assert "hue turned up to 0.5 turn; no pixel's saturation raised" in (tmp_path / "y" / "TOWER_CARD.md").read_text()
     assert augment_line({}) == "Augmentation: not recorded on this card."
+    # what a page may say of the sealed colours, read from the card of the tower its run started from
+    y = {"path": str(tmp_path / "y"), "sha256": card["sha256"]}
+    assert raised_saturation(y) is False and raised_saturation(None) is False  # kept; a random tower
+    assert raised_saturation({**y, "sha256": "0" * 64}) is True  # another tower at that path now: not known
+    (tmp_path / "z").mkdir()
+    older = {"colour": 0.75, "shift_px": 8, "scale": 0.1, "hue": 0.5}  # the tower shipped until 6 Dec: no key
+    for aug in ({**card["training"]["augment"], "raise_saturation": True}, older):
+        (tmp_path / "z" / "tower.json").write_text(json.dumps({**card, "training": {"augment": aug}}))
+        assert raised_saturation({**y, "path": str(tmp_path / "z")}) is True  # raising, or a card older than the key
     # a damaged tower is refused in one line, before any model is built
     (tmp_path / "x" / "tower.safetensors").write_bytes(b"\0" * 64)
     with pytest.raises(Exception, match="does not match the sha256"):

@@ -122,13 +122,27 @@ def targets(evals: dict[str, Any]) -> list[str]:
 
 
 # What the page says of the sealed splits. Their shapes, sizes and texture kinds are drawn by nothing else, and their
-# colour ranges by no family as drawn, but the shipped tower's colour augmentation (saturation up to x1.75, any hue)
-# reaches those ranges (found 6 Dec); the claim a page written before then makes is restated by a splice.
+# colour ranges by no family as drawn, but the colour augmentation of the tower shipped until 6 Dec (saturation up to
+# x1.75, any hue) reaches those ranges (found 6 Dec); the claim a page written before then makes is restated by a
+# splice. A run whose tower kept every pixel's saturation at most what was rendered claims the ranges unreached.
 SEALED_CLAIM = (
     "the sealed catalogue and scene family: shapes, sizes and texture kinds that nothing trained, pretrained or "
-    "tuned draws from, colour ranges outside every family drawn, which the shipped tower's colour augmentation "
+    "tuned draws from, colour ranges outside every family drawn, which the page's tower's colour augmentation "
     "(saturation up to x1.75, any hue) nonetheless reaches;"
 )
+SEALED_CLAIM_KEPT = (
+    "the sealed catalogue and scene family: shapes, sizes and texture kinds that nothing trained, pretrained or "
+    "tuned draws from, colour ranges outside every family drawn and outside what any training augmentation makes "
+    "of them (the page's tower never raised a pixel's saturation);"
+)
+
+
+def sealed_claim(raised: bool) -> str:
+    """The page's words on the sealed splits for a run whose tower was pretrained raising saturation or not
+    (tower_card.raised_saturation)."""
+    return SEALED_CLAIM if raised else SEALED_CLAIM_KEPT
+
+
 RESTATED_CLAIMS = {
     "the sealed catalogue and scene family, which nothing trained, pretrained or tuned draws from;": SEALED_CLAIM
 }

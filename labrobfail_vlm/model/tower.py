@@ -82,3 +82,26 @@ def load_visual(visual: Any, folder: Path) -> None:
             f"tower: {folder / TOWER_FILE} does not fit the model's vision tower (missing "
             f"{missing[:2]}, unexpected {unexpected[:2]})"
         )
+
+
+def raised_saturation(ref: dict[str, Any] | None) -> bool:
+    """Whether the tower a run started from (train_summary.json's `tower`: path and sha256) was pretrained with colour
+    augmentation that could raise a pixel's saturation, read from its card's last stage (the three stages of `make
+    tower` share the setting). True where the card cannot tell: no augment section, or a tower no longer at its path
+    (the shipped one replaced since), so a page never claims more than it knows; False for a random tower."""
+    from labrobfail_vlm.augment import AugmentConfig
+
+    folder = resolve(str(ref["path"])) if ref else None
+    if not ref or folder is None:
+        return False
+    try:
+        card = json.loads((folder / CARD_FILE).read_text())
+    except (OSError, ValueError):
+        return True
+    aug = card.get("training", {}).get("augment") if isinstance(card, dict) else None
+    if not isinstance(aug, dict) or not aug or card.get("sha256") != ref.get("sha256"):
+        return True
+    try:
+        return AugmentConfig.from_section({"hue": None, **aug}).raise_saturation
+    except ValueError:  # a card this version cannot read
+        return True
