@@ -132,8 +132,8 @@ SEALED_CLAIM = (
 )
 SEALED_CLAIM_KEPT = (
     "the sealed catalogue and scene family: shapes, sizes and texture kinds that nothing trained, pretrained or "
-    "tuned draws from, colour ranges outside every family drawn and outside what any training augmentation makes "
-    "of them (the page's tower never raised a pixel's saturation);"
+    "tuned draws from, colour ranges outside every family drawn and outside what the page's tower's colour "
+    "augmentation makes of them (it never raised a pixel's saturation; the recipe's VQA training does not augment);"
 )
 
 
