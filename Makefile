@@ -489,8 +489,8 @@ recovery: recovery-scripted online-bench
 # again, reuse_from) with any hue and wide brightness, contrast and saturation (the glassware's colour is no cue); then on seen scenes drawn from the randomised scene family (any bench
 # and floor colour, textures no split uses: the bench is no cue either; docs/EXPERIMENTS.md, 26 Nov), and exported.
 # Every stage's colour augmentation keeps each pixel's saturation at most what it was (configs/tower.yaml
-# augment.raise_saturation, from 6 Dec: no stage sees the sealed scene family's saturation); the shipped tower was
-# made before that, raising it, and is this recipe's predecessor. Every step resumes when rerun.
+# augment.raise_saturation, from 6 Dec: no stage sees the sealed scene family's saturation); the tower shipped until
+# 6 Dec was made before that, raising it (docs/EXPERIMENTS.md, 6 Dec evening). Every step resumes when rerun.
 # About 2.7 h on 2 cores.
 T            ?= outputs/tower
 TOWER_SEEN   ?= 6000

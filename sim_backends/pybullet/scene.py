@@ -112,7 +112,7 @@ SCENE_FAMILIES: dict[str, dict[str, Any]] = {
     # the val family's checker or tiles, and neither its colours nor its textures reach the sealed family's as drawn.
     # A contrast or saturation gain in colour augmentation would (any family's dark pixels included): every training
     # setting keeps each pixel's saturation at most what it was (augment.raise_saturation: false, from 6 Dec; the
-    # shipped tower was trained raising it; tests/test_splits_sealed.py).
+    # tower shipped before then was trained raising it; tests/test_splits_sealed.py).
     "randomised": {
         "bench_value": (0.15, 0.95),
         "bench_sat": (0.0, 0.7),
