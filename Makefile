@@ -491,7 +491,7 @@ recovery: recovery-scripted online-bench
 # Every stage's colour augmentation keeps each pixel's saturation at most what it was (configs/tower.yaml
 # augment.raise_saturation, from 6 Dec: no stage sees the sealed scene family's saturation); the tower shipped until
 # 6 Dec was made before that, raising it (docs/EXPERIMENTS.md, 6 Dec evening). Every step resumes when rerun.
-# About 2.7 h on 2 cores.
+# About 2.5 h on 2 cores (6 Dec, prefix physics: generation 32 min, the three stages 70, 22 and 22 min).
 T            ?= outputs/tower
 TOWER_SEEN   ?= 6000
 TOWER_UNSEEN ?= 200

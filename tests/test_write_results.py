@@ -403,6 +403,24 @@ def test_a_splice_restates_a_kept_targets_row_that_read_yes_by_its_point_alone(t
     assert f"Splits: `test_both` ({SEALED_CLAIM} run only" in text and "which nothing trained" not in text
 
 
+def test_a_page_made_on_the_tower_shipped_until_6_dec_says_so_once_another_is_shipped() -> None:
+    """The 6 Dec afternoon page called its tower `shipped` and its augmentation the shipped tower's; once the tower
+    without saturation gain replaced it, a splice names the page's own tower instead, by its sha256."""
+    from labrobfail_vlm.bench.page import SEALED_CLAIM, restate
+
+    then = SEALED_CLAIM.replace("the page's tower's colour", "the shipped tower's colour")
+    assert then != SEALED_CLAIM and restate(f"Splits: `test_both` ({then} run only") == (
+        f"Splits: `test_both` ({SEALED_CLAIM} run only"
+    )
+    line = (
+        "- Vision tower: `shipped` (sha256 `b64d9663c780c584...`, 1,515,008 parameters; what it learned and how "
+        "well, held out: its TOWER_CARD.md)."
+    )
+    assert restate(line).startswith("- Vision tower: the one shipped until 6 Dec (sha256 `b64d9663c780c584...`")
+    other = line.replace("b64d9663c780c584", "414fed7eec8fa82f")  # a page made on today's shipped tower: kept
+    assert restate(other) == other
+
+
 def _supervision_page(tmp_path: Path, section: list[str]) -> tuple[Path, Path]:
     """A page whose Supervision section is `section`, and a run folder of the page's data (nothing else yet)."""
     page, run = tmp_path / "RESULTS.md", tmp_path / "run"

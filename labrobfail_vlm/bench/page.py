@@ -144,7 +144,16 @@ def sealed_claim(raised: bool) -> str:
 
 
 RESTATED_CLAIMS = {
-    "the sealed catalogue and scene family, which nothing trained, pretrained or tuned draws from;": SEALED_CLAIM
+    "the sealed catalogue and scene family, which nothing trained, pretrained or tuned draws from;": SEALED_CLAIM,
+    # the words of 6 Dec afternoon, when the tower that raised saturation was still the shipped one
+    "which the shipped tower's colour augmentation (saturation up to x1.75, any hue) nonetheless reaches;": (
+        "which the page's tower's colour augmentation (saturation up to x1.75, any hue) nonetheless reaches;"
+    ),
+    "- Vision tower: `shipped` (sha256 `b64d9663c780c584...`, 1,515,008 parameters; what it learned and how well, "
+    "held out: its TOWER_CARD.md).": (
+        "- Vision tower: the one shipped until 6 Dec (sha256 `b64d9663c780c584...`, 1,515,008 parameters; what it "
+        "learned and how well, held out: its TOWER_CARD.md in the history before 6 Dec's replacement)."
+    ),
 }
 
 
