@@ -218,16 +218,17 @@ $(call bench,$(R)/train,val,$(R)/dataset)
 endef
 VAL_SPLITS     := val val_object val_scene val_both
 # After make reproduce and make tower: the recipe on its own data from another tower (TOWER_DIR, a make tower export
-# kept beside the shipped one), trained into rows/tower_new and benched beside the recipe on seen val and the three
+# kept beside the shipped one), trained into rows/$(TOWER_ROW) and benched beside the recipe on seen val and the three
 # validation splits only (the rule for the tower without saturation gain: docs/EXPERIMENTS.md, 6 Dec evening).
 TOWER_DIR      ?= $(T)/export
+TOWER_ROW      ?= tower_new
 reproduce-tower: $(STAMP)
 	@test -f $(R)/train/train_summary.json || { echo "$@: run make reproduce first" >&2; exit 2; }
 	@test -f $(TOWER_DIR)/tower.safetensors || { echo "$@: no tower in $(TOWER_DIR) (make tower TOWER_EXPORT=$(TOWER_DIR))" >&2; exit 2; }
 	$(call same_layers,$@)
-	$(BIN)/labrobfail-train $(REPRO_TRAIN) tower=$(TOWER_DIR) dataset_dir=$(R)/dataset output_dir=$(R)/rows/tower_new \
-	  $(call resume_in,$(R)/rows/tower_new)
-	$(call bench,$(R)/rows/tower_new,$(VAL_SPLITS),$(R)/dataset)
+	$(BIN)/labrobfail-train $(REPRO_TRAIN) tower=$(TOWER_DIR) dataset_dir=$(R)/dataset output_dir=$(R)/rows/$(TOWER_ROW) \
+	  $(call resume_in,$(R)/rows/$(TOWER_ROW))
+	$(call bench,$(R)/rows/$(TOWER_ROW),$(VAL_SPLITS),$(R)/dataset)
 	$(call bench,$(R)/train,val,$(R)/dataset)
 
 # The paper's grid: 16 keyframes in its layout (8 columns, front and side bands twice) at the shipped tower's 128-px
@@ -503,7 +504,10 @@ TOWER_EXPORT ?= labrobfail_vlm/assets/tower
 TOWER_VIEWS  := backend=pybullet workers=2 image_size=128 render_frames=8 backend_kwargs.wrist=true progress=false \
   $(REPRO_PHYSICS)
 TOWER_GEN    := $(TOWER_VIEWS) seed=1000
-TOWER_RAND_GEN := $(TOWER_VIEWS) seed=2000 backend_kwargs.scene_family=randomised
+# TOWER_OBJECTS=backend_kwargs.object_colours=randomised: stage three's seen episodes with glassware of any colour
+# up to saturation 0.8 (scene.OBJECT_COLOURS; the candidate of docs/EXPERIMENTS.md, 6 Dec night, second)
+TOWER_OBJECTS ?=
+TOWER_RAND_GEN := $(TOWER_VIEWS) seed=2000 backend_kwargs.scene_family=randomised $(TOWER_OBJECTS)
 TOWER_HELD   := $(T)/shards/val_object,$(T)/shards/val_scene
 tower: $(STAMP)
 	$(BIN)/labrobfail-generate $(TOWER_GEN) num_episodes=$(TOWER_SEEN) out_dir=$(T)/shards/seen

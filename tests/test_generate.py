@@ -121,6 +121,7 @@ def test_reuse_from_copies_the_same_jobs_shards_and_refuses_another_run(run6, tm
         ("backend_kwargs.custom_scene=nowhere.yaml", "backend_kwargs.custom_scene"),
         ("backend_kwargs.custom_scene=tests/data/bad_vary_scene.yaml", "vary"),
         ("backend_kwargs.scene_family=moon", "scene_family"),
+        ("backend_kwargs.object_colours=moon", "object_colours"),
         ("cameras=[front,moon]", "cameras"),  # was found by the renderer after run.json recorded it
         ("seed=abc", "seed"),  # likewise: the corrected rerun was then refused
         ("seed=[1]", "seed"),

@@ -226,8 +226,11 @@ def test_a_tower_candidate_trains_the_recipe_on_its_data_and_benches_validation_
     assert "labrobfail-generate" not in text
     (train,) = [line for line in text.splitlines() if "labrobfail-train" in line]
     assert "tower=elsewhere/t" in train.split() and "dataset_dir=R/dataset" in train.split()
+    assert "output_dir=R/rows/tower_new" in train.split()
     benched = re.findall(r"for s in ([\w ]+); do", text)
     assert benched == ["val val_object val_scene val_both", "val"]
+    got = _make_dry("reproduce-tower", f"R={tmp_path}", "TOWER_DIR=elsewhere/t", "TOWER_ROW=tower_c")
+    assert f"output_dir={tmp_path}/rows/tower_c" in got.stdout.replace("\\\n", "").split()  # a second candidate
 
 
 def test_the_16_keyframe_candidate_draws_the_recipes_pairs_and_never_a_sealed_split(tmp_path):
@@ -386,6 +389,13 @@ def test_the_sealed_catalogue_has_shapes_sizes_and_colours_of_its_own():
         assert size(o) not in {size(t) for t in trained}, name
         nearest = min(float(np.linalg.norm(np.subtract(o["rgba"][:3], t["rgba"][:3]))) for t in trained)
         assert nearest > 0.2, f"{name}'s colour is {nearest:.2f} from a trained object's"
+    # glassware drawn in any colour for the tower (object_colours) stays less saturated than every sealed object
+    import colorsys
+
+    from sim_backends.pybullet.scene import OBJECT_COLOURS
+
+    sealed = min(colorsys.rgb_to_hsv(*o["rgba"][:3])[1] for o in SEALED_OBJECTS.values())
+    assert all(f["sat"][1] < sealed - 0.02 for f in OBJECT_COLOURS.values())
 
 
 def test_sealed_glassware_stands_on_a_sealed_bench_and_the_nominal_plan_succeeds():

@@ -117,6 +117,7 @@ def _flag(name: str, value: Any) -> bool:
     max_distractors=scene_mod.MAX_DISTRACTORS,
     lowpoly_robot=True,
     scene_family=None,
+    object_colours=None,
     button_lamp=False,
     broken_glass=False,
     layered_render=True,
@@ -141,6 +142,7 @@ class PyBulletSource(ScenarioConfig, Rewinder, FailureSource):
         max_distractors: int = scene_mod.MAX_DISTRACTORS,
         lowpoly_robot: bool = True,
         scene_family: str | None = None,
+        object_colours: str | None = None,
         button_lamp: bool = False,
         broken_glass: bool = False,
         layered_render: bool = True,
@@ -155,6 +157,7 @@ class PyBulletSource(ScenarioConfig, Rewinder, FailureSource):
             lowpoly_robot,
         )
         self.scene_family = scene_family  # None: the variant's own family (scene.SCENE_FAMILIES)
+        self.object_colours = object_colours  # None: the catalogue's colours (scene.OBJECT_COLOURS)
         # A button's cap travels 12 mm and springs back, which a keyframe of a few hundred pixels does not show: with
         # the lamp on, the housing of a button the task must press renders lit in every keyframe rendered once its
         # pressed goal holds on the trace so far, so a grid shows a press that happened and a press beside the
@@ -222,6 +225,11 @@ class PyBulletSource(ScenarioConfig, Rewinder, FailureSource):
         physics_preset(out.get("physics", DEFAULT_PHYSICS))
         if out.get("scene_family") is not None:
             scene_mod.scene_family("seen", out["scene_family"])  # an unknown family fails here, before any episode
+        if out.get("object_colours") is not None and out["object_colours"] not in scene_mod.OBJECT_COLOURS:
+            raise ValueError(
+                f"object_colours: expected null or one of {', '.join(scene_mod.OBJECT_COLOURS)}, "
+                f"got {out['object_colours']!r}"
+            )
         return out
 
     # -- FailureSource ------------------------------------------------------------------------------
@@ -257,6 +265,7 @@ class PyBulletSource(ScenarioConfig, Rewinder, FailureSource):
         scene_mod.add_distractors(
             self.scene, sc["layout"], variant, rng, self.max_distractors, [(k.pos, k.quat) for k in self.plan.keyframes]
         )
+        scene_mod.recolour_glassware(self.scene, variant, self.object_colours, np.random.default_rng([seed, 0xC0105]))
         if not self.physics.torsional_friction:
             _no_torsional_friction(cid)
         if self.renderer is not None:

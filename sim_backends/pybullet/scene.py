@@ -122,6 +122,14 @@ SCENE_FAMILIES: dict[str, dict[str, Any]] = {
 }
 FLOOR_SAT = (0.0, 0.3)  # a family's floor saturation unless it names its own
 PLACEMENT_JITTER = 0.035  # m: objects and zones move by up to this much in x and y (times their `jitter`)
+# Glassware colours drawn per episode (backend_kwargs.object_colours=randomised on seen-catalogue episodes) for the
+# vision tower's pretraining data only, as the randomised scene family is for benches: any hue, saturation up to 0.8,
+# so the tower sees glassware as saturated as the validation catalogue's (0.39-0.68; the seen catalogue's is mostly
+# 0.15-0.33) and never as saturated as the sealed catalogue's (0.84-0.95). Colour augmentation cannot do this without
+# bringing benches and floors into the sealed scene family's saturation (docs/EXPERIMENTS.md, 6 Dec night).
+OBJECT_COLOURS: dict[str, dict[str, tuple[float, float]]] = {
+    "randomised": {"value": (0.35, 0.95), "sat": (0.05, 0.80)},
+}
 MAX_DISTRACTORS = 3  # glassware on the bench that is not part of the task
 DISTRACTOR_CLEARANCE = 0.11  # m from every task object and zone (and 0.08 from the lines between them)
 SWEEP_CLEARANCE = 0.13  # m (xy) from every link origin of the arm's sweep (links are up to ~0.1 m wide) ...
@@ -470,6 +478,17 @@ def build(
         _place_glassware(cid, role, spec, resolve_object(spec["object"], variant, custom_objects), xy, out)
     robot.carries_liquid = bool(out.parts)  # liquid in play: a closed gripper turns slowly (robot.LIQUID_TURN)
     return Scene(cid, robot, out.objects, out.zones, out.parts, appearance, bench_id, out.labels)
+
+
+def recolour_glassware(scene: Scene, variant: str, colours: str | None, rng: np.random.Generator) -> None:
+    """Each task vessel, rod and distractor of a seen-catalogue episode in a colour drawn from OBJECT_COLOURS[colours]
+    (its own `rng`, so the episode's other draws are the same with or without it); held-out catalogues keep theirs."""
+    if colours is None or object_set(variant) != "seen":
+        return
+    fam = OBJECT_COLOURS[colours]
+    bodies = [o.body for o in scene.objects.values() if o.kind in ("vessel", "rod")] + list(scene.distractors.values())
+    for body in bodies:
+        p.changeVisualShape(body, -1, rgbaColor=_rgb(rng, fam["value"], fam["sat"]), physicsClientId=scene.cid)
 
 
 def add_distractors(
