@@ -223,13 +223,7 @@ class PyBulletSource(ScenarioConfig, Rewinder, FailureSource):
         for flag in ("button_lamp", "broken_glass", "layered_render"):
             _flag(flag, out.get(flag, False))
         physics_preset(out.get("physics", DEFAULT_PHYSICS))
-        if out.get("scene_family") is not None:
-            scene_mod.scene_family("seen", out["scene_family"])  # an unknown family fails here, before any episode
-        if out.get("object_colours") is not None and out["object_colours"] not in scene_mod.OBJECT_COLOURS:
-            raise ValueError(
-                f"object_colours: expected null or one of {', '.join(scene_mod.OBJECT_COLOURS)}, "
-                f"got {out['object_colours']!r}"
-            )
+        scene_mod.check_draws(out.get("scene_family"), out.get("object_colours"))  # before any episode
         return out
 
     # -- FailureSource ------------------------------------------------------------------------------

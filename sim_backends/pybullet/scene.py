@@ -158,6 +158,14 @@ def scene_family(variant: str, override: str | None = None) -> str:
     return held if held != "seen" else override or "seen"
 
 
+def check_draws(family: str | None, colours: str | None) -> None:
+    """backend_kwargs' scene_family and object_colours: an unknown name is refused in one line."""
+    if family is not None:
+        scene_family("seen", family)
+    if colours is not None and colours not in OBJECT_COLOURS:
+        raise ValueError(f"object_colours: expected null or one of {', '.join(OBJECT_COLOURS)}, got {colours!r}")
+
+
 def draw_appearance(variant: str, rng: np.random.Generator, family: str | None = None) -> dict[str, Any]:
     """Bench and floor colours, bench texture and light of one episode (seeded); `family`: see scene_family."""
     fam = SCENE_FAMILIES[scene_family(variant, family)]
