@@ -139,7 +139,7 @@ SEALED_CLAIM_KEPT = (
 
 def sealed_claim(raised: bool) -> str:
     """The page's words on the sealed splits for a run whose tower was pretrained raising saturation or not
-    (tower_card.raised_saturation)."""
+    (model.tower.raised_saturation)."""
     return SEALED_CLAIM if raised else SEALED_CLAIM_KEPT
 
 
