@@ -487,8 +487,9 @@ recovery: recovery-scripted online-bench
 # episodes), small val-object and val-scene sets (episodes of their own) for the card's held-out accuracy only, dense per-frame
 # targets read from simulator state, then the Qwen3-VL vision tower and merger trained on them in three stages: from
 # random weights; then on a second seen run (same seed, fewer episodes: the first run's shards copied, not simulated
-# again, reuse_from) with any hue and wide brightness, contrast and saturation (the glassware's colour is no cue); then on seen scenes drawn from the randomised scene family (any bench
-# and floor colour, textures no split uses: the bench is no cue either; docs/EXPERIMENTS.md, 26 Nov), and exported.
+# again, reuse_from) with any hue and wide brightness, contrast and saturation (the glassware's colour is no cue);
+# then on seen scenes drawn from the randomised scene family (any bench and floor colour, textures no split uses: the
+# bench is no cue either; docs/EXPERIMENTS.md, 26 Nov) with glassware of any colour (TOWER_OBJECTS), and exported.
 # Every stage's colour augmentation keeps each pixel's saturation at most what it was (configs/tower.yaml
 # augment.raise_saturation, from 6 Dec: no stage sees the sealed scene family's saturation); the tower shipped until
 # 6 Dec was made before that, raising it (docs/EXPERIMENTS.md, 6 Dec evening). Every step resumes when rerun.

@@ -369,6 +369,16 @@ def _run_ray(jobs, cfg, kwargs) -> Iterator[int]:
         ray.shutdown()
 
 
+def _differing(old: dict[str, Any], new: dict[str, Any], skip: tuple[str, ...] = ()) -> list[str]:
+    """The IDENTITY_KEYS (less `skip`) on which a run.json, read by `_upgrade_identity`, differs from this run's."""
+    return [k for k in IDENTITY_KEYS if k not in skip and old.get(k) != new[k]]
+
+
+def _edited_files(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
+    """The backend_kwargs whose file (custom_scene, custom_objects) holds other content than when `old` was written."""
+    return [k for k, v in new["backend_files"].items() if old["backend_files"].get(k) != v]
+
+
 def _reuse_source(cfg: DictConfig, identity: dict[str, Any]) -> dict[str, Any] | None:
     """The run.json of `reuse_from`, checked to be this run's identity but for num_episodes (refused in one line
     otherwise, before this run writes anything); None without reuse_from."""
@@ -381,11 +391,17 @@ def _reuse_source(cfg: DictConfig, identity: dict[str, Any]) -> dict[str, Any] |
         other = _upgrade_identity(json.loads((src / "run.json").read_text()), identity)
     except (ValueError, TypeError, AttributeError, KeyError) as e:
         raise ConfigError(f"reuse_from: {src / 'run.json'} is not a run.json ({e})") from None
-    diff = [k for k in (*IDENTITY_KEYS, "backend_files") if k != "num_episodes" and other.get(k) != identity[k]]
+    diff = _differing(other, identity, skip=("num_episodes",))
     if diff:
         raise ConfigError(
             f"reuse_from: {str(src)!r} was generated with another {diff[0]} ({other.get(diff[0])!r}, "
             f"here {identity[diff[0]]!r}); its episodes are not this run's"
+        )
+    edited = _edited_files(other, identity)
+    if edited:
+        raise ConfigError(
+            f"reuse_from: {str(src)!r} was generated from another content of the file of backend_kwargs.{edited[0]}; "
+            "its episodes are not this run's"
         )
     if not is_int(other.get("num_episodes"), 0):
         raise ConfigError(f"reuse_from: {src / 'run.json'} has no num_episodes")
@@ -429,13 +445,13 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
     run_file = out / "run.json"
     if run_file.exists():
         old = _upgrade_identity(json.loads(run_file.read_text()), identity)
-        diff = [k for k in IDENTITY_KEYS if old.get(k) != identity[k]]
+        diff = _differing(old, identity)
         if diff:
             raise ConfigError(
                 f"{diff[0]}: out_dir {cfg.out_dir!r} holds a run with {diff[0]}={old.get(diff[0])!r}; "
                 "use a new out_dir (nothing was changed)"
             )
-        edited = [k for k, v in identity["backend_files"].items() if old["backend_files"].get(k) != v]
+        edited = _edited_files(old, identity)
         if edited:
             raise ConfigError(
                 f"backend_kwargs.{edited[0]}: the file {identity['backend_kwargs'][edited[0]]!r} changed "

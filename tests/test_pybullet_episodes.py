@@ -141,11 +141,9 @@ def test_randomised_object_colours_recolour_seen_glassware_only_and_change_no_ph
     from sim_backends.pybullet import scene
 
     def colours(src) -> dict[int, set[tuple[float, ...]]]:
-        glass = [o.body for o in src.scene.objects.values() if o.kind in ("vessel", "rod")]
-        bodies = glass + list(src.scene.distractors.values())
         return {
             b: {tuple(round(c, 3) for c in d[7]) for d in pb.getVisualShapeData(b, physicsClientId=src.cid)}
-            for b in bodies
+            for b in scene.glassware_bodies(src.scene)
         }
 
     kw = {"image_size": 48, "cameras": ["front"], "max_distractors": 3}

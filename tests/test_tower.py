@@ -2,6 +2,7 @@
 exports, the tower loaded into the tiny Qwen3-VL (and the scratch path), the shipped tower's card, bad input."""
 
 import json
+import shutil
 import sys
 
 import numpy as np
@@ -126,6 +127,7 @@ def test_pretraining_resumes_exports_and_the_tiny_model_takes_the_tower(tower_da
     assert raised_saturation(y) is False and raised_saturation(None) is False  # kept; a random tower
     assert raised_saturation({**y, "sha256": "0" * 64}) is True  # another tower at that path now: not known
     (tmp_path / "z").mkdir()
+    shutil.copyfile(tmp_path / "y" / "tower.safetensors", tmp_path / "z" / "tower.safetensors")  # the card's weights
     older = {"colour": 0.75, "shift_px": 8, "scale": 0.1, "hue": 0.5}  # the tower shipped until 6 Dec: no key
     for aug in ({**card["training"]["augment"], "raise_saturation": True}, older):
         (tmp_path / "z" / "tower.json").write_text(json.dumps({**card, "training": {"augment": aug}}))

@@ -95,11 +95,12 @@ def raised_saturation(ref: dict[str, Any] | None) -> bool:
     if not ref or folder is None:
         return False
     try:
-        card = json.loads((folder / CARD_FILE).read_text())
-    except (OSError, ValueError):
+        card = read_card(folder)  # the card of the weights now at that path
+    except ConfigError:
         return True
-    aug = card.get("training", {}).get("augment") if isinstance(card, dict) else None
-    if not isinstance(aug, dict) or not aug or card.get("sha256") != ref.get("sha256"):
+    training = card.get("training")
+    aug = training.get("augment") if isinstance(training, dict) else None
+    if not isinstance(aug, dict) or not aug or card["sha256"] != ref.get("sha256"):
         return True
     try:
         return AugmentConfig.from_section({"hue": None, **aug}).raise_saturation

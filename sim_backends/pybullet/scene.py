@@ -18,6 +18,7 @@ import pybullet as p
 from labrobfail_vlm.taxonomy import object_set, scene_set
 from sim_backends.pybullet import assets
 from sim_backends.pybullet.robot import Panda
+from sim_backends.schema import MOVABLE
 
 # Seen objects (training distribution). Vessels: radius/height in metres, Panda's fingers open to 8 cm.
 SEEN_OBJECTS: dict[str, dict[str, Any]] = {
@@ -488,14 +489,18 @@ def build(
     return Scene(cid, robot, out.objects, out.zones, out.parts, appearance, bench_id, out.labels)
 
 
+def glassware_bodies(scene: Scene) -> list[int]:
+    """The bodies of the task's vessels and rods (schema.MOVABLE) and of the distractors."""
+    return [o.body for o in scene.objects.values() if o.kind in MOVABLE] + list(scene.distractors.values())
+
+
 def recolour_glassware(scene: Scene, variant: str, colours: str | None, rng: np.random.Generator) -> None:
     """Each task vessel, rod and distractor of a seen-catalogue episode in a colour drawn from OBJECT_COLOURS[colours]
     (its own `rng`, so the episode's other draws are the same with or without it); held-out catalogues keep theirs."""
     if colours is None or object_set(variant) != "seen":
         return
     fam = OBJECT_COLOURS[colours]
-    bodies = [o.body for o in scene.objects.values() if o.kind in ("vessel", "rod")] + list(scene.distractors.values())
-    for body in bodies:
+    for body in glassware_bodies(scene):
         p.changeVisualShape(body, -1, rgbaColor=_rgb(rng, fam["value"], fam["sat"]), physicsClientId=scene.cid)
 
 
