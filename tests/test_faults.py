@@ -116,6 +116,18 @@ def test_training_killed_mid_run_resumes_to_the_final_step_and_evaluates(tiny, s
     last = r.stderr.strip().splitlines()[-1]
     assert r.returncode == 2 and "beyond DeepSpeed's plain state (io.open)" in last
     assert not (bad / "ran").exists()
+    # each checkpoint records the settings that decide its weights (not where or how often it saves); a resume under
+    # another of them (a learning rate) is one line naming it, and the checkpoint is left as it was
+    recorded = json.loads((out / "checkpoint-8" / "train_settings.json").read_text())
+    assert "output_dir" not in recorded and "resume" not in recorded and recorded["lr"]["text"] != 4.321e-4
+    other = tmp_path / "other"
+    shutil.copytree(out / "checkpoint-8", other / "checkpoint-8")
+    before = {f.name: _sha(f) for f in (other / "checkpoint-8").iterdir() if f.is_file()}
+    r = run_here([*common[:-3], f"output_dir={other}", "resume=true", "progress=false", "lr.text=4.321e-4"])
+    last = r.stderr.strip().splitlines()[-1]
+    assert r.returncode == 2 and last.startswith("error: lr.text:") and "other settings" in last, r.stderr[-2000:]
+    assert {f.name: _sha(f) for f in (other / "checkpoint-8").iterdir() if f.is_file()} == before
+    assert not (other / "final").exists() and "Traceback" not in r.stderr
 
 
 class _Planted:

@@ -1,6 +1,7 @@
 """Frame grounding (labrobfail_vlm/train/grounding.py): targets, the token-to-cell map, the head, a real run."""
 
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -71,7 +72,8 @@ def test_head_reads_each_time_step_from_its_own_cells(kind):
 def test_training_with_grounding_logs_saves_and_resumes(tiny, small_ds, tmp_path):  # noqa: F811
     out = tmp_path / "g"
     common = tiny_train(tiny, small_ds, out, "grounding.weight=1.0", "save_steps=2", "logging_steps=1")
-    r = run_here([*common, "max_steps=2", "grounding.pretrain_epochs=1"])
+    common.append("grounding.pretrain_epochs=1")  # the resume's too: a checkpoint resumes under its own settings
+    r = run_here([*common, "max_steps=2"])
     assert r.returncode == 0, r.stderr[-3000:]
     assert "grounding_loss" in r.stdout + r.stderr
     # stage A ran before the VQA steps, and the learning curve's clocks count it
@@ -138,6 +140,11 @@ def test_resuming_a_run_made_without_grounding_is_one_line(tiny, small_ds, tmp_p
     common = [*scratch_train(tiny, small_ds, f"{tmp_path}/o"), "save_steps=1", "wandb.enabled=false", "progress=false"]
     r = run_here([*common, "max_steps=1", "grounding.weight=0", "grounding.pretrain_epochs=0"])
     assert r.returncode == 0, r.stderr[-2000:]
+    r = run_here([*common, "max_steps=2", "resume=true"])
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith("error: grounding.pretrain_epochs:")  # its recorded settings
+    for f in Path(f"{tmp_path}/o").glob("checkpoint-*/train_settings.json"):  # a checkpoint from before they were
+        f.unlink()
     r = run_here([*common, "max_steps=2", "resume=true"])
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith("error: resume:") and "grounding.weight=0" in r.stderr

@@ -25,7 +25,7 @@ from omegaconf import OmegaConf
 
 from labrobfail_vlm.config import ConfigError, cli_main, is_int, load_config
 from labrobfail_vlm.io import atomic_write_json, swap_in
-from labrobfail_vlm.train.resume import load_resumed_head, resume_point
+from labrobfail_vlm.train.resume import load_resumed_head, resume_point, run_settings
 
 
 def _world_size() -> int:
@@ -359,6 +359,7 @@ def _build_trainer(
         drawing=_drawing(cfg),
         pair_batches=pairs,
         grounding=grounding,
+        settings=run_settings(cfg),
         callbacks=callbacks,
     )
     return trainer, progress_log, grounding

@@ -2,21 +2,71 @@
 
 A checkpoint is refused in one line before the Trainer or DeepSpeed touches it when its weights or optimizer state
 cannot be read (a disk that filled while saving), when DeepSpeed's own state files name objects beyond its plain state
-(DeepSpeed unpickles them in full), or when it lacks the grounding head the run trains with.
+(DeepSpeed unpickles them in full), when it lacks the grounding head the run trains with, or when it was trained with
+other settings than the run resuming it (each checkpoint records them, SETTINGS_FILE).
 """
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 from typing import Any
 
-from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.config import ConfigError, first_difference
+
+# What decides the trained weights is every setting but these: where and how often a run saves and reports, the
+# frozen tower's cache (the same features either way), and its length (more steps or epochs extend a run, as the
+# tower's pretraining allows; the schedule is then the longer run's from the resume on). Anything else is another run.
+RESUME_FREE = (
+    "resume",
+    "progress",
+    "output_dir",
+    "save_steps",
+    "save_total_limit",
+    "logging_steps",
+    "wandb",
+    "tower_cache_mb",
+    "epochs",
+    "max_steps",
+)
+SETTINGS_FILE = "train_settings.json"
+
+
+def run_settings(cfg: Any) -> dict[str, Any]:
+    """The resolved config less RESUME_FREE and the preset catalogues (the chosen preset is merged in already), as
+    each checkpoint records it (SETTINGS_FILE) and reads it back. Settings made from output_dir (preset tiny's model
+    is built inside it) are resolved against a placeholder, so a run's folder copied elsewhere resumes."""
+    from omegaconf import OmegaConf
+
+    conf = OmegaConf.to_container(OmegaConf.merge(cfg, {"output_dir": "<output_dir>"}), resolve=True)
+    for k in (*RESUME_FREE, "presets", "tiny_towers"):
+        conf.pop(k, None)
+    return json.loads(json.dumps(conf))  # tuples as lists, as the file reads back
+
+
+def check_same_settings(ckpt: Path, settings: dict[str, Any]) -> None:
+    """A checkpoint trained with other settings (a learning rate, the data, the augmentation) is refused in one line
+    naming the first that differs, before it loads: continuing it would make a model no single run makes. A
+    checkpoint written before checkpoints recorded their settings is taken as it is."""
+    f = ckpt / SETTINGS_FILE
+    if not f.is_file():
+        return
+    try:
+        recorded = json.loads(f.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        raise ConfigError(f"resume: {f} is not readable JSON (delete {ckpt}: the one before resumes)") from None
+    if (key := first_difference(recorded, settings)) is not None:
+        raise ConfigError(
+            f"{key}: {ckpt} was trained with other settings; rerun with its settings ({f}) or use a new "
+            f"output_dir (nothing was changed)"
+        )
 
 
 def resume_point(cfg: Any, pre_epochs: int, dtype: Any) -> tuple[str | None, bool]:
     """(checkpoint to resume from or None, whether to resume stage A) for resume=true, a checkpoint path, or off;
-    the checkpoint is checked readable (at the run's `dtype`) before anything loads it."""
+    the checkpoint is checked readable (at the run's `dtype`) and trained with the run's settings before anything
+    loads it."""
     from labrobfail_vlm.train.checkpoint import last_complete_checkpoint
 
     resume = None
@@ -38,6 +88,7 @@ def resume_point(cfg: Any, pre_epochs: int, dtype: Any) -> tuple[str | None, boo
             raise ConfigError(f"resume: no such checkpoint {cfg.resume!r}")
         resume = cfg.resume
     if resume is not None:
+        check_same_settings(Path(resume), run_settings(cfg))
         check_resumable(Path(resume), dtype)
     return resume, resume_stage_a
 

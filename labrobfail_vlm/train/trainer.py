@@ -45,6 +45,7 @@ class HybridTrainer(Trainer):
         drawing: dict[str, Any] | None = None,
         pair_batches: bool = False,
         grounding: dict[str, Any] | None = None,
+        settings: dict[str, Any] | None = None,
         **kwargs: Any,
     ):
         super().__init__(*args, **kwargs)
@@ -61,6 +62,7 @@ class HybridTrainer(Trainer):
         self.pair_batches = pair_batches
         self.loss_mode = check_loss_mode(loss_mode)
         self.grid, self.drawing = grid, drawing
+        self.settings = settings  # the run's settings, recorded in each checkpoint for resume's check (train/resume.py)
         if loss_mode == "record":
             self.loss_is_scaled_for_ga = False  # a mean over this micro-batch's records: Trainer divides by GA
 
@@ -134,6 +136,11 @@ class HybridTrainer(Trainer):
         )
         if self.processing_class is not None:
             self.processing_class.save_pretrained(out)
+        if self.settings is not None:
+            from labrobfail_vlm.io import atomic_write_json
+            from labrobfail_vlm.train.resume import SETTINGS_FILE
+
+            atomic_write_json(out / SETTINGS_FILE, self.settings)
         if self.grounding is not None:  # for resuming only; inference never reads it
             from labrobfail_vlm.train.grounding import save_head
 
