@@ -12,7 +12,7 @@ online-bench`'s <run>/train/final/eval_online_*/online.json and `make recovery`'
 sensor rows, the paper's ablation table, supervision (the online model on whole and prefix grids, the online bench,
 the recovery table), the paper-comparable tables
 (Q3-Q6 over failed trajectories) with 95 % intervals, failure detection as a score, the all-trajectory tables,
-Q2 recall per failure type, the learning curve.
+Q2 recall per failure type, the learning curve. The sealed runs the page it replaces listed stay on its list.
 
 With `sections=[lit]`, `[lit_q]`, `[lit5_q]`, `[tuned]`, `[rows]`, `[ablation]` or `[supervision]` it replaces only
 those sections of the existing page, from a run that holds just those folders (a fresh machine's regeneration with
@@ -247,6 +247,15 @@ def _drop_absent(parts: list[list[str]], names: list[str]) -> None:
 def _dated_rows(lines: list[str]) -> list[str]:
     """The sealed-run table's rows (each opens with its run's date), without its heading and rules."""
     return [line for line in lines if line.startswith("| 20")]
+
+
+def page_ledger(out: Path) -> list[str]:
+    """The sealed runs an existing page lists (none for a new page): a whole page written over it keeps them, as a
+    splice does, whatever data the new run was made on, since every look at a sealed split counts."""
+    if not out.is_file():
+        return []
+    heading = sealed_section([])[0]
+    return [row for p in _sections(out.read_text()) if p[0] == heading for row in _dated_rows(p)]
 
 
 def _splice_ledger(run: Path, parts: list[list[str]]) -> bool:
@@ -486,7 +495,7 @@ def main(argv: list[str]) -> int:
             absent.append(_absent(name))
     if absent:  # say what this page lacks rather than leave a reader to notice a missing section
         lines += [NOT_RUN + "; ".join(absent) + ".", ""]
-    lines += sealed_section(_datasets(run))
+    lines += sealed_section(_datasets(run), kept=page_ledger(out))
     lines += paper_tables(evals)
     lines += detection_section(run, out, evals)
     lines += all_trajectory_tables(evals)

@@ -625,3 +625,22 @@ def test_the_lit_chain_gets_its_own_targets_section_and_a_row_it_never_lists_as_
     _eval(run / "rows" / "more" / "final" / "eval_test", 81.0)
     assert main([f"run={run}", f"out={page}", "sections=[rows]"]) == 0
     assert "rows/lit" not in page.read_text()
+
+
+def test_a_whole_page_keeps_the_sealed_runs_the_page_it_replaces_listed(tmp_path: Path) -> None:
+    """A whole page written over another (a run on another data line, say) starts from that page's sealed-run list:
+    every look at a sealed split stays counted; its other sections are the run's alone."""
+    from labrobfail_vlm.bench.evaluate import count_sealed_run
+    from labrobfail_vlm.bench.page import sealed_section
+    from scripts.write_results import page_ledger
+
+    old_run = "| 2026-11-29 02:18 UTC | test_both | `outputs/r14/train/final` | 76.67 | 56.9 | 68.97 | 56.9 | 0.6267 |"
+    sealed = ["## Sealed test runs", "", "| date | split | model | Q2 | Q3 | Q4 | Q5 | ROUGE-L |", "|---|", old_run, ""]
+    page = tmp_path / "RESULTS.md"
+    assert page_ledger(page) == []  # no page yet
+    page.write_text(PAGE.replace("## Paper-comparable tables", "\n".join([*sealed, "## Paper-comparable tables"])))
+    assert page_ledger(page) == [old_run]
+    (tmp_path / "dataset").mkdir()
+    count_sealed_run(tmp_path / "dataset", "test_scene", "outputs/c/rows/c5_q", _scores(90.0, 80.0, 82.0, 75.0, 0.8))
+    lines = sealed_section([tmp_path / "dataset"], kept=page_ledger(page))
+    assert "(2 in all;" in lines[2] and lines[-3] == old_run and "`outputs/c/rows/c5_q` | 90.0 |" in lines[-2]
