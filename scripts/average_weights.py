@@ -116,6 +116,7 @@ def main(argv: list[str]) -> int:
 
     from labrobfail_vlm.drawing import merge as merge_drawing
     from labrobfail_vlm.train.checkpoint import trained_drawing
+    from labrobfail_vlm.train.resume import SETTINGS_FILE
 
     tmp = out.with_name(out.name + ".tmp")
     if tmp.exists():
@@ -126,7 +127,7 @@ def main(argv: list[str]) -> int:
             tensors, meta = average_file([s / f for s in src], weights)
             save_file(tensors, str(tmp / f), metadata=meta)
         for p in src[0].iterdir():
-            if p.is_file() and p.suffix != ".safetensors":
+            if p.is_file() and p.suffix != ".safetensors" and p.name != SETTINGS_FILE:  # no one run's settings
                 shutil.copy2(p, tmp / p.name)
         if (tmp / "labrobfail.json").is_file():  # what every source's grids drew, as one record
             man = json.loads((tmp / "labrobfail.json").read_text())

@@ -73,3 +73,28 @@ def test_the_bench_says_it_in_one_line(tmp_path):
     assert r.stderr.strip().splitlines() == [
         "error: baselines: expected a list (e.g. 'baselines=[majority,blind]' or 'baselines=[]'), got False"
     ]
+
+
+def test_a_checkpoints_recorded_settings_are_compared_leaf_by_leaf_and_a_key_on_one_side_is_named(tmp_path):
+    """labrobfail-train's resume check (train/resume.py) on records as checkpoints hold them: equal settings pass;
+    a setting freed since the record was made (here `epochs`) is not compared; a key only one side has and a value
+    that differs are one line each naming the key; a record that is not a JSON object is unreadable, not a diff."""
+    import json
+
+    from labrobfail_vlm.train.resume import SETTINGS_FILE, check_same_settings, run_settings
+
+    cfg = load_config(DEFAULTS, [])
+    now = run_settings(cfg)
+    assert "resume" not in now and "progress" not in now and now["grid"] == {"views": ["front", "side"]}
+    f = tmp_path / SETTINGS_FILE
+    f.write_text(json.dumps(now | {"epochs": 9}))
+    check_same_settings(tmp_path, now)
+    f.write_text(json.dumps(now | {"lr": 0.2}))
+    with pytest.raises(ConfigError, match=r"^lr: .* trained with 0.2, this run has 0.1; rerun with its settings"):
+        check_same_settings(tmp_path, now)
+    f.write_text(json.dumps({k: v for k, v in now.items() if k != "seed"}))
+    with pytest.raises(ConfigError, match="^seed: .* by a labrobfail-train without this setting"):
+        check_same_settings(tmp_path, now)
+    f.write_text("[1, 2]")
+    with pytest.raises(ConfigError, match="^resume: .* is not a readable settings record"):
+        check_same_settings(tmp_path, now)

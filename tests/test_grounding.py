@@ -174,7 +174,8 @@ def test_a_run_killed_in_stage_a_resumes_and_ends_as_an_uninterrupted_one(tiny, 
     assert r.returncode == 0, r.stderr[-3000:]
     full = json.loads((tmp_path / "full" / "train_summary.json").read_text())
     assert "resumed_at_epoch" not in full["grounding_pretrain"]
-    assert [d.name for d in (tmp_path / "full" / "stage_a").iterdir()] == ["epoch-6"]  # older epochs removed
+    # older epochs removed; beside the newest, the settings a resume of stage A is checked against
+    assert sorted(d.name for d in (tmp_path / "full" / "stage_a").iterdir()) == ["epoch-6", "train_settings.json"]
     # the same run, killed once stage A has saved an epoch
     out = tmp_path / "killed"
     p = background(cmd(out))
@@ -188,6 +189,9 @@ def test_a_run_killed_in_stage_a_resumes_and_ends_as_an_uninterrupted_one(tiny, 
     assert at is not None and not (out / "train_summary.json").exists()
     done = int(at.name.split("-")[1])
     assert 1 <= done < 6
+    r = run_here(cmd(out, "resume=true", "grounding.lr=0.0123"))  # another stage A: refused before anything loads
+    assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].startswith("error: grounding.lr:"), r.stderr[-2000:]
+    assert stage_a_state(out) == at
     r = run_here(cmd(out, "resume=true"))
     assert r.returncode == 0, r.stderr[-3000:]
     again = json.loads((out / "train_summary.json").read_text())
@@ -201,5 +205,9 @@ def test_a_run_killed_in_stage_a_resumes_and_ends_as_an_uninterrupted_one(tiny, 
     other = tmp_path / "other"
     shutil.copytree(tmp_path / "full" / "stage_a", other / "stage_a")
     r = run_here([*cmd(other, "resume=true"), "grounding.pretrain_epochs=3"])  # a refusal: in the test's process
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith("error: grounding.pretrain_epochs:")  # its recorded settings
+    (other / "stage_a" / "train_settings.json").unlink()  # a stage A saved before they were recorded
+    r = run_here([*cmd(other, "resume=true"), "grounding.pretrain_epochs=3"])
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith("error: resume:") and "6 epochs" in r.stderr

@@ -23,9 +23,9 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from labrobfail_vlm.config import ConfigError, cli_main, is_int, load_config
+from labrobfail_vlm.config import ConfigError, cli_main, is_int, load_config, make_dir
 from labrobfail_vlm.io import atomic_write_json, swap_in
-from labrobfail_vlm.train.resume import load_resumed_head, resume_point, run_settings
+from labrobfail_vlm.train.resume import check_resume_settings, load_resumed_head, resume_point, run_settings
 
 
 def _world_size() -> int:
@@ -375,8 +375,13 @@ def _stage_a(
     progress_log: Any,
 ) -> dict[str, float]:
     """Stage A: pre-train the vision tower with the grounding head alone; returns its metrics and clocks."""
-    from labrobfail_vlm.train.grounding import pretrain
+    from labrobfail_vlm.train.grounding import STAGE_A_DIR, pretrain
+    from labrobfail_vlm.train.resume import SETTINGS_FILE
 
+    if not resume_stage_a:  # what a resume of a killed stage A is checked against (check_resume_settings)
+        atomic_write_json(
+            make_dir("output_dir", cfg.output_dir, STAGE_A_DIR) / STAGE_A_DIR / SETTINGS_FILE, run_settings(cfg)
+        )
     wall, cpu = time.perf_counter(), time.process_time()
     pre = pretrain(
         model,
@@ -439,6 +444,7 @@ def run(cfg: Any) -> dict[str, Any]:
     check_loss_mode(str(cfg.loss.mode))  # before the model loads
     curriculum = _curriculum(cfg)
     pre_epochs = _check_settings(cfg, curriculum[2])
+    check_resume_settings(cfg)  # before anything is built or written: a refused resume costs nothing
     tower_info = _prepare_model_dir(cfg)
     dtype = _dtype(cfg)
     per_dev, world = _batch_split(cfg)

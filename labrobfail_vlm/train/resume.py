@@ -16,8 +16,9 @@ from typing import Any
 from labrobfail_vlm.config import ConfigError, first_difference
 
 # What decides the trained weights is every setting but these: where and how often a run saves and reports, the
-# frozen tower's cache (the same features either way), and its length (more steps or epochs extend a run, as the
-# tower's pretraining allows; the schedule is then the longer run's from the resume on). Anything else is another run.
+# frozen tower's cache (the same features either way), and its length: more steps or epochs extend a run, as the
+# tower's pretraining allows, and from the resume on the cosine schedule and any curriculum phase set as a share of
+# the run (curriculum.detect_first, polarity_warmup) are the longer run's. Anything else makes another run.
 RESUME_FREE = (
     "resume",
     "progress",
@@ -30,24 +31,47 @@ RESUME_FREE = (
     "epochs",
     "max_steps",
 )
+CATALOGUES = ("presets", "tiny_towers")  # every preset's settings: the chosen one is merged into the run's already
 SETTINGS_FILE = "train_settings.json"
 
 
 def run_settings(cfg: Any) -> dict[str, Any]:
-    """The resolved config less RESUME_FREE and the preset catalogues (the chosen preset is merged in already), as
-    each checkpoint records it (SETTINGS_FILE) and reads it back. Settings made from output_dir (preset tiny's model
-    is built inside it) are resolved against a placeholder, so a run's folder copied elsewhere resumes."""
+    """The resolved config less RESUME_FREE and CATALOGUES, as each checkpoint records it (SETTINGS_FILE) and reads
+    it back. Settings made from output_dir (preset tiny's model is built inside it) are resolved against a
+    placeholder, so a run's folder copied elsewhere resumes."""
     from omegaconf import OmegaConf
 
-    conf = OmegaConf.to_container(OmegaConf.merge(cfg, {"output_dir": "<output_dir>"}), resolve=True)
-    for k in (*RESUME_FREE, "presets", "tiny_towers"):
-        conf.pop(k, None)
-    return json.loads(json.dumps(conf))  # tuples as lists, as the file reads back
+    conf = OmegaConf.merge(cfg, {"output_dir": "<output_dir>"} if "output_dir" in cfg else {})
+    OmegaConf.set_struct(conf, False)  # a copy: the run's own config stays closed to new keys
+    for k in (*RESUME_FREE, *CATALOGUES):
+        if k != "output_dir":  # before resolving: a free setting never has to resolve
+            conf.pop(k, None)
+    out = OmegaConf.to_container(conf, resolve=True)
+    out.pop("output_dir", None)
+    return json.loads(json.dumps(out))  # tuples as lists, as the file reads back
+
+
+def check_resume_settings(cfg: Any) -> None:
+    """Before the model is built: the checkpoint `resume` names (or, for resume=true, the newest complete one, else a
+    killed stage A's state) was trained with this run's settings. Nothing to resume is resume_point's to say."""
+    from labrobfail_vlm.train.checkpoint import last_complete_checkpoint
+    from labrobfail_vlm.train.grounding import STAGE_A_DIR, stage_a_state
+
+    if cfg.resume is True:
+        last, _ = last_complete_checkpoint(cfg.output_dir)
+        if last is None and stage_a_state(cfg.output_dir) is not None:
+            last = Path(cfg.output_dir) / STAGE_A_DIR
+    elif isinstance(cfg.resume, str) and Path(cfg.resume).is_dir():
+        last = Path(cfg.resume)
+    else:
+        return
+    if last is not None:
+        check_same_settings(last, run_settings(cfg))
 
 
 def check_same_settings(ckpt: Path, settings: dict[str, Any]) -> None:
-    """A checkpoint trained with other settings (a learning rate, the data, the augmentation) is refused in one line
-    naming the first that differs, before it loads: continuing it would make a model no single run makes. A
+    """A checkpoint trained with other settings (a learning rate, the data's folders, the augmentation) is refused in
+    one line naming the first that differs and both values: continuing it would make a model no single run makes. A
     checkpoint written before checkpoints recorded their settings is taken as it is."""
     f = ckpt / SETTINGS_FILE
     if not f.is_file():
@@ -55,18 +79,47 @@ def check_same_settings(ckpt: Path, settings: dict[str, Any]) -> None:
     try:
         recorded = json.loads(f.read_text(encoding="utf-8"))
     except (OSError, ValueError):
-        raise ConfigError(f"resume: {f} is not readable JSON (delete {ckpt}: the one before resumes)") from None
-    if (key := first_difference(recorded, settings)) is not None:
+        recorded = None
+    if not isinstance(recorded, dict):
+        raise ConfigError(f"resume: {f} is not a readable settings record (delete {ckpt}: the one before resumes)")
+    recorded = {k: v for k, v in recorded.items() if k not in (*RESUME_FREE, *CATALOGUES)}  # free since it was made
+    key = first_difference(recorded, settings)
+    if key is None:
+        return
+    was, now = _at(recorded, key), _at(settings, key)
+    if was is _MISSING or now is _MISSING:
+        which = "without this setting" if was is _MISSING else "with a setting this labrobfail-train lacks"
         raise ConfigError(
-            f"{key}: {ckpt} was trained with other settings; rerun with its settings ({f}) or use a new "
-            f"output_dir (nothing was changed)"
+            f"{key}: {ckpt} was trained by a labrobfail-train {which}; resume it with the code that made it, or "
+            f"start afresh in a new output_dir (nothing was changed)"
         )
+    raise ConfigError(
+        f"{key}: {ckpt} was trained with {_short(was)}, this run has {_short(now)}; rerun with its settings ({f}) "
+        f"or start afresh in a new output_dir (nothing was changed)"
+    )
+
+
+_MISSING = object()
+
+
+def _at(d: Any, key: str) -> Any:
+    """The value at a dotted key of a nested dict (first_difference's names), or _MISSING."""
+    for part in key.split("."):
+        if not isinstance(d, dict) or part not in d:
+            return _MISSING
+        d = d[part]
+    return d
+
+
+def _short(v: Any) -> str:
+    text = json.dumps(v)
+    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def resume_point(cfg: Any, pre_epochs: int, dtype: Any) -> tuple[str | None, bool]:
     """(checkpoint to resume from or None, whether to resume stage A) for resume=true, a checkpoint path, or off;
-    the checkpoint is checked readable (at the run's `dtype`) and trained with the run's settings before anything
-    loads it."""
+    the checkpoint is checked readable (at the run's `dtype`) before anything loads it (its settings were checked
+    before the model was built: check_resume_settings)."""
     from labrobfail_vlm.train.checkpoint import last_complete_checkpoint
 
     resume = None
@@ -88,7 +141,6 @@ def resume_point(cfg: Any, pre_epochs: int, dtype: Any) -> tuple[str | None, boo
             raise ConfigError(f"resume: no such checkpoint {cfg.resume!r}")
         resume = cfg.resume
     if resume is not None:
-        check_same_settings(Path(resume), run_settings(cfg))
         check_resumable(Path(resume), dtype)
     return resume, resume_stage_a
 
