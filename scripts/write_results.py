@@ -14,13 +14,13 @@ the recovery table), the paper-comparable tables
 (Q3-Q6 over failed trajectories) with 95 % intervals, failure detection as a score, the all-trajectory tables,
 Q2 recall per failure type, the learning curve. The sealed runs the page it replaces listed stay on its list.
 
-With `sections=[lit]`, `[lit_q]`, `[lit5_q]`, `[tuned]`, `[rows]`, `[ablation]` or `[supervision]` it replaces only
-those sections of the existing page, from a run that holds just those folders (a fresh machine's regeneration with
-the same seed, say): it checks first that the run's data are the page's (the same trajectories and splits line); a
-run that ran sealed splits brings its datasets' ledgers of sealed runs, whose runs join the page's list (which keeps
-every run it had; `sealed` alone splices nothing else, for a regeneration that re-ran only the recipe's sealed
-benches, and takes a run whose data line differs from the page's: every look at a sealed split is listed). What
-such a run lacks is carried from the page and said so: the rows table keeps the page's line for every
+With `sections=[rand5_q]`, `[lit]`, `[lit_q]`, `[lit5_q]`, `[tuned]`, `[rows]`, `[ablation]` or `[supervision]` it
+replaces only those sections of the existing page, from a run that holds just those folders (a fresh machine's
+regeneration with the same seed, say): it checks first that the run's data are the page's (the same trajectories and
+splits line); a run that ran sealed splits brings its datasets' ledgers of sealed runs, whose runs join the page's
+list (which keeps every run it had; `sealed` alone splices nothing else, for a regeneration that re-ran only the
+recipe's sealed benches, and takes a run whose data line differs from the page's: every look at a sealed split is
+listed). What such a run lacks is carried from the page and said so: the rows table keeps the page's line for every
 row the run has no seen test bench for (with its line at the val-chosen cut), the ablation's frozen row is the page's
 shipped front + side row (the recipe's model is the frozen one), the online model's table and the online bench stay
 when the run has only recovery tables, the online model's table and every recovery row stay when it has only the
@@ -67,6 +67,17 @@ sections: null             # null: the whole page; any of SECTIONS' names or sea
 """
 # the sections a run beside the main one can add: heading, opening sentence, the run folders that feed it
 SECTIONS = {
+    "rand5_q": (
+        "## Five tuned stages, read from all four questions (the best front + side model)",
+        "The principal issue's targets for `rows/rand5_q` of the rows table below, then its scores on every split it "
+        "ran (95 % intervals by pair): `make reproduce`'s data and tower, the randomised row (`make reproduce-more "
+        "MORE_FAMILY=randomised`), its tuned stages (`make reproduce-tuned TUNED_ROW=rand`, `rand2`, `rand3`), one "
+        "more stage on the seen training split plus 4,000 more randomised episodes (pairs 10000-11999, in no split), "
+        "and P(failure) read from all four closed questions (`failure_score: questions`): the chain each of whose "
+        "steps was chosen on validation on 4-6 Dec, run once on seen test and the sealed splits (docs/EXPERIMENTS.md, "
+        "6 Dec late night).",
+        ("rows/rand5_q",),
+    ),
     "lit": (
         "## The tuned chain drawn lit",
         "The principal issue's targets for `rows/lit` of the rows table below, then its scores on every split it ran "
@@ -129,7 +140,7 @@ SECTIONS = {
     ),
 }
 # the sections of rows made by hand (page.BY_HAND): each a lit_table of its one folder, never named as not run
-BY_HAND_SECTIONS = ("lit", "lit_q", "lit5_q")
+BY_HAND_SECTIONS = ("rand5_q", "lit", "lit_q", "lit5_q")
 
 
 def _load(path: Path) -> Any:

@@ -620,6 +620,14 @@ def test_the_lit_chain_gets_its_own_targets_section_and_a_row_it_never_lists_as_
     text = page.read_text()
     q = text.index("## The lit row with detection from all four closed questions")
     assert lit < q < text.index("## Tower and sensor rows") and f"| {ROWS['rows/lit_q']} | 92.0 [90.9, 93.0] |" in text
+    # the five-stage chain on the shipped tower: its section goes first, before the lit ones
+    (run / "rows" / "rand5_q" / "final" / "eval_test").mkdir(parents=True)
+    (run / "rows" / "rand5_q" / "final" / "eval_test" / "results.json").write_text(json.dumps(test))
+    assert main([f"run={run}", f"out={page}", "sections=[rand5_q,rows]"]) == 0
+    text = page.read_text()
+    five = text.index("## Five tuned stages, read from all four questions (the best front + side model)")
+    assert five < text.index("## The tuned chain drawn lit")
+    assert f"| {ROWS['rows/rand5_q']} | 92.0 [90.9, 93.0] |" in text[text.index("## Tower and sensor rows") :]
     page.write_text(PAGE)
     shutil.rmtree(run / "rows" / "lit")
     _eval(run / "rows" / "more" / "final" / "eval_test", 81.0)
