@@ -12,7 +12,8 @@ online-bench`'s <run>/train/final/eval_online_*/online.json and `make recovery`'
 sensor rows, the paper's ablation table, supervision (the online model on whole and prefix grids, the online bench,
 the recovery table), the paper-comparable tables
 (Q3-Q6 over failed trajectories) with 95 % intervals, failure detection as a score, the all-trajectory tables,
-Q2 recall per failure type, the learning curve. The sealed runs the page it replaces listed stay on its list.
+Q2 recall per failure type, the learning curve. The sealed runs the page it replaces listed stay on its list, and
+`carry=[supervision]` (any of SECTIONS) keeps that page's section where the run has none, marked as carried.
 
 With `sections=[rand5_q]`, `[lit]`, `[lit_q]`, `[lit5_q]`, `[tuned]`, `[rows]`, `[ablation]` or `[supervision]` it
 replaces only those sections of the existing page, from a run that holds just those folders (a fresh machine's
@@ -30,6 +31,7 @@ them as carried)."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +66,8 @@ DEFAULTS = """
 run: outputs/reproduce     # the make reproduce run folder
 out: docs/RESULTS.md       # the page to write
 sections: null             # null: the whole page; any of SECTIONS' names or sealed (e.g. [lit_q, rows]): only those
+carry: []                  # whole page: sections of the page it replaces to keep where the run has none (e.g.
+                           # [supervision]: recovery tables made on another run), each marked as carried
 """
 # the sections a run beside the main one can add: heading, opening sentence, the run folders that feed it
 SECTIONS = {
@@ -258,6 +262,46 @@ def _drop_absent(parts: list[list[str]], names: list[str]) -> None:
 def _dated_rows(lines: list[str]) -> list[str]:
     """The sealed-run table's rows (each opens with its run's date), without its heading and rules."""
     return [line for line in lines if line.startswith("| 20")]
+
+
+CARRIED_SECTION = (
+    "Carried from the page this one replaced (`carry`): made on another run, whose data line, tower and models are "
+    "those its own lines name, not this page's."
+)
+
+
+def model_sections(run: Path, out: Path, carry: list[str]) -> list[str]:
+    """The whole page's sections of models beside the main one (SECTIONS, in its order): each from the run where it
+    has one; else, when named in `carry`, the section of the page at `out` that this page replaces, marked as
+    carried; else named on the page's "Not run" line."""
+    unknown = sorted(set(carry) - set(SECTIONS))
+    if unknown:
+        raise ConfigError(f"carry: unknown {unknown}; choose from {sorted(SECTIONS)}")
+    old = {p[0]: p for p in _sections(out.read_text())} if carry and out.is_file() else {}
+    if lacking := [n for n in carry if SECTIONS[n][0] not in old]:
+        raise ConfigError(f"carry: {out} has no {', '.join(lacking)} section to carry")
+    lines: list[str] = []
+    absent = []
+    made = {n: lit_table(run, SECTIONS[n][2][0]) if _ran(run, SECTIONS[n][2][0]) else [] for n in BY_HAND_SECTIONS}
+    made |= {"tuned": tuned_table(run) if _ran(run, "tuned") else [], "rows": rows_table(run)}
+    made |= {"ablation": ablation_table(run), "supervision": supervision(run)}
+    for name in SECTIONS:
+        if made[name]:
+            lines += _section(name, made[name])
+        elif name in carry:
+            kept = [_made_elsewhere(line) for line in old[SECTIONS[name][0]][1:] if not line.startswith(NOT_RUN)]
+            lines += [SECTIONS[name][0], "", CARRIED_SECTION, *kept]
+        elif name not in BY_HAND_SECTIONS:  # a section no make target makes is never named as not run
+            absent.append(_absent(name))
+    if absent:  # say what this page lacks rather than leave a reader to notice a missing section
+        lines += [NOT_RUN + "; ".join(absent) + ".", ""]
+    return lines
+
+
+def _made_elsewhere(line: str) -> str:
+    """A carried section's "Made on" line (a splice's), which said its run's data were the page's: no longer so."""
+    made = re.fullmatch(r"Made on `(.+)`, whose data are this page's\.", line)
+    return f"Made on `{made[1]}`, on another data line than this page's." if made else line
 
 
 def page_ledger(out: Path) -> list[str]:
@@ -496,16 +540,7 @@ def main(argv: list[str]) -> int:
     stamps = [line.split() for line in (run / "timeline.txt").read_text().splitlines() if line.strip()]
     lines = _header(run, stats, stamps)
     lines += ["## Targets of the principal issue (main row: front + side)", "", *targets(evals), ""]
-    absent = []
-    bodies = (("tuned", tuned_table(run) if _ran(run, "tuned") else []), ("rows", rows_table(run)))
-    lit = [(n, lit_table(run, SECTIONS[n][2][0])) for n in BY_HAND_SECTIONS if _ran(run, SECTIONS[n][2][0])]
-    for name, body in (*lit, *bodies, ("ablation", ablation_table(run)), ("supervision", supervision(run))):
-        if body:
-            lines += _section(name, body)
-        else:
-            absent.append(_absent(name))
-    if absent:  # say what this page lacks rather than leave a reader to notice a missing section
-        lines += [NOT_RUN + "; ".join(absent) + ".", ""]
+    lines += model_sections(run, out, [str(n) for n in cfg.carry])
     lines += sealed_section(_datasets(run), kept=page_ledger(out))
     lines += paper_tables(evals)
     lines += detection_section(run, out, evals)

@@ -652,3 +652,28 @@ def test_a_whole_page_keeps_the_sealed_runs_the_page_it_replaces_listed(tmp_path
     count_sealed_run(tmp_path / "dataset", "test_scene", "outputs/c/rows/c5_q", _scores(90.0, 80.0, 82.0, 75.0, 0.8))
     lines = sealed_section([tmp_path / "dataset"], kept=page_ledger(page))
     assert "(2 in all;" in lines[2] and lines[-3] == old_run and "`outputs/c/rows/c5_q` | 90.0 |" in lines[-2]
+
+
+def test_a_whole_page_carries_only_the_sections_it_is_told_to_and_marks_them(tmp_path: Path) -> None:
+    """`carry=[supervision]`: a whole page from a run with no recovery tables keeps the replaced page's Supervision
+    section, marked as carried and its "Made on" line no longer claiming the page's data; without `carry` the section
+    is named as not run; a section the old page lacks is refused in one line."""
+    import pytest
+
+    from labrobfail_vlm.config import ConfigError
+    from scripts.write_results import CARRIED_SECTION, NOT_RUN, model_sections
+
+    page, run = _page_and_run(tmp_path)
+    page.write_text(
+        PAGE.replace("## Supervision\n", "## Supervision\n\nMade on `outputs/r15`, whose data are this page's.\n")
+    )
+    lines = model_sections(run, page, ["supervision"])
+    at = lines.index("## Supervision")
+    assert lines[at + 2] == CARRIED_SECTION and "| pick | scripted | 6/25 | 23/25 | +68 | yes | 19 | 0 |" in lines[at:]
+    assert "Made on `outputs/r15`, on another data line than this page's." in lines[at:]
+    not_run = next(line for line in lines if line.startswith(NOT_RUN))
+    assert "Supervision" not in not_run and "Ablation" in not_run
+    plain = model_sections(run, page, [])
+    assert "## Supervision" not in plain and "Supervision (`online`" in next(x for x in plain if x.startswith(NOT_RUN))
+    with pytest.raises(ConfigError, match="^carry: .* has no ablation section to carry"):
+        model_sections(run, page, ["ablation"])
