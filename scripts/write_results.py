@@ -533,6 +533,10 @@ def main(argv: list[str]) -> int:
     cfg = load_config(DEFAULTS, argv)
     run, out = Path(str(cfg.run)), Path(str(cfg.out))
     if cfg.sections:
+        if cfg.carry:  # a splice keeps every section it does not name already
+            raise ConfigError(
+                "carry: only for a whole page (sections=null); a splice keeps the sections it does not name"
+            )
         return splice(run, out, [str(n) for n in cfg.sections])
     stats = _load(run / "dataset" / "stats.json")
     _load(run / "train" / "final" / "eval_test" / "results.json")  # the seen test split is the page's least

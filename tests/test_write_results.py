@@ -677,3 +677,7 @@ def test_a_whole_page_carries_only_the_sections_it_is_told_to_and_marks_them(tmp
     assert "## Supervision" not in plain and "Supervision (`online`" in next(x for x in plain if x.startswith(NOT_RUN))
     with pytest.raises(ConfigError, match="^carry: .* has no ablation section to carry"):
         model_sections(run, page, ["ablation"])
+    from scripts.write_results import main
+
+    with pytest.raises(ConfigError, match="^carry: only for a whole page"):
+        main([f"run={run}", f"out={page}", "sections=[rows]", "carry=[supervision]"])
