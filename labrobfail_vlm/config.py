@@ -88,6 +88,69 @@ def first_difference(a: Any, b: Any, at: str = "") -> str | None:
     return None if a == b else at.rstrip(".") or "(the whole config)"
 
 
+def settings_record(cfg: Any, free: Iterable[str]) -> dict[str, Any]:
+    """What a checkpoint records of the settings that decide its weights: the resolved config less its `free`
+    top-level keys (dropped before resolving, so they never have to resolve), as its JSON file reads back (tuples as
+    lists)."""
+    import copy
+    import json
+
+    conf = copy.deepcopy(cfg)
+    OmegaConf.set_struct(conf, False)  # a copy: the run's own config stays closed to new keys
+    for k in free:
+        conf.pop(k, None)
+    return json.loads(json.dumps(OmegaConf.to_container(conf, resolve=True)))
+
+
+def refuse_other_settings(
+    recorded: dict[str, Any],
+    now: dict[str, Any],
+    free: Iterable[str],
+    where: Any,
+    record: str,
+    fresh: str,
+    program: str,
+) -> None:
+    """A run resuming `where` under other settings than it `recorded` (in file `record`) is a one-line ConfigError
+    naming the first key that differs and both values, or a key only one side has; keys freed since the record was
+    made are not compared. `fresh`: the setting that names a new folder to start afresh in; `program`: the console
+    script that records them."""
+    import json
+
+    recorded = {k: v for k, v in recorded.items() if k not in set(free)}
+    key = first_difference(recorded, now)
+    if key is None:
+        return
+    was, this = _at(recorded, key), _at(now, key)
+    advice = f"start afresh in a new {fresh} (nothing was changed)"
+    if was is _MISSING or this is _MISSING:
+        which = "without this setting" if was is _MISSING else f"with a setting this {program} lacks"
+        raise ConfigError(
+            f"{key}: {where} was trained by a {program} {which}; resume it with the code that made it, or {advice}"
+        )
+
+    def short(v: Any) -> str:
+        text = json.dumps(v)
+        return text if len(text) <= 80 else text[:77] + "..."
+
+    raise ConfigError(
+        f"{key}: {where} was trained with {short(was)}, this run has {short(this)}; rerun with its settings "
+        f"({record}) or {advice}"
+    )
+
+
+_MISSING = object()
+
+
+def _at(d: Any, key: str) -> Any:
+    """The value at a dotted key of a nested dict (first_difference's names), or _MISSING."""
+    for part in key.split("."):
+        if not isinstance(d, dict) or part not in d:
+            return _MISSING
+        d = d[part]
+    return d
+
+
 def make_dir(key: str, path: Any, *subdirs: str, probe: bool = False) -> Path:
     """The folder a setting names (`key`, e.g. out_dir), made with `subdirs` inside it and, with `probe`, a file
     written and removed there; any OSError is a one-line ConfigError naming the setting."""

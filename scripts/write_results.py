@@ -172,6 +172,9 @@ def _sections(page: str) -> list[list[str]]:
     return out
 
 
+MADE_ON = "Made on `{}`, whose data are this page's."  # a spliced section's run (_made_elsewhere reads it back)
+
+
 def _section(name: str, body: list[str], made_on: Path | None = None) -> list[str]:
     """A section of SECTIONS as the page prints it: heading, opening sentence (and the run a splice took it
     from), the table."""
@@ -180,7 +183,7 @@ def _section(name: str, body: list[str], made_on: Path | None = None) -> list[st
         heading,
         "",
         intro,
-        *([f"Made on `{made_on}`, whose data are this page's."] if made_on else []),
+        *([MADE_ON.format(made_on)] if made_on else []),
         "",
         *body,
         "",
@@ -300,7 +303,7 @@ def model_sections(run: Path, out: Path, carry: list[str]) -> list[str]:
 
 def _made_elsewhere(line: str) -> str:
     """A carried section's "Made on" line (a splice's), which said its run's data were the page's: no longer so."""
-    made = re.fullmatch(r"Made on `(.+)`, whose data are this page's\.", line)
+    made = re.fullmatch(re.escape(MADE_ON).replace(re.escape("{}"), "(.+)"), line)
     return f"Made on `{made[1]}`, on another data line than this page's." if made else line
 
 

@@ -23,7 +23,15 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from labrobfail_vlm.config import ConfigError, cli_main, load_config, make_dir, require_ints
+from labrobfail_vlm.config import (
+    ConfigError,
+    cli_main,
+    load_config,
+    make_dir,
+    refuse_other_settings,
+    require_ints,
+    settings_record,
+)
 
 EVAL_SETS = {
     "seen": ({"val"}, {"seen"}),
@@ -79,12 +87,10 @@ RESUME_FREE = ("epochs", "export_dir", "progress", "threads", "max_eval", "eval_
 def _settings(cfg: Any, init_sha: str | None) -> dict[str, Any]:
     """What decides the trained weights, as the checkpoint records it: the config less RESUME_FREE and
     data.progress, the starting tower by its content (init's sha256), not its path."""
-    conf = OmegaConf.to_container(cfg, resolve=True)
-    for k in RESUME_FREE:
-        conf.pop(k, None)
+    conf = settings_record(cfg, RESUME_FREE)
     conf["data"].pop("progress", None)
     conf["init"] = init_sha
-    return json.loads(json.dumps(conf))  # as state.json reads back (tuples as lists)
+    return conf
 
 
 def _resume(out: Path, tower: Any, heads: Any, opt: Any, settings: dict[str, Any]) -> dict[str, Any] | None:
@@ -94,17 +100,16 @@ def _resume(out: Path, tower: Any, heads: Any, opt: Any, settings: dict[str, Any
     import torch
     from safetensors.torch import load_file
 
-    from labrobfail_vlm.config import first_difference
     from labrobfail_vlm.io import swapped
 
     ck = swapped(out / "checkpoint", "state.json")
     if not (ck / "state.json").is_file():
         return None
     state = json.loads((ck / "state.json").read_text())
-    if "config" in state and (key := first_difference(state["config"], settings)) is not None:
-        raise ConfigError(
-            f"{key}: {out} holds a run trained with other settings; rerun with its settings "
-            f'({out / "checkpoint" / "state.json"}, "config") or use a new out_dir (nothing was changed)'
+    if "config" in state:
+        record = f'{out / "checkpoint" / "state.json"}, "config"'
+        refuse_other_settings(
+            state["config"], settings, RESUME_FREE, out, record, "out_dir", "labrobfail-pretrain-tower"
         )
     tower.load_state_dict(load_file(str(ck / "tower.safetensors")))
     heads.load_state_dict(load_file(str(ck / "heads.safetensors")))

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from labrobfail_vlm.config import ConfigError, first_difference
+from labrobfail_vlm.config import ConfigError, refuse_other_settings, settings_record
 
 # What decides the trained weights is every setting but these: where and how often a run saves and reports, the
 # frozen tower's cache (the same features either way), and its length: more steps or epochs extend a run, as the
@@ -36,19 +36,15 @@ SETTINGS_FILE = "train_settings.json"
 
 
 def run_settings(cfg: Any) -> dict[str, Any]:
-    """The resolved config less RESUME_FREE and CATALOGUES, as each checkpoint records it (SETTINGS_FILE) and reads
-    it back. Settings made from output_dir (preset tiny's model is built inside it) are resolved against a
+    """The settings record (config.settings_record) less RESUME_FREE and CATALOGUES, as each checkpoint holds it
+    (SETTINGS_FILE). Settings made from output_dir (preset tiny's model is built inside it) are resolved against a
     placeholder, so a run's folder copied elsewhere resumes."""
     from omegaconf import OmegaConf
 
     conf = OmegaConf.merge(cfg, {"output_dir": "<output_dir>"} if "output_dir" in cfg else {})
-    OmegaConf.set_struct(conf, False)  # a copy: the run's own config stays closed to new keys
-    for k in (*RESUME_FREE, *CATALOGUES):
-        if k != "output_dir":  # before resolving: a free setting never has to resolve
-            conf.pop(k, None)
-    out = OmegaConf.to_container(conf, resolve=True)
+    out = settings_record(conf, (k for k in (*RESUME_FREE, *CATALOGUES) if k != "output_dir"))
     out.pop("output_dir", None)
-    return json.loads(json.dumps(out))  # tuples as lists, as the file reads back
+    return out
 
 
 def check_resume_settings(cfg: Any) -> None:
@@ -82,38 +78,9 @@ def check_same_settings(ckpt: Path, settings: dict[str, Any]) -> None:
         recorded = None
     if not isinstance(recorded, dict):
         raise ConfigError(f"resume: {f} is not a readable settings record (delete {ckpt}: the one before resumes)")
-    recorded = {k: v for k, v in recorded.items() if k not in (*RESUME_FREE, *CATALOGUES)}  # free since it was made
-    key = first_difference(recorded, settings)
-    if key is None:
-        return
-    was, now = _at(recorded, key), _at(settings, key)
-    if was is _MISSING or now is _MISSING:
-        which = "without this setting" if was is _MISSING else "with a setting this labrobfail-train lacks"
-        raise ConfigError(
-            f"{key}: {ckpt} was trained by a labrobfail-train {which}; resume it with the code that made it, or "
-            f"start afresh in a new output_dir (nothing was changed)"
-        )
-    raise ConfigError(
-        f"{key}: {ckpt} was trained with {_short(was)}, this run has {_short(now)}; rerun with its settings ({f}) "
-        f"or start afresh in a new output_dir (nothing was changed)"
+    refuse_other_settings(
+        recorded, settings, (*RESUME_FREE, *CATALOGUES), ckpt, str(f), "output_dir", "labrobfail-train"
     )
-
-
-_MISSING = object()
-
-
-def _at(d: Any, key: str) -> Any:
-    """The value at a dotted key of a nested dict (first_difference's names), or _MISSING."""
-    for part in key.split("."):
-        if not isinstance(d, dict) or part not in d:
-            return _MISSING
-        d = d[part]
-    return d
-
-
-def _short(v: Any) -> str:
-    text = json.dumps(v)
-    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def resume_point(cfg: Any, pre_epochs: int, dtype: Any) -> tuple[str | None, bool]:
