@@ -13,7 +13,8 @@ sensor rows, the paper's ablation table, supervision (the online model on whole 
 the recovery table), the paper-comparable tables
 (Q3-Q6 over failed trajectories) with 95 % intervals, failure detection as a score, the all-trajectory tables,
 Q2 recall per failure type, the learning curve. The sealed runs the page it replaces listed stay on its list, and
-`carry=[supervision]` (any of SECTIONS) keeps that page's section where the run has none, marked as carried.
+`carry=[supervision]` (any of SECTIONS) keeps that page's section where the run has none, and under the run's where
+it has one (`carry=[rows]`: no row of the replaced page is lost), marked as carried with that page's data line.
 
 With `sections=[rand5_q]`, `[lit]`, `[lit_q]`, `[lit5_q]`, `[tuned]`, `[rows]`, `[ablation]` or `[supervision]` it
 replaces only those sections of the existing page, from a run that holds just those folders (a fresh machine's
@@ -66,8 +67,8 @@ DEFAULTS = """
 run: outputs/reproduce     # the make reproduce run folder
 out: docs/RESULTS.md       # the page to write
 sections: null             # null: the whole page; any of SECTIONS' names or sealed (e.g. [lit_q, rows]): only those
-carry: []                  # whole page: sections of the page it replaces to keep where the run has none (e.g.
-                           # [supervision]: recovery tables made on another run), each marked as carried
+carry: []                  # whole page: sections of the page it replaces to keep (e.g. [supervision]: recovery
+                           # tables made on another run; [rows]: its rows, under the run's), each marked as carried
 """
 # the sections a run beside the main one can add: heading, opening sentence, the run folders that feed it
 SECTIONS = {
@@ -271,34 +272,53 @@ CARRIED_SECTION = (
     "Carried from the page this one replaced (`carry`): made on another run, whose data line, tower and models are "
     "those its own lines name, not this page's."
 )
+DATA_HEADING = "## Data and model"
+CARRIED_FROM = (
+    "- Trajectories:",
+    "- Physics:",
+    "- Vision tower:",
+)  # the replaced page's lines a carried section's lead repeats
 
 
 def model_sections(run: Path, out: Path, carry: list[str]) -> list[str]:
     """The whole page's sections of models beside the main one (SECTIONS, in its order): each from the run where it
     has one; else, when named in `carry`, the section of the page at `out` that this page replaces, marked as
-    carried; else named on the page's "Not run" line."""
+    carried; else named on the page's "Not run" line. A section named in `carry` that the run has too (the rows
+    table, say) is printed from the run, the replaced page's lines under it, marked as carried: no row is lost."""
     unknown = sorted(set(carry) - set(SECTIONS))
     if unknown:
         raise ConfigError(f"carry: unknown {unknown}; choose from {sorted(SECTIONS)}")
-    old = {p[0]: p for p in _sections(out.read_text())} if carry and out.is_file() else {}
+    old_parts = _sections(out.read_text()) if carry and out.is_file() else []
+    old = {p[0]: p for p in old_parts}
     if lacking := [n for n in carry if SECTIONS[n][0] not in old]:
         raise ConfigError(f"carry: {out} has no {', '.join(lacking)} section to carry")
+    lead = CARRIED_SECTION + _old_provenance(old_parts)
     lines: list[str] = []
     absent = []
     made = {n: lit_table(run, SECTIONS[n][2][0]) if _ran(run, SECTIONS[n][2][0]) else [] for n in BY_HAND_SECTIONS}
     made |= {"tuned": tuned_table(run) if _ran(run, "tuned") else [], "rows": rows_table(run)}
     made |= {"ablation": ablation_table(run), "supervision": supervision(run)}
     for name in SECTIONS:
+        heading, intro, _ = SECTIONS[name]
+        kept = [_made_elsewhere(x) for x in old.get(heading, [])[1:] if not x.startswith(NOT_RUN) and x != intro]
         if made[name]:
             lines += _section(name, made[name])
+            if name in carry:
+                lines += [f"### {heading.removeprefix('## ')}: the page this one replaced", "", lead, *kept]
         elif name in carry:
-            kept = [_made_elsewhere(line) for line in old[SECTIONS[name][0]][1:] if not line.startswith(NOT_RUN)]
-            lines += [SECTIONS[name][0], "", CARRIED_SECTION, *kept]
+            lines += [heading, "", lead, *kept]
         elif name not in BY_HAND_SECTIONS:  # a section no make target makes is never named as not run
             absent.append(_absent(name))
     if absent:  # say what this page lacks rather than leave a reader to notice a missing section
         lines += [NOT_RUN + "; ".join(absent) + ".", ""]
     return lines
+
+
+def _old_provenance(parts: list[list[str]]) -> str:
+    """What the replaced page said of its data and tower (its trajectories and vision-tower lines), for the lead of
+    a section carried from it: a carried table's rows name neither."""
+    said = [x[2].lower() + x[3:] for p in parts if p[0] == DATA_HEADING for x in p if x.startswith(CARRIED_FROM)]
+    return f" That page's {' '.join(said)}" if said else ""
 
 
 def _made_elsewhere(line: str) -> str:
@@ -469,7 +489,7 @@ def _header(run: Path, stats: dict[str, Any], stamps: list[list[str]]) -> list[s
     inj = json.loads(man_file.read_text()).get("injection") if man_file.is_file() else None
     physics = run_physics(run / "shards" / "seen")
     lines += [
-        "## Data and model",
+        DATA_HEADING,
         "",
         _data_line(stats),
         *([_injection_line(inj)] if inj else []),

@@ -656,12 +656,14 @@ def test_a_whole_page_keeps_the_sealed_runs_the_page_it_replaces_listed(tmp_path
 
 def test_a_whole_page_carries_only_the_sections_it_is_told_to_and_marks_them(tmp_path: Path) -> None:
     """`carry=[supervision]`: a whole page from a run with no recovery tables keeps the replaced page's Supervision
-    section, marked as carried and its "Made on" line no longer claiming the page's data; without `carry` the section
-    is named as not run; a section the old page lacks is refused in one line."""
+    section, marked as carried (with that page's data line) and its "Made on" line no longer claiming the page's
+    data; without `carry` the section is named as not run; a section the old page lacks is refused in one line;
+    `carry=[rows]` with a run that has rows keeps the old page's rows under the run's table."""
     import pytest
 
+    from labrobfail_vlm.bench.page import ROWS
     from labrobfail_vlm.config import ConfigError
-    from scripts.write_results import CARRIED_SECTION, NOT_RUN, model_sections
+    from scripts.write_results import CARRIED_SECTION, NOT_RUN, SECTIONS, model_sections
 
     page, run = _page_and_run(tmp_path)
     page.write_text(
@@ -669,7 +671,8 @@ def test_a_whole_page_carries_only_the_sections_it_is_told_to_and_marks_them(tmp
     )
     lines = model_sections(run, page, ["supervision"])
     at = lines.index("## Supervision")
-    assert lines[at + 2] == CARRIED_SECTION and "| pick | scripted | 6/25 | 23/25 | +68 | yes | 19 | 0 |" in lines[at:]
+    lead = f"{CARRIED_SECTION} That page's trajectories: 10 kept of 12 (6 success, 4 failure); split sizes"
+    assert lines[at + 2].startswith(lead) and "| pick | scripted | 6/25 | 23/25 | +68 | yes | 19 | 0 |" in lines[at:]
     assert "Made on `outputs/r15`, on another data line than this page's." in lines[at:]
     not_run = next(line for line in lines if line.startswith(NOT_RUN))
     assert "Supervision" not in not_run and "Ablation" in not_run
@@ -677,6 +680,19 @@ def test_a_whole_page_carries_only_the_sections_it_is_told_to_and_marks_them(tmp
     assert "## Supervision" not in plain and "Supervision (`online`" in next(x for x in plain if x.startswith(NOT_RUN))
     with pytest.raises(ConfigError, match="^carry: .* has no ablation section to carry"):
         model_sections(run, page, ["ablation"])
+    # a section the run has too: the run's table, then the replaced page's rows under it, marked; none lost
+    _eval(run / "rows" / "wrist" / "final" / "eval_test", 92.0)
+    lines = model_sections(run, page, ["rows"])
+    at, beside = (
+        lines.index("## Tower and sensor rows"),
+        lines.index("### Tower and sensor rows: the page this one replaced"),
+    )
+    assert lines[at + 4].startswith("| row |") and any(
+        x.startswith(f"| {ROWS['rows/wrist']} | 92.0") for x in lines[at:beside]
+    )
+    assert lines[beside + 2].startswith(lead) and lines.index(SHIPPED) > beside
+    assert not any(x.startswith(f"| {ROWS['rows/wrist']} |") for x in lines[beside:])
+    assert "## Tower and sensor rows" not in lines[beside:] and SECTIONS["rows"][1] not in lines[beside:]
     from scripts.write_results import main
 
     with pytest.raises(ConfigError, match="^carry: only for a whole page"):
