@@ -317,8 +317,8 @@ def model_sections(run: Path, out: Path, carry: list[str]) -> list[str]:
 def _old_provenance(parts: list[list[str]]) -> str:
     """What the replaced page said of its data and tower (its trajectories and vision-tower lines), for the lead of
     a section carried from it: a carried table's rows name neither."""
-    said = [x[2].lower() + x[3:] for p in parts if p[0] == DATA_HEADING for x in p if x.startswith(CARRIED_FROM)]
-    return f" That page's {' '.join(said)}" if said else ""
+    said = [x.removeprefix("- ") for p in parts if p[0] == DATA_HEADING for x in p if x.startswith(CARRIED_FROM)]
+    return f" That page's data and tower: {' '.join(said)}" if said else ""
 
 
 def _made_elsewhere(line: str) -> str:

@@ -671,7 +671,9 @@ def test_a_whole_page_carries_only_the_sections_it_is_told_to_and_marks_them(tmp
     )
     lines = model_sections(run, page, ["supervision"])
     at = lines.index("## Supervision")
-    lead = f"{CARRIED_SECTION} That page's trajectories: 10 kept of 12 (6 success, 4 failure); split sizes"
+    lead = (
+        f"{CARRIED_SECTION} That page's data and tower: Trajectories: 10 kept of 12 (6 success, 4 failure); split sizes"
+    )
     assert lines[at + 2].startswith(lead) and "| pick | scripted | 6/25 | 23/25 | +68 | yes | 19 | 0 |" in lines[at:]
     assert "Made on `outputs/r15`, on another data line than this page's." in lines[at:]
     not_run = next(line for line in lines if line.startswith(NOT_RUN))
