@@ -73,7 +73,7 @@ carry: []                  # whole page: sections of the page it replaces to kee
 # the sections a run beside the main one can add: heading, opening sentence, the run folders that feed it
 SECTIONS = {
     "rand5_q": (
-        "## Five tuned stages, read from all four questions (the best front + side model)",
+        "## Five tuned stages, read from all four questions (the best front + side model from this page's tower)",
         "The principal issue's targets for `rows/rand5_q` of the rows table below, then its scores on every split it "
         "ran (95 % intervals by pair): `make reproduce`'s data and tower, the randomised row (`make reproduce-more "
         "MORE_FAMILY=randomised`), its tuned stages (`make reproduce-tuned TUNED_ROW=rand`, `rand2`, `rand3`), one "
@@ -506,8 +506,8 @@ def _header(run: Path, stats: dict[str, Any], stamps: list[list[str]]) -> list[s
         f"{progress[-1]['wall_s'] / 60 if progress else 0:.1f} min of training.",
         *(
             [
-                f"- Vision tower: `{card['path']}` (sha256 `{card['sha256'][:16]}...`, {card['parameters']:,} "
-                f"parameters; what it learned and how well, held out: its TOWER_CARD.md)."
+                f"- Vision tower: `{card['path']}`{_shipped_bytes(card)} (sha256 `{card['sha256'][:16]}...`, "
+                f"{card['parameters']:,} parameters; what it learned and how well, held out: its TOWER_CARD.md)."
             ]
             if card
             else []
@@ -515,6 +515,16 @@ def _header(run: Path, stats: dict[str, Any], stamps: list[list[str]]) -> list[s
         "",
     ]
     return lines
+
+
+def _shipped_bytes(card: dict[str, Any]) -> str:
+    """ ", the shipped tower's bytes" when a tower given by path is the one this checkout ships (a candidate tower
+    trained from before it was adopted), so the page says which tower `make reproduce` now starts from."""
+    from labrobfail_vlm.model.tower import read_card, shipped_dir
+
+    if card["path"] == "shipped" or not (shipped_dir() / "tower.json").is_file():
+        return ""
+    return ", the shipped tower's bytes" if read_card(shipped_dir())["sha256"] == card["sha256"] else ""
 
 
 def _injection_line(inj: dict[str, Any]) -> str:

@@ -625,7 +625,9 @@ def test_the_lit_chain_gets_its_own_targets_section_and_a_row_it_never_lists_as_
     (run / "rows" / "rand5_q" / "final" / "eval_test" / "results.json").write_text(json.dumps(test))
     assert main([f"run={run}", f"out={page}", "sections=[rand5_q,rows]"]) == 0
     text = page.read_text()
-    five = text.index("## Five tuned stages, read from all four questions (the best front + side model)")
+    five = text.index(
+        "## Five tuned stages, read from all four questions (the best front + side model from this page's tower)"
+    )
     assert five < text.index("## The tuned chain drawn lit")
     assert f"| {ROWS['rows/rand5_q']} | 92.0 [90.9, 93.0] |" in text[text.index("## Tower and sensor rows") :]
     page.write_text(PAGE)
@@ -699,3 +701,15 @@ def test_a_whole_page_carries_only_the_sections_it_is_told_to_and_marks_them(tmp
 
     with pytest.raises(ConfigError, match="^carry: only for a whole page"):
         main([f"run={run}", f"out={page}", "sections=[rows]", "carry=[supervision]"])
+
+
+def test_a_tower_given_by_path_is_named_as_the_shipped_one_when_its_bytes_are() -> None:
+    """A main row trained from a candidate tower's folder before it was adopted: the page says it is the shipped
+    tower's bytes (by sha256), and says nothing for another tower or for `shipped` itself."""
+    from labrobfail_vlm.model.tower import read_card, shipped_dir
+    from scripts.write_results import _shipped_bytes
+
+    sha = read_card(shipped_dir())["sha256"]
+    assert _shipped_bytes({"path": "outputs/tower_c/export", "sha256": sha}) == ", the shipped tower's bytes"
+    assert _shipped_bytes({"path": "outputs/tower/export", "sha256": "0" * 64}) == ""
+    assert _shipped_bytes({"path": "shipped", "sha256": sha}) == ""
