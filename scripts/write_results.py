@@ -38,6 +38,7 @@ from typing import Any
 
 from labrobfail_vlm.bench.online import online_md
 from labrobfail_vlm.bench.page import (
+    MAIN_KEPT,
     NOT_RUN,
     PAPER_TABLES,
     ROWS,
@@ -73,7 +74,8 @@ carry: []                  # whole page: sections of the page it replaces to kee
 # the sections a run beside the main one can add: heading, opening sentence, the run folders that feed it
 SECTIONS = {
     "rand5_q": (
-        "## Five tuned stages, read from all four questions (the best front + side model from this page's tower)",
+        "## Five tuned stages, read from all four questions (the best front + side model on the tower shipped since "
+        "6 Dec night)",
         "The principal issue's targets for `rows/rand5_q` of the rows table below, then its scores on every split it "
         "ran (95 % intervals by pair): `make reproduce`'s data and tower, the randomised row (`make reproduce-more "
         "MORE_FAMILY=randomised`), its tuned stages (`make reproduce-tuned TUNED_ROW=rand`, `rand2`, `rand3`), one "
@@ -218,8 +220,12 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
     shipped = next((line for p in parts for line in p if line.startswith(f"| {ROWS['train']} |")), None)
     cells = [c.strip() for c in shipped.strip("|").split("|")] if shipped else None
     old_sv = next((p for p in parts if p[0] == SECTIONS["supervision"][0]), [])
+    heads = {n: h for n, (h, _, _) in SECTIONS.items()}
     bodies = {
-        "rows": lambda: rows_table(run, next((p for p in parts if p[0] == SECTIONS["rows"][0]), [])),
+        # the page's own rows only: rows it carried from a replaced page stay in their block, re-appended below
+        "rows": lambda: rows_table(
+            run, _beside(next((p for p in parts if p[0] == heads["rows"]), []), heads["rows"])[0]
+        ),
         # the shipped row's seen Q2, Q3, Q5 and ROUGE-L cells
         "ablation": lambda: ablation_table(run, [cells[1], cells[3], cells[4], cells[5]] if cells else None),
         "supervision": lambda: supervision(run, old_sv),
@@ -238,7 +244,8 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
             parts.insert(at, new)
         else:
             kept = _absent_line(parts[at])
-            parts[at] = new + ([*kept, ""] if kept else [])
+            block = _beside(parts[at], heading)[1]  # what the section carried from a replaced page stays
+            parts[at] = new + ([*kept, ""] if kept else []) + ([_beside_heading(heading), "", *block] if block else [])
     _drop_absent(parts, tables)
     if not _splice_ledger(run, parts) and "sealed" in names:
         raise ConfigError(f"sections: {run} has no sealed runs in its datasets' ledgers")
@@ -284,7 +291,8 @@ def model_sections(run: Path, out: Path, carry: list[str]) -> list[str]:
     """The whole page's sections of models beside the main one (SECTIONS, in its order): each from the run where it
     has one; else, when named in `carry`, the section of the page at `out` that this page replaces, marked as
     carried; else named on the page's "Not run" line. A section named in `carry` that the run has too (the rows
-    table, say) is printed from the run, the replaced page's lines under it, marked as carried: no row is lost."""
+    table, say) is printed from the run, the replaced page's lines under it (`_beside`), marked as carried: no row is
+    lost. A page written again from the same run (its data line unchanged) keeps what it carried as it was."""
     unknown = sorted(set(carry) - set(SECTIONS))
     if unknown:
         raise ConfigError(f"carry: unknown {unknown}; choose from {sorted(SECTIONS)}")
@@ -292,7 +300,9 @@ def model_sections(run: Path, out: Path, carry: list[str]) -> list[str]:
     old = {p[0]: p for p in old_parts}
     if lacking := [n for n in carry if SECTIONS[n][0] not in old]:
         raise ConfigError(f"carry: {out} has no {', '.join(lacking)} section to carry")
-    lead = CARRIED_SECTION + _old_provenance(old_parts)
+    data = _data_line(_load(run / "dataset" / "stats.json"))
+    same_run = any(line == data for p in old_parts if p[0] == DATA_HEADING for line in p)
+    lead = [] if same_run else [CARRIED_SECTION + _old_provenance(old_parts)]
     lines: list[str] = []
     absent = []
     made = {n: lit_table(run, SECTIONS[n][2][0]) if _ran(run, SECTIONS[n][2][0]) else [] for n in BY_HAND_SECTIONS}
@@ -300,13 +310,15 @@ def model_sections(run: Path, out: Path, carry: list[str]) -> list[str]:
     made |= {"ablation": ablation_table(run), "supervision": supervision(run)}
     for name in SECTIONS:
         heading, intro, _ = SECTIONS[name]
-        kept = [_made_elsewhere(x) for x in old.get(heading, [])[1:] if not x.startswith(NOT_RUN) and x != intro]
+        own, block = _beside(old.get(heading, [heading])[1:], heading)
         if made[name]:
             lines += _section(name, made[name])
-            if name in carry:
-                lines += [f"### {heading.removeprefix('## ')}: the page this one replaced", "", lead, *kept]
-        elif name in carry:
-            lines += [heading, "", lead, *kept]
+            if name in carry:  # the old page's own table (unless this run's) under the lead, then what it carried
+                kept = ([] if same_run else [*lead, *_trim(_kept([x for x in own if x != intro])), ""]) + _kept(block)
+                lines += [_beside_heading(heading), "", *_trim(kept), ""] if _trim(kept) else []
+        elif name in carry:  # a section carried before keeps its own lead (it names where it was made)
+            carried_before = any(x.startswith(CARRIED_SECTION) for x in own)
+            lines += [heading, "", *([] if carried_before else [*lead, ""]), *_trim(_kept(own)), ""]
         elif name not in BY_HAND_SECTIONS:  # a section no make target makes is never named as not run
             absent.append(_absent(name))
     if absent:  # say what this page lacks rather than leave a reader to notice a missing section
@@ -314,11 +326,44 @@ def model_sections(run: Path, out: Path, carry: list[str]) -> list[str]:
     return lines
 
 
+def _beside_heading(heading: str) -> str:
+    """The sub-heading under which a section the run has too keeps the replaced page's lines."""
+    return f"### {heading.removeprefix('## ')}: the page this one replaced"
+
+
+def _beside(body: list[str], heading: str) -> tuple[list[str], list[str]]:
+    """A section's lines after its heading cut at its carried sub-block (`_beside_heading`): its own lines, then the
+    lines the block carried from an older page (without the sub-heading; [] when it has none)."""
+    sub = _beside_heading(heading)
+    if sub not in body:
+        return body, []
+    at = body.index(sub)
+    return body[:at], _trim(body[at + 1 :])
+
+
+def _trim(lines: list[str]) -> list[str]:
+    """Lines without the blank ones at either end (a carried part is printed between one blank line and the next)."""
+    first = next((i for i, x in enumerate(lines) if x), len(lines))
+    last = next((i for i in range(len(lines), 0, -1) if lines[i - 1]), first)
+    return lines[first:last]
+
+
+def _kept(lines: list[str]) -> list[str]:
+    """A carried section's lines as the new page prints them: without the "Not run" and "Kept from the page" lines
+    (they spoke of the replaced page's own sections), "Made on" lines no longer claiming this page's data, and every
+    line restated as today's writer puts it (`page.restate`)."""
+    return [restate(_made_elsewhere(x)) for x in lines if not x.startswith((NOT_RUN, MAIN_KEPT))]
+
+
 def _old_provenance(parts: list[list[str]]) -> str:
-    """What the replaced page said of its data and tower (its trajectories and vision-tower lines), for the lead of
-    a section carried from it: a carried table's rows name neither."""
-    said = [x.removeprefix("- ") for p in parts if p[0] == DATA_HEADING for x in p if x.startswith(CARRIED_FROM)]
-    return f" That page's data and tower: {' '.join(said)}" if said else ""
+    """What the replaced page said of its data, physics and tower (its Data and model lines), for the lead of a
+    section carried from it: a carried table's rows name none of them."""
+    data = [restate(x) for p in parts if p[0] == DATA_HEADING for x in p]
+    said = {key: next((x.removeprefix("- ") for x in data if x.startswith(key)), None) for key in CARRIED_FROM}
+    if not said["- Trajectories:"]:
+        return ""
+    said["- Physics:"] = said["- Physics:"] or "Physics: not stated."
+    return " That page's data and tower: " + " ".join(x for x in said.values() if x)
 
 
 def _made_elsewhere(line: str) -> str:
@@ -520,11 +565,17 @@ def _header(run: Path, stats: dict[str, Any], stamps: list[list[str]]) -> list[s
 def _shipped_bytes(card: dict[str, Any]) -> str:
     """ ", the shipped tower's bytes" when a tower given by path is the one this checkout ships (a candidate tower
     trained from before it was adopted), so the page says which tower `make reproduce` now starts from."""
-    from labrobfail_vlm.model.tower import read_card, shipped_dir
+    from labrobfail_vlm.model.tower import CARD_FILE, shipped_dir
 
-    if card["path"] == "shipped" or not (shipped_dir() / "tower.json").is_file():
+    try:  # the card's own sha256 (the weights may be absent, as in an LFS checkout): a page is written regardless
+        shipped = json.loads((shipped_dir() / CARD_FILE).read_text())["sha256"]
+    except (OSError, ValueError, KeyError, TypeError):
         return ""
-    return ", the shipped tower's bytes" if read_card(shipped_dir())["sha256"] == card["sha256"] else ""
+    return (
+        ", the bytes shipped when this page was written"
+        if card["path"] != "shipped" and shipped == card["sha256"]
+        else ""
+    )
 
 
 def _injection_line(inj: dict[str, Any]) -> str:

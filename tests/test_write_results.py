@@ -597,7 +597,7 @@ def test_the_lit_chain_gets_its_own_targets_section_and_a_row_it_never_lists_as_
     """`sections=[lit,rows]` from a run holding rows/lit (the tuned chain remade on lit episodes): its targets table
     goes before the rows table and its row into it; a run without rows/lit never names it as missing."""
     from labrobfail_vlm.bench.page import ROWS
-    from scripts.write_results import main
+    from scripts.write_results import SECTIONS, main
 
     page, run = _page_and_run(tmp_path)
     test = {
@@ -625,9 +625,7 @@ def test_the_lit_chain_gets_its_own_targets_section_and_a_row_it_never_lists_as_
     (run / "rows" / "rand5_q" / "final" / "eval_test" / "results.json").write_text(json.dumps(test))
     assert main([f"run={run}", f"out={page}", "sections=[rand5_q,rows]"]) == 0
     text = page.read_text()
-    five = text.index(
-        "## Five tuned stages, read from all four questions (the best front + side model from this page's tower)"
-    )
+    five = text.index(SECTIONS["rand5_q"][0])
     assert five < text.index("## The tuned chain drawn lit")
     assert f"| {ROWS['rows/rand5_q']} | 92.0 [90.9, 93.0] |" in text[text.index("## Tower and sensor rows") :]
     page.write_text(PAGE)
@@ -656,27 +654,40 @@ def test_a_whole_page_keeps_the_sealed_runs_the_page_it_replaces_listed(tmp_path
     assert "(2 in all;" in lines[2] and lines[-3] == old_run and "`outputs/c/rows/c5_q` | 90.0 |" in lines[-2]
 
 
+def _older_page(page: Path) -> None:
+    """The test page as another run wrote it: another data line and tower, section intros, a "Made on" line and a
+    "Kept from the page" line of its own."""
+    from scripts.write_results import MAIN_KEPT, SECTIONS
+
+    sv, rows = SECTIONS["supervision"], SECTIONS["rows"]
+    text = PAGE.replace("10 kept of 12", "20 kept of 24").replace(
+        "(trajectories): train 8, test 2.", "(trajectories): train 8, test 2.\n- Vision tower: `shipped` (old)."
+    )
+    text = text.replace(f"{sv[0]}\n", f"{sv[0]}\n\n{sv[1]}\nMade on `outputs/r15`, whose data are this page's.\n")
+    text = text.replace(f"{rows[0]}\n", f"{rows[0]}\n\n{rows[1]}\n")
+    page.write_text(text.replace(f"{SHIPPED}\n", f"{SHIPPED}\n\n{MAIN_KEPT}the old main row.\n"))
+
+
 def test_a_whole_page_carries_only_the_sections_it_is_told_to_and_marks_them(tmp_path: Path) -> None:
-    """`carry=[supervision]`: a whole page from a run with no recovery tables keeps the replaced page's Supervision
-    section, marked as carried (with that page's data line) and its "Made on" line no longer claiming the page's
-    data; without `carry` the section is named as not run; a section the old page lacks is refused in one line;
-    `carry=[rows]` with a run that has rows keeps the old page's rows under the run's table."""
+    """`carry=[supervision]`: a whole page from another run's page keeps its Supervision section (intro included),
+    marked as carried with that page's data and tower lines, its "Made on" line no longer claiming the page's data;
+    without `carry` the section is named as not run; a section the old page lacks is refused in one line."""
     import pytest
 
-    from labrobfail_vlm.bench.page import ROWS
     from labrobfail_vlm.config import ConfigError
-    from scripts.write_results import CARRIED_SECTION, NOT_RUN, SECTIONS, model_sections
+    from scripts.write_results import CARRIED_SECTION, NOT_RUN, SECTIONS, main, model_sections
 
     page, run = _page_and_run(tmp_path)
-    page.write_text(
-        PAGE.replace("## Supervision\n", "## Supervision\n\nMade on `outputs/r15`, whose data are this page's.\n")
-    )
+    _older_page(page)
     lines = model_sections(run, page, ["supervision"])
     at = lines.index("## Supervision")
-    lead = (
-        f"{CARRIED_SECTION} That page's data and tower: Trajectories: 10 kept of 12 (6 success, 4 failure); split sizes"
+    lead = f"{CARRIED_SECTION} That page's data and tower: Trajectories: 20 kept of 24 (6 success, 4 failure)"
+    assert lines[at + 2].startswith(lead) and lines[at + 2].endswith(
+        "Physics: not stated. Vision tower: `shipped` (old)."
     )
-    assert lines[at + 2].startswith(lead) and "| pick | scripted | 6/25 | 23/25 | +68 | yes | 19 | 0 |" in lines[at:]
+    assert (
+        SECTIONS["supervision"][1] in lines[at:] and "| pick | scripted | 6/25 | 23/25 | +68 | yes | 19 | 0 |" in lines
+    )
     assert "Made on `outputs/r15`, on another data line than this page's." in lines[at:]
     not_run = next(line for line in lines if line.startswith(NOT_RUN))
     assert "Supervision" not in not_run and "Ablation" in not_run
@@ -684,32 +695,59 @@ def test_a_whole_page_carries_only_the_sections_it_is_told_to_and_marks_them(tmp
     assert "## Supervision" not in plain and "Supervision (`online`" in next(x for x in plain if x.startswith(NOT_RUN))
     with pytest.raises(ConfigError, match="^carry: .* has no ablation section to carry"):
         model_sections(run, page, ["ablation"])
-    # a section the run has too: the run's table, then the replaced page's rows under it, marked; none lost
-    _eval(run / "rows" / "wrist" / "final" / "eval_test", 92.0)
-    lines = model_sections(run, page, ["rows"])
-    at, beside = (
-        lines.index("## Tower and sensor rows"),
-        lines.index("### Tower and sensor rows: the page this one replaced"),
-    )
-    assert lines[at + 4].startswith("| row |") and any(
-        x.startswith(f"| {ROWS['rows/wrist']} | 92.0") for x in lines[at:beside]
-    )
-    assert lines[beside + 2].startswith(lead) and lines.index(SHIPPED) > beside
-    assert not any(x.startswith(f"| {ROWS['rows/wrist']} |") for x in lines[beside:])
-    assert "## Tower and sensor rows" not in lines[beside:] and SECTIONS["rows"][1] not in lines[beside:]
-    from scripts.write_results import main
-
     with pytest.raises(ConfigError, match="^carry: only for a whole page"):
         main([f"run={run}", f"out={page}", "sections=[rows]", "carry=[supervision]"])
+    # written again over its own output (the run's data line): the same lines, the first lead kept
+    page.write_text("\n".join(["# results", "", "## Data and model", "", PAGE.split("\n")[4], "", *lines, ""]))
+    assert model_sections(run, page, ["supervision"]) == lines
+
+
+def test_carried_rows_sit_under_the_runs_own_and_stay_there(tmp_path: Path) -> None:
+    """`carry=[rows]` with a run that has rows: the run's table, then the replaced page's rows under a sub-heading,
+    marked (its intro and "Kept from the page" line dropped); the page written again from the same run keeps that
+    block once, lead and all, and never carries the run's own table; a later `sections=[rows]` splice re-benches the
+    page's own rows and leaves the block's rows in the block."""
+    from labrobfail_vlm.bench.page import MAIN_KEPT, ROWS
+    from scripts.write_results import CARRIED_SECTION, SECTIONS, main, model_sections
+
+    page, run = _page_and_run(tmp_path)
+    _older_page(page)
+    _eval(run / "rows" / "wrist" / "final" / "eval_test", 92.0)
+    wrist = f"| {ROWS['rows/wrist']} | 92.0"
+    lines = model_sections(run, page, ["rows"])
+    at, beside = (
+        lines.index(SECTIONS["rows"][0]),
+        lines.index(f"### {SECTIONS['rows'][0][3:]}: the page this one replaced"),
+    )
+    assert lines[at + 4].startswith("| row |") and any(x.startswith(wrist) for x in lines[at:beside])
+    assert lines[beside + 2].startswith(f"{CARRIED_SECTION} That page's data and tower: Trajectories: 20 kept of 24")
+    assert lines.index(SHIPPED) > beside and not any(x.startswith(wrist) for x in lines[beside:])
+    assert SECTIONS["rows"][1] not in lines[beside:] and not any(x.startswith(MAIN_KEPT) for x in lines)
+    # written again over its own output (the run's data line): one block, the first lead, no run rows in it
+    page.write_text("\n".join(["# results", "", "## Data and model", "", PAGE.split("\n")[4], "", *lines, ""]))
+    again = model_sections(run, page, ["rows"])
+    block = again[again.index(lines[beside]) :]
+    assert again.count(lines[beside]) == 1 and block[2] == lines[beside + 2] and SHIPPED in block
+    assert not any(x.startswith(wrist) for x in block)
+    # a splice of the rows: the page's own rows from the run, the block's rows left in the block
+    page.write_text("\n".join([*PAGE.split("\n")[:6], *lines, "## Paper-comparable tables", ""]))
+    _eval(run / "rows" / "wrist" / "final" / "eval_test", 91.0)
+    assert main([f"run={run}", f"out={page}", "sections=[rows]"]) == 0
+    text = page.read_text()
+    cut = text.index(lines[beside])
+    assert f"| {ROWS['rows/wrist']} | 91.0" in text[:cut] and SHIPPED in text[cut:] and SHIPPED not in text[:cut]
 
 
 def test_a_tower_given_by_path_is_named_as_the_shipped_one_when_its_bytes_are() -> None:
-    """A main row trained from a candidate tower's folder before it was adopted: the page says it is the shipped
-    tower's bytes (by sha256), and says nothing for another tower or for `shipped` itself."""
+    """A main row trained from a candidate tower's folder before it was adopted: the page says it is the bytes shipped
+    when the page was written (by sha256), and says nothing for another tower or for `shipped` itself."""
     from labrobfail_vlm.model.tower import read_card, shipped_dir
     from scripts.write_results import _shipped_bytes
 
     sha = read_card(shipped_dir())["sha256"]
-    assert _shipped_bytes({"path": "outputs/tower_c/export", "sha256": sha}) == ", the shipped tower's bytes"
+    assert (
+        _shipped_bytes({"path": "outputs/tower_c/export", "sha256": sha})
+        == ", the bytes shipped when this page was written"
+    )
     assert _shipped_bytes({"path": "outputs/tower/export", "sha256": "0" * 64}) == ""
     assert _shipped_bytes({"path": "shipped", "sha256": sha}) == ""

@@ -372,7 +372,8 @@ ROWS = {
         "(pairs 10000-11999), read as the row above from all four questions (chosen on validation, 6 Dec)"
     ),
     "rows/rand5_q": (
-        "the randomised row and four tuned stages on this page's data and tower (`make reproduce-more "
+        "the randomised row and four tuned stages on `make reproduce`'s data from the tower shipped since 6 Dec night "
+        "(sha256 `ae35c909...`; `make reproduce-more "
         "MORE_FAMILY=randomised`, `make reproduce-tuned`), then a fifth tuned stage on the seen training split plus "
         "4,000 more randomised episodes (pairs 10000-11999), P(failure) read from all four closed questions (6 Dec's "
         "best lit chain, each step chosen on validation on 4-6 Dec)"
