@@ -14,7 +14,8 @@ the recovery table), the paper-comparable tables
 (Q3-Q6 over failed trajectories) with 95 % intervals, failure detection as a score, the all-trajectory tables,
 Q2 recall per failure type, the learning curve. The sealed runs the page it replaces listed stay on its list, and
 `carry=[supervision]` (any of SECTIONS) keeps that page's section where the run has none, and under the run's where
-it has one (`carry=[rows]`: no row of the replaced page is lost), marked as carried with that page's data line.
+it has one (`carry=[rows]`: no row of the replaced page is lost), marked as carried with that page's data, physics
+and tower lines; a later `sections=[rows]` splice leaves the rows carried so in their block.
 
 With `sections=[rand5_q]`, `[lit]`, `[lit_q]`, `[lit5_q]`, `[tuned]`, `[rows]`, `[ablation]` or `[supervision]` it
 replaces only those sections of the existing page, from a run that holds just those folders (a fresh machine's
@@ -563,8 +564,8 @@ def _header(run: Path, stats: dict[str, Any], stamps: list[list[str]]) -> list[s
 
 
 def _shipped_bytes(card: dict[str, Any]) -> str:
-    """ ", the shipped tower's bytes" when a tower given by path is the one this checkout ships (a candidate tower
-    trained from before it was adopted), so the page says which tower `make reproduce` now starts from."""
+    """A note when a tower given by path is the one this checkout ships (a candidate tower trained from before it was
+    adopted), so the page says which tower `make reproduce` started from when the page was written."""
     from labrobfail_vlm.model.tower import CARD_FILE, shipped_dir
 
     try:  # the card's own sha256 (the weights may be absent, as in an LFS checkout): a page is written regardless
