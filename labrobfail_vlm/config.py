@@ -117,7 +117,8 @@ def refuse_other_settings(
     script that records them."""
     import json
 
-    recorded = {k: v for k, v in recorded.items() if k not in set(free)}
+    freed = set(free)  # once: `free` may be a generator, and the set serves every key
+    recorded = {k: v for k, v in recorded.items() if k not in freed}
     key = first_difference(recorded, now)
     if key is None:
         return

@@ -221,12 +221,10 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
     shipped = next((line for p in parts for line in p if line.startswith(f"| {ROWS['train']} |")), None)
     cells = [c.strip() for c in shipped.strip("|").split("|")] if shipped else None
     old_sv = next((p for p in parts if p[0] == SECTIONS["supervision"][0]), [])
-    heads = {n: h for n, (h, _, _) in SECTIONS.items()}
+    rows_head = SECTIONS["rows"][0]
     bodies = {
         # the page's own rows only: rows it carried from a replaced page stay in their block, re-appended below
-        "rows": lambda: rows_table(
-            run, _beside(next((p for p in parts if p[0] == heads["rows"]), []), heads["rows"])[0]
-        ),
+        "rows": lambda: rows_table(run, _beside(next((p for p in parts if p[0] == rows_head), []), rows_head)[0]),
         # the shipped row's seen Q2, Q3, Q5 and ROUGE-L cells
         "ablation": lambda: ablation_table(run, [cells[1], cells[3], cells[4], cells[5]] if cells else None),
         "supervision": lambda: supervision(run, old_sv),
