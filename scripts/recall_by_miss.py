@@ -1,6 +1,7 @@
 """Where a model's missed failures lie: Q2 recall on a split's failed trajectories by which goals failed at the end,
-and, for those whose only failed goals are "at" goals (an object set down off its zone), by how far it missed, with
-the offset that miss makes, in pixels, in each fixed view's last recorded keyframe.
+and, for those whose only failed goals are "at" goals (an object set down off its zone), by how far it missed, per
+goal tolerance (a placed object's 0.04 m, a tube's 0.012), with the offset that miss makes, in pixels, in each view
+where it is in the picture at the last recorded keyframe. Seen and validation splits only (never a sealed one).
 
 Run as:
     python scripts/recall_by_miss.py run=outputs/reproduce bench=outputs/reproduce/train/final/eval_val split=val
@@ -25,13 +26,14 @@ from labrobfail_vlm import questions as Q
 from labrobfail_vlm.bench.evaluate import called_failed, load_split, read_predictions
 from labrobfail_vlm.config import ConfigError, cli_main, load_config
 from labrobfail_vlm.io import atomic_write_json
+from labrobfail_vlm.taxonomy import SEALED_SPLITS
 from sim_backends.goals import failed_goals, final, place_xy
 
 DEFAULTS = """
 run: outputs/reproduce        # a make reproduce folder: dataset/ and shards/
 bench: null                   # a bench folder of that dataset (labrobfail-evaluate's eval_<split>)
 split: val                    # the split the bench scored
-edges: [0.04, 0.06, 0.08, 0.12]   # m: miss bins (the "at" goal's tolerance is 0.04)
+edges: [0.04, 0.06, 0.08, 0.12]   # m: miss bins, per goal tolerance (a placed object's 0.04, a tube's 0.012)
 """
 
 COLUMNS = ["episode_id", "variant", "state_trace", "task_meta", "cameras", "camera_names"]
@@ -39,7 +41,8 @@ COLUMNS = ["episode_id", "variant", "state_trace", "task_meta", "cameras", "came
 
 def at_miss(trace: dict, meta: dict) -> tuple[list[str], float | None, dict | None]:
     """(the kinds of goal that failed at the end, the largest horizontal miss of a failed "at" goal in m or None,
-    that goal)."""
+    that goal). Each goal has its own tolerance (a placed object 0.04 m, a tube in its rack hole 0.012); an "at" goal
+    can also fail on height (the object below the bench top) with its miss within that tolerance."""
     failed = failed_goals(trace, meta)
     worst, goal = None, None
     for g in failed:
@@ -53,7 +56,7 @@ def at_miss(trace: dict, meta: dict) -> tuple[list[str], float | None, dict | No
 def pixel_offsets(row: dict, trace: dict, meta: dict, goal: dict, size: int) -> dict[str, float]:
     """Per view with camera matrices at its last recorded keyframe: the pixel distance between where the object
     rests and where it would rest on its zone's centre (at the same height), where both are in that picture (the
-    moving wrist camera mostly looks elsewhere by then)."""
+    moving wrist camera, the one view that is not fixed, mostly looks elsewhere by then)."""
     pos = np.asarray(final(trace, f"{goal['object']}.pos"), float)
     on_zone = np.r_[place_xy(meta, goal["xy"]), pos[2]]
     out = {}
@@ -70,11 +73,19 @@ def shard_rows(run: Path, wanted: set[tuple[str, str]]) -> tuple[dict[tuple[str,
     """The shard rows of the wanted (variant, episode) pairs, and the image size the shards were rendered at."""
     rows, sizes = {}, set()
     for run_json in sorted((run / "shards").glob("*/run.json")):
-        sizes.add(int(json.loads(run_json.read_text())["image_size"]))
+        found = False
         for f in sorted(run_json.parent.glob("shard-*.parquet")):
             for r in pq.read_table(f, columns=COLUMNS).to_pylist():
-                if (r["variant"], r["episode_id"]) in wanted:
-                    rows[(r["variant"], r["episode_id"])] = r
+                key = (r["variant"], r["episode_id"])
+                if key in wanted:
+                    if key in rows:
+                        raise ConfigError(f"run: episode {key[1]} of {key[0]} is in two shard folders under {run}")
+                    rows[key], found = r, True
+        if found:  # only the folders the split's failures come from
+            try:
+                sizes.add(int(json.loads(run_json.read_text())["image_size"]))
+            except (ValueError, KeyError, TypeError):
+                raise ConfigError(f"run: {run_json} has no readable image_size") from None
     if len(sizes) > 1:
         raise ConfigError(f"run: shards rendered at several image sizes {sorted(sizes)}")
     return rows, sizes.pop() if sizes else 0
@@ -89,12 +100,17 @@ def tally(items: list[dict], key) -> dict[str, dict[str, int]]:
     return out
 
 
-def summarise(items: list[dict], edges: list[float]) -> dict[str, Any]:
-    goals = tally(items, lambda it: "at only" if it["kinds"] == ["at"] else "other goals" if it["kinds"] else "none")
-    at_only = [it for it in items if it["kinds"] == ["at"] and it["miss_m"] is not None]
+def goal_group(it: dict) -> str:
+    if it["kinds"] != ["at"]:
+        return "other goals" if it["kinds"] else "none"
+    return "at only, on height" if it["height_only"] else "at only"
+
+
+def miss_bins(items: list[dict], edges: list[float]) -> list[dict[str, Any]]:
+    """At-only failures of one tolerance by miss, in bins (0, e0], (e0, e1], ..., (e_last, inf)."""
     bins = []
-    for lo, hi in zip(edges, edges[1:] + [float("inf")]):
-        s = [it for it in at_only if lo < it["miss_m"] <= hi]
+    for lo, hi in zip([0.0, *edges], [*edges, float("inf")]):
+        s = [it for it in items if lo < it["miss_m"] <= hi]
         views = sorted({v for it in s for v in it["offset_px"]})
         bins.append(
             {
@@ -107,11 +123,20 @@ def summarise(items: list[dict], edges: list[float]) -> dict[str, Any]:
                 },
             }
         )
+    return bins
+
+
+def summarise(items: list[dict], edges: list[float]) -> dict[str, Any]:
+    """Recall by failed goals; at-only failures that missed on distance by miss, per goal tolerance (m)."""
+    by_miss = {}
+    for tol in sorted({it["tol_m"] for it in items if goal_group(it) == "at only"}):
+        same = [it for it in items if goal_group(it) == "at only" and it["tol_m"] == tol]
+        by_miss[f"{tol:g}"] = miss_bins(same, edges)
     return {
         "failures": len(items),
         "caught": sum(it["caught"] for it in items),
-        "by_failed_goals": goals,
-        "at_only_by_miss": bins,
+        "by_failed_goals": tally(items, goal_group),
+        "at_only_by_miss": by_miss,
         "by_type": tally(items, lambda it: it["type"]),
     }
 
@@ -121,12 +146,19 @@ def main(argv: list[str]) -> int:
     if cfg.bench is None:
         raise ConfigError("bench: give the bench folder whose predictions.jsonl to read (bench=DIR)")
     run, bench = Path(str(cfg.run)), Path(str(cfg.bench))
-    edges = [float(e) for e in cfg.edges]
-    if not edges or edges != sorted(edges) or edges[0] < 0:
-        raise ConfigError(f"edges: expected an increasing list of metres >= 0, got {list(cfg.edges)!r}")
+    try:
+        edges = [float(e) for e in cfg.edges]
+    except (TypeError, ValueError):
+        edges = []
+    if not edges or edges != sorted(edges) or edges[0] <= 0:
+        raise ConfigError(f"edges: expected an increasing list of metres > 0, got {cfg.edges!r}")
+    if str(cfg.split) in SEALED_SPLITS:  # an analysis to choose by: never on a sealed split
+        raise ConfigError(f"split: {cfg.split} is sealed; read a seen or validation split")
     recs, traj = load_split(run / "dataset", str(cfg.split))
     caught = called_failed(recs, read_predictions(bench / "predictions.jsonl"))
-    failed = sorted({Q.traj_of(r["id"]) for r in recs} & {t for t, m in traj.items() if not m["success"]})
+    # whole trajectories only: a prefix grid (a dataset built with prefix cuts) ends before its episode does
+    whole = {t for t, m in traj.items() if not m["success"] and "prefix_of" not in m}
+    failed = sorted({Q.traj_of(r["id"]) for r in recs} & whole)
     key = {t: (traj[t]["variant"], t.split("-", 1)[1]) for t in failed}
     rows, size = shard_rows(run, set(key.values()))
     missing = [t for t in failed if key[t] not in rows]
@@ -143,8 +175,11 @@ def main(argv: list[str]) -> int:
             {
                 "trajectory": t,
                 "type": traj[t]["failure_type"],
+                "scenario": traj[t]["scenario"],
                 "kinds": kinds,
                 "miss_m": miss,
+                "tol_m": None if goal is None else float(goal["tol"]),
+                "height_only": goal is not None and miss <= goal["tol"],
                 "caught": t in caught,
                 "offset_px": pixel_offsets(row, trace, meta, goal, size) if goal is not None else {},
             }
@@ -154,9 +189,11 @@ def main(argv: list[str]) -> int:
     print(f"{cfg.split}: {out['caught']} of {out['failures']} failures caught")
     for name, c in out["by_failed_goals"].items():
         print(f"  {name}: {c['caught']} of {c['n']}")
-    for b in out["at_only_by_miss"]:
-        px = ", ".join(f"{v} {p:.1f} px" for v, p in b["median_offset_px"].items())
-        print(f"  at only, miss {b['miss_m'][0]}-{b['miss_m'][1] or 'inf'} m: {b['caught']} of {b['n']} ({px})")
+    for tol, bins in out["at_only_by_miss"].items():
+        for b in bins:
+            px = ", ".join(f"{v} {p:.1f} px" for v, p in b["median_offset_px"].items())
+            lo, hi = b["miss_m"]
+            print(f"  at only (tolerance {tol} m), miss {lo}-{hi or 'inf'} m: {b['caught']} of {b['n']} ({px})")
     return 0
 
 

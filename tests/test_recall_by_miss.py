@@ -17,8 +17,8 @@ META = {
 }
 
 
-def trace_at(x: float, quat=(0.0, 0.0, 0.0, 1.0)) -> dict:
-    return {"cup.pos": [[0.5, 0.5, 0.1], [x, 0.0, 0.02]], "cup.quat": [list(quat), list(quat)]}
+def trace_at(x: float, quat=(0.0, 0.0, 0.0, 1.0), z: float = 0.02) -> dict:
+    return {"cup.pos": [[0.5, 0.5, 0.1], [x, 0.0, z]], "cup.quat": [list(quat), list(quat)]}
 
 
 def test_at_miss_reads_the_final_state():
@@ -28,6 +28,10 @@ def test_at_miss_reads_the_final_state():
     assert at_miss(trace_at(0.0, tipped), META)[:2] == (["upright"], None)  # on its mark, lying down
     kinds, miss, goal = at_miss(trace_at(-0.2, tipped), META)
     assert kinds == ["at", "upright"] and abs(miss - 0.2) < 1e-9 and goal["xy"] == "mark"
+    kinds, miss, goal = at_miss(trace_at(0.01, z=-0.2), META)  # on its mark's x-y, under the bench top
+    assert kinds == ["at"] and miss <= goal["tol"]
+    tube = {**META, "goals": [{"kind": "at", "object": "cup", "xy": "mark", "tol": 0.012}]}  # a goal's own tolerance
+    assert at_miss(trace_at(0.03), tube)[:2] == (["at"], 0.03)
 
 
 def test_pixel_offsets_grow_with_the_miss_and_skip_a_camera_looking_away():
@@ -41,17 +45,38 @@ def test_pixel_offsets_grow_with_the_miss_and_skip_a_camera_looking_away():
     assert set(near) == {"front"} and 0 < near["front"] < far["front"]
 
 
-def test_summary_bins_at_only_failures_by_miss():
+def item(miss, caught, tol=0.04, kinds=("at",), height=False, px=None):
+    return {
+        "type": "a",
+        "kinds": list(kinds),
+        "miss_m": miss,
+        "tol_m": tol,
+        "height_only": height,
+        "caught": caught,
+        "offset_px": px or {},
+    }
+
+
+def test_summary_bins_at_only_failures_by_miss_per_tolerance():
     items = [
-        {"type": "a", "kinds": ["at"], "miss_m": 0.05, "caught": False, "offset_px": {"front": 6.0}},
-        {"type": "a", "kinds": ["at"], "miss_m": 0.3, "caught": True, "offset_px": {"front": 40.0}},
-        {"type": "b", "kinds": ["at", "upright"], "miss_m": 0.3, "caught": True, "offset_px": {}},
+        item(0.05, False, px={"front": 6.0}),
+        item(0.3, True, px={"front": 40.0}),
+        item(0.03, True, tol=0.012),  # a tube 3 cm beside its hole: under the first edge, in its own group
+        item(0.01, False, height=True),  # an "at" goal failed on height alone: in no miss bin
+        item(0.3, True, kinds=("at", "upright")),
     ]
     s = summarise(items, [0.04, 0.1])
-    assert s["by_failed_goals"] == {"at only": {"n": 2, "caught": 1}, "other goals": {"n": 1, "caught": 1}}
-    bins = [(b["miss_m"], b["n"], b["caught"]) for b in s["at_only_by_miss"]]
-    assert bins == [([0.04, 0.1], 1, 0), ([0.1, None], 1, 1)]
-    assert s["at_only_by_miss"][1]["median_offset_px"] == {"front": 40.0}
+    assert s["by_failed_goals"] == {
+        "at only": {"n": 3, "caught": 2},
+        "at only, on height": {"n": 1, "caught": 0},
+        "other goals": {"n": 1, "caught": 1},
+    }
+    bins = {tol: [(b["miss_m"], b["n"], b["caught"]) for b in bs] for tol, bs in s["at_only_by_miss"].items()}
+    assert bins == {
+        "0.012": [([0.0, 0.04], 1, 1), ([0.04, 0.1], 0, 0), ([0.1, None], 0, 0)],
+        "0.04": [([0.0, 0.04], 0, 0), ([0.04, 0.1], 1, 0), ([0.1, None], 1, 1)],
+    }
+    assert s["at_only_by_miss"]["0.04"][2]["median_offset_px"] == {"front": 40.0}
 
 
 def test_counts_recall_as_the_bench_does_on_a_generated_run(run6, tmp_path):
@@ -66,13 +91,23 @@ def test_counts_recall_as_the_bench_does_on_a_generated_run(run6, tmp_path):
     assert failed
     bench = tmp_path / f"eval_{split}"
     bench.mkdir()
-    for says_failed, caught in ((True, len(failed)), (False, 0)):
-        lines = [{"id": r["id"], "prediction": q2_as_asked(r["conversations"][0]["value"], says_failed)} for r in q2]
+    called = set(sorted(failed)[::2]) | {Q.traj_of(r["id"]) for r in q2} - failed  # half the failures, every success
+    for says, caught in ((lambda t: t in called, len(failed & called)), (lambda t: False, 0)):
+        lines = [
+            {"id": r["id"], "prediction": q2_as_asked(r["conversations"][0]["value"], says(Q.traj_of(r["id"])))}
+            for r in q2
+        ]
         (bench / "predictions.jsonl").write_text("".join(json.dumps(x) + "\n" for x in lines))
         r = run_here(program("scripts/recall_by_miss.py") + [f"run={tmp_path}", f"bench={bench}", f"split={split}"])
         assert r.returncode == 0, r.stderr
         out = json.loads((bench / "recall_by_miss.json").read_text())
         assert (out["failures"], out["caught"]) == (len(failed), caught)
         assert {it["trajectory"] for it in out["trajectories"]} == failed
-    bad = run_here(program("scripts/recall_by_miss.py") + [f"run={tmp_path}", f"split={split}"])
-    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "bench:" in bad.stderr
+    script = program("scripts/recall_by_miss.py") + [f"run={tmp_path}"]
+    for args, named in (
+        ([f"split={split}"], "bench:"),
+        ([f"bench={bench}", "split=test_both"], "sealed"),
+        ([f"bench={bench}", f"split={split}", "edges=0.05"], "edges:"),
+    ):
+        bad = run_here(script + args)
+        assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and named in bad.stderr, bad.stderr
