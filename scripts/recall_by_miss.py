@@ -64,8 +64,9 @@ def pixel_offsets(row: dict, trace: dict, meta: dict, goal: dict, size: int) -> 
         last = next((m for m in reversed(mats or []) if m is not None), None)
         if last is not None:
             a, b = project(np.stack([pos, on_zone]), last, size)
-            if np.all((a >= 0) & (a <= size)) and np.all((b >= 0) & (b <= size)):  # both in the picture (NaN:
-                out[name] = float(np.linalg.norm(a - b))  # behind its camera)
+            # both in the picture (a point behind the camera projects to NaN, which fails the test)
+            if np.all((a >= 0) & (a <= size)) and np.all((b >= 0) & (b <= size)):
+                out[name] = float(np.linalg.norm(a - b))
     return out
 
 
