@@ -111,3 +111,6 @@ def test_counts_recall_as_the_bench_does_on_a_generated_run(run6, tmp_path):
     ):
         bad = run_here(script + args)
         assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and named in bad.stderr, bad.stderr
+    (tmp_path / "shards" / "seen_again").symlink_to(run6)  # the same episodes in a second folder: which is meant?
+    bad = run_here(script + [f"bench={bench}", f"split={split}"])
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "two shard folders" in bad.stderr, bad.stderr
