@@ -19,8 +19,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pyarrow.parquet as pq
 
+from labrobfail_data.build import _rows
 from labrobfail_data.frame_targets import project
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.bench.evaluate import called_failed, load_split, read_predictions
@@ -75,13 +75,13 @@ def shard_rows(run: Path, wanted: set[tuple[str, str]]) -> tuple[dict[tuple[str,
     rows, sizes = {}, set()
     for run_json in sorted((run / "shards").glob("*/run.json")):
         found = False
-        for f in sorted(run_json.parent.glob("shard-*.parquet")):
-            for r in pq.read_table(f, columns=COLUMNS).to_pylist():
-                key = (r["variant"], r["episode_id"])
-                if key in wanted:
-                    if key in rows:
-                        raise ConfigError(f"run: episode {key[1]} of {key[0]} is in two shard folders under {run}")
-                    rows[key], found = r, True
+        # the dataset builder's reader: a corrupt shard or one lacking a column is a one-line error
+        for r in _rows(sorted(run_json.parent.glob("shard-*.parquet")), COLUMNS):
+            key = (r["variant"], r["episode_id"])
+            if key in wanted:
+                if key in rows:
+                    raise ConfigError(f"run: episode {key[1]} of {key[0]} is in two shard folders under {run}")
+                rows[key], found = r, True
         if found:  # only the folders the split's failures come from
             try:
                 sizes.add(int(json.loads(run_json.read_text())["image_size"]))
