@@ -63,6 +63,7 @@ from labrobfail_vlm.config import ConfigError, cli_main, load_config
 from labrobfail_vlm.io import atomic_write_bytes
 from labrobfail_vlm.model.tower import raised_saturation
 from sim_backends.generate import run_physics
+from sim_backends.supervision.report import CARRIED as CARRIED_ROWS
 from sim_backends.supervision.report import LEAD, block, page_recovery, recovery_files, recovery_md
 
 DEFAULTS = """
@@ -235,7 +236,10 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
         heading, _, folders = SECTIONS[name]
         if not any(_ran(run, f) for f in folders):
             raise ConfigError(f"sections: {run} has no results under {', '.join(folders)}")
-        new = _section(name, bodies[name](), made_on=run)
+        body = bodies[name]()
+        if name == "supervision":  # the provenance of what it still carries from the page it once replaced
+            body = [*_still_carried(old_sv, body), *body]
+        new = _section(name, body, made_on=run)
         at = next((i for i, p in enumerate(parts) if p[0] == heading), None)
         if at is None:  # a new section goes where the whole page puts it: before the later ones
             later = [h for h, _, _ in list(SECTIONS.values())[list(SECTIONS).index(name) + 1 :]] + [PAPER_TABLES]
@@ -252,6 +256,23 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
     atomic_write_bytes(out, ("\n".join(restate(line) for p in parts for line in p) + "\n").encode())
     print(out)
     return 0
+
+
+STILL_CARRIED = (
+    "The parts of this section marked as the page had them or carried from the page are older: made on another "
+    "run, whose data line, tower and models are those their own lines name, not this page's."
+)
+
+
+def _still_carried(old: list[str], body: list[str]) -> list[str]:
+    """The old Supervision section's provenance paragraph (it was carried whole from a replaced page) for a splice
+    whose new section still carries some of it (recovery cells not re-run, the online model's table): without it
+    the splice's "whose data are this page's" line would seem to claim those parts too. [] when nothing is carried
+    or the old section had no such paragraph."""
+    said = next((x for x in old if x.startswith((CARRIED_SECTION, STILL_CARRIED))), None)
+    if said is None or not any(CARRIED_ROWS in x or "as the page had it" in x for x in body):
+        return []
+    return [STILL_CARRIED + said.removeprefix(CARRIED_SECTION).removeprefix(STILL_CARRIED), ""]
 
 
 def _datasets(run: Path) -> list[Path]:
@@ -417,7 +438,10 @@ ONLINE_GUARANTEE = (
     "object set (val_both below is one), and no detection rate or latency: those are measured. Latency is from "
     "the failure's onset in simulator state (negative: the alarm came first); an irreversible event is a spill, "
     "a fall, glassware moving fast enough to break or, in data generated from 1 Dec, an object pushed out of the "
-    "arm's reach. A row pairing the model with a robot-signal MLP alarms when either does, on the same successes, "
+    "arm's reach. The last column's interval is exact (Clopper-Pearson, 95 %), and its ceiling is the labeler's "
+    "row: an alarm at the onset itself comes before the event only where the failure began before it, so no "
+    "monitor that waits for the failure to begin beats that row. A row pairing the model with a robot-signal MLP "
+    "alarms when either does, on the same successes, "
     "the model set at its share of alpha (a half unless the row names another, a share chosen on validation) and "
     "the MLP at the rest: the pair keeps the same bound (a union bound). A share whose level is under 1 / (n + 1) "
     "of the n calibration successes leaves the model out (its threshold is +inf): under 199 successes, the 0.1 "

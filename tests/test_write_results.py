@@ -472,15 +472,18 @@ def test_a_rerun_of_some_cells_keeps_the_pages_other_cells_and_online_bench(tmp_
 
 def test_an_online_bench_alone_replaces_the_pages_and_carries_the_rest(tmp_path: Path) -> None:
     """`sections=[supervision]` from a run that ran only `make online-bench` (the main model's online bench): its
-    tables replace the page's, the online model's table and every recovery cell are carried and named as carried."""
+    tables replace the page's, the online model's table and every recovery cell are carried and named as carried,
+    and the section's old provenance (it was carried whole from an older page) now speaks of those parts alone."""
     import pytest
 
     from labrobfail_vlm.config import ConfigError
-    from scripts.write_results import ONLINE_GUARANTEE, main
+    from scripts.write_results import CARRIED_SECTION, ONLINE_GUARANTEE, STILL_CARRIED, _still_carried, main
     from sim_backends.supervision.report import HEADER, LEAD
 
     old = [
         "## Supervision",
+        "",
+        CARRIED_SECTION + " That page's data and tower: the old line.",
         "",
         "| grids | Q2 | majority Q2 | AUROC | Q3 (failures) | Q5 (failures) |",
         "|---|---|---|---|---|---|",
@@ -512,6 +515,11 @@ def test_an_online_bench_alone_replaces_the_pages_and_carries_the_rest(tmp_path:
     assert "the old bench" not in section and "Made on `" in section
     assert "| pick | scripted | 6/25 | 23/25 | +68 | yes |" in section
     assert "(rows carried from the page, not re-run)" in next(x for x in section.splitlines() if x.startswith(LEAD))
+    said = [x for x in section.splitlines() if "the old line" in x]
+    assert said == [STILL_CARRIED + " That page's data and tower: the old line."]
+    assert _still_carried(old, ["| pick | scripted | 6/25 | 24/25 |"]) == []  # all re-measured: nothing older left
+    text = page.read_text()
+    assert main([f"run={run}", f"out={page}", "sections=[supervision]"]) == 0 and page.read_text() == text
 
 
 def test_the_tuned_model_is_spliced_with_its_sealed_runs_and_a_fresh_ledger_joins_the_page_list(tmp_path: Path) -> None:

@@ -211,8 +211,7 @@ def timing(fired_s: Sequence[float | None], trajs: Sequence[dict[str, Any]]) -> 
     return {
         "latency_s_median": round(float(np.median(lat)), 3) if lat else None,
         "latency_s_p90": round(float(np.percentile(lat, 90)), 3) if lat else None,
-        "irreversible_failures": len(grave),
-        "caught_before_irreversible": _share(early, len(grave)),
+        **_before_irreversible(early, len(grave)),
     }
 
 
@@ -242,9 +241,23 @@ def ceiling(trajs: Sequence[dict[str, Any]]) -> dict[str, Any]:
     if all("irreversible_s" in t for t in trajs):  # it sounds at the onset itself: before the event unless they meet
         grave = [t for t in trajs if not t["success"] and t["irreversible_s"] is not None]
         early = sum(t.get("onset_s") is not None and t["onset_s"] < t["irreversible_s"] for t in grave)
-        out |= {"latency_s_median": 0.0, "latency_s_p90": 0.0, "irreversible_failures": len(grave)}
-        out["caught_before_irreversible"] = _share(early, len(grave))
+        out |= {"latency_s_median": 0.0, "latency_s_p90": 0.0, **_before_irreversible(early, len(grave))}
     return out
+
+
+def _before_irreversible(early: int, grave: int) -> dict[str, Any]:
+    """The share of the `grave` failures (those with an irreversible event) whose alarm sounded before it, with its
+    exact (Clopper-Pearson) 95 % interval: a test split holds a handful of such events, and a share of 5 in 9 reads
+    the same as 50 in 90 without one. Each is the failure of its own pair (a success twin has no event), so the
+    failures are independent draws and a binomial interval needs no resampling by pair."""
+    from scipy.stats import binomtest
+
+    ci = binomtest(early, grave).proportion_ci(0.95, method="exact") if grave else None
+    return {
+        "irreversible_failures": grave,
+        "caught_before_irreversible": _share(early, grave),
+        "caught_before_irreversible_ci": None if ci is None else [round(ci.low, 4), round(ci.high, 4)],
+    }
 
 
 def _pct(x: float | None) -> str:
@@ -262,8 +275,8 @@ def _num(x: float | None) -> str:
 def online_md(res: dict[str, Any]) -> list[str]:
     """The bench's table: per row and alpha, false alarms on successes against alpha, detection, latency from the
     onset (grid frames and sim seconds: median / 90th percentile), caught at the onset frame and before an
-    irreversible event (of how many such failures). "bound p": the false alarms' bound check (under 0.05: these
-    successes are not exchangeable with the calibration ones)."""
+    irreversible event (its exact 95 % interval, of how many such failures). "bound p": the false alarms' bound
+    check (under 0.05: these successes are not exchangeable with the calibration ones)."""
     out = [
         f"Online bench, split {res['split']} ({res['trajectories']} trajectories), alarm calibrated on "
         f"{res['calibration_successes']} successes of {res['calibration']}; CPU per check: "
@@ -279,13 +292,13 @@ def online_md(res: dict[str, Any]) -> list[str]:
                 if alpha != str(ALPHAS[0]):
                     continue
                 alpha = "any"
-            grave = "" if r.get("irreversible_failures") is None else f" (of {r['irreversible_failures']})"
+            grave = _grave(r)
             out.append(
                 f"| {name} | {alpha} | {_pct(r['false_alarm_rate'])} | {_p(bound_check(r))} | "
                 f"{_pct(r['detection_rate'])} | "
                 f"{_num(r.get('latency_frames_median'))} / {_num(r.get('latency_frames_p90'))} | "
                 f"{_num(r.get('latency_s_median'))} / {_num(r.get('latency_s_p90'))} | "
-                f"{_pct(r.get('caught_by_onset'))} | {_pct(r.get('caught_before_irreversible'))}{grave} |"
+                f"{_pct(r.get('caught_by_onset'))} | {grave} |"
             )
     left_out = _left_out(res["rows"])
     if left_out:  # a row whose monitor cannot fire reads like a weak one: say which
@@ -294,6 +307,16 @@ def online_md(res: dict[str, Any]) -> list[str]:
             "Never fires (a level under 1 / (n + 1) of the n calibration successes: threshold +inf): " + left_out,
         ]
     return out
+
+
+def _grave(r: dict[str, Any]) -> str:
+    """The irreversible column: the share, its 95 % interval (JSONs from before 7 Dec have none) and of how many."""
+    n = r.get("irreversible_failures")
+    if n is None:
+        return _pct(r.get("caught_before_irreversible"))
+    ci = r.get("caught_before_irreversible_ci")
+    band = f" [{_pct(ci[0])}, {_pct(ci[1])}]" if ci else ""
+    return f"{_pct(r.get('caught_before_irreversible'))}{band} (of {n})"
 
 
 def _left_out(rows: dict[str, Any]) -> str:
