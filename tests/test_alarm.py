@@ -151,32 +151,44 @@ def test_a_monitor_checked_between_frames_sounds_before_an_event_the_frames_miss
 
 
 def test_the_share_caught_before_an_irreversible_event_carries_its_exact_interval():
-    """Nine hand-made failures with an event at 1.6 s, five caught at 1.5 s and four at 2 s: 5 of 9 with its
-    Clopper-Pearson 95 % interval [0.212, 0.863] (a known table), in the JSON and on the page's line; the ceiling
-    (the labeler at each onset: 1.4 s in six, 1.8 s in three) reads 6 of 9 [0.299, 0.925]; no such failure, no
-    interval."""
+    """Nine hand-made failures with an event at 1.6 s (six breakages, three spills), five caught at 1.5 s and four
+    at 2 s: 5 of 9 with its Clopper-Pearson 95 % interval [0.212, 0.863] (a known table), in the JSON and on the
+    page's line, and per kind; the ceiling (the labeler at each onset: 1.4 s in the breakages, 1.6 s, the spill
+    itself, in the spills) reads 6 of 9 [0.299, 0.925], none of the spills; no such failure, no interval."""
     from labrobfail_vlm.bench.online import ceiling, online_md, timing
 
     frames = [1.0, 2.0, 3.0]
     fail = {"success": False, "frame": 1, "frame_times_s": frames, "onset_s": 1.4, "irreversible_s": 1.6}
-    trajs = [fail] * 9 + [{**fail, "success": True, "frame": None, "onset_s": None, "irreversible_s": None}]
+    fails = [{**fail, "irreversible_event": "breakage"}] * 6 + [{**fail, "irreversible_event": "spill"}] * 3
+    trajs = [*fails, {**fail, "success": True, "frame": None, "onset_s": None, "irreversible_s": None}]
     got = timing([1.5] * 5 + [2.0] * 4 + [None], trajs)
     assert got["irreversible_failures"] == 9 and got["caught_before_irreversible"] == pytest.approx(5 / 9, abs=1e-4)
     assert got["caught_before_irreversible_ci"] == pytest.approx([0.212, 0.863], abs=5e-4)
-    late = [{**t, "onset_s": 1.8} if i >= 6 and not t["success"] else t for i, t in enumerate(trajs)]
+    assert got["caught_before_by_event"] == {"breakage": [5, 6], "spill": [0, 3]}
+    late = [{**t, "onset_s": 1.6} if t.get("irreversible_event") == "spill" else t for t in trajs]
     top = ceiling(late)
     assert top["caught_before_irreversible"] == pytest.approx(6 / 9, abs=1e-4)
     assert top["caught_before_irreversible_ci"] == pytest.approx([0.2993, 0.9251], abs=5e-4)
+    assert top["caught_before_by_event"] == {"breakage": [6, 6], "spill": [0, 3]}
     assert timing([None], [{**fail, "irreversible_s": None}])["caught_before_irreversible_ci"] is None
+    assert timing([1.5], [fail])["caught_before_by_event"] == {"unknown": [1, 1]}  # a dataset without kinds
     res = {
         "split": "test",
         "trajectories": 10,
         "calibration_successes": 40,
         "calibration": "val",
-        "rows": {"labeler on live state (ceiling)": {**top, "false_alarm_rate": 0.0}},
+        "rows": {
+            "robot signals (MLP)": {"0.05": {**got, "false_alarm_rate": 0.0}},
+            "labeler on live state (ceiling)": {**top, "false_alarm_rate": 0.0},
+        },
     }
-    line = [x for x in online_md(res) if x.startswith("| labeler")]
-    assert line and line[0].endswith("| 66.7 [29.9, 92.5] (of 9) |"), line
+    page = online_md(res)
+    line = [x for x in page if x.startswith("| labeler")]
+    assert line[0].endswith("| 66.7 [29.9, 92.5] (of 9) |"), line
+    assert page[page.index("| row | spill | breakage |") + 2 :] == [
+        "| robot signals (MLP) | 0 of 3 | 5 of 6 |",
+        "| labeler on live state (ceiling) | 0 of 3 | 6 of 6 |",
+    ]
 
 
 def test_mcnemar_and_the_difference_interval_on_known_tables():

@@ -207,11 +207,10 @@ def timing(fired_s: Sequence[float | None], trajs: Sequence[dict[str, Any]]) -> 
     fails = [(s, t) for s, t in zip(fired_s, trajs) if not t["success"]]
     lat = [s - t["onset_s"] for s, t in fails if s is not None and t.get("onset_s") is not None]
     grave = [(s, t) for s, t in fails if t["irreversible_s"] is not None]
-    early = sum(s is not None and s < t["irreversible_s"] for s, t in grave)
     return {
         "latency_s_median": round(float(np.median(lat)), 3) if lat else None,
         "latency_s_p90": round(float(np.percentile(lat, 90)), 3) if lat else None,
-        **_before_irreversible(early, len(grave)),
+        **_before_irreversible([(s is not None and s < t["irreversible_s"], t) for s, t in grave]),
     }
 
 
@@ -240,23 +239,31 @@ def ceiling(trajs: Sequence[dict[str, Any]]) -> dict[str, Any]:
     }
     if all("irreversible_s" in t for t in trajs):  # it sounds at the onset itself: before the event unless they meet
         grave = [t for t in trajs if not t["success"] and t["irreversible_s"] is not None]
-        early = sum(t.get("onset_s") is not None and t["onset_s"] < t["irreversible_s"] for t in grave)
-        out |= {"latency_s_median": 0.0, "latency_s_p90": 0.0, **_before_irreversible(early, len(grave))}
+        early = [(t.get("onset_s") is not None and t["onset_s"] < t["irreversible_s"], t) for t in grave]
+        out |= {"latency_s_median": 0.0, "latency_s_p90": 0.0, **_before_irreversible(early)}
     return out
 
 
-def _before_irreversible(early: int, grave: int) -> dict[str, Any]:
-    """The share of the `grave` failures (those with an irreversible event) whose alarm sounded before it, with its
-    exact (Clopper-Pearson) 95 % interval: a test split holds a handful of such events, and a share of 5 in 9 reads
-    the same as 50 in 90 without one. Each is the failure of its own pair (a success twin has no event), so the
-    failures are independent draws and a binomial interval needs no resampling by pair."""
+def _before_irreversible(caught: list[tuple[bool, dict[str, Any]]]) -> dict[str, Any]:
+    """Of the failures with an irreversible event (each with whether its alarm sounded before it): the share caught
+    before, with its exact (Clopper-Pearson) 95 % interval, and per kind of event (spill, fall, breakage, out of
+    reach: [caught, of]). A test split holds a handful of such events, and a share of 5 in 9 reads the same as 50 in
+    90 without an interval; each is the failure of its own pair (a success twin has no event), so the failures are
+    independent draws and a binomial interval needs no resampling by pair."""
     from scipy.stats import binomtest
 
-    ci = binomtest(early, grave).proportion_ci(0.95, method="exact") if grave else None
+    early, n = sum(c for c, _ in caught), len(caught)
+    ci = binomtest(early, n).proportion_ci(0.95, method="exact") if n else None
+    kinds: dict[str, list[int]] = {}
+    for c, t in caught:  # a dataset built before the event's kind was kept says "unknown"
+        tally = kinds.setdefault(str(t.get("irreversible_event") or "unknown"), [0, 0])
+        tally[0] += int(c)
+        tally[1] += 1
     return {
-        "irreversible_failures": grave,
-        "caught_before_irreversible": _share(early, grave),
+        "irreversible_failures": n,
+        "caught_before_irreversible": _share(early, n),
         "caught_before_irreversible_ci": None if ci is None else [round(ci.low, 4), round(ci.high, 4)],
+        "caught_before_by_event": dict(sorted(kinds.items())),
     }
 
 
@@ -300,6 +307,7 @@ def online_md(res: dict[str, Any]) -> list[str]:
                 f"{_num(r.get('latency_s_median'))} / {_num(r.get('latency_s_p90'))} | "
                 f"{_pct(r.get('caught_by_onset'))} | {grave} |"
             )
+    out += _by_event_md(res["rows"])
     left_out = _left_out(res["rows"])
     if left_out:  # a row whose monitor cannot fire reads like a weak one: say which
         out += [
@@ -307,6 +315,34 @@ def online_md(res: dict[str, Any]) -> list[str]:
             "Never fires (a level under 1 / (n + 1) of the n calibration successes: threshold +inf): " + left_out,
         ]
     return out
+
+
+EVENT_ORDER = ("spill", "fall", "breakage", "out_of_reach", "unknown")
+BY_EVENT_ALPHA = "0.05"  # the issue's targets are at alpha 0.05
+
+
+def _by_event_md(rows: dict[str, Any]) -> list[str]:
+    """Caught before the event, per kind of event, at alpha 0.05 and for the ceiling: the issue's target speaks of
+    spills and falls, and a failed pour's onset can be its spill itself (no alarm at the onset comes before it),
+    which the overall share hides under the breakages. [] for a JSON from before 7 Dec (no kinds)."""
+    at = {n: (per if n == LABELER else per.get(BY_EVENT_ALPHA, {})) for n, per in rows.items()}
+    at = {n: r["caught_before_by_event"] for n, r in at.items() if r.get("caught_before_by_event")}
+    if not at:
+        return []
+    rank = {k: i for i, k in enumerate(EVENT_ORDER)}
+    kinds = sorted({k for r in at.values() for k in r}, key=lambda k: (rank.get(k, len(rank)), k))
+    return [
+        "",
+        f"Caught before the irreversible event, by kind (caught of such failures), at alpha {BY_EVENT_ALPHA}:",
+        "",
+        "| row | " + " | ".join(k.replace("_", " ") for k in kinds) + " |",
+        "|---|" + "---|" * len(kinds),
+        *(f"| {n} | " + " | ".join(_of(r.get(k)) for k in kinds) + " |" for n, r in at.items()),
+    ]
+
+
+def _of(tally: list[int] | None) -> str:
+    return "-" if not tally else f"{tally[0]} of {tally[1]}"
 
 
 def _grave(r: dict[str, Any]) -> str:
