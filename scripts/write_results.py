@@ -268,8 +268,11 @@ def _still_carried(old: list[str], body: list[str]) -> list[str]:
     """The old Supervision section's provenance paragraph (it was carried whole from a replaced page) for a splice
     whose new section still carries some of it (recovery cells not re-run, the online model's table): without it
     the splice's "whose data are this page's" line would seem to claim those parts too. [] when nothing is carried
-    or the old section had no such paragraph."""
-    said = next((x for x in old if x.startswith((CARRIED_SECTION, STILL_CARRIED))), None)
+    or the old section had no such paragraph. It speaks of every carried part: a chain of splices that first
+    re-measures some of them on this page's data and then carries those would keep it over them too (the parts
+    carry no run of their own to tell apart)."""
+    own = _beside(old, SECTIONS["supervision"][0])[0]  # not a block a whole-page rewrite put under it
+    said = next((x for x in own if x.startswith((CARRIED_SECTION, STILL_CARRIED))), None)
     if said is None or not any(CARRIED_ROWS in x or "as the page had it" in x for x in body):
         return []
     return [STILL_CARRIED + said.removeprefix(CARRIED_SECTION).removeprefix(STILL_CARRIED), ""]
@@ -438,15 +441,15 @@ ONLINE_GUARANTEE = (
     "object set (val_both below is one), and no detection rate or latency: those are measured. Latency is from "
     "the failure's onset in simulator state (negative: the alarm came first); an irreversible event is a spill, "
     "a fall, glassware moving fast enough to break or, in data generated from 1 Dec, an object pushed out of the "
-    "arm's reach. The last column's interval is exact (Clopper-Pearson, 95 %), and its ceiling is the labeler's "
-    "row: an alarm at the onset itself comes before the event only where the failure began before it, so no "
-    "monitor that waits for the failure to begin beats that row. A row pairing the model with a robot-signal MLP "
-    "alarms when either does, on the same successes, "
-    "the model set at its share of alpha (a half unless the row names another, a share chosen on validation) and "
-    "the MLP at the rest: the pair keeps the same bound (a union bound). A share whose level is under 1 / (n + 1) "
-    "of the n calibration successes leaves the model out (its threshold is +inf): under 199 successes, the 0.1 "
-    'share at alpha 0.05 and 0.01 is the MLP alone. "bound p" is the chance of '
-    "at least that many false alarms if the guarantee holds (beta-binomial over the calibration draw and the "
+    "arm's reach. Where the last column gives an interval it is exact (Clopper-Pearson, 95 %, given the "
+    "calibrated threshold), and for an alarm at or after the onset its ceiling is the labeler's row: an alarm at "
+    "the onset itself comes before the event only where the failure began before it. A row pairing the model "
+    "with a robot-signal MLP alarms when either does, on the same successes, the model set at its share of alpha "
+    "(a half unless the row names another, a share chosen on validation) and the MLP at the rest: the pair keeps "
+    "the same bound (a union bound). A share whose level is under 1 / (n + 1) of the n calibration successes leaves "
+    "the model out (its threshold is +inf): under 199 successes, the 0.1 share at alpha 0.05 and 0.01 is the MLP "
+    'alone. "bound p" is the chance of at least that many false alarms if the guarantee holds (beta-binomial '
+    "over the calibration draw and the "
     "scored successes; for the pair, a union bound on it): a rate above alpha with a large p is what the bound "
     "allows; under 0.05 (a test per row: among a table's rows one may fall there by chance) it says the scored "
     "successes are not exchangeable with the calibration ones."

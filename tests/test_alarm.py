@@ -172,19 +172,22 @@ def test_the_share_caught_before_an_irreversible_event_carries_its_exact_interva
     assert top["caught_before_by_event"] == {"breakage": [6, 6], "spill": [0, 3]}
     assert timing([None], [{**fail, "irreversible_s": None}])["caught_before_irreversible_ci"] is None
     assert timing([1.5], [fail])["caught_before_by_event"] == {"unknown": [1, 1]}  # a dataset without kinds
+    frames_at = {"latency_frames_median": 0, "latency_frames_p90": 1, "caught_by_onset": 0.0}
     res = {
         "split": "test",
         "trajectories": 10,
         "calibration_successes": 40,
         "calibration": "val",
         "rows": {
-            "robot signals (MLP)": {"0.05": {**got, "false_alarm_rate": 0.0}},
+            "robot signals (MLP)": {"0.05": {**got, "false_alarm_rate": 0.0, "detection_rate": 1.0, **frames_at}},
             "labeler on live state (ceiling)": {**top, "false_alarm_rate": 0.0},
         },
     }
     page = online_md(res)
     line = [x for x in page if x.startswith("| labeler")]
     assert line[0].endswith("| 66.7 [29.9, 92.5] (of 9) |"), line
+    line = [x for x in page if x.startswith("| robot signals (MLP) | 0.05 |")]
+    assert line and line[0].endswith("| 55.6 [21.2, 86.3] (of 9) |"), line
     assert page[page.index("| row | spill | breakage |") + 2 :] == [
         "| robot signals (MLP) | 0 of 3 | 5 of 6 |",
         "| labeler on live state (ceiling) | 0 of 3 | 6 of 6 |",

@@ -518,6 +518,10 @@ def test_an_online_bench_alone_replaces_the_pages_and_carries_the_rest(tmp_path:
     said = [x for x in section.splitlines() if "the old line" in x]
     assert said == [STILL_CARRIED + " That page's data and tower: the old line."]
     assert _still_carried(old, ["| pick | scripted | 6/25 | 24/25 |"]) == []  # all re-measured: nothing older left
+    carried = ["(rows carried from the page, not re-run)"]
+    assert _still_carried(["## Supervision", "", "| row |"], carried) == []  # the section was the page's own
+    nested = ["## Supervision", "", "| row |", "", "### Supervision: the page this one replaced", "", old[2]]
+    assert _still_carried(nested, carried) == []  # a block a whole-page rewrite kept under it speaks for itself
     text = page.read_text()
     assert main([f"run={run}", f"out={page}", "sections=[supervision]"]) == 0 and page.read_text() == text
 

@@ -249,7 +249,8 @@ def _before_irreversible(caught: list[tuple[bool, dict[str, Any]]]) -> dict[str,
     before, with its exact (Clopper-Pearson) 95 % interval, and per kind of event (spill, fall, breakage, out of
     reach: [caught, of]). A test split holds a handful of such events, and a share of 5 in 9 reads the same as 50 in
     90 without an interval; each is the failure of its own pair (a success twin has no event), so the failures are
-    independent draws and a binomial interval needs no resampling by pair."""
+    independent draws and a binomial interval needs no resampling by pair. The interval is given the calibrated
+    threshold: it leaves out the calibration draw's own variation."""
     from scipy.stats import binomtest
 
     early, n = sum(c for c, _ in caught), len(caught)
