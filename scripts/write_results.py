@@ -258,6 +258,7 @@ def splice(run: Path, out: Path, names: list[str]) -> int:
     return 0
 
 
+AS_THE_PAGE_HAD_IT = "as the page had it (this run has none)"  # a stand-in's lead (_still_carried looks for it)
 STILL_CARRIED = (
     "The parts of this section marked as the page had them or carried from the page are older: made on another "
     "run, whose data line, tower and models are those their own lines name, not this page's."
@@ -273,7 +274,7 @@ def _still_carried(old: list[str], body: list[str]) -> list[str]:
     carry no run of their own to tell apart)."""
     own = _beside(old, SECTIONS["supervision"][0])[0]  # not a block a whole-page rewrite put under it
     said = next((x for x in own if x.startswith((CARRIED_SECTION, STILL_CARRIED))), None)
-    if said is None or not any(CARRIED_ROWS in x or "as the page had it" in x for x in body):
+    if said is None or not any(CARRIED_ROWS in x or AS_THE_PAGE_HAD_IT in x for x in body):
         return []
     return [STILL_CARRIED + said.removeprefix(CARRIED_SECTION).removeprefix(STILL_CARRIED), ""]
 
@@ -449,10 +450,9 @@ ONLINE_GUARANTEE = (
     "the same bound (a union bound). A share whose level is under 1 / (n + 1) of the n calibration successes leaves "
     "the model out (its threshold is +inf): under 199 successes, the 0.1 share at alpha 0.05 and 0.01 is the MLP "
     'alone. "bound p" is the chance of at least that many false alarms if the guarantee holds (beta-binomial '
-    "over the calibration draw and the "
-    "scored successes; for the pair, a union bound on it): a rate above alpha with a large p is what the bound "
-    "allows; under 0.05 (a test per row: among a table's rows one may fall there by chance) it says the scored "
-    "successes are not exchangeable with the calibration ones."
+    "over the calibration draw and the scored successes; for the pair, a union bound on it): a rate above alpha "
+    "with a large p is what the bound allows; under 0.05 (a test per row: among a table's rows one may fall there "
+    "by chance) it says the scored successes are not exchangeable with the calibration ones."
 )
 
 
@@ -483,7 +483,7 @@ def supervision(run: Path, page: list[str] | None = None) -> list[str]:
     ev = run_evals(run / "online", ("test", "prefix", "val_both"))
     titles = {"test": "seen, whole", "prefix": "seen, prefix (first k keyframes)", "val_both": "val both, whole"}
     if not ev and online_stand_in:
-        lines += ["The online model as the page had it (this run has none):", "", *online_stand_in, ""]
+        lines += [f"The online model {AS_THE_PAGE_HAD_IT}:", "", *online_stand_in, ""]
     if ev:
         lines += [
             "| grids | Q2 | majority Q2 | AUROC | Q3 (failures) | Q5 (failures) |",
@@ -498,7 +498,7 @@ def supervision(run: Path, page: list[str] | None = None) -> list[str]:
     benches = online_benches(run)
     if not benches and page:
         benches = _page_online_benches(page)
-        benches = ["The online bench as the page had it (this run has none):", "", *benches] if benches else []
+        benches = [f"The online bench {AS_THE_PAGE_HAD_IT}:", "", *benches] if benches else []
     lines += benches
     lines += recovery_md([json.loads(f.read_text()) for f in recovery_files(run)], page_recovery(page or []))
     return lines
