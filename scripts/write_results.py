@@ -180,15 +180,33 @@ def _sections(page: str) -> list[list[str]]:
 MADE_ON = "Made on `{}`, whose data are this page's."  # a spliced section's run (_made_elsewhere reads it back)
 
 
+def relabelled(run: Path) -> list[str]:
+    """A line for a run whose shards scripts/relabel_shards.py re-derived (their manifests' `relabelled` entries):
+    the same episodes as the run it read, some labels moved by a later labeler; [] for a generated run."""
+    entries = [m["relabelled"] for f in sorted(run.glob("shards/*/manifest.json")) if "relabelled" in (m := _load(f))]
+    if not entries:
+        return []
+    changed: dict[str, int] = {}
+    for e in entries:
+        for k, n in e["changed"].items():
+            changed[k] = changed.get(k, 0) + n
+    source = sorted({str(Path(e["from"]).parent) for e in entries})
+    cols = ", ".join(f"{k} {n}" for k, n in sorted(changed.items())) or "none"
+    return [
+        f"Its shards are `{'`, `'.join(source)}`'s episodes with every label re-derived from their traces by "
+        f"`scripts/relabel_shards.py` with a later labeler; episodes changed per label column: {cols}."
+    ]
+
+
 def _section(name: str, body: list[str], made_on: Path | None = None) -> list[str]:
     """A section of SECTIONS as the page prints it: heading, opening sentence (and the run a splice took it
-    from), the table."""
+    from, with its relabelling), the table."""
     heading, intro, _ = SECTIONS[name]
     return [
         heading,
         "",
         intro,
-        *([MADE_ON.format(made_on)] if made_on else []),
+        *([MADE_ON.format(made_on), *relabelled(made_on)] if made_on else []),
         "",
         *body,
         "",

@@ -289,22 +289,27 @@ def detect_insert(trace: Trace, meta: Meta) -> Optional[Event]:
     return None
 
 
-def pour_alignment(trace: Trace, meta: Meta, source: str, into: str) -> Optional[tuple[int, float]]:
+def pour_alignment(
+    trace: Trace, meta: Meta, source: str, into: str, before: Optional[int] = None
+) -> Optional[tuple[int, float]]:
     """Where a pour from `source` into `into` went astray before any liquid moved: the end of the pour's first
     keyframe (the hand brought over the destination, before the tilt) and how far the hand then stood from its
     planned place relative to the destination (m), when that is more than the destination's radius: the mouth,
-    once tilted, no longer comes over the opening. None for a pour aligned as planned or never aligned.
+    once tilted, no longer comes over the opening. None for a pour aligned as planned or never aligned. A pour run
+    again (after a correction) is judged by its own alignment: the latest one before sample `before` (None: any).
 
     A liquid detector dates its failure from here rather than from the first drop astray: the positioning (or the
     wrong vessel) is in the recorded state when the alignment ends, and a grid's frame of that keyframe shows the
-    vessel held beside its target, about two seconds before the liquid leaves (the 7 Dec recipe's train and val
+    vessel held beside its target, about three seconds before the liquid leaves (the 7 Dec recipe's train and val
     splits: 409 successful pours 0.002-0.004 m; 50 of 53 spills and all 12 pours into another vessel 0.06-0.25 m).
     The threshold is the opening's own size, not fitted to those figures."""
     st = next((s for s in meta["steps"] if s["action"] == "pour" and s["object"] == source and s["dest"] == into), None)
     ends = _kf_samples(trace, meta, {st["keyframes"][0]}) if st else []
+    # the latest alignment before `before`: a pour run again after a correction is judged by its own alignment
+    ends = [j for j in ends if before is None or j < before]
     if not ends:
         return None
-    j = ends[0]
+    j = ends[-1]
     planned = np.asarray(_nominal(meta, st["keyframes"][0])["pos"][:2]) - np.asarray(meta["objects"][into]["home"][:2])
     held = np.asarray(trace["ee_pos"][j][:2]) - np.asarray(trace[f"{into}.pos"][j][:2])
     miss = float(np.linalg.norm(held - planned))
@@ -332,7 +337,7 @@ def _astray(trace: Trace, meta: Meta, g: dict, j: int, why: str) -> tuple[int, s
     """A liquid failure found at sample j, dated from its pour's alignment when that went astray (pour_alignment),
     if it is the first of the pour's liquid going astray (spilled, or into another vessel): the later one keeps its
     sample, so the two detectors stay in the order the liquid showed them."""
-    off = pour_alignment(trace, meta, g["source"], g["into"])
+    off = pour_alignment(trace, meta, g["source"], g["into"], before=j)
     firsts = [x for x in ((_wrong_vessel(trace, g) or (None,))[0], _first_spill(trace)) if x is not None]
     if off is None or off[0] >= j or j > min(firsts, default=j):
         return j, why

@@ -16,16 +16,21 @@ import pytest
 
 from sim_backends.labeler import SPILL_PARTICLES, derive_labels, irreversible_sample, pour_alignment
 from sim_backends.schema import meta_dict
-from tests.test_detectors import S1, TARGET, _case, _simulate
+from tests.test_detectors import S0, S1, TARGET, _case, _simulate
 
 RADIUS = 0.03  # the destination vessel's
 
 
-def _pour(off: float = 0.0, spill_at: str | None = "s1_lower", into_other_at: str | None = None) -> tuple[dict, dict]:
+def _pour(
+    off: float = 0.0, spill_at: str | None = "s1_lower", into_other_at: str | None = None, again: bool = False
+) -> tuple[dict, dict]:
     """A pour of `obj` into `dest`: aligned `off` m beside the plan (in y) at the end of s1_carry; liquid leaves
     every vessel three samples before `spill_at` ends and enters a bystander three samples before `into_other_at`
-    ends (None: never)."""
+    ends (None: never; both at their first occurrence). `again`: the pour's keyframes run a second time (a
+    correction's retry), the second alignment on plan."""
     _, meta_obj = _case("protocol_violation")
+    if again:  # carry and lower, then the whole pour step once more
+        meta_obj.executed = [*S0, *S1[:2], *S1]
     tr = _simulate(meta_obj, shift={"s1_carry": (0, off, 0)}, spill_into="bystander")
     meta = meta_dict(meta_obj)
     meta["steps"][1] = {"index": 1, "action": "pour", "object": "obj", "dest": "dest", "keyframes": list(S1)}
@@ -40,6 +45,10 @@ def _pour(off: float = 0.0, spill_at: str | None = "s1_lower", into_other_at: st
 
     tr["liquid.outside"] = rising(spill_at, SPILL_PARTICLES + 1)
     tr["liquid.bystander"] = rising(into_other_at, 3)
+    if again:  # the retry aligns as planned: over where dest stands from then on (the first pour missed it)
+        second = tr["kf_end"][len(S0) + 2]
+        here = [*tr["ee_pos"][second][:2], 0.0]
+        tr["dest.pos"] = tr["dest.pos"][:second] + [here] * (n - second)
     return tr, meta
 
 
@@ -78,6 +87,22 @@ def test_the_first_liquid_astray_is_the_one_dated_from_the_alignment():
     lab = derive_labels(tr, meta)
     assert lab.failure_type == "protocol_violation" and "entered bystander" in lab.evidence
     assert lab.failure_keyframe == meta["executed"].index("s1_carry")
+
+
+def test_a_pour_run_again_is_judged_by_its_own_alignment():
+    """A misaligned pour retried on plan: a spill in the retry is the retry's (its own sample, so a supervisor that
+    acted after the first alignment still sees it); the first alignment is found only before the second."""
+    tr, meta = _pour(off=0.1, spill_at=None, again=True)
+    second = tr["kf_end"][len(S0) + 2]
+    n = len(tr["t"])
+    tr["liquid.outside"] = [0 if k < second + 5 else SPILL_PARTICLES + 1 for k in range(n)]
+    lab = derive_labels(tr, meta)
+    assert lab.failure_type == "target_positioning_deviation" and "aligned" not in lab.evidence
+    assert lab.onset_s == pytest.approx(tr["t"][second + 5] - tr["t"][0])
+    assert pour_alignment(tr, meta, "obj", "dest") is None  # the latest alignment is on plan
+    first = _aligned_at(meta, tr)
+    assert pour_alignment(tr, meta, "obj", "dest", before=second)[0] == first
+    assert pour_alignment(tr, meta, "obj", "dest", before=first) is None
 
 
 def test_a_pour_that_delivers_is_a_success_however_it_was_aligned():
@@ -140,3 +165,19 @@ def test_relabel_shards_rewrites_the_labels_from_the_trace_into_a_new_folder(tmp
     assert not (tmp_path / "other" / "shard-00000.parquet").exists()
     with pytest.raises(ValueError, match="out: .* is the folder read"):
         relabel_shards.main([f"shards={src}", f"out={src}"])
+
+
+def test_a_section_made_on_relabelled_shards_says_so(tmp_path: Path):
+    """write_results' spliced section names the run it came from; a relabelled run's line also says whose episodes
+    its shards hold and how many labels moved, summed over its variants; a generated run's says nothing more."""
+    from scripts.write_results import relabelled
+
+    for variant, n in (("seen", 3), ("val_both", 1)):
+        (tmp_path / "shards" / variant).mkdir(parents=True)
+        entry = {"from": f"outputs/r7dec/shards/{variant}", "changed": {"onset_s": n, "evidence": n}}
+        (tmp_path / "shards" / variant / "manifest.json").write_text(json.dumps({"relabelled": entry}))
+    (line,) = relabelled(tmp_path)
+    assert "`outputs/r7dec/shards`'s episodes" in line and "evidence 4, onset_s 4" in line
+    (tmp_path / "gen" / "shards" / "seen").mkdir(parents=True)
+    (tmp_path / "gen" / "shards" / "seen" / "manifest.json").write_text("{}")
+    assert relabelled(tmp_path / "gen") == []
