@@ -8,10 +8,12 @@ Run as:
 `shards` is a folder of variant folders (each with run.json, manifest.json and shard-*.parquet, as
 labrobfail-generate writes them) or one variant folder. Each shard is rewritten whole, atomically, with the label
 columns (success, failure type, category, severity, failure keyframe, onset, evidence) re-derived; every other column
-is copied. A shard already in `out` is kept, so a stopped run goes on. Each variant's manifest gets its label counts
-recounted and a `relabelled` entry: where from, and how many episodes changed in each label column; the summary is
-also written to out/relabel.json. An episode whose outcome would change, or that no detector would explain any more,
-stops the run: its pair was drawn (and redrawn) on its old outcome, so it needs a new generation, not a relabel.
+is copied. Every label is derived before anything is written (a refusal leaves `out` as it was), and every shard is
+rewritten on each run (seconds to a minute: a rerun after a labeler fix is never stale). Each variant's manifest gets
+its label counts recounted and a `relabelled` entry: where from, and how many episodes changed in each label
+column; the summary is also written to out/relabel.json. An episode whose outcome would change, or that no detector
+would explain any more, stops the run: its pair was drawn (and redrawn) on its old outcome, so it needs a new
+generation, not a relabel.
 """
 
 from __future__ import annotations
@@ -43,8 +45,13 @@ COUNTED_FROM = ("pair_id", "actions", "horizon", "scenario", "perturbation")  # 
 
 
 def relabel_row(row: dict[str, Any]) -> dict[str, Any]:
-    """The row with its label columns re-derived from its trace and task metadata."""
-    lab = derive_labels(json.loads(row["state_trace"]), json.loads(row["task_meta"]))
+    """The row's label columns re-derived from its trace and task metadata."""
+    try:
+        lab = derive_labels(json.loads(row["state_trace"]), json.loads(row["task_meta"]))
+    except (KeyError, IndexError, TypeError, ValueError) as e:
+        raise ConfigError(
+            f"episode {row['episode_id']}: cannot re-derive its labels ({type(e).__name__}: {e})"
+        ) from None
     if lab.success != row["success"]:
         raise ConfigError(
             f"episode {row['episode_id']}: the labeler now says {'success' if lab.success else 'failure'} "
@@ -52,34 +59,53 @@ def relabel_row(row: dict[str, Any]) -> dict[str, Any]:
         )
     if not lab.success and lab.failure_type is None:
         raise ConfigError(f"episode {row['episode_id']}: no detector explains its failure any more ({lab.evidence})")
-    return row | {k: getattr(lab, k) for k in LABELS}
+    return {k: getattr(lab, k) for k in LABELS}
 
 
-def relabel_variant(src: Path, dst: Path, progress: bool) -> dict[str, int]:
-    """One variant folder: its shards relabelled into dst, its manifest recounted; per label column, how many
-    episodes changed."""
+def _shards(src: Path) -> list[Path]:
+    """The variant's shards, each checked to hold the generator's columns (a rewrite keeps no other)."""
+    if not (src / "manifest.json").is_file():
+        raise ConfigError(f"shards: {src} has no manifest.json (not a variant folder labrobfail-generate finished)")
+    files = sorted(src.glob("shard-*.parquet"))
+    for f in files:
+        odd = sorted(set(pq.ParquetFile(f).schema_arrow.names) ^ set(SCHEMA.names))
+        if odd:
+            raise ConfigError(f"shards: {f} differs from the shard schema in columns {odd}")
+    return files
+
+
+def derive_variant(src: Path, progress: bool) -> list[list[dict[str, Any]]]:
+    """Per shard of a variant folder, each row's new label columns; nothing is written (a refusal leaves no output)."""
+    cols = ["episode_id", "success", "state_trace", "task_meta"]
+    return [
+        [relabel_row(r) for r in pq.read_table(f, columns=cols).to_pylist()]
+        for f in tqdm(_shards(src), desc=src.name, disable=not progress)
+    ]
+
+
+def write_variant(src: Path, dst: Path, labels: list[list[dict[str, Any]]]) -> dict[str, int]:
+    """The variant's shards written to dst with their new labels (each whole, atomically; every shard rewritten, so
+    a rerun after a labeler fix is never stale), its other files copied and its manifest recounted; per label
+    column, how many episodes changed."""
     dst.mkdir(parents=True, exist_ok=True)
     changed: Counter[str] = Counter()
-    rows_all: list[dict[str, Any]] = []
-    files = sorted(src.glob("shard-*.parquet"))
-    for f in tqdm(files, desc=src.name, disable=not progress):
-        old = pq.read_table(f).to_pylist()
-        out = dst / f.name
-        new = pq.read_table(out).to_pylist() if out.exists() else [relabel_row(r) for r in old]
-        for a, b in zip(old, new):
-            changed.update(k for k in LABELS if a[k] != b[k])
-        if not out.exists():
-            write_shard(out, new, SCHEMA)
-        rows_all.extend({k: r[k] for k in (*LABELS, *COUNTED_FROM)} for r in new)
-    for extra in sorted(src.iterdir()):  # run.json, rejects; the manifest is rewritten below
-        if extra.is_file() and extra.suffix != ".parquet" and extra.name != "manifest.json":
+    counted: list[dict[str, Any]] = []
+    for f, new in zip(_shards(src), labels, strict=True):
+        rows = pq.read_table(f).to_pylist()
+        for r, lab in zip(rows, new, strict=True):
+            changed.update(k for k in LABELS if r[k] != lab[k])
+            r.update(lab)
+        write_shard(dst / f.name, rows, SCHEMA)
+        counted.extend({k: r[k] for k in (*LABELS, *COUNTED_FROM)} for r in rows)
+    for extra in sorted(src.iterdir()):  # run.json, rejects; not the manifest (below) nor a killed write's *.tmp
+        if extra.is_file() and extra.suffix not in (".parquet", ".tmp") and extra.name != "manifest.json":
             shutil.copy2(extra, dst / extra.name)
     meta = json.loads((src / "manifest.json").read_text())
-    fresh = manifest(rows_all, {})
+    fresh = manifest(counted, {})
     meta |= {k: fresh[k] for k in COUNTED}
     meta["relabelled"] = {"from": str(src), "changed": dict(sorted(changed.items()))}
     atomic_write_json(dst / "manifest.json", meta)
-    return dict(sorted(changed.items())) | {"episodes": len(rows_all)}
+    return dict(sorted(changed.items())) | {"episodes": len(counted)}
 
 
 def main(argv: list[str]) -> int:
@@ -95,7 +121,8 @@ def main(argv: list[str]) -> int:
     variants = [src] if (src / "run.json").exists() else sorted(p for p in src.iterdir() if (p / "run.json").exists())
     if not variants:
         raise ConfigError(f"shards: {src} holds no variant folder (run.json)")
-    summary = {v.name: relabel_variant(v, out if v == src else out / v.name, bool(cfg.progress)) for v in variants}
+    labels = {v: derive_variant(v, bool(cfg.progress)) for v in variants}  # every refusal before any write
+    summary = {v.name: write_variant(v, out if v == src else out / v.name, labels[v]) for v in variants}
     atomic_write_json(out / "relabel.json", summary)
     print(json.dumps(summary, indent=1))
     return 0

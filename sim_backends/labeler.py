@@ -293,16 +293,16 @@ def pour_alignment(
     trace: Trace, meta: Meta, source: str, into: str, before: Optional[int] = None
 ) -> Optional[tuple[int, float]]:
     """Where a pour from `source` into `into` went astray before any liquid moved: the end of the pour's first
-    keyframe (the hand brought over the destination, before the tilt) and how far the hand then stood from its
-    planned place relative to the destination (m), when that is more than the destination's radius: the mouth,
+    keyframe (the hand brought beside the destination to pour, before the tilt) and how far the hand then stood from
+    its planned place relative to the destination (m), when that is more than the destination's radius: the mouth,
     once tilted, no longer comes over the opening. None for a pour aligned as planned or never aligned. A pour run
     again (after a correction) is judged by its own alignment: the latest one before sample `before` (None: any).
 
-    A liquid detector dates its failure from here rather than from the first drop astray: the positioning (or the
-    wrong vessel) is in the recorded state when the alignment ends, and a grid's frame of that keyframe shows the
-    vessel held beside its target, about three seconds before the liquid leaves (the 7 Dec recipe's train and val
-    splits: 409 successful pours 0.002-0.004 m; 50 of 53 spills and all 12 pours into another vessel 0.06-0.25 m).
-    The threshold is the opening's own size, not fitted to those figures."""
+    A liquid failure that wins the detectors' race is dated from here rather than from the first drop astray
+    (`poured_astray`): the positioning (or the wrong vessel) is in the recorded state when the alignment ends, and a
+    grid's frame of that keyframe shows the vessel held beside its target, about three seconds before the liquid
+    leaves (the 7 Dec recipe's train and val splits: 409 successful pours 0.002-0.004 m; 50 of 53 spills and all 12
+    pours into another vessel 0.06-0.25 m). The threshold is the opening's own size, not fitted to those figures."""
     st = next((s for s in meta["steps"] if s["action"] == "pour" and s["object"] == source and s["dest"] == into), None)
     ends = _kf_samples(trace, meta, {st["keyframes"][0]}) if st else []
     # the latest alignment before `before`: a pour run again after a correction is judged by its own alignment
@@ -316,40 +316,30 @@ def pour_alignment(
     return (j, miss) if miss > float(meta["objects"][into]["dims"]["radius"]) else None
 
 
-def _wrong_vessel(trace: Trace, g: dict) -> Optional[tuple[int, str]]:
-    """The first sample at which liquid of goal g's source entered a vessel other than its destination, and which."""
-    for col in [c for c in trace if c.startswith("liquid.")]:
-        v = col.split(".", 1)[1]
-        if v in (g["into"], g["source"], "outside"):
-            continue
-        j = next((j for j, n in enumerate(trace[col]) if n >= trace[col][0] + 2), None)
-        if j is not None:
-            return j, v
-    return None
-
-
-def _first_spill(trace: Trace) -> Optional[int]:
-    col = trace.get("liquid.outside")
-    return next((j for j in range(len(col)) if col[j] - col[0] >= SPILL_PARTICLES), None) if col else None
-
-
-def _astray(trace: Trace, meta: Meta, g: dict, j: int, why: str) -> tuple[int, str]:
-    """A liquid failure found at sample j, dated from its pour's alignment when that went astray (pour_alignment),
-    if it is the first of the pour's liquid going astray (spilled, or into another vessel): the later one keeps its
-    sample, so the two detectors stay in the order the liquid showed them."""
-    off = pour_alignment(trace, meta, g["source"], g["into"], before=j)
-    firsts = [x for x in ((_wrong_vessel(trace, g) or (None,))[0], _first_spill(trace)) if x is not None]
-    if off is None or off[0] >= j or j > min(firsts, default=j):
-        return j, why
-    return off[0], f"{g['source']} was aligned {off[1]:.3f} m off its pour over {g['into']}, then {why}"
+def poured_astray(trace: Trace, meta: Meta, j: int, why: str) -> tuple[int, str]:
+    """The onset of a liquid failure (a spill, or liquid into another vessel) first found at sample j: the end of its
+    pour's alignment when that alignment went astray (pour_alignment, the latest before j), else j. derive_labels
+    applies it to the winning event only, after the detectors raced on their own samples, so a redated failure never
+    takes the place of another detector's earlier one (no type changes) and the live supervisor (oracle.py), which
+    runs the detectors themselves, still sees the liquid when it leaves."""
+    for g in [g for g in meta["goals"] if g["kind"] == "liquid"]:
+        off = pour_alignment(trace, meta, g["source"], g["into"], before=j)
+        if off is not None:
+            return off[0], f"{g['source']} was aligned {off[1]:.3f} m off its pour over {g['into']}, then {why}"
+    return j, why
 
 
 def detect_liquid(trace: Trace, meta: Meta) -> Optional[Event]:
-    for g in [g for g in meta["goals"] if g["kind"] == "liquid"]:
-        hit = _wrong_vessel(trace, g)
-        if hit is not None:
-            k, why = _astray(trace, meta, g, hit[0], f"liquid from {g['source']} entered {hit[1]}, not {g['into']}")
-            return k, "protocol_violation", why
+    goals = [g for g in meta["goals"] if g["kind"] == "liquid"]
+    for g in goals:
+        for col in [c for c in trace if c.startswith("liquid.")]:
+            v = col.split(".", 1)[1]
+            if v in (g["into"], g["source"], "outside"):
+                continue
+            base = trace[col][0]
+            for j, n in enumerate(trace[col]):
+                if n >= base + 2:
+                    return j, "protocol_violation", f"liquid from {g['source']} entered {v}, not {g['into']}"
     return None
 
 
@@ -362,12 +352,14 @@ def spilled(trace: Trace, j: int = -1) -> int:
 def detect_spill(trace: Trace, meta: Meta) -> Optional[Event]:
     """Liquid ended up outside every vessel (poured beside the target, or flung out) and too little of it
     reached the destination. A pour that delivers enough despite a few drops outside did not fail there."""
-    bad = failed_goals(trace, meta)
-    goal = next((g for g in meta["goals"] if g["kind"] == "liquid" and g in bad), None)
-    if goal is None or (j := _first_spill(trace)) is None:
+    col = trace.get("liquid.outside")
+    goals = [g for g in meta["goals"] if g["kind"] == "liquid"]
+    if not col or not goals or not any(g in failed_goals(trace, meta) for g in goals):
         return None
-    k, why = _astray(trace, meta, goal, j, f"{spilled(trace)} liquid particles landed outside every vessel (spill)")
-    return k, "target_positioning_deviation", why
+    j = next((j for j in range(len(col)) if col[j] - col[0] >= SPILL_PARTICLES), None)
+    if j is None:
+        return None
+    return j, "target_positioning_deviation", f"{spilled(trace)} liquid particles landed outside every vessel (spill)"
 
 
 def detect_stir(trace: Trace, meta: Meta) -> Optional[Event]:
@@ -508,7 +500,9 @@ def derive_labels(trace: Trace, meta: Union[TaskMeta, Meta]) -> Labels:
     failed = ", ".join([g["kind"] for g in bad] + [f"{m} broken" for m in shattered])
     if not events:  # never guessed: the episode is left out of the dataset and counted
         return Labels(success=False, evidence=f"unexplained: no detector fired; failed goals: {failed}")
-    (j, ftype, why), _ = min(events, key=lambda er: (er[0][0], er[1]))
+    (j, ftype, why), rank = min(events, key=lambda er: (er[0][0], er[1]))
+    if DETECTORS[rank] in (detect_liquid, detect_spill):
+        j, why = poured_astray(trace, meta, j, why)
     kf = next((i for i, e in enumerate(trace["kf_end"]) if e >= j), len(trace["kf_end"]) - 1)
     return Labels(
         success=False,

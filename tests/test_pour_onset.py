@@ -89,6 +89,35 @@ def test_the_first_liquid_astray_is_the_one_dated_from_the_alignment():
     assert lab.failure_keyframe == meta["executed"].index("s1_carry")
 
 
+def test_a_redated_liquid_failure_never_takes_an_earlier_event_of_another_detector(monkeypatch):
+    """The detectors race on their own samples; only the winner is redated. A failure another detector finds between
+    the alignment and the spill stays the label (its type, its sample), however astray the pour was aligned."""
+    from sim_backends import labeler
+
+    tr, meta = _pour(off=0.1)
+    between = _aligned_at(meta, tr) + 2
+
+    def twisted(trace: dict, meta: dict):
+        return between, "pose_control_error", "twisted while lowering"
+
+    monkeypatch.setattr(labeler, "DETECTORS", [*labeler.DETECTORS, twisted])
+    lab = derive_labels(tr, meta)
+    assert lab.failure_type == "pose_control_error" and lab.onset_s == pytest.approx(tr["t"][between] - tr["t"][0])
+
+
+def test_the_live_supervisor_still_sees_the_spill_after_acting_past_the_alignment():
+    """oracle.live_failure runs the detectors on the trace so far and keeps events after its last intervention: a
+    spill found at its own sample, not at the alignment it is labelled from, so acting between the two hides
+    nothing."""
+    from sim_backends.schema import TaskMeta
+    from sim_backends.supervision.oracle import live_failure
+
+    tr, meta = _pour(off=0.1)
+    ev = live_failure(tr, TaskMeta.from_dict(meta), after_sample=_aligned_at(meta, tr) + 1)
+    assert ev is not None and ev[1] == "target_positioning_deviation" and "spill" in ev[2]
+    assert ev[0] == tr["kf_end"][meta["executed"].index("s1_lower")] - 3
+
+
 def test_a_pour_run_again_is_judged_by_its_own_alignment():
     """A misaligned pour retried on plan: a spill in the retry is the retry's (its own sample, so a supervisor that
     acted after the first alignment still sees it); the first alignment is found only before the second."""
