@@ -11,7 +11,8 @@ as in a real robot log. Decision, in order:
 2. otherwise each detector scans the trace for its state signature and
    reports the sample where it first shows; the earliest wins (ties broken by
    the order below), giving the failure type and its onset: the first failure keyframe (the keyframe that
-   sample falls in) and the sample's sim time (`Labels.onset_s`);
+   sample falls in) and the sample's sim time (`Labels.onset_s`); a winning liquid failure is dated from its
+   pour's alignment when that went astray (`poured_astray`);
 3. severity from the trace and final state (the rule table in `severity` and docs/ARCHITECTURE.md).
 
 A failure no detector explains gets no type (`Labels.explained` is False): it is never given a
