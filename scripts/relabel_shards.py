@@ -68,29 +68,36 @@ def _shards(src: Path) -> list[Path]:
         raise ConfigError(f"shards: {src} has no manifest.json (not a variant folder labrobfail-generate finished)")
     files = sorted(src.glob("shard-*.parquet"))
     for f in files:
-        odd = sorted(set(pq.ParquetFile(f).schema_arrow.names) ^ set(SCHEMA.names))
+        try:
+            names = pq.ParquetFile(f).schema_arrow.names
+        except Exception as e:  # pyarrow raises several types for a corrupt file
+            raise ConfigError(f"shards: cannot read {f} ({type(e).__name__}: {str(e).splitlines()[0]})") from None
+        odd = sorted(set(names) ^ set(SCHEMA.names))
         if odd:
             raise ConfigError(f"shards: {f} differs from the shard schema in columns {odd}")
     return files
 
 
-def derive_variant(src: Path, progress: bool) -> list[list[dict[str, Any]]]:
+Relabelled = list[tuple[Path, list[dict[str, Any]]]]  # per shard file, each row's new label columns
+
+
+def derive_variant(src: Path, progress: bool) -> Relabelled:
     """Per shard of a variant folder, each row's new label columns; nothing is written (a refusal leaves no output)."""
     cols = ["episode_id", "success", "state_trace", "task_meta"]
     return [
-        [relabel_row(r) for r in pq.read_table(f, columns=cols).to_pylist()]
+        (f, [relabel_row(r) for r in pq.read_table(f, columns=cols).to_pylist()])
         for f in tqdm(_shards(src), desc=src.name, disable=not progress)
     ]
 
 
-def write_variant(src: Path, dst: Path, labels: list[list[dict[str, Any]]]) -> dict[str, int]:
+def write_variant(src: Path, dst: Path, labels: Relabelled) -> dict[str, int]:
     """The variant's shards written to dst with their new labels (each whole, atomically; every shard rewritten, so
     a rerun after a labeler fix is never stale), its other files copied and its manifest recounted; per label
     column, how many episodes changed."""
     dst.mkdir(parents=True, exist_ok=True)
     changed: Counter[str] = Counter()
     counted: list[dict[str, Any]] = []
-    for f, new in zip(_shards(src), labels, strict=True):
+    for f, new in labels:
         rows = pq.read_table(f).to_pylist()
         for r, lab in zip(rows, new, strict=True):
             changed.update(k for k in LABELS if r[k] != lab[k])

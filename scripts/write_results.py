@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import json
 import re
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -186,10 +187,7 @@ def relabelled(run: Path) -> list[str]:
     entries = [m["relabelled"] for f in sorted(run.glob("shards/*/manifest.json")) if "relabelled" in (m := _load(f))]
     if not entries:
         return []
-    changed: dict[str, int] = {}
-    for e in entries:
-        for k, n in e["changed"].items():
-            changed[k] = changed.get(k, 0) + n
+    changed = sum((Counter(e["changed"]) for e in entries), Counter())
     source = sorted({str(Path(e["from"]).parent) for e in entries})
     cols = ", ".join(f"{k} {n}" for k, n in sorted(changed.items())) or "none"
     return [
