@@ -468,7 +468,8 @@ ONLINE_GUARANTEE = (
     'alone. "bound p" is the chance of at least that many false alarms if the guarantee holds (beta-binomial '
     "over the calibration draw and the scored successes; for the pair, a union bound on it): a rate above alpha "
     "with a large p is what the bound allows; under 0.05 (a test per row: among a table's rows one may fall there "
-    "by chance) it says the scored successes are not exchangeable with the calibration ones."
+    "by chance) it says the scored successes are not exchangeable with the calibration ones. Under each bench, the "
+    "row to report is chosen on the calibration split alone (cross-fitting by pair), never on the scored split."
 )
 
 

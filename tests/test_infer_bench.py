@@ -540,7 +540,7 @@ def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, smal
     assert r.returncode == 2 and "calibration: must be another split" in r.stderr, r.stderr
     # calibrated on another split than train, the robot-signal MLP (fitted on train) runs per grid frame and at every
     # trace sample; the small dataset has no val pair, so a copy names its test trajectories val as well (plumbing)
-    from labrobfail_vlm.bench.online import DENSE, DENSE_EITHER, EITHER, ROBOT, pair_name
+    from labrobfail_vlm.bench.online import DENSE, DENSE_EITHER, EITHER, LABELER, ROBOT, pair_name
 
     ds = tmp_path / "ds"
     shutil.copytree(small_ds, ds)
@@ -564,6 +564,10 @@ def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, smal
     assert not (tmp_path / "bad").exists()
     assert len(res["auroc_by_keyframe"][DENSE]) == len(res["auroc_by_keyframe"][ROBOT])
     assert DENSE in (out / "online.md").read_text()
+    # the row to report, chosen on the calibration split among the alarms the bench scored (never the blind model)
+    chosen = res["chosen_on_calibration"]
+    assert set(chosen["candidates"]) == set(res["rows"]) - {"majority class", "blind (grey grid)", LABELER}
+    assert chosen["chosen"] in chosen["candidates"] and f"**{chosen['chosen']}**" in (out / "online.md").read_text()
     # without a model: the robot-signal monitors, the majority class and the labeler, the same figures as beside it
     alone = tmp_path / "online_robot"
     argv = [cli("evaluate"), f"dataset_dir={ds}", "mode=online", "split=test", "calibration=val"]

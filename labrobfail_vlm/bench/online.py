@@ -29,7 +29,8 @@ successes only (split conformal: at most alpha of new exchangeable successes rai
   frames counts to the first grid frame taken once it sounded; one pair row per model's share of alpha in
   `pair_shares` (the MLP has the rest; a level under 1 / (n + 1) of the n calibration successes leaves its monitor
   out: its threshold is +inf, written null);
-- the CPU time of one alarm check (one prefix grid's Q2).
+- the CPU time of one alarm check (one prefix grid's Q2);
+- which row to report, chosen on the calibration split alone by cross-fitting (online_choice.py).
 Writes out_dir/online.json and out_dir/auroc_by_keyframe.png (out_dir: MODEL/eval_online_SPLIT by default).
 """
 
@@ -45,6 +46,7 @@ from PIL import Image
 
 from labrobfail_vlm.alarm import AnyAlarm, false_alarm_pvalue
 from labrobfail_vlm.bench import robot_baseline
+from labrobfail_vlm.bench.online_choice import Candidate, choice_md, choose
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import BLANK, GridConfig
 
@@ -138,31 +140,46 @@ def alarm_rows(
     `axes`: per scored trajectory, the sim time of each score, for monitors checked at the trace's rate (None: one
     score per grid frame); latency in frames then counts to the first grid frame taken once the alarm sounded.
     `shares`: each monitor's share of alpha (alarm.monitor_alphas; equal when None)."""
-    succ = [[s for s, t in zip(c, cal_trajs) if t["success"]] for c in cal]
     out: dict[str, Any] = {}
     for alpha in ALPHAS:
-        alarm = AnyAlarm.calibrate(succ, alpha, shares)
-        fired = [alarm.fires(s) for s in zip(*ev)]
-        when = [sounded(f, t, None if axes is None else axes[i]) for i, (f, t) in enumerate(zip(fired, ev_trajs))]
-        frames = [w[0] for w in when]
-        ok = [f for f, t in zip(frames, ev_trajs) if t["success"]]
-        lat = [f + 1 - int(t["frame"]) for f, t in zip(frames, ev_trajs) if not t["success"] and f is not None]
-        fails = sum(not t["success"] for t in ev_trajs)
-        out[str(alpha)] = (
-            alarm.to_dict()
-            | {
-                "false_alarm_rate": _share(sum(f is not None for f in ok), len(ok)),
-                "successes": len(ok),
-                "detection_rate": _share(len(lat), fails),
-                "failures": fails,
-                "latency_frames_median": float(np.median(lat)) if lat else None,
-                "latency_frames_p90": float(np.percentile(lat, 90)) if lat else None,
-                "caught_by_onset": _share(sum(x <= 0 for x in lat), fails),
-            }
-            | timing([w[1] for w in when], ev_trajs)
-        )
+        alarm, when = fire(cal, cal_trajs, ev, ev_trajs, alpha, axes, shares)
+        out[str(alpha)] = alarm.to_dict() | summarise(when, ev_trajs)
         out[str(alpha)]["bound_p"] = bound_check(out[str(alpha)])
     return out
+
+
+def fire(
+    cal: Sequence[Sequence[Sequence[float]]],
+    cal_trajs: Sequence[dict[str, Any]],
+    ev: Sequence[Sequence[Sequence[float]]],
+    ev_trajs: Sequence[dict],
+    alpha: float,
+    axes: Sequence[np.ndarray] | None = None,
+    shares: Sequence[float] | None = None,
+) -> tuple[AnyAlarm, list[tuple[int | None, float | None]]]:
+    """The alarm calibrated at alpha on `cal`'s successes, and per scored trajectory when it sounded (sounded())."""
+    succ = [[s for s, t in zip(c, cal_trajs) if t["success"]] for c in cal]
+    alarm = AnyAlarm.calibrate(succ, alpha, shares)
+    fired = [alarm.fires(s) for s in zip(*ev)]
+    return alarm, [sounded(f, t, None if axes is None else axes[i]) for i, (f, t) in enumerate(zip(fired, ev_trajs))]
+
+
+def summarise(when: Sequence[tuple[int | None, float | None]], ev_trajs: Sequence[dict]) -> dict[str, Any]:
+    """False alarms on successes, detection, latency from the onset and the events caught before, from when the
+    alarm sounded on each scored trajectory."""
+    frames = [w[0] for w in when]
+    ok = [f for f, t in zip(frames, ev_trajs) if t["success"]]
+    lat = [f + 1 - int(t["frame"]) for f, t in zip(frames, ev_trajs) if not t["success"] and f is not None]
+    fails = sum(not t["success"] for t in ev_trajs)
+    return {
+        "false_alarm_rate": _share(sum(f is not None for f in ok), len(ok)),
+        "successes": len(ok),
+        "detection_rate": _share(len(lat), fails),
+        "failures": fails,
+        "latency_frames_median": float(np.median(lat)) if lat else None,
+        "latency_frames_p90": float(np.percentile(lat, 90)) if lat else None,
+        "caught_by_onset": _share(sum(x <= 0 for x in lat), fails),
+    } | timing([w[1] for w in when], ev_trajs)
 
 
 def sounded(f: int | None, traj: dict[str, Any], axis: np.ndarray | None) -> tuple[int | None, float | None]:
@@ -309,6 +326,7 @@ def online_md(res: dict[str, Any]) -> list[str]:
                 f"{_pct(r.get('caught_by_onset'))} | {grave} |"
             )
     out += _by_event_md(res["rows"])
+    out += choice_md(res)
     left_out = _left_out(res["rows"])
     if left_out:  # a row whose monitor cannot fire reads like a weak one: say which
         out += [
@@ -411,11 +429,13 @@ def dense_rows(
     rows: dict[str, Any],
     curves: dict[str, Any],
     shares: Sequence[float] = (0.5,),
+    cands: dict[str, Candidate] | None = None,
 ) -> dict[str, Any]:
     """The robot-signal MLP checked at every trace sample (robot_baseline.DENSE_FILE), alone and paired with the
     model when there is one (its score stands from one grid frame to the next; one pair row per model's share of
-    alpha in `shares`): adds their rows and curve, returns the CPU seconds of one dense check. Nothing for a dataset
-    built without the dense file (before 3 Dec)."""
+    alpha in `shares`): adds their rows and curve (and their calibration scores to `cands`), returns the CPU seconds
+    of one dense check. Nothing for a dataset built without the dense file (before 3 Dec)."""
+    cands = {} if cands is None else cands
     (cal_t, cal_s), (ev_t, ev_s) = cal, ev
     tables = robot_baseline.read_dense(dataset, [t["trajectory"] for t in (*train_t, *cal_t, *ev_t)])
     if tables is None or not all(t.get("frame_times_s") for t in (*cal_t, *ev_t)):
@@ -429,11 +449,13 @@ def dense_rows(
     cal_ax = [np.round(tables[t["trajectory"]][:, 0], 4) for t in cal_t]
     ev_ax = [np.round(tables[t["trajectory"]][:, 0], 4) for t in ev_t]
     rows[DENSE] = alarm_rows([dcal], cal_t, [dev], ev_t, ev_ax)
+    cands[DENSE] = Candidate([dcal], cal_ax)
     if cal_s is not None and ev_s is not None:
         mcal = [on_axis(s, t["frame_times_s"], a) for s, t, a in zip(cal_s, cal_t, cal_ax)]
         mev = [on_axis(s, t["frame_times_s"], a) for s, t, a in zip(ev_s, ev_t, ev_ax)]
         for share in shares:
             rows[pair_name(share)] = alarm_rows([mcal, dcal], cal_t, [mev, dev], ev_t, ev_ax, (share, 1 - share))
+            cands[pair_name(share)] = Candidate([mcal, dcal], cal_ax, (share, 1 - share))
     at_frames = [d[np.searchsorted(a, t["frame_times_s"])] for d, a, t in zip(dev, ev_ax, ev_t)]
     curves[DENSE] = auroc_by_keyframe([list(map(float, x)) for x in at_frames], ev_t)
     return {"cpu_s_per_dense_check": float(f"{cpu:.3g}")}
@@ -470,8 +492,10 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
     curves: dict[str, Any] = {}
     cal = ev = None
     extra: dict[str, Any] = {"cpu_s_per_check": None}
+    cands: dict[str, Candidate] = {}  # the alarms the report's row is chosen from (online_choice; not the blind model)
     if fa is not None:
         cal, ev, cpu = model_rows(fa, dataset, grid, cal_t, ev_t, rows, curves)
+        cands["model"] = Candidate([cal])
         rows = {"model": rows.pop("model"), **rows}  # the model's rows first, as the page reads them
         extra["cpu_s_per_check"] = round(cpu, 4)
     everything = json.loads((dataset / "trajectories.json").read_text())
@@ -481,11 +505,13 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
         fitted = robot_baseline.fit(train_t)
         rcal, rev = robot_baseline.score(fitted, cal_t), robot_baseline.score(fitted, ev_t)
         rows[ROBOT] = alarm_rows([rcal], cal_t, [rev], ev_t)
+        cands[ROBOT] = Candidate([rcal])
         if cal is not None and ev is not None:  # Sentinel's pairing, one shared bound
             rows[EITHER] = alarm_rows([cal, rcal], cal_t, [ev, rev], ev_t)
+            cands[EITHER] = Candidate([cal, rcal])
         curves[ROBOT] = auroc_by_keyframe(rev, ev_t)
         shares = check_pair_shares(cfg.get("pair_shares"))
-        extra |= dense_rows(dataset, train_t, (cal_t, cal), (ev_t, ev), rows, curves, shares)
+        extra |= dense_rows(dataset, train_t, (cal_t, cal), (ev_t, ev), rows, curves, shares, cands)
     if fa is None and ROBOT not in rows:
         raise ConfigError(
             "mode=online without model=: the dataset has no robot signals to fit on the train split (built before "
@@ -501,6 +527,7 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
         "rows": rows,
         "auroc_by_keyframe": curves,
         "auroc_majority": auroc_by_keyframe([[0.0] * int(t["frames"]) for t in ev_t], ev_t)[:1],
+        "chosen_on_calibration": choose(cands, cal_t),
     }
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out_dir / "online.json", res)
