@@ -116,7 +116,8 @@ demo-online: $(STAMP)
 # shards, training its newest checkpoint; delete outputs/reproduce to start over (and before changing its settings).
 # 56 to 115 min on 2 cores from a fresh clone, the install included, as this machine's speed varies (docs/EXPERIMENTS.md;
 # 6 Dec evening, physics prefix: 56.4 min, generation 26.9, dataset 2.1, training 20.3, benches 3.7, learning curve
-# 2.4; 6 Dec afternoon, reference: generation 34.7, training 21.2; 4 Dec: 51.5, 3.4, 46.7, 7.9, 4.5). Then, on
+# 2.4; 6 Dec afternoon, reference: generation 34.7, training 21.2; 4 Dec: 51.5, 3.4, 46.7, 7.9, 4.5; 7 Dec on two
+# other machines: 82.0 and 70.8 min, generation 30.3 and 31.6, training 39.1 and 25.8). Then, on
 # the same data: make reproduce-rows (the scratch-tower and front + wrist rows) and make ablate (the paper's ablation
 # table); each rewrites docs/RESULTS.md with what exists.
 R              ?= outputs/reproduce
