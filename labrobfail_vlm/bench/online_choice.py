@@ -108,6 +108,8 @@ def choose(cands: dict[str, Candidate], trajs: Sequence[dict[str, Any]], folds: 
 
 def choice_md(res: dict[str, Any]) -> list[str]:
     """The page's lines on the choice: the rule, the chosen row and every candidate's cross-fitted figures."""
+    from labrobfail_vlm.bench.online import _num, _pct  # the bench table's own cell formats
+
     ch = res.get("chosen_on_calibration")
     if not ch or ch.get("chosen") is None:
         return []
@@ -122,10 +124,9 @@ def choice_md(res: dict[str, Any]) -> list[str]:
         "|---|---|---|---|---|---|",
     ]
     for name, r in ch["candidates"].items():
-        fa, det, lat = r["false_alarm_rate"], r["detection_rate"], r["latency_frames_median"]
         early, of = r["spills_and_falls"]
         out.append(
-            f"| {name} | {'-' if fa is None else f'{100 * fa:.1f}'} | {'-' if det is None else f'{100 * det:.1f}'} | "
-            f"{'-' if lat is None else f'{lat:g}'} | {early} of {of} | {len(r['targets_met'])} of 4 |"
+            f"| {name} | {_pct(r['false_alarm_rate'])} | {_pct(r['detection_rate'])} | "
+            f"{_num(r['latency_frames_median'])} | {early} of {of} | {len(r['targets_met'])} of 4 |"
         )
     return out
