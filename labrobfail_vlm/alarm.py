@@ -14,6 +14,13 @@ a finite-sample bound that holds for any score and any n, on average over calibr
 and Bates, "A Gentle Introduction to Conformal Prediction", 2021). When (n + 1)(1 - alpha) > n there are too few
 successes for the bound: the threshold is +inf and the alarm never fires (say so, and calibrate on more).
 
+That bound is on average over calibration draws: the rate an alarm set on one draw actually has is Beta(n + 1 - r,
+r) (r: the threshold's rank), spread about alpha by about sqrt(alpha / n), so a marginal alarm runs above alpha on
+new successes about as often as below. Given `delta`, the rank is raised to the smallest r whose Beta law puts at
+most delta above alpha (training-conditional validity, Vovk, "Conditional validity of inductive conformal
+predictors", 2012): with probability at least 1 - delta over the calibration draw, the alarm's rate on new
+exchangeable successes is at most alpha. It is the same order statistic at a higher rank, and costs detection.
+
 What it does not promise: anything on a success that is not exchangeable with the calibration set (a new scene, a
 new policy, another camera: recalibrate there), any detection rate or latency on failures (those are measured),
 nor a per-keyframe rate: the bound is per trajectory.
@@ -41,28 +48,40 @@ def trajectory_score(scores: Sequence[float]) -> float:
     return float(np.max(np.asarray(scores, np.float64)))
 
 
-def conformal_threshold(success_maxima: Sequence[float], alpha: float) -> float:
-    """The split-conformal threshold: the ceil((n+1)(1-alpha))-th smallest calibration maximum, +inf when n is too
-    small for alpha. The alarm fires where a score is strictly above it."""
+def conformal_threshold(success_maxima: Sequence[float], alpha: float, delta: float | None = None) -> float:
+    """The split-conformal threshold: the conformal_rank-th smallest calibration maximum, +inf when n is too small
+    for alpha (and delta). The alarm fires where a score is strictly above it."""
     if not 0 < alpha < 1:
         raise ValueError(f"alarm: alpha must be in (0, 1), got {alpha!r}")
     s = np.sort(np.asarray(success_maxima, np.float64))
     if s.ndim != 1 or not np.all(np.isfinite(s)):
         raise ValueError("alarm: calibration scores must be a list of finite numbers")
     n = len(s)
-    rank = conformal_rank(n, alpha)
+    rank = conformal_rank(n, alpha, delta)
     return math.inf if rank > n else float(s[rank - 1])
 
 
-def conformal_rank(n: int, alpha: float) -> int:
+def conformal_rank(n: int, alpha: float, delta: float | None = None) -> int:
     """The threshold's rank among n calibration maxima at alpha (over n: the threshold is +inf). One function for the
-    threshold and its bound check, so that both read the same rank from the same float."""
-    return math.ceil((n + 1) * (1 - alpha))
+    threshold and its bound check, so that both read the same rank from the same float. None: ceil((n+1)(1-alpha)),
+    the marginal bound; delta: the smallest rank r whose rate law Beta(n + 1 - r, r) puts at most delta above alpha."""
+    rank = math.ceil((n + 1) * (1 - alpha))
+    if delta is None:
+        return rank
+    if not 0 < delta < 1:
+        raise ValueError(f"alarm: delta must be in (0, 1) or None, got {delta!r}")
+    from scipy.stats import beta
+
+    while rank <= n and beta.sf(alpha, n + 1 - rank, rank) > delta:
+        rank += 1
+    return rank
 
 
-def min_calibration(alpha: float) -> int:
-    """The fewest calibration successes for which the threshold is finite at this alpha."""
-    return math.ceil((1 - alpha) / alpha)
+def min_calibration(alpha: float, delta: float | None = None) -> int:
+    """The fewest calibration successes for which the threshold is finite at this alpha (and delta)."""
+    if delta is None:
+        return math.ceil((1 - alpha) / alpha)
+    return math.ceil(math.log(delta) / math.log(1 - alpha))  # rank n + 1 - 1: P(rate > alpha) = (1 - alpha) ** n
 
 
 def monitor_alphas(alpha: float, monitors: int, shares: Sequence[float] | None = None) -> tuple[float, ...]:
@@ -83,6 +102,7 @@ def false_alarm_pvalue(
     successes: int,
     monitors: int = 1,
     alphas: Sequence[float] | None = None,
+    deltas: Sequence[float | None] | None = None,
 ) -> float:
     """How surprising `false_alarms` of `successes` new successes are if the guarantee holds: an upper bound on
     P(at least that many) for an alarm set at alpha on `n_calibration` exchangeable successes.
@@ -91,22 +111,26 @@ def false_alarm_pvalue(
     Beta(n + 1 - r, r) (r: the threshold's rank, continuous scores), so the count over the new successes is
     beta-binomial, exact, with the calibration's luck and the test's both in it; ties among scores only lower the
     rate. m monitors, monitor i set at alphas[i] (AnyAlarm's levels, exactly as it set them; alpha / m each when
-    None): the pair's count is at most the sum of theirs, and the sum reaches k only if monitor 1 reaches j or the
-    others reach k - j + 1, so P <= min over j of the two tails, for any dependence between the monitors
-    (conservative; a monitor that can never fire adds nothing). A small value (under 0.05) says the new successes
-    are not exchangeable with the calibration ones (a new scene, for one), not that the bound is wrong; a large one
-    says the count is what the bound allows, also when it reads above alpha."""
+    None; `deltas`: their training-conditional deltas, which set r, None: marginal): the pair's count is at most
+    the sum of theirs, and the sum reaches k only if monitor 1 reaches j or the others reach k - j + 1, so P <= min
+    over j of the two tails, for any dependence between the monitors (conservative; a monitor that can never fire adds
+    nothing). A small value (under 0.05) says the new successes are not exchangeable with the calibration ones (a new
+    scene, for one), not that the bound is wrong; a large one says the count is what the bound allows, also when it
+    reads above alpha.
+    """
     from scipy.stats import betabinom
 
     if not 0 <= false_alarms <= successes or n_calibration < 0 or monitors < 1:
         got = f"{false_alarms}, {successes}, {n_calibration}, {monitors}"
         raise ValueError(f"alarm: need 0 <= false alarms <= successes, n >= 0 and monitors >= 1 (got {got})")
     levels = monitor_alphas(alpha, monitors) if alphas is None else tuple(alphas)
-    if len(levels) != monitors:
-        raise ValueError(f"alarm: {monitors} monitors need as many levels, got {list(levels)!r}")
+    ds = (None,) * monitors if deltas is None else tuple(deltas)
+    if len(levels) != monitors or len(ds) != monitors:
+        got = f"{list(levels)!r}, {list(ds)!r}"
+        raise ValueError(f"alarm: {monitors} monitors need as many levels and deltas, got {got}")
     tails = []  # per monitor that can fire: P(its count >= i), i = -1..successes
-    for level in levels:
-        rank = conformal_rank(n_calibration, level)
+    for level, d in zip(levels, ds):
+        rank = conformal_rank(n_calibration, level, d)
         if rank <= n_calibration:  # otherwise its threshold is +inf: it never fires and adds nothing
             tails.append(betabinom.sf(np.arange(-1, successes + 1), successes, n_calibration + 1 - rank, rank))
     if not tails:  # every threshold is +inf: the alarm never fires
@@ -136,22 +160,25 @@ class Alarm:
     alpha: float
     threshold: float
     n_calibration: int
+    delta: float | None = None
 
     @classmethod
-    def calibrate(cls, success_scores: Sequence[Sequence[float]], alpha: float) -> "Alarm":
-        """From the per-keyframe scores of successful calibration trajectories only."""
+    def calibrate(cls, success_scores: Sequence[Sequence[float]], alpha: float, delta: float | None = None) -> "Alarm":
+        """From the per-keyframe scores of successful calibration trajectories only; `delta`: training-conditional
+        (the rate is at most alpha with probability 1 - delta over the calibration draw), None: marginal."""
         maxima = [trajectory_score(s) for s in success_scores]
-        return cls(float(alpha), conformal_threshold(maxima, alpha), len(maxima))
+        return cls(float(alpha), conformal_threshold(maxima, alpha, delta), len(maxima), delta)
 
     def fires(self, scores: Sequence[float]) -> int | None:
         return first_alarm(scores, self.threshold)
 
     def to_dict(self) -> dict[str, float | int | None]:
-        return {
+        out: dict[str, float | int | None] = {
             "alpha": self.alpha,
             "threshold": None if math.isinf(self.threshold) else self.threshold,
             "n_calibration": self.n_calibration,
         }
+        return out if self.delta is None else out | {"delta": self.delta}  # a marginal alarm's JSON as before
 
 
 @dataclass(frozen=True)
@@ -164,14 +191,20 @@ class AnyAlarm:
 
     @classmethod
     def calibrate(
-        cls, success_scores: Sequence[Sequence[Sequence[float]]], alpha: float, shares: Sequence[float] | None = None
+        cls,
+        success_scores: Sequence[Sequence[Sequence[float]]],
+        alpha: float,
+        shares: Sequence[float] | None = None,
+        delta: float | None = None,
     ) -> "AnyAlarm":
         """`success_scores[i]`: monitor i's per-keyframe scores of the calibration successes (the same successes);
-        `shares[i]`: its share of alpha (monitor_alphas)."""
+        `shares[i]`: its share of alpha (monitor_alphas) and, given `delta`, of delta (each monitor's rate is over
+        its level with probability at most its share of delta, so the pair's is over alpha with at most delta)."""
         if not success_scores or len({len(s) for s in success_scores}) != 1:
             raise ValueError("alarm: every monitor needs the scores of the same calibration successes")
         levels = monitor_alphas(alpha, len(success_scores), shares)
-        return cls(tuple(Alarm.calibrate(s, a) for s, a in zip(success_scores, levels)))
+        ds = (None,) * len(levels) if delta is None else monitor_alphas(delta, len(levels), shares)
+        return cls(tuple(Alarm.calibrate(s, a, d) for s, a, d in zip(success_scores, levels, ds)))
 
     def fires(self, scores: Sequence[Sequence[float]]) -> int | None:
         hits = [f for a, s in zip(self.alarms, scores, strict=True) if (f := a.fires(s)) is not None]
@@ -183,4 +216,6 @@ class AnyAlarm:
         ths = [a.to_dict()["threshold"] for a in self.alarms]
         n = self.alarms[0].n_calibration
         alphas = [a.alpha for a in self.alarms]  # exact: the bound check reads the ranks the thresholds were set at
-        return {"alpha": round(sum(alphas), 12), "thresholds": ths, "n_calibration": n, "alphas": alphas}
+        out = {"alpha": round(sum(alphas), 12), "thresholds": ths, "n_calibration": n, "alphas": alphas}
+        deltas = [a.delta for a in self.alarms]
+        return out if deltas[0] is None else out | {"deltas": deltas}

@@ -454,7 +454,9 @@ def _online_table(section: list[str]) -> list[str]:
 ONLINE_GUARANTEE = (
     "The online bench's alarm is a threshold on the running P(failure), set on the calibration split's "
     "successes only (split conformal). It guarantees that at most alpha of new successes exchangeable with those "
-    "(same scenes, policy, cameras and task mix) raise it, on average; it guarantees nothing on a new scene or "
+    "(same scenes, policy, cameras and task mix) raise it, on average over calibration draws (a single draw's rate "
+    "lands above alpha about half the time) or, where the bench's first line names a training-conditional "
+    "calibration (delta), with probability 1 - delta over the draw; it guarantees nothing on a new scene or "
     "object set (val_both below is one), and no detection rate or latency: those are measured. Latency is from "
     "the failure's onset in simulator state (negative: the alarm came first); an irreversible event is a spill, "
     "a fall, glassware moving fast enough to break or, in data generated from 1 Dec, an object pushed out of the "

@@ -88,6 +88,41 @@ def test_the_bound_check_is_exact_on_known_cases_and_valid_under_exchangeability
     assert false_alarm_pvalue(n, alpha, 40, m, monitors=2) < 1e-3  # 40 of 60: flagged
 
 
+def test_a_training_conditional_alarm_keeps_its_rate_under_alpha_on_all_but_delta_of_calibration_draws():
+    """Uniform scores (one per trajectory) make an alarm's rate on new successes exactly 1 - its threshold. Over
+    2,000 calibration draws of n = 400, the marginal alarm's rate is over alpha = 0.05 on about half of them (its
+    bound holds on average only), the one with delta = 0.1 on at most a tenth (the share its rank's Beta law gives),
+    and its bound check and a pair's union over deltas follow. Known ranks: the smallest n with a finite threshold."""
+    from scipy.stats import beta
+
+    assert conformal_rank(45, 0.05, 0.1) == 45 and conformal_rank(44, 0.05, 0.1) == 45  # 0.95 ** 45 < 0.1 < 0.95 ** 44
+    assert min_calibration(0.05, 0.1) == 45 and math.isinf(conformal_threshold(list(range(44)), 0.05, 0.1))
+    with pytest.raises(ValueError, match="delta"):
+        conformal_rank(100, 0.05, 1.0)
+    rng = np.random.default_rng(11)
+    n, alpha, delta, reps = 400, 0.05, 0.1, 2000
+    r = conformal_rank(n, alpha, delta)
+    assert r > conformal_rank(n, alpha) and beta.sf(alpha, n + 1 - r, r) <= delta < beta.sf(alpha, n + 2 - r, r - 1)
+    over = {None: 0, delta: 0}
+    for _ in range(reps):
+        cal = [[x] for x in rng.random(n)]
+        for d in over:
+            alarm = Alarm.calibrate(cal, alpha, d)
+            over[d] += 1 - alarm.threshold > alpha
+    se = np.sqrt(0.25 / reps)
+    assert over[None] / reps > 0.4  # the marginal alarm: over alpha on ~half the draws
+    exact = beta.sf(alpha, n + 1 - r, r)
+    assert abs(over[delta] / reps - exact) <= 3 * se and over[delta] / reps <= delta + 3 * se
+    assert Alarm.calibrate([[0.5]] * n, alpha, delta).to_dict()["delta"] == delta
+    assert "delta" not in Alarm.calibrate([[0.5]] * n, alpha).to_dict()  # a marginal alarm's JSON as before
+    # the bound check reads the raised rank (386 of 400, not 381): 32 false alarms of 500 are likely at the
+    # marginal rank, not at delta's
+    assert false_alarm_pvalue(n, alpha, 32, 500) > 0.05 > false_alarm_pvalue(n, alpha, 32, 500, deltas=[delta])
+    pair = AnyAlarm.calibrate([cal, cal], alpha, (0.2, 0.8), delta)
+    assert [a.delta for a in pair.alarms] == pytest.approx([0.02, 0.08])
+    assert pair.to_dict()["deltas"] == pytest.approx([0.02, 0.08])
+
+
 def test_two_monitors_share_one_bound_and_the_pair_fires_at_the_earlier_alarm():
     """Each monitor is calibrated at alpha / 2 on the same successes: on new successes the pair fires on at most
     alpha of them (union bound; independent monitors come close to it), and on a trajectory it fires at the first

@@ -579,6 +579,25 @@ def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, smal
     assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].endswith(
         "give out_dir= (the robot-signal monitors alone)"
     )
+    # training-conditional (delta): the same monitors at a rank at least as high, their rows and bound checks say so
+    from labrobfail_vlm.alarm import conformal_rank
+
+    pac = tmp_path / "online_pac"
+    assert run_here([*argv, f"out_dir={pac}", "delta=0.2"]).returncode == 0
+    tight = json.loads((pac / "online.json").read_text())
+    for a in ("0.1", "0.2"):
+        row, loose = tight["rows"][ROBOT][a], robot["rows"][ROBOT][a]
+        assert row["delta"] == 0.2 and "delta" not in loose and row["bound_p"] == bound_check(row)
+        assert row["threshold"] is None or loose["threshold"] is not None and row["threshold"] >= loose["threshold"]
+        assert row["false_alarm_rate"] <= loose["false_alarm_rate"]
+    n = tight["calibration_successes"]  # a handful (the rank's arithmetic is tests/test_alarm.py's): the plumbing
+    for a, row in tight["rows"][ROBOT].items():
+        assert (row["threshold"] is None) == (conformal_rank(n, float(a), 0.2) > n), (a, n)
+    assert tight["delta"] == 0.2 and "probability 0.8" in (pac / "online.md").read_text()
+    for bad in ("0", "1", "true", "x"):
+        r = run_here([*argv, f"out_dir={tmp_path / 'bad'}", f"delta={bad}"])
+        assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].startswith("error: delta:"), r.stderr
+    assert not (tmp_path / "bad").exists()
     # an online run on a sealed split, scored or calibrated on, is counted in the ledger like an offline one
     from labrobfail_vlm.bench.evaluate import sealed_runs
 

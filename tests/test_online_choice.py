@@ -35,13 +35,16 @@ def test_cross_fitting_scores_each_fold_by_an_alarm_calibrated_on_the_other_fold
     fold = [fold_of(t["group"], 5) for t in trajs]
     assert all(fold[i] == fold[i + 1] for i in range(0, len(trajs), 2))  # twins together
     assert len(set(fold)) == 5 and fold == [fold_of(t["group"], 5) for t in trajs]  # all used, the same every call
-    expected = 0
+    expected = {None: 0, 0.1: 0}  # marginal, and training-conditional at delta 0.1 (a candidate carries the bench's)
     for f in range(5):
         cal = [max(s) for s, t, x in zip(scores, trajs, fold) if t["success"] and x != f]
-        th = conformal_threshold(cal, 0.05)
-        expected += sum(max(s) > th for s, t, x in zip(scores, trajs, fold) if t["success"] and x == f)
+        for d in expected:
+            th = conformal_threshold(cal, 0.05, d)
+            expected[d] += sum(max(s) > th for s, t, x in zip(scores, trajs, fold) if t["success"] and x == f)
     assert got["successes"] == 300 and got["failures"] == 300
-    assert got["false_alarm_rate"] == pytest.approx(expected / 300, abs=1e-4) and expected > 0
+    assert got["false_alarm_rate"] == pytest.approx(expected[None] / 300, abs=1e-4) and expected[None] > 0
+    tight = crossfit(Candidate([scores], delta=0.1), trajs, alpha=0.05, folds=5)["false_alarm_rate"]
+    assert tight == pytest.approx(expected[0.1] / 300, abs=1e-4) and expected[0.1] < expected[None]
     assert got["detection_rate"] == 1.0 and got["latency_frames_median"] == 1.0  # fired at the second frame
     assert got["caught_before_by_event"] == {"spill": [0, 300]}  # at 2 s, after the spill at 1.6 s
 

@@ -379,13 +379,14 @@ def main(argv: list[str]) -> int:
 def _online(cfg: Any) -> int:
     """mode=online (labrobfail_vlm/bench/online.py): a local model's alarm on prefix grids, per keyframe, beside the
     robot-signal monitors; without model=, the robot-signal monitors alone (out_dir= then required)."""
-    from labrobfail_vlm.bench.online import check_pair_shares, online_md, run_online
+    from labrobfail_vlm.bench.online import check_delta, check_pair_shares, online_md, run_online
 
     if cfg.predictions is not None or cfg.endpoint is not None:
         raise ConfigError("mode=online: give model=DIR (the alarm reads a local model's P(failure) on prefix grids)")
     if cfg.model is None and cfg.out_dir is None:
         raise ConfigError("mode=online: without model=, give out_dir= (the robot-signal monitors alone)")
     check_pair_shares(cfg.pair_shares)  # before the model loads
+    check_delta(cfg.delta)
     fa = _load_analyzer(cfg, cache=False)[0] if cfg.model is not None else None  # prefix grids all differ
     out = Path(cfg.out_dir or Path(cfg.model) / f"eval_online_{cfg.split}")
     res = run_online(cfg, fa, out)

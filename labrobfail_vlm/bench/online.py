@@ -8,7 +8,8 @@ Run as:
 For every trajectory of `split` and of the `calibration` split, the model is asked Q2 on each prefix grid (the
 first k keyframes shown, k = 1..F; the later cells blank, as labrobfail_data builds prefix grids) and its P(failure)
 is the running score. The alarm (labrobfail_vlm/alarm.py) is calibrated per alpha on the calibration split's
-successes only (split conformal: at most alpha of new exchangeable successes raise it), then run on `split`:
+successes only (split conformal: at most alpha of new exchangeable successes raise it, on average over calibration
+draws; with `delta=`, with probability 1 - delta over the draw), then run on `split`:
 
 - per alpha: the false-alarm rate on successes and its bound check (alarm.false_alarm_pvalue: how likely at least
   that many false alarms are if the guarantee holds), the detection rate on failures, the latency
@@ -77,6 +78,15 @@ def check_pair_shares(shares: Any) -> list[float]:
     return out
 
 
+def check_delta(delta: Any) -> float | None:
+    """The bench's `delta`: None (a marginal alarm) or a number in (0, 1) (training-conditional, alarm.py)."""
+    if delta is None:
+        return None
+    if isinstance(delta, bool) or not isinstance(delta, (int, float)) or not 0 < delta < 1:
+        raise ConfigError(f"delta: expected null or a number in (0, 1), got {delta!r}")
+    return float(delta)
+
+
 def prefix_grid(grid: Image.Image, cfg: GridConfig, views: int, k: int) -> Image.Image:
     """The grid as a prefix grid of its first k keyframes: every later cell blank (build_grid(visible=k) draws
     neither the frame nor its index tag there, so blanking the cell gives the same pixels)."""
@@ -134,15 +144,17 @@ def alarm_rows(
     ev_trajs: Sequence[dict],
     axes: Sequence[np.ndarray] | None = None,
     shares: Sequence[float] | None = None,
+    delta: float | None = None,
 ) -> dict[str, Any]:
     """Per alpha: the calibrated threshold(s), false alarms on successes, detection and latency on failures.
     `cal`, `ev`: one or more monitors' running scores per trajectory; several share alpha (alarm.AnyAlarm).
     `axes`: per scored trajectory, the sim time of each score, for monitors checked at the trace's rate (None: one
     score per grid frame); latency in frames then counts to the first grid frame taken once the alarm sounded.
-    `shares`: each monitor's share of alpha (alarm.monitor_alphas; equal when None)."""
+    `shares`: each monitor's share of alpha (alarm.monitor_alphas; equal when None). `delta`: training-conditional
+    calibration (alarm.py; None: marginal)."""
     out: dict[str, Any] = {}
     for alpha in ALPHAS:
-        alarm, when = fire(cal, cal_trajs, ev, ev_trajs, alpha, axes, shares)
+        alarm, when = fire(cal, cal_trajs, ev, ev_trajs, alpha, axes, shares, delta)
         out[str(alpha)] = alarm.to_dict() | summarise(when, ev_trajs)
         out[str(alpha)]["bound_p"] = bound_check(out[str(alpha)])
     return out
@@ -156,10 +168,12 @@ def fire(
     alpha: float,
     axes: Sequence[np.ndarray] | None = None,
     shares: Sequence[float] | None = None,
+    delta: float | None = None,
 ) -> tuple[AnyAlarm, list[tuple[int | None, float | None]]]:
-    """The alarm calibrated at alpha on `cal`'s successes, and per scored trajectory when it sounded (sounded())."""
+    """The alarm calibrated at alpha (and delta) on `cal`'s successes, and per scored trajectory when it sounded
+    (sounded())."""
     succ = [[s for s, t in zip(c, cal_trajs) if t["success"]] for c in cal]
-    alarm = AnyAlarm.calibrate(succ, alpha, shares)
+    alarm = AnyAlarm.calibrate(succ, alpha, shares, delta)
     fired = [alarm.fires(s) for s in zip(*ev)]
     return alarm, [sounded(f, t, None if axes is None else axes[i]) for i, (f, t) in enumerate(zip(fired, ev_trajs))]
 
@@ -211,7 +225,8 @@ def bound_check(row: dict[str, Any]) -> float | None:
     k = round(row["false_alarm_rate"] * row["successes"])  # the rate is rounded to 4 digits: exact under 10,000
     m = len(row.get("thresholds", [None]))
     alphas = row.get("alphas")  # a pair's levels as its thresholds were set (a JSON from before pair_shares: halves)
-    p = false_alarm_pvalue(int(row["n_calibration"]), float(row["alpha"]), k, int(row["successes"]), m, alphas)
+    deltas = row.get("deltas", [row["delta"]] if "delta" in row else None)  # None: marginal (every JSON before 8 Dec)
+    p = false_alarm_pvalue(int(row["n_calibration"]), float(row["alpha"]), k, int(row["successes"]), m, alphas, deltas)
     return float(f"{p:.3g}")
 
 
@@ -304,7 +319,7 @@ def online_md(res: dict[str, Any]) -> list[str]:
     check (under 0.05: these successes are not exchangeable with the calibration ones)."""
     out = [
         f"Online bench, split {res['split']} ({res['trajectories']} trajectories), alarm calibrated on "
-        f"{res['calibration_successes']} successes of {res['calibration']}; CPU per check: "
+        f"{res['calibration_successes']} successes of {res['calibration']}{_guarantee(res)}; CPU per check: "
         f"{_checks(res)}.",
         "",
         "| row | alpha | false alarms (%) | bound p | detection (%) | latency frames (median / p90) "
@@ -391,6 +406,12 @@ def _left_out(rows: dict[str, Any]) -> str:
     return "; ".join(parts) + "." if parts else ""
 
 
+def _guarantee(res: dict[str, Any]) -> str:
+    """The calibration's promise, named when it is training-conditional (a bench JSON without delta: marginal)."""
+    d = res.get("delta")
+    return "" if d is None else f" (training-conditional: at most alpha with probability {1 - d:.2g} over that draw)"
+
+
 def _checks(res: dict[str, Any]) -> str:
     """The CPU time of one check per monitor that ran (a bench JSON of 2 Dec or before has the model's only)."""
     out = [f"model {res['cpu_s_per_check']} s"] if res.get("cpu_s_per_check") is not None else []
@@ -430,6 +451,7 @@ def dense_rows(
     curves: dict[str, Any],
     shares: Sequence[float] = (0.5,),
     cands: dict[str, Candidate] | None = None,
+    delta: float | None = None,
 ) -> dict[str, Any]:
     """The robot-signal MLP checked at every trace sample (robot_baseline.DENSE_FILE), alone and paired with the
     model when there is one (its score stands from one grid frame to the next; one pair row per model's share of
@@ -448,28 +470,31 @@ def dense_rows(
     cpu = robot_baseline.check_seconds(fitted, tables[ev_t[0]["trajectory"]])
     cal_ax = [np.round(tables[t["trajectory"]][:, 0], 4) for t in cal_t]
     ev_ax = [np.round(tables[t["trajectory"]][:, 0], 4) for t in ev_t]
-    rows[DENSE] = alarm_rows([dcal], cal_t, [dev], ev_t, ev_ax)
-    cands[DENSE] = Candidate([dcal], cal_ax)
+    rows[DENSE] = alarm_rows([dcal], cal_t, [dev], ev_t, ev_ax, delta=delta)
+    cands[DENSE] = Candidate([dcal], cal_ax, delta=delta)
     if cal_s is not None and ev_s is not None:
         mcal = [on_axis(s, t["frame_times_s"], a) for s, t, a in zip(cal_s, cal_t, cal_ax)]
         mev = [on_axis(s, t["frame_times_s"], a) for s, t, a in zip(ev_s, ev_t, ev_ax)]
         for share in shares:
-            rows[pair_name(share)] = alarm_rows([mcal, dcal], cal_t, [mev, dev], ev_t, ev_ax, (share, 1 - share))
-            cands[pair_name(share)] = Candidate([mcal, dcal], cal_ax, (share, 1 - share))
+            pair = (share, 1 - share)
+            rows[pair_name(share)] = alarm_rows([mcal, dcal], cal_t, [mev, dev], ev_t, ev_ax, pair, delta)
+            cands[pair_name(share)] = Candidate([mcal, dcal], cal_ax, pair, delta)
     at_frames = [d[np.searchsorted(a, t["frame_times_s"])] for d, a, t in zip(dev, ev_ax, ev_t)]
     curves[DENSE] = auroc_by_keyframe([list(map(float, x)) for x in at_frames], ev_t)
     return {"cpu_s_per_dense_check": float(f"{cpu:.3g}")}
 
 
-def model_rows(fa: Any, dataset: Path, grid: GridConfig, cal_t: list, ev_t: list, rows: dict, curves: dict) -> tuple:
+def model_rows(
+    fa: Any, dataset: Path, grid: GridConfig, cal_t: list, ev_t: list, rows: dict, curves: dict, delta: float | None
+) -> tuple:
     """The model's and the blind model's rows and curves (added to `rows`, `curves`); returns the model's running
     scores of the calibration and scored trajectories and the CPU seconds of one check."""
     cal, _ = score_prefixes(fa, dataset, cal_t, grid)
     ev, cpu = score_prefixes(fa, dataset, ev_t, grid)
     bcal, _ = score_prefixes(fa, dataset, cal_t, grid, blind=True)
     bev, _ = score_prefixes(fa, dataset, ev_t, grid, blind=True)
-    rows["model"] = alarm_rows([cal], cal_t, [ev], ev_t)
-    rows["blind (grey grid)"] = alarm_rows([bcal], cal_t, [bev], ev_t)
+    rows["model"] = alarm_rows([cal], cal_t, [ev], ev_t, delta=delta)
+    rows["blind (grey grid)"] = alarm_rows([bcal], cal_t, [bev], ev_t, delta=delta)
     curves |= {"model": auroc_by_keyframe(ev, ev_t), "blind (grey grid)": auroc_by_keyframe(bev, ev_t)}
     return cal, ev, cpu
 
@@ -485,6 +510,7 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
     if cfg.calibration == cfg.split:
         raise ConfigError("calibration: must be another split than the one scored (split conformal)")
     limit = cfg.get("max_trajectories")
+    delta = check_delta(cfg.get("delta"))
     cal_t, ev_t = trajectories(dataset, str(cfg.calibration), limit), trajectories(dataset, str(cfg.split), limit)
     rows: dict[str, Any] = {
         "majority class": {str(a): {"false_alarm_rate": 0.0, "detection_rate": 0.0} for a in ALPHAS}
@@ -494,8 +520,8 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
     extra: dict[str, Any] = {"cpu_s_per_check": None}
     cands: dict[str, Candidate] = {}  # the alarms the report's row is chosen from (online_choice; not the blind model)
     if fa is not None:
-        cal, ev, cpu = model_rows(fa, dataset, grid, cal_t, ev_t, rows, curves)
-        cands["model"] = Candidate([cal])
+        cal, ev, cpu = model_rows(fa, dataset, grid, cal_t, ev_t, rows, curves, delta)
+        cands["model"] = Candidate([cal], delta=delta)
         rows = {"model": rows.pop("model"), **rows}  # the model's rows first, as the page reads them
         extra["cpu_s_per_check"] = round(cpu, 4)
     everything = json.loads((dataset / "trajectories.json").read_text())
@@ -504,14 +530,14 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
     if "train" not in (cfg.calibration, cfg.split) and robot_baseline.has_signals([*train_t, *cal_t, *ev_t]):
         fitted = robot_baseline.fit(train_t)
         rcal, rev = robot_baseline.score(fitted, cal_t), robot_baseline.score(fitted, ev_t)
-        rows[ROBOT] = alarm_rows([rcal], cal_t, [rev], ev_t)
-        cands[ROBOT] = Candidate([rcal])
+        rows[ROBOT] = alarm_rows([rcal], cal_t, [rev], ev_t, delta=delta)
+        cands[ROBOT] = Candidate([rcal], delta=delta)
         if cal is not None and ev is not None:  # Sentinel's pairing, one shared bound
-            rows[EITHER] = alarm_rows([cal, rcal], cal_t, [ev, rev], ev_t)
-            cands[EITHER] = Candidate([cal, rcal])
+            rows[EITHER] = alarm_rows([cal, rcal], cal_t, [ev, rev], ev_t, delta=delta)
+            cands[EITHER] = Candidate([cal, rcal], delta=delta)
         curves[ROBOT] = auroc_by_keyframe(rev, ev_t)
         shares = check_pair_shares(cfg.get("pair_shares"))
-        extra |= dense_rows(dataset, train_t, (cal_t, cal), (ev_t, ev), rows, curves, shares, cands)
+        extra |= dense_rows(dataset, train_t, (cal_t, cal), (ev_t, ev), rows, curves, shares, cands, delta)
     if fa is None and ROBOT not in rows:
         raise ConfigError(
             "mode=online without model=: the dataset has no robot signals to fit on the train split (built before "
@@ -523,6 +549,7 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
         "calibration": str(cfg.calibration),
         "trajectories": len(ev_t),
         "calibration_successes": sum(t["success"] for t in cal_t),
+        **({} if delta is None else {"delta": delta}),  # training-conditional; absent: marginal (every JSON before)
         **extra,
         "rows": rows,
         "auroc_by_keyframe": curves,

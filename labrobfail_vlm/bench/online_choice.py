@@ -3,11 +3,12 @@
 The online bench (online.py) scores several alarms side by side: the model, the robot-signal MLP per grid frame and
 at every trace sample, and their pairs at several shares of alpha. Picking the row to report by its test figures
 would be choosing on test. Here the choice reads the calibration split only, by cross-fitting: its trajectories are
-cut into `folds` folds by pair (a success and its failure twin always in one fold, the fold drawn from a digest of the
-pair's name, so the same split gives the same folds); each fold is scored by the alarm calibrated on the other folds'
-successes, exactly as the bench calibrates on one split and scores another. Pooled over the folds, that gives each
-candidate a false-alarm rate on successes it was not calibrated on, a detection rate, a latency and the spills and
-falls caught before they happen, without a test trajectory.
+cut into `folds` folds by pair (a success and its failure twin always in one fold, the fold drawn from a digest of
+the pair's name, so the same split gives the same folds); each fold is scored by the alarm calibrated on the other
+folds' successes, exactly as the bench calibrates on one split and scores another (marginal or training-conditional,
+as the bench's `delta`). Pooled over the folds, that gives each candidate a false-alarm rate on successes it was not
+calibrated on, a detection rate, a latency and the spills and falls caught before they happen, without a test
+trajectory.
 
 The rule (written before any figure was read, 7 Dec): at alpha 0.05, the candidate that meets the most of the alarm
 issue's four targets there (false alarms <= 5 %, detection >= 80 %, median latency <= 1 grid frame after the onset,
@@ -37,6 +38,7 @@ class Candidate:
     cal: Sequence[Sequence[Sequence[float]]]
     axes: Sequence[np.ndarray] | None = None
     shares: Sequence[float] | None = None
+    delta: float | None = None  # training-conditional calibration, as the bench's (None: marginal)
 
 
 def fold_of(group: str, folds: int) -> int:
@@ -60,7 +62,8 @@ def crossfit(c: Candidate, trajs: Sequence[dict[str, Any]], alpha: float = ALPHA
         pick = lambda seq, idx: [seq[i] for i in idx]  # noqa: E731
         axes = None if c.axes is None else pick(c.axes, held)
         cal = [pick(m, rest) for m in c.cal]
-        _, w = fire(cal, pick(trajs, rest), [pick(m, held) for m in c.cal], pick(trajs, held), alpha, axes, c.shares)
+        held_m = [pick(m, held) for m in c.cal]
+        _, w = fire(cal, pick(trajs, rest), held_m, pick(trajs, held), alpha, axes, c.shares, c.delta)
         when += w
         scored += pick(trajs, held)
     return summarise(when, scored)
