@@ -38,7 +38,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
-from labrobfail_vlm.bench.online import online_md
+from labrobfail_vlm.bench.online_page import online_md
 from labrobfail_vlm.bench.page import (
     MAIN_KEPT,
     NOT_RUN,

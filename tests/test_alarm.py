@@ -190,7 +190,8 @@ def test_the_share_caught_before_an_irreversible_event_carries_its_exact_interva
     at 2 s: 5 of 9 with its Clopper-Pearson 95 % interval [0.212, 0.863] (a known table), in the JSON and on the
     page's line, and per kind; the ceiling (the labeler at each onset: 1.4 s in the breakages, 1.6 s, the spill
     itself, in the spills) reads 6 of 9 [0.299, 0.925], none of the spills; no such failure, no interval."""
-    from labrobfail_vlm.bench.online import ceiling, online_md, timing
+    from labrobfail_vlm.bench.online import ceiling, timing
+    from labrobfail_vlm.bench.online_page import online_md
 
     frames = [1.0, 2.0, 3.0]
     fail = {"success": False, "frame": 1, "frame_times_s": frames, "onset_s": 1.4, "irreversible_s": 1.6}
@@ -298,7 +299,7 @@ def test_a_pair_may_split_alpha_unevenly_and_keeps_the_bound():
 def test_the_online_table_names_the_monitors_that_cannot_fire():
     """A monitor whose level is too small for its calibration set has a +inf threshold (null in the JSON): the
     table says so under it, naming which of a pair's monitors, rather than let the row read as a weak monitor."""
-    from labrobfail_vlm.bench.online import online_md
+    from labrobfail_vlm.bench.online_page import online_md
 
     def row(**kw):
         return {"false_alarm_rate": 0.0, "detection_rate": 0.5, "latency_frames_median": 0.0, "n_calibration": 192} | kw

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from labrobfail_vlm.alarm import conformal_threshold
-from labrobfail_vlm.bench.online_choice import Candidate, choice_md, choose, crossfit, fold_of, targets_met
+from labrobfail_vlm.bench.online_choice import Candidate, choose, crossfit, fold_of, targets_met
+from labrobfail_vlm.bench.online_page import choice_md
 
 FRAMES = [1.0, 2.0, 3.0]
 

@@ -379,7 +379,9 @@ def main(argv: list[str]) -> int:
 def _online(cfg: Any) -> int:
     """mode=online (labrobfail_vlm/bench/online.py): a local model's alarm on prefix grids, per keyframe, beside the
     robot-signal monitors; without model=, the robot-signal monitors alone (out_dir= then required)."""
-    from labrobfail_vlm.bench.online import check_delta, check_pair_shares, online_md, run_online
+    from labrobfail_vlm.bench.online import check_delta, check_pair_shares, run_online
+    from labrobfail_vlm.bench.online_page import online_md
+    from labrobfail_vlm.io import atomic_write_bytes
 
     if cfg.predictions is not None or cfg.endpoint is not None:
         raise ConfigError("mode=online: give model=DIR (the alarm reads a local model's P(failure) on prefix grids)")
@@ -390,6 +392,8 @@ def _online(cfg: Any) -> int:
     fa = _load_analyzer(cfg, cache=False)[0] if cfg.model is not None else None  # prefix grids all differ
     out = Path(cfg.out_dir or Path(cfg.model) / f"eval_online_{cfg.split}")
     res = run_online(cfg, fa, out)
+    md = "\n".join(online_md(res))
+    atomic_write_bytes(out / "online.md", (md + "\n").encode())
     # a sealed split scored or calibrated on is a look at it like an offline bench: counted in the ledger the page
     # lists (no offline figures to carry, so its cells read "-")
     from labrobfail_vlm.bench.evaluate import count_sealed_run
@@ -397,7 +401,7 @@ def _online(cfg: Any) -> int:
     who = cfg.model or "robot-signal monitors"
     for role, split in (("scored", cfg.split), ("calibration", cfg.calibration)):
         count_sealed_run(cfg.dataset_dir, str(split), f"online, {role}: {who}", {})
-    print("\n".join(online_md(res)))
+    print(md)
     return 0
 
 

@@ -32,7 +32,8 @@ draws; with `delta=`, with probability 1 - delta over the draw), then run on `sp
   out: its threshold is +inf, written null);
 - the CPU time of one alarm check (one prefix grid's Q2);
 - which row to report, chosen on the calibration split alone by cross-fitting (online_choice.py).
-Writes out_dir/online.json and out_dir/auroc_by_keyframe.png (out_dir: MODEL/eval_online_SPLIT by default).
+Writes out_dir/online.json and out_dir/auroc_by_keyframe.png (out_dir: MODEL/eval_online_SPLIT by default); the
+CLI adds online.md, the tables of online_page.py.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ from PIL import Image
 
 from labrobfail_vlm.alarm import AnyAlarm, false_alarm_pvalue
 from labrobfail_vlm.bench import robot_baseline
-from labrobfail_vlm.bench.online_choice import Candidate, choice_md, choose
+from labrobfail_vlm.bench.online_choice import Candidate, choose
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import BLANK, GridConfig
 
@@ -300,126 +301,6 @@ def _before_irreversible(caught: list[tuple[bool, dict[str, Any]]]) -> dict[str,
     }
 
 
-def _pct(x: float | None) -> str:
-    return "-" if x is None else f"{100 * x:.1f}"
-
-
-def _p(x: float | None) -> str:
-    return "-" if x is None else f"{x:.2g}"
-
-
-def _num(x: float | None) -> str:
-    return "-" if x is None else f"{x:g}"
-
-
-def online_md(res: dict[str, Any]) -> list[str]:
-    """The bench's table: per row and alpha, false alarms on successes against alpha, detection, latency from the
-    onset (grid frames and sim seconds: median / 90th percentile), caught at the onset frame and before an
-    irreversible event (its exact 95 % interval, of how many such failures). "bound p": the false alarms' bound
-    check (under 0.05: these successes are not exchangeable with the calibration ones)."""
-    out = [
-        f"Online bench, split {res['split']} ({res['trajectories']} trajectories), alarm calibrated on "
-        f"{res['calibration_successes']} successes of {res['calibration']}{_guarantee(res)}; CPU per check: "
-        f"{_checks(res)}.",
-        "",
-        "| row | alpha | false alarms (%) | bound p | detection (%) | latency frames (median / p90) "
-        "| latency s (median / p90) | caught by onset (%) | before an irreversible event (%) |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for name, per in res["rows"].items():
-        for alpha, r in per.items() if name != LABELER else [("-", per)]:
-            if "latency_frames_median" not in r:  # the majority class never alarms: one line says it
-                if alpha != str(ALPHAS[0]):
-                    continue
-                alpha = "any"
-            grave = _grave(r)
-            out.append(
-                f"| {name} | {alpha} | {_pct(r['false_alarm_rate'])} | {_p(bound_check(r))} | "
-                f"{_pct(r['detection_rate'])} | "
-                f"{_num(r.get('latency_frames_median'))} / {_num(r.get('latency_frames_p90'))} | "
-                f"{_num(r.get('latency_s_median'))} / {_num(r.get('latency_s_p90'))} | "
-                f"{_pct(r.get('caught_by_onset'))} | {grave} |"
-            )
-    out += _by_event_md(res["rows"])
-    out += choice_md(res)
-    left_out = _left_out(res["rows"])
-    if left_out:  # a row whose monitor cannot fire reads like a weak one: say which
-        out += [
-            "",
-            "Never fires (a level under 1 / (n + 1) of the n calibration successes: threshold +inf): " + left_out,
-        ]
-    return out
-
-
-EVENT_ORDER = ("spill", "fall", "breakage", "out_of_reach", "unknown")
-BY_EVENT_ALPHA = "0.05"  # the issue's targets are at alpha 0.05
-
-
-def _by_event_md(rows: dict[str, Any]) -> list[str]:
-    """Caught before the event, per kind of event, at alpha 0.05 and for the ceiling: the issue's target speaks of
-    spills and falls, and a failed pour's onset can be its spill itself (no alarm at the onset comes before it),
-    which the overall share hides under the breakages. [] for a JSON from before 7 Dec (no kinds)."""
-    at = {n: (per if n == LABELER else per.get(BY_EVENT_ALPHA, {})) for n, per in rows.items()}
-    at = {n: r["caught_before_by_event"] for n, r in at.items() if r.get("caught_before_by_event")}
-    if not at:
-        return []
-    rank = {k: i for i, k in enumerate(EVENT_ORDER)}
-    kinds = sorted({k for r in at.values() for k in r}, key=lambda k: (rank.get(k, len(rank)), k))
-    return [
-        "",
-        f"Caught before the irreversible event, by kind (caught of such failures), at alpha {BY_EVENT_ALPHA}:",
-        "",
-        "| row | " + " | ".join(k.replace("_", " ") for k in kinds) + " |",
-        "|---|" + "---|" * len(kinds),
-        *(f"| {n} | " + " | ".join(_of(r.get(k)) for k in kinds) + " |" for n, r in at.items()),
-    ]
-
-
-def _of(tally: list[int] | None) -> str:
-    return "-" if not tally else f"{tally[0]} of {tally[1]}"
-
-
-def _grave(r: dict[str, Any]) -> str:
-    """The irreversible column: the share, its 95 % interval (JSONs from before 7 Dec have none) and of how many."""
-    n = r.get("irreversible_failures")
-    if n is None:
-        return _pct(r.get("caught_before_irreversible"))
-    ci = r.get("caught_before_irreversible_ci")
-    band = f" [{_pct(ci[0])}, {_pct(ci[1])}]" if ci else ""
-    return f"{_pct(r.get('caught_before_irreversible'))}{band} (of {n})"
-
-
-def _left_out(rows: dict[str, Any]) -> str:
-    """The rows and alphas at which a monitor's threshold is +inf (written null), naming which of a pair's two
-    monitors (the model first, as the bench pairs them)."""
-    who = {(0,): " (the model)", (1,): " (the MLP)", (0, 1): " (both)"}
-    parts = []
-    for name, per in rows.items():
-        at = []
-        for alpha, r in per.items() if name != LABELER else []:
-            ths = r.get("thresholds", [r["threshold"]] if "threshold" in r else [])
-            dead = tuple(i for i, th in enumerate(ths) if th is None)
-            if dead:
-                at.append(alpha + (who.get(dead, "") if len(ths) > 1 else ""))
-        if at:
-            parts.append(f"{name} at alpha {', '.join(at)}")
-    return "; ".join(parts) + "." if parts else ""
-
-
-def _guarantee(res: dict[str, Any]) -> str:
-    """The calibration's promise, named when it is training-conditional (a bench JSON without delta: marginal)."""
-    d = res.get("delta")
-    return "" if d is None else f" (training-conditional: at most alpha with probability {1 - d:.2g} over that draw)"
-
-
-def _checks(res: dict[str, Any]) -> str:
-    """The CPU time of one check per monitor that ran (a bench JSON of 2 Dec or before has the model's only)."""
-    out = [f"model {res['cpu_s_per_check']} s"] if res.get("cpu_s_per_check") is not None else []
-    if res.get("cpu_s_per_dense_check") is not None:
-        out.append(f"robot signals per sample {res['cpu_s_per_dense_check']} s")
-    return ", ".join(out) or "-"
-
-
 def _share(k: int, n: int) -> float | None:
     return round(k / n, 4) if n else None
 
@@ -502,7 +383,7 @@ def model_rows(
 def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
     """The online bench of `cfg.split`, calibrated on `cfg.calibration`; writes online.json and the AUROC PNG.
     Without a model (`fa` None), the robot-signal monitors, the majority class and the labeler only."""
-    from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
+    from labrobfail_vlm.io import atomic_write_json
 
     dataset = Path(str(cfg.dataset_dir))
     stats = json.loads((dataset / "stats.json").read_text())
@@ -558,6 +439,5 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
     }
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out_dir / "online.json", res)
-    atomic_write_bytes(out_dir / "online.md", ("\n".join(online_md(res)) + "\n").encode())
     auroc_png(res["auroc_by_keyframe"], f"online bench, {cfg.split}", out_dir / "auroc_by_keyframe.png")
     return res

@@ -107,29 +107,3 @@ def choose(cands: dict[str, Candidate], trajs: Sequence[dict[str, Any]], folds: 
             for n, r in rows.items()
         },
     }
-
-
-def choice_md(res: dict[str, Any]) -> list[str]:
-    """The page's lines on the choice: the rule, the chosen row and every candidate's cross-fitted figures."""
-    from labrobfail_vlm.bench.online import _num, _pct  # the bench table's own cell formats
-
-    ch = res.get("chosen_on_calibration")
-    if not ch or ch.get("chosen") is None:
-        return []
-    out = [
-        "",
-        f"The row to report, chosen on {res['calibration']} alone ({ch['folds']}-fold cross-fitting, twins in one "
-        f"fold; rule: most of the four targets met at alpha {ch['alpha']:g}, then detection, then spills and falls "
-        f"caught before): **{ch['chosen']}**. Cross-fitted on {res['calibration']}:",
-        "",
-        "| candidate | false alarms (%) | detection (%) | latency frames (median) | spills and falls before "
-        "| targets met |",
-        "|---|---|---|---|---|---|",
-    ]
-    for name, r in ch["candidates"].items():
-        early, of = r["spills_and_falls"]
-        out.append(
-            f"| {name} | {_pct(r['false_alarm_rate'])} | {_pct(r['detection_rate'])} | "
-            f"{_num(r['latency_frames_median'])} | {early} of {of} | {len(r['targets_met'])} of 4 |"
-        )
-    return out
