@@ -64,7 +64,8 @@ def conformal_threshold(success_maxima: Sequence[float], alpha: float, delta: fl
 def conformal_rank(n: int, alpha: float, delta: float | None = None) -> int:
     """The threshold's rank among n calibration maxima at alpha (over n: the threshold is +inf). One function for the
     threshold and its bound check, so that both read the same rank from the same float. None: ceil((n+1)(1-alpha)),
-    the marginal bound; delta: the smallest rank r whose rate law Beta(n + 1 - r, r) puts at most delta above alpha."""
+    the marginal bound; delta: the smallest rank r from that one up (so the marginal bound holds too) whose rate law
+    Beta(n + 1 - r, r) puts at most delta above alpha."""
     rank = math.ceil((n + 1) * (1 - alpha))
     if delta is None:
         return rank
@@ -81,7 +82,7 @@ def min_calibration(alpha: float, delta: float | None = None) -> int:
     """The fewest calibration successes for which the threshold is finite at this alpha (and delta)."""
     if delta is None:
         return math.ceil((1 - alpha) / alpha)
-    return math.ceil(math.log(delta) / math.log(1 - alpha))  # rank n + 1 - 1: P(rate > alpha) = (1 - alpha) ** n
+    return math.ceil(math.log(delta) / math.log(1 - alpha))  # at the top rank r = n, P(rate > alpha) = (1 - alpha)^n
 
 
 def monitor_alphas(alpha: float, monitors: int, shares: Sequence[float] | None = None) -> tuple[float, ...]:
