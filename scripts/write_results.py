@@ -465,7 +465,8 @@ ONLINE_GUARANTEE = (
     "the onset itself comes before the event only where the failure began before it. A row pairing the model "
     "with a robot-signal MLP alarms when either does, on the same successes, the model set at its share of alpha "
     "(a half unless the row names another, a share chosen on validation) and the MLP at the rest: the pair keeps "
-    "the same bound (a union bound). A share whose level is under 1 / (n + 1) of the n calibration successes leaves "
+    "the same bound (a union bound). A share whose level is under 1 / (n + 1) of the n calibration successes (more "
+    "for a training-conditional alarm) leaves "
     "the model out (its threshold is +inf): under 199 successes, the 0.1 share at alpha 0.05 and 0.01 is the MLP "
     'alone. "bound p" is the chance of at least that many false alarms if the guarantee holds (beta-binomial '
     "over the calibration draw and the scored successes; for the pair, a union bound on it): a rate above alpha "

@@ -57,7 +57,8 @@ def online_md(res: dict[str, Any]) -> list[str]:
     if left_out:  # a row whose monitor cannot fire reads like a weak one: say which
         out += [
             "",
-            "Never fires (a level under 1 / (n + 1) of the n calibration successes: threshold +inf): " + left_out,
+            "Never fires (too few calibration successes for the level: under 1 / (n + 1) of n, or under "
+            "1 - delta ** (1 / n) training-conditionally; threshold +inf): " + left_out,
         ]
     return out
 
