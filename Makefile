@@ -470,7 +470,7 @@ recovery-scripted: $(STAMP)
 # MLP per grid frame and at every trace sample (datasets built from 3 Dec), the pairs, the labeler's ceiling.
 ONLINE_TRAJ ?= null
 # From 7 Dec the alarm is training-conditional: at most alpha of new successes with probability 0.9 over
-# the calibration draw (a marginal one, ONLINE_DELTA=null, lands above alpha on about half of its draws).
+# the calibration draw (a marginal one, ONLINE_DELTA=null, lands above alpha on roughly 40 % of its draws).
 ONLINE_DELTA ?= 0.1
 online-bench: $(STAMP)
 	@test -d $(VLM) || { echo "online-bench: no model $(VLM) (make reproduce, or VLM=<model dir>)" >&2; exit 2; }

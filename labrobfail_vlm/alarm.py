@@ -16,10 +16,11 @@ successes for the bound: the threshold is +inf and the alarm never fires (say so
 
 That bound is on average over calibration draws: the rate an alarm set on one draw actually has is Beta(n + 1 - r,
 r) (r: the threshold's rank), spread about alpha by about sqrt(alpha / n), so a marginal alarm runs above alpha on
-new successes about as often as below. Given `delta`, the rank is raised to the smallest r whose Beta law puts at
-most delta above alpha (training-conditional validity, Vovk, "Conditional validity of inductive conformal
-predictors", 2012): with probability at least 1 - delta over the calibration draw, the alarm's rate on new
-exchangeable successes is at most alpha. It is the same order statistic at a higher rank, and costs detection.
+new successes nearly as often as below (at alpha 0.05, on 36-47 % of draws for n from 20 to 500). Given `delta`, the
+rank is raised to the smallest r whose Beta law puts at most delta above alpha (training-conditional validity, Vovk,
+"Conditional validity of inductive conformal predictors", 2012): with probability at least 1 - delta over the
+calibration draw, the alarm's rate on new exchangeable successes is at most alpha. It is the same order statistic at
+a higher rank, and costs detection.
 
 What it does not promise: anything on a success that is not exchangeable with the calibration set (a new scene, a
 new policy, another camera: recalibrate there), any detection rate or latency on failures (those are measured),
@@ -79,10 +80,16 @@ def conformal_rank(n: int, alpha: float, delta: float | None = None) -> int:
 
 
 def min_calibration(alpha: float, delta: float | None = None) -> int:
-    """The fewest calibration successes for which the threshold is finite at this alpha (and delta)."""
-    if delta is None:
-        return math.ceil((1 - alpha) / alpha)
-    return math.ceil(math.log(delta) / math.log(1 - alpha))  # at the top rank r = n, P(rate > alpha) = (1 - alpha)^n
+    """The fewest calibration successes for which the threshold is finite at this alpha (and delta): from just under
+    the closed forms ((1 - alpha) / alpha; with delta, also log(delta) / log(1 - alpha), where the top rank's law puts
+    (1 - alpha)^n above alpha) up to the first n whose rank conformal_rank gives, so both read the same floats."""
+    n = math.ceil((1 - alpha) / alpha)
+    if delta is not None:
+        n = max(n, math.floor(math.log(delta) / math.log(1 - alpha)))
+    n = max(1, n - 1)
+    while conformal_rank(n, alpha, delta) > n:
+        n += 1
+    return n
 
 
 def monitor_alphas(alpha: float, monitors: int, shares: Sequence[float] | None = None) -> tuple[float, ...]:

@@ -452,27 +452,27 @@ def _online_table(section: list[str]) -> list[str]:
 
 
 ONLINE_GUARANTEE = (
-    "The online bench's alarm is a threshold on the running P(failure), set on the calibration split's "
-    "successes only (split conformal). It guarantees that at most alpha of new successes exchangeable with those "
-    "(same scenes, policy, cameras and task mix) raise it, on average over calibration draws (a single draw's rate "
-    "lands above alpha about half the time) or, where the bench's first line names a training-conditional "
-    "calibration (delta), with probability 1 - delta over the draw; it guarantees nothing on a new scene or "
-    "object set (val_both below is one), and no detection rate or latency: those are measured. Latency is from "
-    "the failure's onset in simulator state (negative: the alarm came first); an irreversible event is a spill, "
-    "a fall, glassware moving fast enough to break or, in data generated from 1 Dec, an object pushed out of the "
-    "arm's reach. Where the last column gives an interval it is exact (Clopper-Pearson, 95 %, given the "
-    "calibrated threshold), and for an alarm at or after the onset its ceiling is the labeler's row: an alarm at "
-    "the onset itself comes before the event only where the failure began before it. A row pairing the model "
-    "with a robot-signal MLP alarms when either does, on the same successes, the model set at its share of alpha "
-    "(a half unless the row names another, a share chosen on validation) and the MLP at the rest: the pair keeps "
-    "the same bound (a union bound). A share whose level is under 1 / (n + 1) of the n calibration successes (more "
-    "for a training-conditional alarm) leaves "
-    "the model out (its threshold is +inf): under 199 successes, the 0.1 share at alpha 0.05 and 0.01 is the MLP "
-    'alone. "bound p" is the chance of at least that many false alarms if the guarantee holds (beta-binomial '
-    "over the calibration draw and the scored successes; for the pair, a union bound on it): a rate above alpha "
-    "with a large p is what the bound allows; under 0.05 (a test per row: among a table's rows one may fall there "
-    "by chance) it says the scored successes are not exchangeable with the calibration ones. Under each bench, the "
-    "row to report is chosen on the calibration split alone (cross-fitting by pair), never on the scored split."
+    "The online bench's alarm is a threshold on the running P(failure), set on the calibration split's successes "
+    "only (split conformal). It guarantees that at most alpha of new successes exchangeable with those (same "
+    "scenes, policy, cameras and task mix) raise it, on average over calibration draws (a single draw's rate lands "
+    "above alpha on roughly 40 % of draws) or, where the bench's first line names a training-conditional "
+    "calibration (delta), with probability 1 - delta over the draw; it guarantees nothing on a new scene or object "
+    "set (val_both below is one), and no detection rate or latency: those are measured. Latency is from the "
+    "failure's onset in simulator state (negative: the alarm came first); an irreversible event is a spill, a "
+    "fall, glassware moving fast enough to break or, in data generated from 1 Dec, an object pushed out of the "
+    "arm's reach. Where the last column gives an interval it is exact (Clopper-Pearson, 95 %, given the calibrated "
+    "threshold), and for an alarm at or after the onset its ceiling is the labeler's row: an alarm at the onset "
+    "itself comes before the event only where the failure began before it. A row pairing the model with a "
+    "robot-signal MLP alarms when either does, on the same successes, the model set at its share of alpha (a half "
+    "unless the row names another, a share chosen on validation) and the MLP at the rest: the pair keeps the same "
+    "bound (a union bound). A share whose level is under 1 / (n + 1) of the n calibration successes (more for a "
+    "training-conditional alarm) leaves the model out (its threshold is +inf): under 199 successes (919 at delta "
+    '0.1), the 0.1 share at alpha 0.05 and 0.01 is the MLP alone. "bound p" is the chance of at least that many '
+    "false alarms if the guarantee holds (beta-binomial over the calibration draw and the scored successes; for "
+    "the pair, a union bound on it): a rate above alpha with a large p is what the bound allows; under 0.05 (a "
+    "test per row: among a table's rows one may fall there by chance) it says the scored successes are not "
+    "exchangeable with the calibration ones. Under each bench, the row to report is chosen on the calibration "
+    "split alone (cross-fitting by pair), never on the scored split."
 )
 
 

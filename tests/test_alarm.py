@@ -97,6 +97,9 @@ def test_a_training_conditional_alarm_keeps_its_rate_under_alpha_on_all_but_delt
 
     assert conformal_rank(45, 0.05, 0.1) == 45 and conformal_rank(44, 0.05, 0.1) == 45  # 0.95 ** 45 < 0.1 < 0.95 ** 44
     assert min_calibration(0.05, 0.1) == 45 and math.isinf(conformal_threshold(list(range(44)), 0.05, 0.1))
+    for a, d in [(0.1, 0.5), (0.05, 0.9), (0.05, 0.95**20), (0.5, 0.5**29), (0.01, None), (0.2, 0.01)]:
+        n = min_calibration(a, d)  # the first n with a finite threshold, read from the same floats as the rank
+        assert conformal_rank(n, a, d) <= n and conformal_rank(n - 1, a, d) > n - 1, (a, d, n)
     with pytest.raises(ValueError, match="delta"):
         conformal_rank(100, 0.05, 1.0)
     rng = np.random.default_rng(11)

@@ -226,7 +226,8 @@ def bound_check(row: dict[str, Any]) -> float | None:
     k = round(row["false_alarm_rate"] * row["successes"])  # the rate is rounded to 4 digits: exact under 10,000
     m = len(row.get("thresholds", [None]))
     alphas = row.get("alphas")  # a pair's levels as its thresholds were set (a JSON from before pair_shares: halves)
-    deltas = row.get("deltas", [row["delta"]] if "delta" in row else None)  # None: marginal (every JSON before 8 Dec)
+    # None: marginal (every JSON before 7 Dec, afternoon)
+    deltas = row.get("deltas", [row["delta"]] if "delta" in row else None)
     p = false_alarm_pvalue(int(row["n_calibration"]), float(row["alpha"]), k, int(row["successes"]), m, alphas, deltas)
     return float(f"{p:.3g}")
 
@@ -337,7 +338,8 @@ def dense_rows(
     """The robot-signal MLP checked at every trace sample (robot_baseline.DENSE_FILE), alone and paired with the
     model when there is one (its score stands from one grid frame to the next; one pair row per model's share of
     alpha in `shares`): adds their rows and curve (and their calibration scores to `cands`), returns the CPU seconds
-    of one dense check. Nothing for a dataset built without the dense file (before 3 Dec)."""
+    of one dense check, every alarm calibrated with `delta` (alarm_rows). Nothing for a dataset built without the
+    dense file (before 3 Dec)."""
     cands = {} if cands is None else cands
     (cal_t, cal_s), (ev_t, ev_s) = cal, ev
     tables = robot_baseline.read_dense(dataset, [t["trajectory"] for t in (*train_t, *cal_t, *ev_t)])

@@ -57,8 +57,8 @@ def online_md(res: dict[str, Any]) -> list[str]:
     if left_out:  # a row whose monitor cannot fire reads like a weak one: say which
         out += [
             "",
-            "Never fires (too few calibration successes for the level: under 1 / (n + 1) of n, or under "
-            "1 - delta ** (1 / n) training-conditionally; threshold +inf): " + left_out,
+            "Never fires (too few calibration successes for the level: under 1 / (n + 1) of n, or under 1 - "
+            "delta ** (1 / n) training-conditionally, delta the monitor's share of it; threshold +inf): " + left_out,
         ]
     return out
 
@@ -121,7 +121,7 @@ def _left_out(rows: dict[str, Any]) -> str:
 def _guarantee(res: dict[str, Any]) -> str:
     """The calibration's promise, named when it is training-conditional (a bench JSON without delta: marginal)."""
     d = res.get("delta")
-    return "" if d is None else f" (training-conditional: at most alpha with probability {1 - d:.2g} over that draw)"
+    return "" if d is None else f" (training-conditional: at most alpha with probability {1 - d:g} over that draw)"
 
 
 def _checks(res: dict[str, Any]) -> str:
