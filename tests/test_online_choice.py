@@ -44,7 +44,7 @@ def test_cross_fitting_scores_each_fold_by_an_alarm_calibrated_on_the_other_fold
             expected[d] += sum(max(s) > th for s, t, x in zip(scores, trajs, fold) if t["success"] and x == f)
     assert got["successes"] == 300 and got["failures"] == 300
     assert got["false_alarm_rate"] == pytest.approx(expected[None] / 300, abs=1e-4) and expected[None] > 0
-    tight = crossfit(Candidate([scores], delta=0.1), trajs, alpha=0.05, folds=5)["false_alarm_rate"]
+    tight = crossfit(Candidate([scores]), trajs, alpha=0.05, folds=5, delta=0.1)["false_alarm_rate"]
     assert tight == pytest.approx(expected[0.1] / 300, abs=1e-4) and expected[0.1] < expected[None]
     assert got["detection_rate"] == 1.0 and got["latency_frames_median"] == 1.0  # fired at the second frame
     assert got["caught_before_by_event"] == {"spill": [0, 300]}  # at 2 s, after the spill at 1.6 s

@@ -354,14 +354,14 @@ def dense_rows(
     cal_ax = [np.round(tables[t["trajectory"]][:, 0], 4) for t in cal_t]
     ev_ax = [np.round(tables[t["trajectory"]][:, 0], 4) for t in ev_t]
     rows[DENSE] = alarm_rows([dcal], cal_t, [dev], ev_t, ev_ax, delta=delta)
-    cands[DENSE] = Candidate([dcal], cal_ax, delta=delta)
+    cands[DENSE] = Candidate([dcal], cal_ax)
     if cal_s is not None and ev_s is not None:
         mcal = [on_axis(s, t["frame_times_s"], a) for s, t, a in zip(cal_s, cal_t, cal_ax)]
         mev = [on_axis(s, t["frame_times_s"], a) for s, t, a in zip(ev_s, ev_t, ev_ax)]
         for share in shares:
             pair = (share, 1 - share)
             rows[pair_name(share)] = alarm_rows([mcal, dcal], cal_t, [mev, dev], ev_t, ev_ax, pair, delta)
-            cands[pair_name(share)] = Candidate([mcal, dcal], cal_ax, pair, delta)
+            cands[pair_name(share)] = Candidate([mcal, dcal], cal_ax, pair)
     at_frames = [d[np.searchsorted(a, t["frame_times_s"])] for d, a, t in zip(dev, ev_ax, ev_t)]
     curves[DENSE] = auroc_by_keyframe([list(map(float, x)) for x in at_frames], ev_t)
     return {"cpu_s_per_dense_check": float(f"{cpu:.3g}")}
@@ -404,7 +404,7 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
     cands: dict[str, Candidate] = {}  # the alarms the report's row is chosen from (online_choice; not the blind model)
     if fa is not None:
         cal, ev, cpu = model_rows(fa, dataset, grid, cal_t, ev_t, rows, curves, delta)
-        cands["model"] = Candidate([cal], delta=delta)
+        cands["model"] = Candidate([cal])
         rows = {"model": rows.pop("model"), **rows}  # the model's rows first, as the page reads them
         extra["cpu_s_per_check"] = round(cpu, 4)
     everything = json.loads((dataset / "trajectories.json").read_text())
@@ -414,10 +414,10 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
         fitted = robot_baseline.fit(train_t)
         rcal, rev = robot_baseline.score(fitted, cal_t), robot_baseline.score(fitted, ev_t)
         rows[ROBOT] = alarm_rows([rcal], cal_t, [rev], ev_t, delta=delta)
-        cands[ROBOT] = Candidate([rcal], delta=delta)
+        cands[ROBOT] = Candidate([rcal])
         if cal is not None and ev is not None:  # Sentinel's pairing, one shared bound
             rows[EITHER] = alarm_rows([cal, rcal], cal_t, [ev, rev], ev_t, delta=delta)
-            cands[EITHER] = Candidate([cal, rcal], delta=delta)
+            cands[EITHER] = Candidate([cal, rcal])
         curves[ROBOT] = auroc_by_keyframe(rev, ev_t)
         shares = check_pair_shares(cfg.get("pair_shares"))
         extra |= dense_rows(dataset, train_t, (cal_t, cal), (ev_t, ev), rows, curves, shares, cands, delta)
@@ -437,7 +437,7 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
         "rows": rows,
         "auroc_by_keyframe": curves,
         "auroc_majority": auroc_by_keyframe([[0.0] * int(t["frames"]) for t in ev_t], ev_t)[:1],
-        "chosen_on_calibration": choose(cands, cal_t),
+        "chosen_on_calibration": choose(cands, cal_t, delta=delta),
     }
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out_dir / "online.json", res)

@@ -38,7 +38,6 @@ class Candidate:
     cal: Sequence[Sequence[Sequence[float]]]
     axes: Sequence[np.ndarray] | None = None
     shares: Sequence[float] | None = None
-    delta: float | None = None  # training-conditional calibration, as the bench's (None: marginal)
 
 
 def fold_of(group: str, folds: int) -> int:
@@ -46,9 +45,16 @@ def fold_of(group: str, folds: int) -> int:
     return int.from_bytes(hashlib.blake2b(group.encode(), digest_size=8).digest(), "big") % folds
 
 
-def crossfit(c: Candidate, trajs: Sequence[dict[str, Any]], alpha: float = ALPHA, folds: int = FOLDS) -> dict[str, Any]:
+def crossfit(
+    c: Candidate,
+    trajs: Sequence[dict[str, Any]],
+    alpha: float = ALPHA,
+    folds: int = FOLDS,
+    delta: float | None = None,
+) -> dict[str, Any]:
     """The candidate's figures on `trajs` (the calibration split), each fold scored by the alarm calibrated on the
-    other folds' successes; pooled as online.summarise reports a scored split."""
+    other folds' successes (`delta`: the bench's, None: marginal); pooled as online.summarise reports a scored
+    split."""
     from labrobfail_vlm.bench.online import fire, summarise
 
     fold = [fold_of(str(t.get("group", t["trajectory"])), folds) for t in trajs]
@@ -63,7 +69,7 @@ def crossfit(c: Candidate, trajs: Sequence[dict[str, Any]], alpha: float = ALPHA
         axes = None if c.axes is None else pick(c.axes, held)
         cal = [pick(m, rest) for m in c.cal]
         held_m = [pick(m, held) for m in c.cal]
-        _, w = fire(cal, pick(trajs, rest), held_m, pick(trajs, held), alpha, axes, c.shares, c.delta)
+        _, w = fire(cal, pick(trajs, rest), held_m, pick(trajs, held), alpha, axes, c.shares, delta)
         when += w
         scored += pick(trajs, held)
     return summarise(when, scored)
@@ -87,9 +93,12 @@ def targets_met(row: dict[str, Any], alpha: float = ALPHA) -> list[str]:
     return [name for name, ok in checks.items() if ok]
 
 
-def choose(cands: dict[str, Candidate], trajs: Sequence[dict[str, Any]], folds: int = FOLDS) -> dict[str, Any]:
-    """The cross-fitted figures of every candidate on the calibration split and the one the rule picks."""
-    rows = {name: crossfit(c, trajs, ALPHA, folds) for name, c in cands.items()}
+def choose(
+    cands: dict[str, Candidate], trajs: Sequence[dict[str, Any]], folds: int = FOLDS, delta: float | None = None
+) -> dict[str, Any]:
+    """The cross-fitted figures of every candidate on the calibration split, each calibrated as the bench calibrates
+    (`delta`), and the one the rule picks."""
+    rows = {name: crossfit(c, trajs, ALPHA, folds, delta) for name, c in cands.items()}
     met = {name: targets_met(r) for name, r in rows.items()}
 
     def rank(name: str) -> tuple[int, float, float]:
