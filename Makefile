@@ -4,7 +4,7 @@ PY    := $(VENV)/bin/python
 BIN   := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: install browser vulkan demo demo-bench demo-supervise demo-diagnosis demo-online reproduce reproduce-rows reproduce-more reproduce-grid16 reproduce-tower ablate reproduce-online reproduce-tuned report-tuned online-bench recovery recovery-scripted tower sim20k lint test test-fast bench clean
+.PHONY: install browser vulkan demo demo-bench demo-supervise demo-diagnosis demo-online reproduce reproduce-rows reproduce-more reproduce-grid16 reproduce-tower ablate reproduce-online reproduce-tuned report-tuned online-bench online-power recovery recovery-scripted tower sim20k lint test test-fast bench clean
 APT_STAMP := $(VENV)/.apt-stamp
 VULKAN_STAMP := $(VENV)/.vulkan-stamp
 BACKPORTS := /etc/apt/sources.list.d/bookworm-backports.sources
@@ -476,6 +476,24 @@ online-bench: $(STAMP)
 	@test -d $(VLM) || { echo "online-bench: no model $(VLM) (make reproduce, or VLM=<model dir>)" >&2; exit 2; }
 	for s in test val_both; do $(BIN)/labrobfail-evaluate mode=online model=$(VLM) dataset_dir=$(R)/dataset split=$$s \
 	  calibration=val max_trajectories=$(ONLINE_TRAJ) delta=$(ONLINE_DELTA) progress=false || exit 1; done
+	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
+
+# After make reproduce: the alarm's power test (docs/EXPERIMENTS.md, 7 Dec evening): POWER_SEEN episodes of new seen
+# pairs (from pair 100,000, so none is any split's or row's), made as make reproduce makes its own, built as one
+# all-test dataset and scored by the online bench without a model (the robot-signal monitors, majority, the
+# labeler), fitted on the recipe's train split and calibrated on its seen val: seen test's 515 successes and 10
+# spills and falls are too few for the targets' intervals. About 30 min of generation on 2 cores, then minutes.
+POWER_SEEN  ?= 6000
+POWER_FIRST := 100000
+online-power: $(STAMP)
+	@test -f $(R)/dataset/stats.json || { echo "online-power: run make reproduce first (no $(R)/dataset)" >&2; exit 2; }
+	$(call same_physics,online-power)
+	$(BIN)/labrobfail-generate $(REPRO_GEN) backend_kwargs.wrist=false num_episodes=$(POWER_SEEN) \
+	  first_pair=$(POWER_FIRST) out_dir=$(R)/shards/power
+	$(BIN)/labrobfail-build-dataset 'shards=[$(R)/shards/power]' out_dir=$(R)/dataset_power $(DEMO_GRID) \
+	  'views=[front,side]' 'ratios=[0,0,1]' progress=false
+	$(BIN)/labrobfail-evaluate mode=online dataset_dir=$(R)/dataset scored_dataset=$(R)/dataset_power split=test \
+	  calibration=val delta=$(ONLINE_DELTA) out_dir=$(R)/online_power progress=false
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 
 recovery: recovery-scripted online-bench

@@ -688,3 +688,63 @@ def test_the_majority_class_of_whole_grids_is_taken_from_whole_trajectories() ->
     assert got["t1_Q2"] == "Yes" and abs(got.p_failure["t1"] - 2 / 3) < 1e-9  # all six records: "No", rate 1/3
     assert [r["id"] for r in same_kind(train, train_traj, prefix, traj)] == [f"f1-p{k}_Q2" for k in range(3)]
     assert same_kind(train[:3], train_traj, prefix, traj) == train[:3]  # no prefixes to learn from: every record
+
+
+def _renamed_copy(src, dst, split: str) -> None:
+    """A dataset of `src`'s `split` trajectories under new names and pairs (as if drawn apart), its robot-signal
+    trace renamed alike."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    shutil.copytree(src, dst)
+    trajs = json.loads((dst / "trajectories.json").read_text())
+    keep = [
+        {**t, "trajectory": f"apart-{t['trajectory']}", "group": f"apart-{t['group']}"}
+        for t in trajs
+        if t["split"] == split and "prefix_of" not in t
+    ]
+    (dst / "trajectories.json").write_text(json.dumps(keep))
+    table = pq.read_table(dst / "robot_signals.parquet")
+    names = pa.array([f"apart-{n}" for n in table.column("trajectory").to_pylist()])
+    pq.write_table(
+        table.set_column(table.schema.get_field_index("trajectory"), "trajectory", names), dst / "robot_signals.parquet"
+    )
+
+
+def test_online_bench_scores_a_dataset_drawn_apart_with_the_fit_and_calibration_of_another(small_ds, tmp_path):  # noqa: F811
+    ds = tmp_path / "ds"  # as above: the small dataset's test trajectories named val as well, to calibrate on
+    shutil.copytree(small_ds, ds)
+    trajs = json.loads((ds / "trajectories.json").read_text())
+    trajs += [{**t, "split": "val"} for t in trajs if t["split"] == "test" and "prefix_of" not in t]
+    (ds / "trajectories.json").write_text(json.dumps(trajs))
+    apart = tmp_path / "apart"
+    _renamed_copy(small_ds, apart, "test")
+    argv = [cli("evaluate"), f"dataset_dir={ds}", "mode=online", "split=test", "calibration=val"]
+    assert run_here([*argv, f"out_dir={tmp_path / 'here'}"]).returncode == 0
+    r = run_here([*argv, f"scored_dataset={apart}", f"out_dir={tmp_path / 'there'}"])
+    assert r.returncode == 0, r.stderr[-2000:]
+    here, there = (json.loads((tmp_path / d / "online.json").read_text()) for d in ("here", "there"))
+    # the same trajectories under other names: the MLPs fitted on ds's train split, calibrated on its val, read alike
+    assert there["scored_dataset"] == str(apart) and "scored_dataset" not in here
+    assert there["rows"] == here["rows"] and there["trajectories"] == here["trajectories"]
+    assert "split test of apart, a dataset drawn apart" in (tmp_path / "there" / "online.md").read_text()
+    # refused in one line, nothing written: a scored dataset sharing a pair with dataset_dir, another grid, offline
+    shared = tmp_path / "shared"
+    shutil.copytree(small_ds, shared)
+    other_grid = tmp_path / "other_grid"
+    _renamed_copy(small_ds, other_grid, "test")
+    stats = json.loads((other_grid / "stats.json").read_text())
+    (other_grid / "stats.json").write_text(
+        json.dumps({**stats, "grid": {**stats["grid"], "width": 2 * stats["grid"]["width"]}})
+    )
+    for scored, extra, needle in (
+        (shared, [], "pairs are also in dataset_dir"),
+        (other_grid, [], "another grid"),
+        (tmp_path / "missing", [], "cannot read the dataset"),
+        (apart, ["mode=offline", "predictions=x.jsonl"], "mode=online only"),
+    ):
+        r = run_here([*argv, f"scored_dataset={scored}", f"out_dir={tmp_path / 'bad'}", *extra])
+        assert r.stderr.strip(), (scored, r.returncode, r.stdout[-500:])
+        last = r.stderr.strip().splitlines()[-1]
+        assert r.returncode == 2 and last.startswith("error: scored_dataset:") and needle in last, r.stderr[-800:]
+        assert "Traceback" not in r.stderr and not (tmp_path / "bad").exists()

@@ -524,6 +524,18 @@ def test_an_online_bench_alone_replaces_the_pages_and_carries_the_rest(tmp_path:
     assert _still_carried(nested, carried) == []  # a block a whole-page rewrite kept under it speaks for itself
     text = page.read_text()
     assert main([f"run={run}", f"out={page}", "sections=[supervision]"]) == 0 and page.read_text() == text
+    # make online-power's model-free bench of a block drawn apart joins the section after the model's benches
+    from scripts.write_results import POWER_LEAD
+
+    power = run / "online_power" / "online.json"
+    power.parent.mkdir()
+    power.write_text(
+        bench.read_text().replace('"split": "test"', '"split": "test", "scored_dataset": "r/dataset_power"')
+    )
+    assert main([f"run={run}", f"out={page}", "sections=[supervision]"]) == 0
+    section = page.read_text().split("## Supervision\n")[1]
+    assert section.index("`train/final`, eval_online_test:") < section.index(POWER_LEAD)
+    assert "split test of dataset_power, a dataset drawn apart (3 trajectories)" in section
 
 
 def test_the_tuned_model_is_spliced_with_its_sealed_runs_and_a_fresh_ledger_joins_the_page_list(tmp_path: Path) -> None:

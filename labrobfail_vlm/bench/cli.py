@@ -42,6 +42,8 @@ def _check_args(cfg: Any) -> None:
         raise ConfigError("dataset_dir: required")
     if not isinstance(cfg.split, str):
         raise ConfigError(f"split: expected one split's name (split=test), got {cfg.split!r}")
+    if cfg.scored_dataset is not None and cfg.mode != "online":
+        raise ConfigError("scored_dataset: mode=online only (the alarm fitted on dataset_dir, another dataset scored)")
     if cfg.executable.enabled and not cfg.executable.shards:  # before the model runs, not after
         raise ConfigError("executable.shards: name the shard folder(s) the dataset was built from")
     if cfg.max_trajectories is not None and (not isinstance(cfg.max_trajectories, int) or cfg.max_trajectories < 1):
@@ -399,8 +401,9 @@ def _online(cfg: Any) -> int:
     from labrobfail_vlm.bench.evaluate import count_sealed_run
 
     who = cfg.model or "robot-signal monitors"
-    for role, split in (("scored", cfg.split), ("calibration", cfg.calibration)):
-        count_sealed_run(cfg.dataset_dir, str(split), f"online, {role}: {who}", {})
+    scored_dir = cfg.scored_dataset or cfg.dataset_dir
+    for role, split, where in (("scored", cfg.split, scored_dir), ("calibration", cfg.calibration, cfg.dataset_dir)):
+        count_sealed_run(where, str(split), f"online, {role}: {who}", {})
     print(md)
     return 0
 

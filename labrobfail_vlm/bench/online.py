@@ -4,6 +4,8 @@ Run as:
     labrobfail-evaluate mode=online model=outputs/reproduce/train/final dataset_dir=outputs/reproduce/dataset \
         split=test calibration=val
     labrobfail-evaluate mode=online model=DIR dataset_dir=DIR split=val_both calibration=val max_trajectories=200
+    labrobfail-evaluate mode=online dataset_dir=outputs/reproduce/dataset \
+        scored_dataset=outputs/reproduce/dataset_power split=test out_dir=outputs/reproduce/online_power
 
 For every trajectory of `split` and of the `calibration` split, the model is asked Q2 on each prefix grid (the
 first k keyframes shown, k = 1..F; the later cells blank, as labrobfail_data builds prefix grids) and its P(failure)
@@ -32,6 +34,9 @@ draws; with `delta=`, with probability 1 - delta over the draw), then run on `sp
   out: its threshold is +inf, written null);
 - the CPU time of one alarm check (one prefix grid's Q2);
 - which row to report, chosen on the calibration split alone by cross-fitting (online_choice.py).
+With `scored_dataset=`, `split` is read from that dataset (episodes drawn apart, e.g. `make online-power`'s block of
+new seen pairs; built with the same grid, sharing no pair with dataset_dir), while the MLPs' training and the
+calibration stay dataset_dir's.
 Writes out_dir/online.json and out_dir/auroc_by_keyframe.png (out_dir: MODEL/eval_online_SPLIT by default); the
 CLI adds online.md, the tables of online_page.py.
 """
@@ -111,6 +116,26 @@ def trajectories(dataset: Path, split: str, limit: int | None) -> list[dict[str,
     if not out:
         raise ConfigError(f"split: {split!r} has no trajectories in {dataset}")
     return out[:limit] if limit else out
+
+
+def scored_apart(cfg: Any, dataset: Path, grid: GridConfig) -> Path | None:
+    """`scored_dataset`, checked: built with dataset_dir's grid and sharing no pair with it (a shared pair would be a
+    trajectory the MLPs were fitted or the alarm calibrated on, or its twin); None when unset or dataset_dir itself."""
+    raw = cfg.get("scored_dataset")
+    if raw is None or Path(str(raw)).resolve() == dataset.resolve():
+        return None
+    other = Path(str(raw))
+    try:
+        stats = json.loads((other / "stats.json").read_text())
+        theirs = {t.get("group", t["trajectory"]) for t in json.loads((other / "trajectories.json").read_text())}
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ConfigError(f"scored_dataset: cannot read the dataset in {other} ({type(e).__name__}: {e})") from None
+    if GridConfig.from_dict(stats.get("grid", {})) != grid:
+        raise ConfigError(f"scored_dataset: {other} was built with another grid than dataset_dir's")
+    ours = {t.get("group", t["trajectory"]) for t in json.loads((dataset / "trajectories.json").read_text())}
+    if shared := sorted(ours & theirs):
+        raise ConfigError(f"scored_dataset: {len(shared)} pairs are also in dataset_dir ({shared[0]}, ...)")
+    return other
 
 
 def score_prefixes(
@@ -325,7 +350,7 @@ def auroc_png(curves: dict[str, list[float | None]], title: str, path: Path) -> 
 
 
 def dense_rows(
-    dataset: Path,
+    dirs: tuple[Path, Path],
     train_t: Sequence[dict[str, Any]],
     cal: tuple[Sequence[dict[str, Any]], Sequence[list[float]] | None],
     ev: tuple[Sequence[dict[str, Any]], Sequence[list[float]] | None],
@@ -339,10 +364,12 @@ def dense_rows(
     model when there is one (its score stands from one grid frame to the next; one pair row per model's share of
     alpha in `shares`): adds their rows and curve (and their calibration scores to `cands`), returns the CPU seconds
     of one dense check, every alarm calibrated with `delta` (alarm_rows). Nothing for a dataset built without the
-    dense file (before 3 Dec)."""
+    dense file (before 3 Dec). Train and calibration tables are read from dirs[0], the scored ones from dirs[1]."""
     cands = {} if cands is None else cands
     (cal_t, cal_s), (ev_t, ev_s) = cal, ev
-    tables = robot_baseline.read_dense(dataset, [t["trajectory"] for t in (*train_t, *cal_t, *ev_t)])
+    ours = robot_baseline.read_dense(dirs[0], [t["trajectory"] for t in (*train_t, *cal_t)])
+    theirs = robot_baseline.read_dense(dirs[1], [t["trajectory"] for t in ev_t])
+    tables = None if ours is None or theirs is None else ours | theirs
     if tables is None or not all(t.get("frame_times_s") for t in (*cal_t, *ev_t)):
         return {}
     fitted = robot_baseline.fit_dense(train_t, tables)
@@ -368,14 +395,22 @@ def dense_rows(
 
 
 def model_rows(
-    fa: Any, dataset: Path, grid: GridConfig, cal_t: list, ev_t: list, rows: dict, curves: dict, delta: float | None
+    fa: Any,
+    dirs: tuple[Path, Path],
+    grid: GridConfig,
+    cal_t: list,
+    ev_t: list,
+    rows: dict,
+    curves: dict,
+    delta: float | None,
 ) -> tuple:
-    """The model's and the blind model's rows and curves (added to `rows`, `curves`); returns the model's running
-    scores of the calibration and scored trajectories and the CPU seconds of one check."""
-    cal, _ = score_prefixes(fa, dataset, cal_t, grid)
-    ev, cpu = score_prefixes(fa, dataset, ev_t, grid)
-    bcal, _ = score_prefixes(fa, dataset, cal_t, grid, blind=True)
-    bev, _ = score_prefixes(fa, dataset, ev_t, grid, blind=True)
+    """The model's and the blind model's rows and curves (added to `rows`, `curves`), the calibration trajectories'
+    grids read from dirs[0] and the scored ones' from dirs[1]; returns the model's running scores of the calibration
+    and scored trajectories and the CPU seconds of one check."""
+    cal, _ = score_prefixes(fa, dirs[0], cal_t, grid)
+    ev, cpu = score_prefixes(fa, dirs[1], ev_t, grid)
+    bcal, _ = score_prefixes(fa, dirs[0], cal_t, grid, blind=True)
+    bev, _ = score_prefixes(fa, dirs[1], ev_t, grid, blind=True)
     rows["model"] = alarm_rows([cal], cal_t, [ev], ev_t, delta=delta)
     rows["blind (grey grid)"] = alarm_rows([bcal], cal_t, [bev], ev_t, delta=delta)
     curves |= {"model": auroc_by_keyframe(ev, ev_t), "blind (grey grid)": auroc_by_keyframe(bev, ev_t)}
@@ -390,11 +425,13 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
     dataset = Path(str(cfg.dataset_dir))
     stats = json.loads((dataset / "stats.json").read_text())
     grid = GridConfig(**stats["grid"])
-    if cfg.calibration == cfg.split:
+    apart = scored_apart(cfg, dataset, grid)
+    if cfg.calibration == cfg.split and apart is None:
         raise ConfigError("calibration: must be another split than the one scored (split conformal)")
+    dirs = (dataset, apart or dataset)
     limit = cfg.get("max_trajectories")
     delta = check_delta(cfg.get("delta"))
-    cal_t, ev_t = trajectories(dataset, str(cfg.calibration), limit), trajectories(dataset, str(cfg.split), limit)
+    cal_t, ev_t = trajectories(dataset, str(cfg.calibration), limit), trajectories(dirs[1], str(cfg.split), limit)
     rows: dict[str, Any] = {
         "majority class": {str(a): {"false_alarm_rate": 0.0, "detection_rate": 0.0} for a in ALPHAS}
     }
@@ -403,7 +440,7 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
     extra: dict[str, Any] = {"cpu_s_per_check": None}
     cands: dict[str, Candidate] = {}  # the alarms the report's row is chosen from (online_choice; not the blind model)
     if fa is not None:
-        cal, ev, cpu = model_rows(fa, dataset, grid, cal_t, ev_t, rows, curves, delta)
+        cal, ev, cpu = model_rows(fa, dirs, grid, cal_t, ev_t, rows, curves, delta)
         cands["model"] = Candidate([cal])
         rows = {"model": rows.pop("model"), **rows}  # the model's rows first, as the page reads them
         extra["cpu_s_per_check"] = round(cpu, 4)
@@ -420,7 +457,7 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
             cands[EITHER] = Candidate([cal, rcal])
         curves[ROBOT] = auroc_by_keyframe(rev, ev_t)
         shares = check_pair_shares(cfg.get("pair_shares"))
-        extra |= dense_rows(dataset, train_t, (cal_t, cal), (ev_t, ev), rows, curves, shares, cands, delta)
+        extra |= dense_rows(dirs, train_t, (cal_t, cal), (ev_t, ev), rows, curves, shares, cands, delta)
     if fa is None and ROBOT not in rows:
         raise ConfigError(
             "mode=online without model=: the dataset has no robot signals to fit on the train split (built before "
@@ -429,6 +466,7 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
     rows[LABELER] = ceiling(ev_t)
     res = {
         "split": str(cfg.split),
+        **({} if apart is None else {"scored_dataset": str(apart)}),  # the scored split is another dataset's
         "calibration": str(cfg.calibration),
         "trajectories": len(ev_t),
         "calibration_successes": sum(t["success"] for t in cal_t),

@@ -6,6 +6,7 @@ version of the bench reads the same.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from labrobfail_vlm.bench.online import ALPHAS, LABELER, bound_check
@@ -29,7 +30,7 @@ def online_md(res: dict[str, Any]) -> list[str]:
     irreversible event (its exact 95 % interval, of how many such failures). "bound p": the false alarms' bound
     check (under 0.05: these successes are not exchangeable with the calibration ones)."""
     out = [
-        f"Online bench, split {res['split']} ({res['trajectories']} trajectories), alarm calibrated on "
+        f"Online bench, split {res['split']}{_apart(res)} ({res['trajectories']} trajectories), alarm calibrated on "
         f"{res['calibration_successes']} successes of {res['calibration']}{_guarantee(res)}; CPU per check: "
         f"{_checks(res)}.",
         "",
@@ -116,6 +117,12 @@ def _left_out(rows: dict[str, Any]) -> str:
         if at:
             parts.append(f"{name} at alpha {', '.join(at)}")
     return "; ".join(parts) + "." if parts else ""
+
+
+def _apart(res: dict[str, Any]) -> str:
+    """Where the scored split came from when it is not the calibration's dataset (scored_dataset=)."""
+    d = res.get("scored_dataset")
+    return "" if d is None else f" of {Path(d).name}, a dataset drawn apart"
 
 
 def _guarantee(res: dict[str, Any]) -> str:
