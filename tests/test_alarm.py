@@ -212,13 +212,15 @@ def test_the_share_caught_before_an_irreversible_event_carries_its_exact_interva
     assert timing([None], [{**fail, "irreversible_s": None}])["caught_before_irreversible_ci"] is None
     assert timing([1.5], [fail])["caught_before_by_event"] == {"unknown": [1, 1]}  # a dataset without kinds
     frames_at = {"latency_frames_median": 0, "latency_frames_p90": 1, "caught_by_onset": 0.0}
+    # false alarms from their count (2 of 40), detection from a JSON without one (its rate times n: 5 of 9)
+    rates = {"false_alarm_rate": 0.05, "false_alarms": 2, "successes": 40, "detection_rate": 0.5556, "failures": 9}
     res = {
         "split": "test",
         "trajectories": 10,
         "calibration_successes": 40,
         "calibration": "val",
         "rows": {
-            "robot signals (MLP)": {"0.05": {**got, "false_alarm_rate": 0.0, "detection_rate": 1.0, **frames_at}},
+            "robot signals (MLP)": {"0.05": {**got, **rates, **frames_at}},
             "labeler on live state (ceiling)": {**top, "false_alarm_rate": 0.0},
         },
     }
@@ -227,9 +229,14 @@ def test_the_share_caught_before_an_irreversible_event_carries_its_exact_interva
     assert line[0].endswith("| 66.7 [29.9, 92.5] (of 9) |"), line
     line = [x for x in page if x.startswith("| robot signals (MLP) | 0.05 |")]
     assert line and line[0].endswith("| 55.6 [21.2, 86.3] (of 9) |"), line
-    assert page[page.index("| row | spill | breakage |") + 2 :] == [
-        "| robot signals (MLP) | 0 of 3 | 5 of 6 |",
-        "| labeler on live state (ceiling) | 0 of 3 | 6 of 6 |",
+    assert (
+        line[0].startswith("| robot signals (MLP) | 0.05 | 5.0 [0.6, 16.9] | ")
+        and "| 55.6 [21.2, 86.3] | 0 / 1 |" in line[0]
+    )
+    # the spills and falls pooled (the target's figure), 0 of 3 with its exact interval [0, 1 - 0.025 ** (1 / 3)]
+    assert page[page.index("| row | spill | breakage | spills and falls (%) |") + 2 :] == [
+        "| robot signals (MLP) | 0 of 3 | 5 of 6 | 0.0 [0.0, 70.8] (0 of 3) |",
+        "| labeler on live state (ceiling) | 0 of 3 | 6 of 6 | 0.0 [0.0, 70.8] (0 of 3) |",
     ]
 
 

@@ -712,6 +712,8 @@ def _renamed_copy(src, dst, split: str) -> None:
 
 
 def test_online_bench_scores_a_dataset_drawn_apart_with_the_fit_and_calibration_of_another(small_ds, tmp_path):  # noqa: F811
+    from labrobfail_vlm.bench.online import ROBOT
+
     ds = tmp_path / "ds"  # as above: the small dataset's test trajectories named val as well, to calibrate on
     shutil.copytree(small_ds, ds)
     trajs = json.loads((ds / "trajectories.json").read_text())
@@ -728,6 +730,9 @@ def test_online_bench_scores_a_dataset_drawn_apart_with_the_fit_and_calibration_
     assert there["scored_dataset"] == str(apart) and "scored_dataset" not in here
     assert there["rows"] == here["rows"] and there["trajectories"] == here["trajectories"]
     assert "split test of apart, a dataset drawn apart" in (tmp_path / "there" / "online.md").read_text()
+    for row in there["rows"][ROBOT].values():  # the counts the page's exact intervals are drawn from
+        assert row["false_alarm_rate"] == round(row["false_alarms"] / row["successes"], 4)
+        assert row["detection_rate"] == round(row["detected"] / row["failures"], 4)
     # refused in one line, nothing written: a scored dataset sharing a pair with dataset_dir, another grid, offline
     shared = tmp_path / "shared"
     shutil.copytree(small_ds, shared)

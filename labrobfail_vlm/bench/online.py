@@ -211,10 +211,13 @@ def summarise(when: Sequence[tuple[int | None, float | None]], ev_trajs: Sequenc
     ok = [f for f, t in zip(frames, ev_trajs) if t["success"]]
     lat = [f + 1 - int(t["frame"]) for f, t in zip(frames, ev_trajs) if not t["success"] and f is not None]
     fails = sum(not t["success"] for t in ev_trajs)
+    alarms = sum(f is not None for f in ok)
     return {
-        "false_alarm_rate": _share(sum(f is not None for f in ok), len(ok)),
+        "false_alarm_rate": _share(alarms, len(ok)),
+        "false_alarms": alarms,
         "successes": len(ok),
         "detection_rate": _share(len(lat), fails),
+        "detected": len(lat),
         "failures": fails,
         "latency_frames_median": float(np.median(lat)) if lat else None,
         "latency_frames_p90": float(np.percentile(lat, 90)) if lat else None,
@@ -310,10 +313,7 @@ def _before_irreversible(caught: list[tuple[bool, dict[str, Any]]]) -> dict[str,
     90 without an interval; each is the failure of its own pair (a success twin has no event), so the failures are
     independent draws and a binomial interval needs no resampling by pair. The interval is given the calibrated
     threshold: it leaves out the calibration draw's own variation."""
-    from scipy.stats import binomtest
-
     early, n = sum(c for c, _ in caught), len(caught)
-    ci = binomtest(early, n).proportion_ci(0.95, method="exact") if n else None
     kinds: dict[str, list[int]] = {}
     for c, t in caught:  # a dataset built before the event's kind was kept says "unknown"
         tally = kinds.setdefault(str(t.get("irreversible_event") or "unknown"), [0, 0])
@@ -322,13 +322,23 @@ def _before_irreversible(caught: list[tuple[bool, dict[str, Any]]]) -> dict[str,
     return {
         "irreversible_failures": n,
         "caught_before_irreversible": _share(early, n),
-        "caught_before_irreversible_ci": None if ci is None else [round(ci.low, 4), round(ci.high, 4)],
+        "caught_before_irreversible_ci": exact_ci(early, n),
         "caught_before_by_event": dict(sorted(kinds.items())),
     }
 
 
 def _share(k: int, n: int) -> float | None:
     return round(k / n, 4) if n else None
+
+
+def exact_ci(k: int, n: int) -> list[float] | None:
+    """The exact (Clopper-Pearson) 95 % interval of k in n, rounded as the bench's shares are; None when n is 0."""
+    from scipy.stats import binomtest
+
+    if not n:
+        return None
+    ci = binomtest(k, n).proportion_ci(0.95, method="exact")
+    return [round(ci.low, 4), round(ci.high, 4)]
 
 
 def auroc_png(curves: dict[str, list[float | None]], title: str, path: Path) -> None:

@@ -9,7 +9,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from labrobfail_vlm.bench.online import ALPHAS, LABELER, bound_check
+from labrobfail_vlm.bench.online import ALPHAS, LABELER, bound_check, exact_ci
+from labrobfail_vlm.bench.online_choice import GRAVE
 
 
 def _pct(x: float | None) -> str:
@@ -27,7 +28,7 @@ def _num(x: float | None) -> str:
 def online_md(res: dict[str, Any]) -> list[str]:
     """The bench's table: per row and alpha, false alarms on successes against alpha, detection, latency from the
     onset (grid frames and sim seconds: median / 90th percentile), caught at the onset frame and before an
-    irreversible event (its exact 95 % interval, of how many such failures). "bound p": the false alarms' bound
+    irreversible event (of how many such failures); brackets: exact 95 % intervals. "bound p": the false alarms' bound
     check (under 0.05: these successes are not exchangeable with the calibration ones)."""
     out = [
         f"Online bench, split {res['split']}{_apart(res)} ({res['trajectories']} trajectories), alarm calibrated on "
@@ -45,9 +46,12 @@ def online_md(res: dict[str, Any]) -> list[str]:
                     continue
                 alpha = "any"
             grave = _grave(r)
+            fa, det = (
+                _rate(r, "false_alarm_rate", "false_alarms", "successes"),
+                _rate(r, "detection_rate", "detected", "failures"),
+            )
             out.append(
-                f"| {name} | {alpha} | {_pct(r['false_alarm_rate'])} | {_p(bound_check(r))} | "
-                f"{_pct(r['detection_rate'])} | "
+                f"| {name} | {alpha} | {fa} | {_p(bound_check(r))} | {det} | "
                 f"{_num(r.get('latency_frames_median'))} / {_num(r.get('latency_frames_p90'))} | "
                 f"{_num(r.get('latency_s_median'))} / {_num(r.get('latency_s_p90'))} | "
                 f"{_pct(r.get('caught_by_onset'))} | {grave} |"
@@ -78,18 +82,41 @@ def _by_event_md(rows: dict[str, Any]) -> list[str]:
         return []
     rank = {k: i for i, k in enumerate(EVENT_ORDER)}
     kinds = sorted({k for r in at.values() for k in r}, key=lambda k: (rank.get(k, len(rank)), k))
+    grave = [k for k in kinds if k in GRAVE]
+    pooled = ["spills and falls (%)"] if grave else []  # the target's own figure, with its interval
     return [
         "",
         f"Caught before the irreversible event, by kind (caught of such failures), at alpha {BY_EVENT_ALPHA}:",
         "",
-        "| row | " + " | ".join(k.replace("_", " ") for k in kinds) + " |",
-        "|---|" + "---|" * len(kinds),
-        *(f"| {n} | " + " | ".join(_of(r.get(k)) for k in kinds) + " |" for n, r in at.items()),
+        "| row | " + " | ".join([*(k.replace("_", " ") for k in kinds), *pooled]) + " |",
+        "|---|" + "---|" * (len(kinds) + len(pooled)),
+        *(
+            f"| {n} | " + " | ".join([*(_of(r.get(k)) for k in kinds), *(_pooled(r, grave) for _ in pooled)]) + " |"
+            for n, r in at.items()
+        ),
     ]
+
+
+def _pooled(by_event: dict[str, list[int]], kinds: list[str]) -> str:
+    """The share of `kinds`' failures caught before their event, with its exact 95 % interval and of how many."""
+    k, n = (sum(by_event.get(e, [0, 0])[i] for e in kinds) for i in (0, 1))
+    ci = exact_ci(k, n)
+    return "-" if ci is None else f"{_pct(k / n)} [{_pct(ci[0])}, {_pct(ci[1])}] ({k} of {n})"
 
 
 def _of(tally: list[int] | None) -> str:
     return "-" if not tally else f"{tally[0]} of {tally[1]}"
+
+
+def _rate(r: dict[str, Any], rate_key: str, count_key: str, of: str) -> str:
+    """A rate (false alarms of successes, detection of failures) with its exact 95 % interval. The count is the
+    JSON's (from 7 Dec evening); before, the rate times n, which its 4 decimals give exactly below n = 10,000. No
+    interval for a row without n (the majority class, the ceiling)."""
+    rate, k, n = r.get(rate_key), r.get(count_key), r.get(of)
+    if k is None and rate is not None and n and n < 10_000:
+        k = round(rate * n)
+    ci = exact_ci(k, n) if k is not None and n else None
+    return _pct(rate) + ("" if ci is None else f" [{_pct(ci[0])}, {_pct(ci[1])}]")
 
 
 def _grave(r: dict[str, Any]) -> str:
