@@ -483,17 +483,22 @@ online-bench: $(STAMP)
 # all-test dataset and scored by the online bench without a model (the robot-signal monitors, majority, the
 # labeler), fitted on the recipe's train split and calibrated on its seen val: seen test's 515 successes and 10
 # spills and falls are too few for the targets' intervals. About 30 min of generation on 2 cores, then minutes.
+# A second block (7 Dec late evening): POWER_FIRST=103000 POWER_NAME=power2 (its pairs after the first block's 3,000).
 POWER_SEEN  ?= 6000
-POWER_FIRST := 100000
+POWER_FIRST ?= 100000
+POWER_NAME  ?= power
+ifeq ($(filter power%,$(POWER_NAME)),)
+$(error POWER_NAME starts with power (the page reads online_power*), not '$(POWER_NAME)')
+endif
 online-power: $(STAMP)
 	@test -f $(R)/dataset/stats.json || { echo "online-power: run make reproduce first (no $(R)/dataset)" >&2; exit 2; }
 	$(call same_physics,online-power)
 	$(BIN)/labrobfail-generate $(REPRO_GEN) backend_kwargs.wrist=false num_episodes=$(POWER_SEEN) \
-	  first_pair=$(POWER_FIRST) out_dir=$(R)/shards/power
-	$(BIN)/labrobfail-build-dataset 'shards=[$(R)/shards/power]' out_dir=$(R)/dataset_power $(DEMO_GRID) \
+	  first_pair=$(POWER_FIRST) out_dir=$(R)/shards/$(POWER_NAME)
+	$(BIN)/labrobfail-build-dataset 'shards=[$(R)/shards/$(POWER_NAME)]' out_dir=$(R)/dataset_$(POWER_NAME) $(DEMO_GRID) \
 	  'views=[front,side]' 'ratios=[0,0,1]' progress=false
-	$(BIN)/labrobfail-evaluate mode=online dataset_dir=$(R)/dataset scored_dataset=$(R)/dataset_power split=test \
-	  calibration=val delta=$(ONLINE_DELTA) out_dir=$(R)/online_power progress=false
+	$(BIN)/labrobfail-evaluate mode=online dataset_dir=$(R)/dataset scored_dataset=$(R)/dataset_$(POWER_NAME) \
+	  split=test calibration=val delta=$(ONLINE_DELTA) out_dir=$(R)/online_$(POWER_NAME) progress=false
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
 
 recovery: recovery-scripted online-bench

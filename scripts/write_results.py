@@ -146,7 +146,7 @@ SECTIONS = {
         "block 10000-10099); the line above its table names the model and when it was asked (`actft`: "
         "the model above taught one more epoch with the pour ACT's own rollouts, labeled by the labeler, for the ACT "
         "pour cell; chosen on the development block, docs/EXPERIMENTS.md 2 Dec).",
-        ("online", "recovery", "train/final/eval_online_*", "online_power"),
+        ("online", "recovery", "train/final/eval_online_*", "online_power*"),
     ),
 }
 # the sections of rows made by hand (page.BY_HAND): each a lit_table of its one folder, never named as not run
@@ -438,10 +438,11 @@ def _splice_ledger(run: Path, parts: list[list[str]]) -> bool:
 
 def _ran(run: Path, folder: str) -> bool:
     """Whether a section's run folder holds results: `make recovery`'s tables, an online bench of the main model
-    (`make online-bench`) or a model-free one (`make online-power`), or a bench of the seen test split."""
+    (`make online-bench`) or a model-free one (`make online-power`: online_power*), or a bench of the seen test
+    split."""
     if folder == "recovery":
         return bool(recovery_files(run))
-    if "*" in folder or folder == "online_power":
+    if "*" in folder:
         return any(run.glob(f"{folder}/online.json"))
     return bool(run_evals(run / folder, ("test",)))
 
@@ -478,9 +479,9 @@ ONLINE_GUARANTEE = (
 
 
 POWER_LEAD = (
-    "`make online-power` (no model): the robot-signal monitors on a block of new seen pairs (from pair 100,000, in no "
-    "split), fitted on the train split and calibrated on seen val as above, scored once for the alarm issue's "
-    "targets by their intervals (docs/EXPERIMENTS.md, 7 Dec evening):"
+    "`make online-power` (no model): the robot-signal monitors on a block of new seen pairs (numbered from 100,000 "
+    "up, in no split), fitted on the train split and calibrated on seen val as above, scored once for the alarm "
+    "issue's targets by their intervals (docs/EXPERIMENTS.md, 7 Dec evening),"
 )
 
 
@@ -499,8 +500,8 @@ def online_benches(run: Path) -> list[str]:
             key=lambda p: (p.parent.name != "eval_online_test", p.parent.name),
         ):
             out += [f"`{model}/final`, {f.parent.name}:", "", *online_md(json.loads(f.read_text())), ""]
-    if (power := run / "online_power" / "online.json").is_file():
-        out += [POWER_LEAD, "", *online_md(json.loads(power.read_text())), ""]
+    for power in sorted(run.glob("online_power*/online.json")):
+        out += [f"{POWER_LEAD} `{power.parent.name}`:", "", *online_md(json.loads(power.read_text())), ""]
     return [ONLINE_GUARANTEE, "", *out] if out else []
 
 

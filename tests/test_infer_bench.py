@@ -540,7 +540,7 @@ def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, smal
     assert r.returncode == 2 and "calibration: must be another split" in r.stderr, r.stderr
     # calibrated on another split than train, the robot-signal MLP (fitted on train) runs per grid frame and at every
     # trace sample; the small dataset has no val pair, so a copy names its test trajectories val as well (plumbing)
-    from labrobfail_vlm.bench.online import DENSE, DENSE_EITHER, EITHER, LABELER, ROBOT, pair_name
+    from labrobfail_vlm.bench.online import DENSE, DENSE_EITHER, EITHER, LABELER, ROBOT, ROBOT_PAIR, pair_name
 
     ds = tmp_path / "ds"
     shutil.copytree(small_ds, ds)
@@ -573,7 +573,14 @@ def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, smal
     argv = [cli("evaluate"), f"dataset_dir={ds}", "mode=online", "split=test", "calibration=val"]
     assert run_here([*argv, f"out_dir={alone}"]).returncode == 0
     robot = json.loads((alone / "online.json").read_text())
-    assert list(robot["rows"]) == ["majority class", ROBOT, DENSE, "labeler on live state (ceiling)"]
+    assert list(robot["rows"]) == ["majority class", ROBOT, DENSE, ROBOT_PAIR, "labeler on live state (ceiling)"]
+    # the two MLPs paired: either sounds, each at half of alpha, so at most the sum of their false alarms at alpha/2
+    for a in ("0.1", "0.2"):
+        row = robot["rows"][ROBOT_PAIR][a]
+        assert row["alphas"] == [float(a) / 2] * 2 and row["bound_p"] == bound_check(row)
+        assert row["detection_rate"] >= max(
+            robot["rows"][m][str(float(a) / 2)]["detection_rate"] for m in (ROBOT, DENSE)
+        )
     assert robot["rows"][DENSE] == res["rows"][DENSE] and robot["cpu_s_per_check"] is None
     r = run_here(argv)
     assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].endswith(

@@ -534,7 +534,7 @@ def test_an_online_bench_alone_replaces_the_pages_and_carries_the_rest(tmp_path:
     )
     assert main([f"run={run}", f"out={page}", "sections=[supervision]"]) == 0
     section = page.read_text().split("## Supervision\n")[1]
-    assert section.index("`train/final`, eval_online_test:") < section.index(POWER_LEAD)
+    assert section.index("`train/final`, eval_online_test:") < section.index(f"{POWER_LEAD} `online_power`:")
     assert "split test of dataset_power, a dataset drawn apart (3 trajectories)" in section
 
 

@@ -26,8 +26,9 @@ draws; with `delta=`, with probability 1 - delta over the draw), then run on `sp
   the model or the MLP (Sentinel's pairing of a cheap detector with a VLM: either alarm, each calibrated at
   alpha / 2, so the pair keeps the bound; alarm.AnyAlarm), and the labeler on live state (the ceiling: it alarms
   at the onset frame, never on a success);
-- the same MLP checked at every sample of the state trace (40 Hz in PyBullet; datasets built from 3 Dec), alone
-  and paired with the model, whose score stands from one grid frame to the next: an alarm between two frames can
+- the same MLP checked at every sample of the state trace (40 Hz in PyBullet; datasets built from 3 Dec), alone,
+  paired with the per-frame MLP (halves of alpha) and with the model, whose score stands from one grid frame to the
+  next: an alarm between two frames can
   sound before an event that follows its onset within a keyframe (SAFE checks at every step); its latency in
   frames counts to the first grid frame taken once it sounded; one pair row per model's share of alpha in
   `pair_shares` (the MLP has the rest; a level under 1 / (n + 1) of the n calibration successes leaves its monitor
@@ -63,6 +64,7 @@ ROBOT = "robot signals (MLP)"
 EITHER = "model or robot signals (alpha/2 each)"
 DENSE = "robot signals, every trace sample (MLP)"
 DENSE_EITHER = "model or robot signals, every sample (alpha/2 each)"
+ROBOT_PAIR = "robot signals per grid frame or every sample (alpha/2 each)"
 
 
 def pair_name(share: float) -> str:
@@ -369,12 +371,14 @@ def dense_rows(
     shares: Sequence[float] = (0.5,),
     cands: dict[str, Candidate] | None = None,
     delta: float | None = None,
+    frame_mlp: tuple[Sequence[list[float]], Sequence[list[float]]] | None = None,
 ) -> dict[str, Any]:
-    """The robot-signal MLP checked at every trace sample (robot_baseline.DENSE_FILE), alone and paired with the
-    model when there is one (its score stands from one grid frame to the next; one pair row per model's share of
-    alpha in `shares`): adds their rows and curve (and their calibration scores to `cands`), returns the CPU seconds
-    of one dense check, every alarm calibrated with `delta` (alarm_rows). Nothing for a dataset built without the
-    dense file (before 3 Dec). Train and calibration tables are read from dirs[0], the scored ones from dirs[1]."""
+    """The robot-signal MLP checked at every trace sample (robot_baseline.DENSE_FILE), alone, paired with the
+    per-frame MLP (`frame_mlp`: its calibration and scored running scores; halves of alpha) and with the model when
+    there is one (one pair row per model's share of alpha in `shares`; a per-frame score stands from one grid frame
+    to the next): adds their rows and curve (and their calibration scores to `cands`), returns the CPU seconds of one
+    dense check, every alarm calibrated with `delta` (alarm_rows). Nothing for a dataset built without the dense file
+    (before 3 Dec). Train and calibration tables are read from dirs[0], the scored ones from dirs[1]."""
     cands = {} if cands is None else cands
     (cal_t, cal_s), (ev_t, ev_s) = cal, ev
     ours = robot_baseline.read_dense(dirs[0], [t["trajectory"] for t in (*train_t, *cal_t)])
@@ -392,16 +396,35 @@ def dense_rows(
     ev_ax = [np.round(tables[t["trajectory"]][:, 0], 4) for t in ev_t]
     rows[DENSE] = alarm_rows([dcal], cal_t, [dev], ev_t, ev_ax, delta=delta)
     cands[DENSE] = Candidate([dcal], cal_ax)
+    both = ((cal_t, ev_t), (cal_ax, ev_ax))
+    if frame_mlp is not None:  # two cheap monitors: one reads each grid frame's prefix, one every trace sample
+        rows[ROBOT_PAIR], cands[ROBOT_PAIR] = _with_dense(frame_mlp, (dcal, dev), *both, 0.5, delta)
     if cal_s is not None and ev_s is not None:
-        mcal = [on_axis(s, t["frame_times_s"], a) for s, t, a in zip(cal_s, cal_t, cal_ax)]
-        mev = [on_axis(s, t["frame_times_s"], a) for s, t, a in zip(ev_s, ev_t, ev_ax)]
         for share in shares:
-            pair = (share, 1 - share)
-            rows[pair_name(share)] = alarm_rows([mcal, dcal], cal_t, [mev, dev], ev_t, ev_ax, pair, delta)
-            cands[pair_name(share)] = Candidate([mcal, dcal], cal_ax, pair)
+            rows[pair_name(share)], cands[pair_name(share)] = _with_dense(
+                (cal_s, ev_s), (dcal, dev), *both, share, delta
+            )
     at_frames = [d[np.searchsorted(a, t["frame_times_s"])] for d, a, t in zip(dev, ev_ax, ev_t)]
     curves[DENSE] = auroc_by_keyframe([list(map(float, x)) for x in at_frames], ev_t)
     return {"cpu_s_per_dense_check": float(f"{cpu:.3g}")}
+
+
+def _with_dense(
+    per_frame: tuple[Sequence[list[float]], Sequence[list[float]]],
+    dense: tuple[list[np.ndarray], list[np.ndarray]],
+    trajs: tuple[Sequence[dict[str, Any]], Sequence[dict[str, Any]]],
+    axes: tuple[list[np.ndarray], list[np.ndarray]],
+    share: float,
+    delta: float | None,
+) -> tuple[dict[str, Any], Candidate]:
+    """A per-grid-frame monitor (its calibration and scored running scores) paired with the every-sample MLP, at
+    `share` of alpha to the first: either sounds (alarm.AnyAlarm, one bound). Its rows and its candidate."""
+    (cal_t, ev_t), (cal_ax, ev_ax) = trajs, axes
+    fcal = [on_axis(s, t["frame_times_s"], a) for s, t, a in zip(per_frame[0], cal_t, cal_ax)]
+    fev = [on_axis(s, t["frame_times_s"], a) for s, t, a in zip(per_frame[1], ev_t, ev_ax)]
+    pair = (share, 1 - share)
+    rows = alarm_rows([fcal, dense[0]], cal_t, [fev, dense[1]], ev_t, ev_ax, pair, delta)
+    return rows, Candidate([fcal, dense[0]], cal_ax, pair)
 
 
 def model_rows(
@@ -467,7 +490,7 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
             cands[EITHER] = Candidate([cal, rcal])
         curves[ROBOT] = auroc_by_keyframe(rev, ev_t)
         shares = check_pair_shares(cfg.get("pair_shares"))
-        extra |= dense_rows(dirs, train_t, (cal_t, cal), (ev_t, ev), rows, curves, shares, cands, delta)
+        extra |= dense_rows(dirs, train_t, (cal_t, cal), (ev_t, ev), rows, curves, shares, cands, delta, (rcal, rev))
     if fa is None and ROBOT not in rows:
         raise ConfigError(
             "mode=online without model=: the dataset has no robot signals to fit on the train split (built before "
