@@ -156,7 +156,7 @@ def test_a_monitor_checked_between_frames_sounds_before_an_event_the_frames_miss
     irreversible event (1.6 s). A per-frame monitor can sound at 2 s at the earliest, after the event; one checked
     every 0.1 s sounds at 1.5 s, before it. The model's per-frame score placed on the trace's times stands from
     one frame to the next and keeps its calibration (same maxima)."""
-    from labrobfail_vlm.bench.online import alarm_rows, on_axis, sounded
+    from labrobfail_vlm.bench.online_alarm import alarm_rows, on_axis, sounded
 
     frames = [1.0, 2.0, 3.0]
     axis = np.round(np.arange(1, 31) / 10, 4)  # 0.1 .. 3.0 s
@@ -193,7 +193,7 @@ def test_the_share_caught_before_an_irreversible_event_carries_its_exact_interva
     at 2 s: 5 of 9 with its Clopper-Pearson 95 % interval [0.212, 0.863] (a known table), in the JSON and on the
     page's line, and per kind; the ceiling (the labeler at each onset: 1.4 s in the breakages, 1.6 s, the spill
     itself, in the spills) reads 6 of 9 [0.299, 0.925], none of the spills; no such failure, no interval."""
-    from labrobfail_vlm.bench.online import ceiling, timing
+    from labrobfail_vlm.bench.online_alarm import ceiling, timing
     from labrobfail_vlm.bench.online_page import online_md
 
     frames = [1.0, 2.0, 3.0]

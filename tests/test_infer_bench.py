@@ -520,7 +520,7 @@ def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, smal
         f"model={tiny}", small_ds, "mode=online", "split=test", "calibration=train", f"out_dir={out}", call=run_here
     )
     assert r.returncode == 0, r.stderr[-2000:]
-    from labrobfail_vlm.bench.online import bound_check
+    from labrobfail_vlm.bench.online_alarm import bound_check
 
     res = json.loads((out / "online.json").read_text())
     # the robot-signal baseline is fitted on the train split: calibrated on it, its row is left out

@@ -25,6 +25,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from labrobfail_vlm.bench.online_alarm import fire, summarise
+
 ALPHA = 0.05
 FOLDS = 5
 GRAVE = ("spill", "fall")  # the issue's "spills and falls"
@@ -53,10 +55,8 @@ def crossfit(
     delta: float | None = None,
 ) -> dict[str, Any]:
     """The candidate's figures on `trajs` (the calibration split), each fold scored by the alarm calibrated on the
-    other folds' successes (`delta`: the bench's, None: marginal); pooled as online.summarise reports a scored
+    other folds' successes (`delta`: the bench's, None: marginal); pooled as online_alarm.summarise reports a scored
     split."""
-    from labrobfail_vlm.bench.online import fire, summarise
-
     fold = [fold_of(str(t.get("group", t["trajectory"])), folds) for t in trajs]
     when: list[tuple[int | None, float | None]] = []
     scored: list[dict[str, Any]] = []

@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from labrobfail_vlm.bench.online import ALPHAS, LABELER, bound_check, exact_ci
+from labrobfail_vlm.bench.online_alarm import ALPHAS, LABELER, bound_check, exact_ci
 from labrobfail_vlm.bench.online_choice import GRAVE
 
 
