@@ -464,10 +464,11 @@ ONLINE_GUARANTEE = (
     "arm's reach. Intervals in brackets (false alarms, detection, the last column, spills and falls) are exact "
     "(Clopper-Pearson, 95 %, given the calibrated threshold: they leave out the calibration draw's variation), and "
     "for an alarm at or after the onset its ceiling is the labeler's row: an alarm at the onset "
-    "itself comes before the event only where the failure began before it. A row pairing the model with a "
-    "robot-signal MLP alarms when either does, on the same successes, the model set at its share of alpha (a half "
-    "unless the row names another, a share chosen on validation) and the MLP at the rest: the pair keeps the same "
-    "bound (a union bound). A share whose level is under 1 / (n + 1) of the n calibration successes (more for a "
+    "itself comes before the event only where the failure began before it. A row pairing two monitors (the model "
+    "and a robot-signal MLP, or the per-frame and every-sample MLPs) alarms when either does, on the same "
+    "successes, the first set at its share of alpha (a half unless the row names another, a share chosen on "
+    "validation) and the second at the rest: the pair keeps the same bound (a union bound). A share whose level "
+    "is under 1 / (n + 1) of the n calibration successes (more for a "
     "training-conditional alarm) leaves the model out (its threshold is +inf): under 199 successes (919 at delta "
     '0.1), the 0.1 share at alpha 0.05 and 0.01 is the MLP alone. "bound p" is the chance of at least that many '
     "false alarms if the guarantee holds (beta-binomial over the calibration draw and the scored successes; for "
@@ -481,7 +482,7 @@ ONLINE_GUARANTEE = (
 POWER_LEAD = (
     "`make online-power` (no model): the robot-signal monitors on a block of new seen pairs (numbered from 100,000 "
     "up, in no split), fitted on the train split and calibrated on seen val as above, scored once for the alarm "
-    "issue's targets by their intervals (docs/EXPERIMENTS.md, 7 Dec evening),"
+    "issue's targets by their intervals (docs/EXPERIMENTS.md, 7 Dec evening and late evening),"
 )
 
 

@@ -328,3 +328,40 @@ def test_the_online_table_names_the_monitors_that_cannot_fire():
     assert last.startswith("Never fires") and last.endswith(": pair at alpha 0.01 (both), 0.05 (the model).")
     rows["pair"] = {"0.1": row(thresholds=[0.6, 0.7], alpha=0.1)}
     assert not any(line.startswith("Never fires") for line in online_md(res))  # nothing to say: no line
+
+
+def test_the_two_mlps_paired_sound_when_either_does_each_at_half_of_alpha():
+    """40 calibration successes scoring under 0.5 on both monitors; three failures: the per-frame MLP alone reads
+    the first (0.9 from its second frame), the every-sample MLP alone the second (0.9 between frames, from 2.5 s),
+    neither the third. At alpha 0.2 each monitor is set at 0.1 and the pair detects exactly the first two."""
+    from labrobfail_vlm.bench.online import _with_dense
+
+    rng = np.random.default_rng(0)
+    frames = [1.0, 2.0, 3.0]
+    axis = np.round(np.arange(0.5, 3.01, 0.25), 4)  # the trace's samples (s)
+    none = {"frame": None, "onset_s": None, "irreversible_s": None}
+    cal_t = [{"trajectory": f"s{i}", "success": True, "frame_times_s": frames, **none} for i in range(40)]
+    cal = ([list(rng.uniform(0, 0.5, 3)) for _ in cal_t], [rng.uniform(0, 0.5, len(axis)) for _ in cal_t])
+    fail = {"success": False, "frame": 1, "frame_times_s": frames, "onset_s": 1.9, "irreversible_s": None}
+    ev_t = [{**fail, "trajectory": f"f{i}"} for i in range(3)]
+    low = np.full(len(axis), 0.1)
+    ev = ([[0.1, 0.9, 0.9], [0.1] * 3, [0.1] * 3], [low, np.where(axis >= 2.5, 0.9, 0.1), low])
+    rows, cand = _with_dense((cal[0], ev[0]), (cal[1], ev[1]), (cal_t, ev_t), ([axis] * 40, [axis] * 3), 0.5, None)
+    row = rows["0.2"]
+    assert row["alphas"] == [0.1, 0.1] and row["detected"] == 2 and row["detection_rate"] == round(2 / 3, 4)
+    assert all(0.1 < t < 0.9 for t in row["thresholds"]) and cand.shares == (0.5, 0.5) and len(cand.cal) == 2
+
+
+def test_a_rate_reads_its_count_and_an_older_json_its_rate_times_n_only_under_10000():
+    """The page's intervals: from the JSON's count where it has one; from a 4-digit rate times n below 10,000
+    (3,000 x 0.0333 = 99.9 -> 100); above, no count can be trusted and no interval is drawn."""
+    from labrobfail_vlm.bench.online_alarm import count_of
+    from labrobfail_vlm.bench.online_page import _rate
+
+    keys = ("false_alarm_rate", "false_alarms", "successes")
+    big = {"false_alarm_rate": 0.0333, "successes": 10_000}
+    assert count_of(big, *keys) is None and _rate(big, *keys) == "3.3"
+    assert _rate({**big, "false_alarms": 333}, *keys) == "3.3 [3.0, 3.7]"
+    small = {"false_alarm_rate": 0.0333, "successes": 3_000}
+    assert count_of(small, *keys) == 100 and _rate(small, *keys) == "3.3 [2.7, 4.0]"
+    assert count_of({**small, "false_alarms": 7}, *keys) == 7  # the count wins over the rate

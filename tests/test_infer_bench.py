@@ -697,35 +697,41 @@ def test_the_majority_class_of_whole_grids_is_taken_from_whole_trajectories() ->
     assert same_kind(train[:3], train_traj, prefix, traj) == train[:3]  # no prefixes to learn from: every record
 
 
-def _renamed_copy(src, dst, split: str) -> None:
-    """A dataset of `src`'s `split` trajectories under new names and pairs (as if drawn apart), its robot-signal
-    trace renamed alike."""
+def _renamed(ds, split: str, prefixes: list[str], to: str, keep: bool = True) -> None:
+    """Add to dataset `ds` copies of its `split` trajectories under new names and pairs (one per prefix, as if drawn
+    apart), in split `to`, their robot-signal traces copied alike; `keep=False`: the copies alone remain."""
     import pyarrow as pa
+    import pyarrow.compute as pc
     import pyarrow.parquet as pq
 
-    shutil.copytree(src, dst)
-    trajs = json.loads((dst / "trajectories.json").read_text())
-    keep = [
-        {**t, "trajectory": f"apart-{t['trajectory']}", "group": f"apart-{t['group']}"}
-        for t in trajs
-        if t["split"] == split and "prefix_of" not in t
+    trajs = json.loads((ds / "trajectories.json").read_text())
+    base = [t for t in trajs if t["split"] == split and "prefix_of" not in t]
+    table = pq.read_table(ds / "robot_signals.parquet")
+    mine = table.filter(pc.is_in(table["trajectory"], value_set=pa.array([t["trajectory"] for t in base])))
+    at = table.schema.get_field_index("trajectory")
+    copies = [
+        mine.set_column(at, "trajectory", pa.array([p + n for n in mine.column("trajectory").to_pylist()]))
+        for p in prefixes
     ]
-    (dst / "trajectories.json").write_text(json.dumps(keep))
-    table = pq.read_table(dst / "robot_signals.parquet")
-    names = pa.array([f"apart-{n}" for n in table.column("trajectory").to_pylist()])
-    pq.write_table(
-        table.set_column(table.schema.get_field_index("trajectory"), "trajectory", names), dst / "robot_signals.parquet"
-    )
+    new = [
+        {**t, "trajectory": p + t["trajectory"], "group": p + t["group"], "split": to} for p in prefixes for t in base
+    ]
+    (ds / "trajectories.json").write_text(json.dumps([*(trajs if keep else []), *new]))
+    pq.write_table(pa.concat_tables([*([table] if keep else []), *copies]), ds / "robot_signals.parquet")
+
+
+def _renamed_copy(src, dst, split: str) -> None:
+    """A dataset of `src`'s `split` trajectories alone, under new names and pairs (as if drawn apart)."""
+    shutil.copytree(src, dst)
+    _renamed(dst, split, ["apart-"], split, keep=False)
 
 
 def test_online_bench_scores_a_dataset_drawn_apart_with_the_fit_and_calibration_of_another(small_ds, tmp_path):  # noqa: F811
-    from labrobfail_vlm.bench.online import ROBOT
+    from labrobfail_vlm.bench.online import DENSE, ROBOT
 
-    ds = tmp_path / "ds"  # as above: the small dataset's test trajectories named val as well, to calibrate on
-    shutil.copytree(small_ds, ds)
-    trajs = json.loads((ds / "trajectories.json").read_text())
-    trajs += [{**t, "split": "val"} for t in trajs if t["split"] == "test" and "prefix_of" not in t]
-    (ds / "trajectories.json").write_text(json.dumps(trajs))
+    ds = tmp_path / "ds"  # renamed copies of the train split calibrate (plumbing): the MLPs fit them closely, so
+    shutil.copytree(small_ds, ds)  # their thresholds are low and the rows compared below do alarm
+    _renamed(ds, "train", [f"cal{i}-" for i in range(4)], "val")
     apart = tmp_path / "apart"
     _renamed_copy(small_ds, apart, "test")
     argv = [cli("evaluate"), f"dataset_dir={ds}", "mode=online", "split=test", "calibration=val"]
@@ -736,6 +742,7 @@ def test_online_bench_scores_a_dataset_drawn_apart_with_the_fit_and_calibration_
     # the same trajectories under other names: the MLPs fitted on ds's train split, calibrated on its val, read alike
     assert there["scored_dataset"] == str(apart) and "scored_dataset" not in here
     assert there["rows"] == here["rows"] and there["trajectories"] == here["trajectories"]
+    assert any(r["detected"] or r["false_alarms"] for m in (ROBOT, DENSE) for r in here["rows"][m].values())
     assert "split test of apart, a dataset drawn apart" in (tmp_path / "there" / "online.md").read_text()
     for row in there["rows"][ROBOT].values():  # the counts the page's exact intervals are drawn from
         assert row["false_alarm_rate"] == round(row["false_alarms"] / row["successes"], 4)
@@ -749,9 +756,13 @@ def test_online_bench_scores_a_dataset_drawn_apart_with_the_fit_and_calibration_
     (other_grid / "stats.json").write_text(
         json.dumps({**stats, "grid": {**stats["grid"], "width": 2 * stats["grid"]["width"]}})
     )
+    no_grid = tmp_path / "no_grid"
+    _renamed_copy(small_ds, no_grid, "test")
+    (no_grid / "stats.json").write_text(json.dumps({k: v for k, v in stats.items() if k != "grid"}))
     for scored, extra, needle in (
         (shared, [], "pairs are also in dataset_dir"),
         (other_grid, [], "another grid"),
+        (no_grid, [], "names no grid"),
         (tmp_path / "missing", [], "cannot read the dataset"),
         (apart, ["mode=offline", "predictions=x.jsonl"], "mode=online only"),
     ):

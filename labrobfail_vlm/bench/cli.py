@@ -381,7 +381,7 @@ def main(argv: list[str]) -> int:
 def _online(cfg: Any) -> int:
     """mode=online (labrobfail_vlm/bench/online.py): a local model's alarm on prefix grids, per keyframe, beside the
     robot-signal monitors; without model=, the robot-signal monitors alone (out_dir= then required)."""
-    from labrobfail_vlm.bench.online import check_delta, check_pair_shares, run_online
+    from labrobfail_vlm.bench.online import check_delta, check_pair_shares, run_online, scored_apart
     from labrobfail_vlm.bench.online_page import online_md
     from labrobfail_vlm.io import atomic_write_bytes
 
@@ -391,8 +391,10 @@ def _online(cfg: Any) -> int:
         raise ConfigError("mode=online: without model=, give out_dir= (the robot-signal monitors alone)")
     check_pair_shares(cfg.pair_shares)  # before the model loads
     check_delta(cfg.delta)
+    apart = scored_apart(cfg)
     fa = _load_analyzer(cfg, cache=False)[0] if cfg.model is not None else None  # prefix grids all differ
-    out = Path(cfg.out_dir or Path(cfg.model) / f"eval_online_{cfg.split}")
+    # a split of another dataset gets a folder of its own: never the model's bench of its own split
+    out = Path(cfg.out_dir or Path(cfg.model) / f"eval_online_{cfg.split}{'_' + apart.name if apart else ''}")
     res = run_online(cfg, fa, out)
     md = "\n".join(online_md(res))
     atomic_write_bytes(out / "online.md", (md + "\n").encode())

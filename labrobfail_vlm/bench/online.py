@@ -118,22 +118,36 @@ def trajectories(dataset: Path, split: str, limit: int | None) -> list[dict[str,
     return out[:limit] if limit else out
 
 
-def scored_apart(cfg: Any, dataset: Path, grid: GridConfig) -> Path | None:
-    """`scored_dataset`, checked: built with dataset_dir's grid and sharing no pair with it (a shared pair would be a
-    trajectory the MLPs were fitted or the alarm calibrated on, or its twin); None when unset or dataset_dir itself."""
-    raw = cfg.get("scored_dataset")
+def _dataset_facts(where: Path, key: str) -> tuple[dict[str, Any], set[str]]:
+    """A dataset's stats.json and its pairs (groups), or a one-line ConfigError naming `key`."""
+    try:
+        stats = json.loads((where / "stats.json").read_text())
+        groups = {t.get("group", t["trajectory"]) for t in json.loads((where / "trajectories.json").read_text())}
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ConfigError(f"{key}: cannot read the dataset in {where} ({type(e).__name__}: {e})") from None
+    if not isinstance(stats.get("grid"), dict):
+        raise ConfigError(f"{key}: {where / 'stats.json'} names no grid (rebuild the dataset)")
+    return stats, groups
+
+
+def scored_apart(cfg: Any) -> Path | None:
+    """`scored_dataset`, checked against dataset_dir: the same grid and views, and no pair in both (a shared pair
+    would be a trajectory the MLPs were fitted or the alarm calibrated on, or its twin; pairs are named by variant
+    and number, so a block drawn with another seed but the same numbers is refused too: number it apart). None when
+    unset or dataset_dir itself. The CLI calls it before a model loads, run_online again."""
+    raw, dataset = cfg.get("scored_dataset"), Path(str(cfg.dataset_dir))
     if raw is None or Path(str(raw)).resolve() == dataset.resolve():
         return None
     other = Path(str(raw))
-    try:
-        stats = json.loads((other / "stats.json").read_text())
-        theirs = {t.get("group", t["trajectory"]) for t in json.loads((other / "trajectories.json").read_text())}
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise ConfigError(f"scored_dataset: cannot read the dataset in {other} ({type(e).__name__}: {e})") from None
-    if GridConfig.from_dict(stats.get("grid", {})) != grid:
-        raise ConfigError(f"scored_dataset: {other} was built with another grid than dataset_dir's")
-    ours = {t.get("group", t["trajectory"]) for t in json.loads((dataset / "trajectories.json").read_text())}
-    if shared := sorted(ours & theirs):
+    (ours, our_pairs), (theirs, their_pairs) = (
+        _dataset_facts(dataset, "dataset_dir"),
+        _dataset_facts(other, "scored_dataset"),
+    )
+    if GridConfig.from_dict(theirs["grid"]) != GridConfig.from_dict(ours["grid"]) or theirs.get("views") != ours.get(
+        "views"
+    ):
+        raise ConfigError(f"scored_dataset: {other} was built with another grid or views than dataset_dir's")
+    if shared := sorted(our_pairs & their_pairs):
         raise ConfigError(f"scored_dataset: {len(shared)} pairs are also in dataset_dir ({shared[0]}, ...)")
     return other
 
@@ -214,9 +228,12 @@ def dense_rows(
     (before 3 Dec). Train and calibration tables are read from dirs[0], the scored ones from dirs[1]."""
     cands = {} if cands is None else cands
     (cal_t, cal_s), (ev_t, ev_s) = cal, ev
-    ours = robot_baseline.read_dense(dirs[0], [t["trajectory"] for t in (*train_t, *cal_t)])
-    theirs = robot_baseline.read_dense(dirs[1], [t["trajectory"] for t in ev_t])
-    tables = None if ours is None or theirs is None else ours | theirs
+    if dirs[0] == dirs[1]:
+        tables = robot_baseline.read_dense(dirs[0], [t["trajectory"] for t in (*train_t, *cal_t, *ev_t)])
+    else:
+        ours = robot_baseline.read_dense(dirs[0], [t["trajectory"] for t in (*train_t, *cal_t)])
+        theirs = robot_baseline.read_dense(dirs[1], [t["trajectory"] for t in ev_t])
+        tables = None if ours is None or theirs is None else ours | theirs
     if tables is None or not all(t.get("frame_times_s") for t in (*cal_t, *ev_t)):
         return {}
     fitted = robot_baseline.fit_dense(train_t, tables)
@@ -291,7 +308,7 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
     dataset = Path(str(cfg.dataset_dir))
     stats = json.loads((dataset / "stats.json").read_text())
     grid = GridConfig(**stats["grid"])
-    apart = scored_apart(cfg, dataset, grid)
+    apart = scored_apart(cfg)
     if cfg.calibration == cfg.split and apart is None:
         raise ConfigError("calibration: must be another split than the one scored (split conformal)")
     dirs = (dataset, apart or dataset)

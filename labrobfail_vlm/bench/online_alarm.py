@@ -102,14 +102,22 @@ def on_axis(scores: Sequence[float], times: Sequence[float], axis: np.ndarray) -
     return np.where(idx >= 0, np.asarray(scores, np.float64)[np.maximum(idx, 0)], -np.inf)
 
 
+def count_of(row: dict[str, Any], rate_key: str, count_key: str, of: str) -> int | None:
+    """A row's count (false alarms of successes, detections of failures): the JSON's own (from 7 Dec evening), or
+    before that its rate, rounded to 4 digits, times n, which is exact only under n = 10,000 (None above)."""
+    k, rate, n = row.get(count_key), row.get(rate_key), row.get(of)
+    if k is None and rate is not None and n and n < 10_000:
+        k = round(rate * n)
+    return k
+
+
 def bound_check(row: dict[str, Any]) -> float | None:
     """A row's false alarms against its bound (alarm.false_alarm_pvalue; for a pair of monitors, its union bound),
     from the row's own fields so that a bench JSON written before the check reads the same; None for a row without
     successes or one that never alarms (the majority class)."""
-    if not row.get("successes") or "n_calibration" not in row:
+    k = count_of(row, "false_alarm_rate", "false_alarms", "successes")
+    if not row.get("successes") or "n_calibration" not in row or k is None:
         return None
-    # the count (JSONs from 7 Dec evening), or the rate, rounded to 4 digits, times n: exact under 10,000
-    k = row.get("false_alarms", round(row["false_alarm_rate"] * row["successes"]))
     m = len(row.get("thresholds", [None]))
     alphas = row.get("alphas")  # a pair's levels as its thresholds were set (a JSON from before pair_shares: halves)
     # None: marginal (every JSON before 7 Dec, afternoon)

@@ -9,7 +9,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from labrobfail_vlm.bench.online_alarm import ALPHAS, LABELER, bound_check, exact_ci
+from labrobfail_vlm.bench.online import ROBOT_PAIR
+from labrobfail_vlm.bench.online_alarm import ALPHAS, LABELER, bound_check, count_of, exact_ci
 from labrobfail_vlm.bench.online_choice import GRAVE
 
 
@@ -109,14 +110,11 @@ def _of(tally: list[int] | None) -> str:
 
 
 def _rate(r: dict[str, Any], rate_key: str, count_key: str, of: str) -> str:
-    """A rate (false alarms of successes, detection of failures) with its exact 95 % interval. The count is the
-    JSON's (from 7 Dec evening); before, the rate times n, which its 4 decimals give exactly below n = 10,000. No
-    interval for a row without n (the majority class, the ceiling)."""
-    rate, k, n = r.get(rate_key), r.get(count_key), r.get(of)
-    if k is None and rate is not None and n and n < 10_000:
-        k = round(rate * n)
+    """A rate (false alarms of successes, detection of failures) with its exact 95 % interval, from the row's count
+    (online_alarm.count_of); none for a row without n (the majority class, the ceiling)."""
+    k, n = count_of(r, rate_key, count_key, of), r.get(of)
     ci = exact_ci(k, n) if k is not None and n else None
-    return _pct(rate) + ("" if ci is None else f" [{_pct(ci[0])}, {_pct(ci[1])}]")
+    return _pct(r.get(rate_key)) + ("" if ci is None else f" [{_pct(ci[0])}, {_pct(ci[1])}]")
 
 
 def _grave(r: dict[str, Any]) -> str:
@@ -132,9 +130,12 @@ def _grave(r: dict[str, Any]) -> str:
 def _left_out(rows: dict[str, Any]) -> str:
     """The rows and alphas at which a monitor's threshold is +inf (written null), naming which of a pair's two
     monitors (the model first, as the bench pairs them)."""
-    who = {(0,): " (the model)", (1,): " (the MLP)", (0, 1): " (both)"}
     parts = []
     for name, per in rows.items():
+        first, second = (
+            ("the per-frame MLP", "the every-sample MLP") if name == ROBOT_PAIR else ("the model", "the MLP")
+        )
+        who = {(0,): f" ({first})", (1,): f" ({second})", (0, 1): " (both)"}
         at = []
         for alpha, r in per.items() if name != LABELER else []:
             ths = r.get("thresholds", [r["threshold"]] if "threshold" in r else [])
