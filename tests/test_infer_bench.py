@@ -716,17 +716,25 @@ def _renamed(ds, split: str, prefixes: list[str], to: str, keep: bool = True) ->
     new = [
         {**t, "trajectory": p + t["trajectory"], "group": p + t["group"], "split": to} for p in prefixes for t in base
     ]
+    for p in prefixes if (ds / "images").is_dir() else []:  # each copy's grid, for a model's bench
+        for t in base:
+            shutil.copyfile(ds / "images" / f"{t['trajectory']}.png", ds / "images" / f"{p}{t['trajectory']}.png")
     (ds / "trajectories.json").write_text(json.dumps([*(trajs if keep else []), *new]))
     pq.write_table(pa.concat_tables([*([table] if keep else []), *copies]), ds / "robot_signals.parquet")
 
 
-def _renamed_copy(src, dst, split: str) -> None:
-    """A dataset of `src`'s `split` trajectories alone, under new names and pairs (as if drawn apart)."""
+def _renamed_copy(src, dst, split: str, to: str | None = None) -> None:
+    """A dataset of `src`'s `split` trajectories alone, under new names and pairs (as if drawn apart), in split `to`
+    (default: the same name)."""
     shutil.copytree(src, dst)
-    _renamed(dst, split, ["apart-"], split, keep=False)
+    _renamed(dst, split, ["apart-"], to or split, keep=False)
 
 
-def test_online_bench_scores_a_dataset_drawn_apart_with_the_fit_and_calibration_of_another(small_ds, tmp_path):  # noqa: F811
+def test_online_bench_scores_a_dataset_drawn_apart_with_the_fit_and_calibration_of_another(  # noqa: F811
+    tiny,  # noqa: F811
+    small_ds,  # noqa: F811
+    tmp_path,
+):
     from labrobfail_vlm.bench.online import DENSE, ROBOT
 
     ds = tmp_path / "ds"  # renamed copies of the train split calibrate (plumbing): the MLPs fit them closely, so
@@ -744,6 +752,20 @@ def test_online_bench_scores_a_dataset_drawn_apart_with_the_fit_and_calibration_
     assert there["rows"] == here["rows"] and there["trajectories"] == here["trajectories"]
     assert any(r["detected"] or r["false_alarms"] for m in (ROBOT, DENSE) for r in here["rows"][m].values())
     assert "split test of apart, a dataset drawn apart" in (tmp_path / "there" / "online.md").read_text()
+    # a block built all-train is scored too: none of its trajectories is the fit's (the fit is dataset_dir's train)
+    as_train = tmp_path / "as_train"
+    _renamed_copy(small_ds, as_train, "test", "train")
+    r = run_here([*argv, "split=train", f"scored_dataset={as_train}", f"out_dir={tmp_path / 'as_train_out'}"])
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads((tmp_path / "as_train_out" / "online.json").read_text())["rows"] == here["rows"]
+    # a model's bench of a split drawn apart reads that split's grids there, in a folder of its own beside the model
+    # (never MODEL/eval_online_test, the model's bench of its own seen test)
+    model = tmp_path / "model"
+    shutil.copytree(tiny, model)
+    r = run_here([*argv, f"model={model}", f"scored_dataset={apart}", "calibration=train"])
+    assert r.returncode == 0, r.stderr[-2000:]
+    ran = json.loads((model / "eval_online_test_apart" / "online.json").read_text())
+    assert ran["scored_dataset"] == str(apart) and "model" in ran["rows"] and not (model / "eval_online_test").exists()
     for row in there["rows"][ROBOT].values():  # the counts the page's exact intervals are drawn from
         assert row["false_alarm_rate"] == round(row["false_alarms"] / row["successes"], 4)
         assert row["detection_rate"] == round(row["detected"] / row["failures"], 4)

@@ -330,7 +330,9 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
     everything = json.loads((dataset / "trajectories.json").read_text())
     train_t = [t for t in everything if t.get("split") == "train" and "prefix_of" not in t]
     # fitted on the train split, so it is calibrated and scored on others only
-    if "train" not in (cfg.calibration, cfg.split) and robot_baseline.has_signals([*train_t, *cal_t, *ev_t]):
+    # (a train split of a dataset drawn apart is none of the fit's trajectories)
+    fit_apart = "train" not in (cfg.calibration, cfg.split if apart is None else "")
+    if fit_apart and robot_baseline.has_signals([*train_t, *cal_t, *ev_t]):
         fitted = robot_baseline.fit(train_t)
         rcal, rev = robot_baseline.score(fitted, cal_t), robot_baseline.score(fitted, ev_t)
         rows[ROBOT] = alarm_rows([rcal], cal_t, [rev], ev_t, delta=delta)
