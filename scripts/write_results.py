@@ -492,18 +492,55 @@ def _page_online_benches(section: list[str]) -> list[str]:
     return block(section, lambda line: line.startswith(ONLINE_GUARANTEE[:40]), lambda line: line.startswith(LEAD))
 
 
-def online_benches(run: Path) -> list[str]:
-    """The online bench's tables (labrobfail-evaluate mode=online) of the run's models, seen split first."""
-    out: list[str] = []
+def _bench_lead(line: str) -> str | None:
+    """A bench block's lead line as the run writes it (a model's "`train/final`, eval_online_test:", make
+    online-power's), the mark of a carried one removed; None for any other line."""
+    core = line.replace(f", {AS_THE_PAGE_HAD_IT}:", ":")
+    named = core.startswith("`") and "eval_online_" in core or core.startswith(POWER_LEAD)
+    return core if named and core.endswith(":") else None
+
+
+def _blocks(lines: list[str]) -> dict[str, list[str]]:
+    """A section's bench lines cut into blocks by their leads (lead -> the lines after it); lines before the first
+    lead (the guarantee paragraph) are left out."""
+    out: dict[str, list[str]] = {}
+    key = None
+    for line in lines:
+        lead = _bench_lead(line)
+        if lead is not None:
+            key = lead
+            out[key] = []
+        elif key is not None:
+            out[key].append(line)
+    return out
+
+
+def _bench_order(lead: str) -> tuple:
+    """The page's order: the models' benches (the recipe's model first, seen test first), then make online-power's."""
+    power = lead.startswith(POWER_LEAD)
+    # a power block by its folder (online_power before online_power2), as the run's folders sort
+    return power, "`online/" in lead, "eval_online_test:" not in lead, lead.split("`")[-2] if power else lead
+
+
+def online_benches(run: Path, page: list[str] | None = None) -> list[str]:
+    """The online bench's tables (labrobfail-evaluate mode=online) of the run's models and make online-power's
+    blocks, seen split first. `page` (an existing Supervision section): a bench the page has and the run does not is
+    carried, block by block, its lead marked as the page had it; a run with no bench carries the page's whole."""
+    own: dict[str, list[str]] = {}
     for model in ("train", "online"):
-        for f in sorted(
-            (run / model / "final").glob("eval_online_*/online.json"),
-            key=lambda p: (p.parent.name != "eval_online_test", p.parent.name),
-        ):
-            out += [f"`{model}/final`, {f.parent.name}:", "", *online_md(json.loads(f.read_text())), ""]
-    for power in sorted(run.glob("online_power*/online.json")):
-        out += [f"{POWER_LEAD} `{power.parent.name}`:", "", *online_md(json.loads(power.read_text())), ""]
-    return [ONLINE_GUARANTEE, "", *out] if out else []
+        for f in (run / model / "final").glob("eval_online_*/online.json"):
+            own[f"`{model}/final`, {f.parent.name}:"] = ["", *online_md(json.loads(f.read_text())), ""]
+    for power in run.glob("online_power*/online.json"):
+        own[f"{POWER_LEAD} `{power.parent.name}`:"] = ["", *online_md(json.loads(power.read_text())), ""]
+    theirs = _page_online_benches(page or [])
+    if not own:
+        return [f"The online bench {AS_THE_PAGE_HAD_IT}:", "", *theirs] if theirs else []
+    carried = {f"{k[:-1]}, {AS_THE_PAGE_HAD_IT}:": v for k, v in _blocks(theirs).items() if k not in own}
+    every = own | carried
+    out = [
+        line for lead in sorted(every, key=lambda k: _bench_order(_bench_lead(k) or k)) for line in (lead, *every[lead])
+    ]
+    return [ONLINE_GUARANTEE, "", *out]
 
 
 def supervision(run: Path, page: list[str] | None = None) -> list[str]:
@@ -527,11 +564,7 @@ def supervision(run: Path, page: list[str] | None = None) -> list[str]:
             ),
             "",
         ]
-    benches = online_benches(run)
-    if not benches and page:
-        benches = _page_online_benches(page)
-        benches = [f"The online bench {AS_THE_PAGE_HAD_IT}:", "", *benches] if benches else []
-    lines += benches
+    lines += online_benches(run, page)
     lines += recovery_md([json.loads(f.read_text()) for f in recovery_files(run)], page_recovery(page or []))
     return lines
 

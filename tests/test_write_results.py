@@ -538,6 +538,53 @@ def test_an_online_bench_alone_replaces_the_pages_and_carries_the_rest(tmp_path:
     assert "split test of dataset_power, a dataset drawn apart (3 trajectories)" in section
 
 
+def test_a_run_with_only_a_power_block_carries_the_pages_other_benches_block_by_block(tmp_path: Path) -> None:
+    """`sections=[supervision]` from a run that ran only `make online-power POWER_NAME=power2`: its block is the
+    run's, the page's model bench and its first power block are carried, each lead marked as the page had it, in the
+    page's order; splicing again changes nothing."""
+    from scripts.write_results import AS_THE_PAGE_HAD_IT, ONLINE_GUARANTEE, POWER_LEAD, main
+    from sim_backends.supervision.report import HEADER, LEAD
+
+    old = [
+        "## Supervision",
+        "",
+        ONLINE_GUARANTEE,
+        "",
+        "`train/final`, eval_online_test:",
+        "",
+        "| the model's old bench |",
+        "",
+        f"{POWER_LEAD} `online_power`:",
+        "",
+        "| the first block's old bench |",
+        "",
+        f"{LEAD}25 trials per cell, variant seen, supervisor vlm (`m`) asked only when the policy stops, budget 2.",
+        "",
+        HEADER,
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| pick | scripted | 6/25 | 23/25 | +68 | yes | - | - | - | 19 | 0 |",
+        "",
+    ]
+    page, run = _supervision_page(tmp_path, old)
+    bench = run / "online_power2" / "online.json"
+    bench.parent.mkdir()
+    majority = {"false_alarm_rate": 0.0, "detection_rate": 0.0}
+    res = {"split": "test", "scored_dataset": "r/dataset_power2", "calibration": "val", "trajectories": 3}
+    bench.write_text(json.dumps(res | {"calibration_successes": 2, "rows": {"majority class": {"0.01": majority}}}))
+    assert main([f"run={run}", f"out={page}", "sections=[supervision]"]) == 0
+    section = page.read_text().split("## Supervision\n")[1].split("## Paper-comparable tables")[0].splitlines()
+    leads = [x for x in section if x.startswith(("`train/final`", POWER_LEAD))]
+    assert leads == [
+        f"`train/final`, eval_online_test, {AS_THE_PAGE_HAD_IT}:",
+        f"{POWER_LEAD} `online_power`, {AS_THE_PAGE_HAD_IT}:",
+        f"{POWER_LEAD} `online_power2`:",
+    ]
+    assert "| the model's old bench |" in section and "| the first block's old bench |" in section
+    assert "split test of dataset_power2, a dataset drawn apart (3 trajectories)" in "\n".join(section)
+    text = page.read_text()
+    assert main([f"run={run}", f"out={page}", "sections=[supervision]"]) == 0 and page.read_text() == text
+
+
 def test_the_tuned_model_is_spliced_with_its_sealed_runs_and_a_fresh_ledger_joins_the_page_list(tmp_path: Path) -> None:
     """`sections=[tuned]`: the tuned model's targets and per-split scores go before the tower rows; the run's ledger
     joins the page's "Sealed test runs" list, which keeps every run it listed (`sections=[sealed]`: the list alone)."""
