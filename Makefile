@@ -482,7 +482,8 @@ online-bench: $(STAMP)
 # pairs (from pair 100,000, so none is any split's or row's), made as make reproduce makes its own, built as one
 # all-test dataset and scored by the online bench without a model (the robot-signal monitors, majority, the
 # labeler), fitted on the recipe's train split and calibrated on its seen val: seen test's 515 successes and 10
-# spills and falls are too few for the targets' intervals. About 30 min of generation on 2 cores, then minutes.
+# spills and falls are too few for the targets' intervals. About 23 min of generation on 2 cores, then 3.5; the
+# page's Supervision section is spliced (its other benches kept), so a run stopped before its benches will do.
 # A second block (7 Dec late evening): POWER_FIRST=103000 POWER_NAME=power2 (its pairs after the first block's 3,000).
 POWER_SEEN  ?= 6000
 POWER_FIRST ?= 100000
@@ -499,7 +500,7 @@ online-power: $(STAMP)
 	  'views=[front,side]' 'ratios=[0,0,1]' progress=false
 	$(BIN)/labrobfail-evaluate mode=online dataset_dir=$(R)/dataset scored_dataset=$(R)/dataset_$(POWER_NAME) \
 	  split=test calibration=val delta=$(ONLINE_DELTA) out_dir=$(R)/online_$(POWER_NAME) progress=false
-	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
+	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS) 'sections=[supervision]'
 
 recovery: recovery-scripted online-bench
 	$(foreach t,pick place pour,test -f $(call act_dir,$(t))/final/model.safetensors || OMP_NUM_THREADS=1 \
