@@ -431,6 +431,20 @@ def _supervision_page(tmp_path: Path, section: list[str]) -> tuple[Path, Path]:
     return page, run
 
 
+def _scripted_pick() -> list[str]:
+    """An old page's recovery table: one scripted pick cell of 25 trials."""
+    from sim_backends.supervision.report import HEADER, LEAD
+
+    return [
+        f"{LEAD}25 trials per cell, variant seen, supervisor vlm (`m`) asked only when the policy stops, budget 2.",
+        "",
+        HEADER,
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| pick | scripted | 6/25 | 23/25 | +68 | yes | - | - | - | 19 | 0 |",
+        "",
+    ]
+
+
 def test_a_rerun_of_some_cells_keeps_the_pages_other_cells_and_online_bench(tmp_path: Path) -> None:
     """`sections=[supervision]` from a run that re-measured one ACT cell only (a fresh machine): that row is the run's,
     the page's scripted rows and online bench are carried and named as carried; splicing again changes nothing."""
@@ -478,7 +492,7 @@ def test_an_online_bench_alone_replaces_the_pages_and_carries_the_rest(tmp_path:
 
     from labrobfail_vlm.config import ConfigError
     from scripts.write_results import CARRIED_SECTION, ONLINE_GUARANTEE, STILL_CARRIED, _still_carried, main
-    from sim_backends.supervision.report import HEADER, LEAD
+    from sim_backends.supervision.report import LEAD
 
     old = [
         "## Supervision",
@@ -493,12 +507,7 @@ def test_an_online_bench_alone_replaces_the_pages_and_carries_the_rest(tmp_path:
         "",
         "| row | alpha | false alarms (%) | the old bench |",
         "",
-        f"{LEAD}25 trials per cell, variant seen, supervisor vlm (`m`) asked only when the policy stops, budget 2.",
-        "",
-        HEADER,
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-        "| pick | scripted | 6/25 | 23/25 | +68 | yes | - | - | - | 19 | 0 |",
-        "",
+        *_scripted_pick(),
     ]
     page, run = _supervision_page(tmp_path, old)
     bench = run / "train" / "final" / "eval_online_test" / "online.json"
@@ -543,7 +552,6 @@ def test_a_run_with_only_a_power_block_carries_the_pages_other_benches_block_by_
     run's, the page's model bench and its first power block are carried, each lead marked as the page had it, in the
     page's order; splicing again changes nothing."""
     from scripts.write_results import AS_THE_PAGE_HAD_IT, ONLINE_GUARANTEE, POWER_LEAD, main
-    from sim_backends.supervision.report import HEADER, LEAD
 
     old = [
         "## Supervision",
@@ -558,12 +566,7 @@ def test_a_run_with_only_a_power_block_carries_the_pages_other_benches_block_by_
         "",
         "| the first block's old bench |",
         "",
-        f"{LEAD}25 trials per cell, variant seen, supervisor vlm (`m`) asked only when the policy stops, budget 2.",
-        "",
-        HEADER,
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-        "| pick | scripted | 6/25 | 23/25 | +68 | yes | - | - | - | 19 | 0 |",
-        "",
+        *_scripted_pick(),
     ]
     page, run = _supervision_page(tmp_path, old)
     bench = run / "online_power2" / "online.json"
