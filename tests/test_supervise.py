@@ -421,6 +421,10 @@ def test_the_vlm_supervisor_takes_the_threshold_the_online_bench_calibrated(tmp_
             make_supervisor("vlm", model=str(tiny), alarm=str(alarm), alpha=alpha)
     with pytest.raises(ConfigError, match="give both"):
         make_supervisor("vlm", model=str(tiny), alpha=0.05)
+    robot_only = tmp_path / "robot_only.json"  # a model-free bench (make online-power): no alarm the VLM can take
+    robot_only.write_text(json.dumps({"rows": {"robot signals (MLP)": rows}}))
+    with pytest.raises(ConfigError, match="has no model row .* not the robot-signal monitors"):
+        make_supervisor("vlm", model=str(tiny), alarm=str(robot_only), alpha=0.05)
     # a softmax can read exactly 1.0: a calibrated 1.0 never fires (refused as above); the float under 1 fires at 1.0
     rows = {"0.01": {"threshold": 1.0}, "0.05": {"threshold": math.nextafter(1.0, 0.0)}, "0.1": {"threshold": "x"}}
     alarm.write_text(json.dumps({"rows": {"model": rows}}))

@@ -28,9 +28,15 @@ def calibrated_threshold(alarm: str | None, alpha: float | None) -> float:
     if alarm is None or alpha is None:
         raise ConfigError("vlm.alarm/vlm.alpha: give both (an online bench's online.json and one of its alphas)")
     try:
-        rows = json.loads(Path(alarm).read_text())["rows"]["model"]
+        bench = json.loads(Path(alarm).read_text())["rows"]
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise ConfigError(f"vlm.alarm: {alarm} is not an online bench's online.json ({type(e).__name__})") from None
+    rows = bench.get("model") if isinstance(bench, dict) else None
+    if not isinstance(rows, dict):  # a bench without model= (make online-power): its monitors are the robot's
+        raise ConfigError(
+            f"vlm.alarm: {alarm} has no model row (a bench run without model=); the supervisor runs the model's "
+            "alarm only, not the robot-signal monitors"
+        )
     row = rows.get(str(float(alpha)) if isinstance(alpha, (int, float)) else str(alpha))
     if row is None:
         raise ConfigError(f"vlm.alpha: {alpha!r} was not calibrated in {alarm} (it has {', '.join(rows)})")
