@@ -395,7 +395,7 @@ def _online(cfg: Any) -> int:
     fa = _load_analyzer(cfg, cache=False)[0] if cfg.model is not None else None  # prefix grids all differ
     # a split of another dataset gets a folder of its own: never the model's bench of its own split
     out = Path(cfg.out_dir or Path(cfg.model) / f"eval_online_{cfg.split}{'_' + apart.name if apart else ''}")
-    res = run_online(cfg, fa, out)
+    res = run_online(cfg, fa, out, apart)
     md = "\n".join(online_md(res))
     atomic_write_bytes(out / "online.md", (md + "\n").encode())
     # a sealed split scored or calibrated on is a look at it like an offline bench: counted in the ledger the page

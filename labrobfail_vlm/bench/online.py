@@ -106,12 +106,16 @@ def prefix_grid(grid: Image.Image, cfg: GridConfig, views: int, k: int) -> Image
     return Image.fromarray(arr)
 
 
-def trajectories(dataset: Path, split: str, limit: int | None) -> list[dict[str, Any]]:
-    """The split's whole trajectories (no prefix records), in file order, at most `limit`."""
+def read_trajectories(dataset: Path) -> list[dict[str, Any]]:
+    """A dataset's trajectories.json (every split, prefix records too), or a one-line ConfigError."""
     try:
-        rows = json.loads((dataset / "trajectories.json").read_text())
+        return json.loads((dataset / "trajectories.json").read_text())
     except (OSError, ValueError) as e:
         raise ConfigError(f"dataset_dir: cannot read {dataset / 'trajectories.json'} ({e})") from None
+
+
+def trajectories(rows: list[dict[str, Any]], split: str, limit: int | None, dataset: Path) -> list[dict[str, Any]]:
+    """`split`'s whole trajectories among `dataset`'s `rows` (no prefix records), in file order, at most `limit`."""
     out = [t for t in rows if t.get("split") == split and "prefix_of" not in t]
     if not out:
         raise ConfigError(f"split: {split!r} has no trajectories in {dataset}")
@@ -134,7 +138,7 @@ def scored_apart(cfg: Any) -> Path | None:
     """`scored_dataset`, checked against dataset_dir: the same grid and views, and no pair in both (a shared pair
     would be a trajectory the MLPs were fitted or the alarm calibrated on, or its twin; pairs are named by variant
     and number, so a block drawn with another seed but the same numbers is refused too: number it apart). None when
-    unset or dataset_dir itself. The CLI calls it before a model loads, run_online again."""
+    unset or dataset_dir itself. The CLI calls it once, before a model loads, and hands run_online its answer."""
     raw, dataset = cfg.get("scored_dataset"), Path(str(cfg.dataset_dir))
     if raw is None or Path(str(raw)).resolve() == dataset.resolve():
         return None
@@ -300,21 +304,23 @@ def model_rows(
     return cal, ev, cpu
 
 
-def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
+def run_online(cfg: Any, fa: Any | None, out_dir: Path, apart: Path | None) -> dict[str, Any]:
     """The online bench of `cfg.split`, calibrated on `cfg.calibration`; writes online.json and the AUROC PNG.
-    Without a model (`fa` None), the robot-signal monitors, the majority class and the labeler only."""
+    Without a model (`fa` None), the robot-signal monitors, the majority class and the labeler only. `apart`:
+    scored_apart(cfg), the dataset `cfg.split` is read from when it is not dataset_dir (None: dataset_dir)."""
     from labrobfail_vlm.io import atomic_write_json
 
     dataset = Path(str(cfg.dataset_dir))
     stats = json.loads((dataset / "stats.json").read_text())
     grid = GridConfig(**stats["grid"])
-    apart = scored_apart(cfg)
     if cfg.calibration == cfg.split and apart is None:
         raise ConfigError("calibration: must be another split than the one scored (split conformal)")
     dirs = (dataset, apart or dataset)
     limit = cfg.get("max_trajectories")
     delta = check_delta(cfg.get("delta"))
-    cal_t, ev_t = trajectories(dataset, str(cfg.calibration), limit), trajectories(dirs[1], str(cfg.split), limit)
+    everything = read_trajectories(dataset)  # read once: the calibration split, the scored one if here, train
+    cal_t = trajectories(everything, str(cfg.calibration), limit, dataset)
+    ev_t = trajectories(everything if apart is None else read_trajectories(apart), str(cfg.split), limit, dirs[1])
     rows: dict[str, Any] = {
         "majority class": {str(a): {"false_alarm_rate": 0.0, "detection_rate": 0.0} for a in ALPHAS}
     }
@@ -327,12 +333,11 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path) -> dict[str, Any]:
         cands["model"] = Candidate([cal])
         rows = {"model": rows.pop("model"), **rows}  # the model's rows first, as the page reads them
         extra["cpu_s_per_check"] = round(cpu, 4)
-    everything = json.loads((dataset / "trajectories.json").read_text())
     train_t = [t for t in everything if t.get("split") == "train" and "prefix_of" not in t]
     # fitted on the train split, so it is calibrated and scored on others only
     # (a train split of a dataset drawn apart is none of the fit's trajectories)
-    fit_apart = "train" not in (cfg.calibration, cfg.split if apart is None else "")
-    if fit_apart and robot_baseline.has_signals([*train_t, *cal_t, *ev_t]):
+    apart_from_fit = "train" not in (cfg.calibration, cfg.split if apart is None else "")
+    if apart_from_fit and robot_baseline.has_signals([*train_t, *cal_t, *ev_t]):
         fitted = robot_baseline.fit(train_t)
         rcal, rev = robot_baseline.score(fitted, cal_t), robot_baseline.score(fitted, ev_t)
         rows[ROBOT] = alarm_rows([rcal], cal_t, [rev], ev_t, delta=delta)

@@ -83,18 +83,16 @@ def _by_event_md(rows: dict[str, Any]) -> list[str]:
         return []
     rank = {k: i for i, k in enumerate(EVENT_ORDER)}
     kinds = sorted({k for r in at.values() for k in r}, key=lambda k: (rank.get(k, len(rank)), k))
-    grave = [k for k in kinds if k in GRAVE]
-    pooled = ["spills and falls (%)"] if grave else []  # the target's own figure, with its interval
+    grave = [k for k in kinds if k in GRAVE]  # pooled in a last column: the target's own figure, with its interval
+    head = [k.replace("_", " ") for k in kinds] + (["spills and falls (%)"] if grave else [])
+    cells = {n: [_of(r.get(k)) for k in kinds] + ([_pooled(r, grave)] if grave else []) for n, r in at.items()}
     return [
         "",
         f"Caught before the irreversible event, by kind (caught of such failures), at alpha {BY_EVENT_ALPHA}:",
         "",
-        "| row | " + " | ".join([*(k.replace("_", " ") for k in kinds), *pooled]) + " |",
-        "|---|" + "---|" * (len(kinds) + len(pooled)),
-        *(
-            f"| {n} | " + " | ".join([*(_of(r.get(k)) for k in kinds), *(_pooled(r, grave) for _ in pooled)]) + " |"
-            for n, r in at.items()
-        ),
+        "| row | " + " | ".join(head) + " |",
+        "|---|" + "---|" * len(head),
+        *(f"| {n} | " + " | ".join(c) + " |" for n, c in cells.items()),
     ]
 
 
@@ -112,8 +110,8 @@ def _of(tally: list[int] | None) -> str:
 def _rate(r: dict[str, Any], rate_key: str, count_key: str, of: str) -> str:
     """A rate (false alarms of successes, detection of failures) with its exact 95 % interval, from the row's count
     (online_alarm.count_of); none for a row without n (the majority class, the ceiling)."""
-    k, n = count_of(r, rate_key, count_key, of), r.get(of)
-    ci = exact_ci(k, n) if k is not None and n else None
+    k = count_of(r, rate_key, count_key, of)
+    ci = None if k is None else exact_ci(k, r.get(of))
     return _pct(r.get(rate_key)) + ("" if ci is None else f" [{_pct(ci[0])}, {_pct(ci[1])}]")
 
 
@@ -129,7 +127,7 @@ def _grave(r: dict[str, Any]) -> str:
 
 def _left_out(rows: dict[str, Any]) -> str:
     """The rows and alphas at which a monitor's threshold is +inf (written null), naming which of a pair's two
-    monitors (the model first, as the bench pairs them)."""
+    monitors (the model first, as the bench pairs them; the per-frame MLP first in the MLPs' pair)."""
     parts = []
     for name, per in rows.items():
         first, second = (
