@@ -4,7 +4,7 @@ PY    := $(VENV)/bin/python
 BIN   := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: install browser vulkan demo demo-bench demo-supervise demo-diagnosis demo-online reproduce reproduce-rows reproduce-more reproduce-grid16 reproduce-tower ablate reproduce-online reproduce-tuned report-tuned online-bench online-power recovery recovery-scripted tower sim20k lint test test-fast bench clean
+.PHONY: install browser vulkan demo demo-bench demo-supervise demo-diagnosis demo-online reproduce reproduce-rows reproduce-more reproduce-grid16 reproduce-tower ablate reproduce-online reproduce-tuned report-tuned online-bench online-power recovery recovery-scripted recovery-monitor tower sim20k lint test test-fast bench clean
 APT_STAMP := $(VENV)/.apt-stamp
 VULKAN_STAMP := $(VENV)/.vulkan-stamp
 BACKPORTS := /etc/apt/sources.list.d/bookworm-backports.sources
@@ -500,6 +500,24 @@ online-power: $(STAMP)
 	  'views=[front,side]' 'ratios=[0,0,1]' progress=false
 	$(BIN)/labrobfail-evaluate mode=online dataset_dir=$(R)/dataset scored_dataset=$(R)/dataset_$(POWER_NAME) \
 	  split=test calibration=val delta=$(ONLINE_DELTA) out_dir=$(R)/online_$(POWER_NAME) progress=false
+	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS) 'sections=[supervision]'
+
+# The scripted cells with a robot-signal monitor deciding while the policy runs (sim_backends/supervision/vlm.py): the
+# monitor an online bench saves (by default a model-free bench of val_both: every bench of the run fits its MLPs on
+# the recipe's train split and calibrates them on seen val, so they save the same MLPs and thresholds), read at every
+# keyframe at alpha MONITOR_ALPHA; the model is asked when it first sounds (then the monitor stands down) and once
+# more when the policy stops. Scripted cells only: the monitor was calibrated on scripted successes (an ACT's would
+# need its own). Chosen on the development block 10000-10099 (docs/EXPERIMENTS.md, 7 Dec night); about 8 min.
+MONITOR ?= $(R)/robot_online_val_both/monitor
+MONITOR_ALPHA ?= 0.05
+$(R)/robot_online_val_both/monitor/monitor.json:
+	$(BIN)/labrobfail-evaluate mode=online dataset_dir=$(R)/dataset split=val_both calibration=val \
+	  delta=$(ONLINE_DELTA) out_dir=$(R)/robot_online_val_both progress=false
+recovery-monitor: $(STAMP)
+	@test -d $(VLM) || { echo "recovery-monitor: no model $(VLM) (make reproduce, or VLM=<model dir>)" >&2; exit 2; }
+	$(MAKE) $(MONITOR)/monitor.json
+	$(BIN)/labrobfail-supervise policy=scripted supervisor=vlm vlm.model=$(VLM) vlm.monitor=$(MONITOR) \
+	  vlm.alpha=$(MONITOR_ALPHA) task=pick,place,pour $(RECOVERY_RUN) loop.query_every=0 out_dir=$(R)/recovery/monitor
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS) 'sections=[supervision]'
 
 recovery: recovery-scripted online-bench

@@ -18,7 +18,7 @@ import numpy as np
 from PIL import Image
 
 from labrobfail_data.facts import aux_records, frame_facts
-from labrobfail_data.robot_signals import dense_table, frame_times, irreversible, robot_signals
+from sim_backends.robot_signals import dense_table, frame_times, irreversible, robot_signals
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.corrections import Context, correction

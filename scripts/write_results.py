@@ -65,7 +65,14 @@ from labrobfail_vlm.io import atomic_write_bytes
 from labrobfail_vlm.model.tower import raised_saturation
 from sim_backends.generate import run_physics
 from sim_backends.supervision.report import CARRIED as CARRIED_ROWS
-from sim_backends.supervision.report import LEAD, block, page_recovery, recovery_files, recovery_md
+from sim_backends.supervision.report import (
+    LEAD,
+    MONITOR_LEAD,
+    block,
+    page_recovery,
+    recovery_files,
+    recovery_md,
+)
 
 DEFAULTS = """
 run: outputs/reproduce     # the make reproduce run folder
@@ -441,7 +448,7 @@ def _ran(run: Path, folder: str) -> bool:
     (`make online-bench`) or a model-free one (`make online-power`: online_power*), or a bench of the seen test
     split."""
     if folder == "recovery":
-        return bool(recovery_files(run))
+        return bool(recovery_files(run) or recovery_files(run, MONITOR_LEAD))
     if "*" in folder:
         return any(run.glob(f"{folder}/online.json"))
     return bool(run_evals(run / folder, ("test",)))
@@ -566,7 +573,9 @@ def supervision(run: Path, page: list[str] | None = None) -> list[str]:
         ]
     lines += online_benches(run, page)
     lines += recovery_md([json.loads(f.read_text()) for f in recovery_files(run)], page_recovery(page or []))
-    return lines
+    for_monitor = [json.loads(f.read_text()) for f in recovery_files(run, MONITOR_LEAD)]
+    monitor = recovery_md(for_monitor, page_recovery(page or [], MONITOR_LEAD), MONITOR_LEAD)
+    return lines + (["", *monitor] if monitor else [])
 
 
 def timing(stamps: list[list[str]]) -> list[str]:

@@ -241,7 +241,11 @@ class CorrectionExecutor(ExecutorCore):
         self.step = st.index
 
     def _ensure_held(self, obj: str) -> None:
-        """Carrying primitives need the object in the hand: grasp it first when it is not."""
+        """Carrying primitives need the object in the hand: grasp it first when it is not. A fixed device (the oven,
+        the button: a model's correction can name one) cannot be carried, and is refused before anything moves."""
+        kind = self.meta.objects[obj].kind if obj in self.meta.objects else "zone"
+        if kind not in MOVABLE:
+            raise PrimitiveError(f"cannot carry {obj!r} (fixed: {kind})")
         if self._held(obj):
             return
         self._gripper_open()

@@ -254,6 +254,12 @@ def test_unrunnable_corrections_are_refused_with_a_reason(src):
     assert "unknown direction" in res.error
     assert "unknown primitive" in CorrectionExecutor(src).run([{"op": "teleport", "args": {}}]).error
     assert not math.isnan(ee(src)[0])
+    # a model's correction may name a fixed device as the thing to carry: refused before the arm moves
+    start(src, "open_oven_center", "s0_arc1")
+    before = ee(src)
+    res = CorrectionExecutor(src).run([prim("move_above", obj="drying oven", dest_id="its original position", h=0.01)])
+    assert not res.executed and res.keyframes == 0 and "cannot carry 'oven' (fixed: oven)" in res.error
+    assert np.allclose(ee(src), before)
 
 
 def test_a_regrasp_in_a_pour_goes_on_with_the_pour_not_the_set_back(src):

@@ -525,6 +525,7 @@ def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, smal
     res = json.loads((out / "online.json").read_text())
     # the robot-signal baseline is fitted on the train split: calibrated on it, its row is left out
     assert set(res["rows"]) == {"model", "majority class", "blind (grey grid)", "labeler on live state (ceiling)"}
+    assert res["monitor"] is None  # no robot-signal row: no monitor saved
     ceiling = res["rows"]["labeler on live state (ceiling)"]
     assert ceiling["latency_s_median"] == 0.0 and "irreversible_failures" in ceiling
     assert "latency_s_median" in res["rows"]["model"]["0.2"]
@@ -574,6 +575,10 @@ def test_online_bench_calibrates_on_successes_and_scores_every_prefix(tiny, smal
     assert run_here([*argv, f"out_dir={alone}"]).returncode == 0
     robot = json.loads((alone / "online.json").read_text())
     assert list(robot["rows"]) == ["majority class", ROBOT, DENSE, ROBOT_PAIR, "labeler on live state (ceiling)"]
+    # its robot-signal alarms saved for the supervisor: they sound where the bench says, read again from the files
+    from test_monitor import reproduces_bench
+
+    reproduces_bench(alone, ds, robot)
     # the two MLPs paired: either sounds, each at half of alpha, so at most the sum of their false alarms at alpha/2
     for a in ("0.1", "0.2"):
         row = robot["rows"][ROBOT_PAIR][a]

@@ -259,10 +259,10 @@ def test_broken_glass_renders_shards_once_a_dropped_bottle_has_landed():
 
     import pybullet as p
 
-    from labrobfail_data.robot_signals import frame_times, irreversible
     from labrobfail_vlm.config import ConfigError
     from sim_backends import generate
     from sim_backends.pybullet.assets import BENCH_TOP
+    from sim_backends.robot_signals import frame_times, irreversible
     from sim_backends.schema import check_trace, trace_until
 
     kw = {"image_size": 64, "cameras": ["front"], "max_distractors": 0}

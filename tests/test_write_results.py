@@ -20,6 +20,7 @@ def _results(
     model: str = "outputs/online/final",
     every: int = 0,
     seed: int | None = None,
+    monitor: dict | None = None,
 ) -> None:
     """A results.json as labrobfail-supervise writes it: per task, the baseline and the VLM's summaries."""
 
@@ -35,7 +36,7 @@ def _results(
                     "supervisor": "vlm",
                     "trials": 25,
                     "variant": "seen",
-                    "vlm": {"model": model},
+                    "vlm": {"model": model, **(monitor or {})},
                     "loop": {"query_every": every, "final_query": True, "budget": 2, "on_manual": "stop"},
                     **({} if seed is None else {"seed": seed}),
                 },
@@ -80,6 +81,32 @@ def test_a_cell_with_its_own_supervisor_setting_is_named_with_it(tmp_path: Path)
     assert "asked at every keyframe and once more when the policy stops" in head
     # The seed block the cell ran on, so that a reader can check it is the reporting block no choice saw.
     assert "act pour: 25 trials per cell (seeds 20000-20024), variant seen, supervisor vlm (`outputs/train" in head
+
+
+def test_the_monitor_table_stands_apart_and_a_later_recovery_run_keeps_it(tmp_path: Path) -> None:
+    """make recovery-monitor's cells (the robot-signal monitor deciding) are a table of their own under the recovery
+    table, named with the monitor and its alpha; a later run of the other table carries them, and says so."""
+    from sim_backends.supervision.report import LEAD, MONITOR_LEAD
+
+    def at(lines: list[str], lead: str) -> int:
+        return next(k for k, line in enumerate(lines) if line.startswith(lead))
+
+    _results(tmp_path / "recovery" / "scripted" / "results.json", "scripted", {"pick": (6, 20)}, every=-1)
+    watched = {"monitor": "m/monitor", "alpha": 0.05}
+    _results(tmp_path / "recovery" / "monitor" / "results.json", "scripted", {"pick": (6, 24)}, monitor=watched)
+    lines = supervision(tmp_path)
+    i, j = at(lines, LEAD), at(lines, MONITOR_LEAD)
+    assert i < j and "asked only when the policy stops" in lines[i]
+    assert (
+        "asked when the robot-signal monitor `m/monitor` (alpha 0.05), read at every keyframe, first sounds" in lines[j]
+    )
+    assert "| 6/25 | 20/25 |" in "\n".join(lines[i:j]) and "| 6/25 | 24/25 |" in "\n".join(lines[j:])
+    later = tmp_path / "later"
+    _results(later / "recovery" / "scripted" / "results.json", "scripted", {"pick": (6, 21)}, every=-1)
+    again = supervision(later, lines)
+    i, j = at(again, LEAD), at(again, MONITOR_LEAD)
+    assert "| 6/25 | 21/25 |" in "\n".join(again[i:j]) and "20/25" not in "\n".join(again)
+    assert again[j].endswith("(rows carried from the page, not re-run).") and "| 6/25 | 24/25 |" in again[-1]
 
 
 def _eval(path: Path, q2: float) -> None:

@@ -55,14 +55,12 @@ from PIL import Image
 from labrobfail_vlm.bench import robot_baseline
 from labrobfail_vlm.bench.online_alarm import ALPHAS, LABELER, alarm_rows, ceiling, on_axis
 from labrobfail_vlm.bench.online_choice import Candidate, choose
+from labrobfail_vlm.bench.robot_baseline import DENSE, ROBOT, ROBOT_PAIR
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.grid import BLANK, GridConfig
 
-ROBOT = "robot signals (MLP)"
 EITHER = "model or robot signals (alpha/2 each)"
-DENSE = "robot signals, every trace sample (MLP)"
 DENSE_EITHER = "model or robot signals, every sample (alpha/2 each)"
-ROBOT_PAIR = "robot signals per grid frame or every sample (alpha/2 each)"
 
 
 def pair_name(share: float) -> str:
@@ -223,13 +221,14 @@ def dense_rows(
     cands: dict[str, Candidate] | None = None,
     delta: float | None = None,
     frame_mlp: tuple[Sequence[list[float]], Sequence[list[float]]] | None = None,
-) -> dict[str, Any]:
+) -> tuple[dict[str, Any], Any]:
     """The robot-signal MLP checked at every trace sample (robot_baseline.DENSE_FILE), alone, paired with the
     per-frame MLP (`frame_mlp`: its calibration and scored running scores; halves of alpha) and with the model when
     there is one (one pair row per model's share of alpha in `shares`; a per-frame score stands from one grid frame
     to the next): adds their rows and curve (and their calibration scores to `cands`), returns the CPU seconds of one
-    dense check, every alarm calibrated with `delta` (alarm_rows). Nothing for a dataset built without the dense file
-    (before 3 Dec). Train and calibration tables are read from dirs[0], the scored ones from dirs[1]."""
+    dense check and the fitted MLP, every alarm calibrated with `delta` (alarm_rows). Nothing ({}, None) for a
+    dataset built without the dense file (before 3 Dec). Train and calibration tables are read from dirs[0], the
+    scored ones from dirs[1]."""
     cands = {} if cands is None else cands
     (cal_t, cal_s), (ev_t, ev_s) = cal, ev
     if dirs[0] == dirs[1]:
@@ -239,10 +238,10 @@ def dense_rows(
         theirs = robot_baseline.read_dense(dirs[1], [t["trajectory"] for t in ev_t])
         tables = None if ours is None or theirs is None else ours | theirs
     if tables is None or not all(t.get("frame_times_s") for t in (*cal_t, *ev_t)):
-        return {}
+        return {}, None
     fitted = robot_baseline.fit_dense(train_t, tables)
     if fitted is None:
-        return {}
+        return {}, None
     dev = robot_baseline.score_dense(fitted, ev_t, tables)
     dcal = robot_baseline.score_dense(fitted, cal_t, tables)
     cpu = robot_baseline.check_seconds(fitted, tables[ev_t[0]["trajectory"]])
@@ -260,7 +259,7 @@ def dense_rows(
             )
     at_frames = [d[np.searchsorted(a, t["frame_times_s"])] for d, a, t in zip(dev, ev_ax, ev_t)]
     curves[DENSE] = auroc_by_keyframe([list(map(float, x)) for x in at_frames], ev_t)
-    return {"cpu_s_per_dense_check": float(f"{cpu:.3g}")}
+    return {"cpu_s_per_dense_check": float(f"{cpu:.3g}")}, fitted
 
 
 def _with_dense(
@@ -309,6 +308,7 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path, apart: Path | None) -> d
     Without a model (`fa` None), the robot-signal monitors, the majority class and the labeler only. `apart`:
     scored_apart(cfg), the dataset `cfg.split` is read from when it is not dataset_dir (None: dataset_dir)."""
     from labrobfail_vlm.io import atomic_write_json
+    from labrobfail_vlm.monitor import save_monitor
 
     dataset = Path(str(cfg.dataset_dir))
     stats = json.loads((dataset / "stats.json").read_text())
@@ -328,6 +328,7 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path, apart: Path | None) -> d
     cal = ev = None
     extra: dict[str, Any] = {"cpu_s_per_check": None}
     cands: dict[str, Candidate] = {}  # the alarms the report's row is chosen from (online_choice; not the blind model)
+    models: dict[str, Any] = {}  # the robot-signal MLPs fitted here, saved with their thresholds (monitor.py)
     if fa is not None:
         cal, ev, cpu = model_rows(fa, dirs, grid, cal_t, ev_t, rows, curves, delta)
         cands["model"] = Candidate([cal])
@@ -347,7 +348,11 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path, apart: Path | None) -> d
             cands[EITHER] = Candidate([cal, rcal])
         curves[ROBOT] = auroc_by_keyframe(rev, ev_t)
         shares = check_pair_shares(cfg.get("pair_shares"))
-        extra |= dense_rows(dirs, train_t, (cal_t, cal), (ev_t, ev), rows, curves, shares, cands, delta, (rcal, rev))
+        more, models["dense"] = dense_rows(
+            dirs, train_t, (cal_t, cal), (ev_t, ev), rows, curves, shares, cands, delta, (rcal, rev)
+        )
+        extra |= more
+        models["frame"] = fitted
     if fa is None and ROBOT not in rows:
         raise ConfigError(
             "mode=online without model=: the dataset has no robot signals to fit on the train split (built before "
@@ -355,6 +360,7 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path, apart: Path | None) -> d
         )
     rows[LABELER] = ceiling(ev_t)
     res = {
+        "dataset": str(dataset),
         "split": str(cfg.split),
         **({} if apart is None else {"scored_dataset": str(apart)}),  # the scored split is another dataset's
         "calibration": str(cfg.calibration),
@@ -368,6 +374,11 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path, apart: Path | None) -> d
         "chosen_on_calibration": choose(cands, cal_t, delta=delta),
     }
     out_dir.mkdir(parents=True, exist_ok=True)
+    meta = {k: res.get(k) for k in ("dataset", "calibration", "calibration_successes", "delta")}
+    meta["chosen_on_calibration"] = res["chosen_on_calibration"]["chosen"]  # the row a supervisor takes by default
+    meta["max_frames"] = grid.max_frames  # the per-frame MLP read k / F of grids this size
+    monitor = save_monitor(out_dir / "monitor", {k: v for k, v in models.items() if v is not None}, rows, meta)
+    res["monitor"] = None if monitor is None else "monitor"  # the robot-signal alarms, for labrobfail-supervise
     atomic_write_json(out_dir / "online.json", res)
     auroc_png(res["auroc_by_keyframe"], f"online bench, {cfg.split}", out_dir / "auroc_by_keyframe.png")
     return res

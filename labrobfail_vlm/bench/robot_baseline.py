@@ -1,6 +1,6 @@
 """The online bench's non-VLM baseline: a small MLP on the robot's own signals, in SAFE's manner.
 
-Each grid frame of a trajectory carries its robot signals (labrobfail_data/robot_signals.py: hand position, finger
+Each grid frame of a trajectory carries its robot signals (sim_backends/robot_signals.py: hand position, finger
 opening, gripper command, the commanded keyframe, tracking errors). The score of the prefix that shows k frames is
 an MLP's P(failure has shown by frame k) on the k-th frame's signals, the running maxima of the tracking errors and
 of the closed-finger opening over frames 1..k, and k's place in the trajectory. It is trained on the dataset's
@@ -19,7 +19,11 @@ import numpy as np
 
 from labrobfail_vlm.config import ConfigError
 
-RUNNING = (9, 10, 11)  # tracking_error, segment_error_max, closed_width (labrobfail_data/robot_signals.SIGNALS)
+# the online bench's rows of these monitors (labrobfail_vlm/bench/online.py; a saved monitor names them too)
+ROBOT = "robot signals (MLP)"
+DENSE = "robot signals, every trace sample (MLP)"
+ROBOT_PAIR = "robot signals per grid frame or every sample (alpha/2 each)"
+RUNNING = (9, 10, 11)  # tracking_error, segment_error_max, closed_width (sim_backends/robot_signals.SIGNALS)
 # The same signals at every sample of the state trace (40 Hz), per whole trajectory, beside trajectories.json: what a
 # monitor checked at the robot's own rate sees between two grid frames. Columns: trajectory, t (s since the trace
 # began), keyframe (0-based: the commanded keyframe the sample belongs to), signals (the SIGNALS, row after row).
@@ -29,11 +33,12 @@ DENSE_FILE = "robot_signals.parquet"
 FIT_EVERY = 4
 
 
-def prefix_features(signals: Sequence[Sequence[float]]) -> np.ndarray:
-    """One row per prefix k = 1..F: frame k's signals, the running maxima, k / F."""
+def prefix_features(signals: Sequence[Sequence[float]], total: int | None = None) -> np.ndarray:
+    """One row per prefix k = 1..F: frame k's signals, the running maxima, k / F. `total`: the grid's frames when
+    `signals` are its first ones only (a live episode's so far: labrobfail_vlm/monitor.py); None: all of them."""
     x = np.asarray(signals, float)
     run = np.maximum.accumulate(x[:, RUNNING], axis=0)
-    pos = (np.arange(1, len(x) + 1) / len(x))[:, None]
+    pos = (np.arange(1, len(x) + 1) / (total or len(x)))[:, None]
     return np.hstack([x, run, pos])
 
 

@@ -74,8 +74,9 @@ class Supervisor(ABC):
     def query(self, src: FailureSource, final: bool = False) -> Verdict:
         """Has a (new) failure shown up in the episode so far? `final`: the policy has stopped."""
 
-    def handled(self, src: FailureSource) -> None:
-        """A correction ran: what has happened up to now is dealt with."""
+    def handled(self, src: FailureSource, acted: bool = True) -> None:
+        """A correction ran: what has happened up to now is dealt with. `acted`: whether it moved anything (a plan
+        refused before its first primitive did not; the report is dealt with all the same)."""
         self.handled_upto = len(src.executed_so_far()) - 1
 
 
@@ -98,6 +99,20 @@ def view_indices(rendered: list[str], views: list[str] | None) -> list[int] | No
     return [rendered.index(v) for v in views]
 
 
+def live_picks(done: list, nominal: list, max_frames: int, final: bool = False) -> tuple[list[int], list[int]]:
+    """live_grid's cells: the executed keyframes that count as one each (`units`, indices into `done`) and the
+    grid's picks, indices into the units and the plan's remaining keyframes after them (a pick >= len(units) is a
+    cell not reached yet). Its rules are live_grid's."""
+    if final:  # the episode is whole: the dataset's rule (no cells for the plan's remaining keyframes)
+        units = whole_grid_picks([k.name for k in done], [k.segment for k in done], max_frames)
+        return units, list(range(len(units)))
+    units = [i for i in range(len(done)) if i == len(done) - 1 or done[i + 1].name != done[i].name]
+    names = [k.name for k in nominal]
+    last = done[units[-1]].name if units else None
+    rest = nominal[len(names) - names[::-1].index(last) :] if last in names else nominal[len(units) :]
+    return units, sample_keyframes([done[i].segment for i in units] + [k.segment for k in rest], max_frames)
+
+
 def live_grid(
     src: FailureSource, nominal: list, cfg: GridConfig, final: bool = False, views: list[int] | None = None
 ) -> LiveGrid:
@@ -114,16 +129,7 @@ def live_grid(
 
     `views`: the rendered views shown, in order (`view_indices`); None: all of them.
     """
-    done = src.executed_so_far()
-    if final:  # the episode is whole: the dataset's rule (no cells for the plan's remaining keyframes)
-        units = whole_grid_picks([k.name for k in done], [k.segment for k in done], cfg.max_frames)
-        picks = list(range(len(units)))
-    else:
-        units = [i for i in range(len(done)) if i == len(done) - 1 or done[i + 1].name != done[i].name]
-        names = [k.name for k in nominal]
-        last = done[units[-1]].name if units else None
-        rest = nominal[len(names) - names[::-1].index(last) :] if last in names else nominal[len(units) :]
-        picks = sample_keyframes([done[i].segment for i in units] + [k.segment for k in rest], cfg.max_frames)
+    units, picks = live_picks(src.executed_so_far(), nominal, cfg.max_frames, final)
     shown = [p for p in picks if p < len(units)]
     pngs = src.images_so_far()
     pngs = pngs if views is None else [pngs[i] for i in views]

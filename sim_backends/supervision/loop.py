@@ -338,7 +338,7 @@ def _query(
         rec["outcome"] = {"executed": False, "error": "intervention budget spent"}
     elif v.failure:
         res = executor.run(v.primitives)
-        sup.handled(src)  # the report is dealt with, even when its plan was refused
+        sup.handled(src, res.keyframes > 0)  # the report is dealt with, even when its plan was refused
         rec["outcome"] = res.to_dict()
         # a plan refused before its first primitive (an impossible return, an unknown primitive) left the world as
         # it was: it is no intervention (the budget counts corrections that acted) and the policy's plan or action

@@ -116,6 +116,6 @@ class OracleSupervisor(Supervisor):
             {"evidence": why, "severity": sev, "category": int(category_of(ftype)), "sample": j},
         )
 
-    def handled(self, src: FailureSource) -> None:
-        super().handled(src)
+    def handled(self, src: FailureSource, acted: bool = True) -> None:
+        super().handled(src, acted)
         self.after_sample = len(src.trace_so_far()["t"]) - 1

@@ -19,13 +19,18 @@ HEADER = (
     "| successes broken | episodes with an intervention | stopped early |"
 )
 LEAD = "Recovery: the same initial states and injections with and without the supervisor; "
+# make recovery-monitor's table: the VLM supervisor with a saved robot-signal monitor deciding while the policy runs
+MONITOR_LEAD = "Recovery with the robot-signal monitor, the same initial states and injections with and without it; "
 TASK_ORDER = ("pick", "place", "pour")
 CARRIED = " (rows carried from the page, not re-run)"
 
 
-def recovery_files(run: Path) -> list[Path]:
-    """`make recovery`'s results.json files of a run: the scripted policy's, then each ACT task's."""
+def recovery_files(run: Path, lead: str = LEAD) -> list[Path]:
+    """`make recovery`'s results.json files of a run: the scripted policy's, then each ACT task's; with
+    MONITOR_LEAD, `make recovery-monitor`'s."""
     rec = run / "recovery"
+    if lead == MONITOR_LEAD:
+        return [f for f in (rec / "monitor" / "results.json",) if f.is_file()]
     return [
         f for f in (rec / "scripted" / "results.json", *sorted((rec / "act").glob("*/results.json"))) if f.is_file()
     ]
@@ -37,6 +42,9 @@ def setting(cfg: dict[str, Any]) -> str:
     asked = {0: "at every keyframe", -1: "only when the policy stops"}.get(
         loop["query_every"], f"every {loop['query_every']} policy steps"
     )
+    monitor = (cfg.get(sup) or {}).get("monitor")
+    if monitor and loop["query_every"] >= 0:  # sim_backends/supervision/vlm.py: the monitor decides, the model says
+        asked = f"when the robot-signal monitor `{monitor}` (alpha {cfg[sup].get('alpha')}), read {asked}, first sounds"
     seeds = f" (seeds {cfg['seed']}-{cfg['seed'] + cfg['trials'] - 1})" if isinstance(cfg.get("seed"), int) else ""
     return (
         f"{cfg['trials']} trials per cell{seeds}, variant {cfg['variant']}, supervisor {sup} "
@@ -79,13 +87,14 @@ def block(section: list[str], starts: Callable[[str], bool], ends: Callable[[str
     return section[at:end]
 
 
-def page_recovery(section: list[str]) -> tuple[str, list[str]]:
-    """An existing Supervision section's recovery setting (its "Recovery:" line less the lead) and table rows."""
-    lead = next((line for line in section if line.startswith(LEAD)), "")
-    table = block(section, lambda line: line == HEADER, lambda line: not line.startswith("| "), skip=2)
-    if not table:
-        return lead, []
-    return lead.removeprefix(LEAD).removesuffix("."), table[2:]
+def page_recovery(section: list[str], lead: str = LEAD) -> tuple[str, list[str]]:
+    """An existing Supervision section's recovery setting (its line opening with `lead`, less the lead) and the rows
+    of the table that follows it; ("", []) when it has no such line."""
+    at = next((i for i, line in enumerate(section) if line.startswith(lead)), None)
+    if at is None:
+        return "", []
+    table = block(section[at:], lambda line: line == HEADER, lambda line: not line.startswith("| "), skip=2)
+    return section[at].removeprefix(lead).removesuffix("."), table[2:]
 
 
 def _page_settings(line: str) -> dict[str, str]:
@@ -100,9 +109,11 @@ def _page_settings(line: str) -> dict[str, str]:
     return out
 
 
-def recovery_md(results: list[dict[str, Any]], page: tuple[str, list[str]] | None = None) -> list[str]:
-    """The setting line and the table of these results; `page` (page_recovery's) adds the page's rows for cells
-    the results lack, under the setting the page gave them."""
+def recovery_md(
+    results: list[dict[str, Any]], page: tuple[str, list[str]] | None = None, lead: str = LEAD
+) -> list[str]:
+    """The setting line (opening with `lead`) and the table of these results; `page` (page_recovery's) adds the
+    page's rows for cells the results lack, under the setting the page gave them."""
     rows: dict[tuple[str, str], str] = {}
     settings: dict[str, list[str]] = {}  # each supervisor setting and the cells it ran (a task may need its own)
     for res in results:
@@ -129,7 +140,7 @@ def recovery_md(results: list[dict[str, Any]], page: tuple[str, list[str]] | Non
         else "; ".join(f"{', '.join(cells)}: {s}" for s, cells in settings.items())
     )
     return [
-        LEAD + line + ".",
+        lead + line + ".",
         "",
         HEADER,
         "|---|---|---|---|---|---|---|---|---|---|---|",

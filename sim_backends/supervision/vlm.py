@@ -5,6 +5,14 @@ strategies of the category the model gave for Q5), so every correction it gives 
 names a category (Q5), not a fine-grained type: the verdict's `failure_type` stays None and the diagnosis carries
 the category. A failure whose grid frame lies at or before the last correction is taken as already handled.
 The grid shows the supervisor's own `views` (supervise.yaml: the `cameras`), whatever else the policy sees.
+
+When to intervene: P(failure) >= `threshold`; or the threshold an online bench calibrated (`alarm` + `alpha`); or,
+with `monitor` + `alpha`, a robot-signal monitor that bench saved (sim_backends/supervision/monitor.py), as Sentinel
+pairs a cheap detector with a VLM: while the policy runs, the monitor reads the robot's signals at every query and
+the model is asked only once it sounds, for the diagnosis and the correction (its Q2 taken as a failure); after one
+correction the monitor stands down for the episode. Its false-alarm bound is then that of the supervisor's stops
+while the policy runs: on successes exchangeable with its calibration ones, at most alpha are stopped. Once the
+policy stops, the final query is the model's own review at `threshold` (as without a monitor).
 """
 
 from __future__ import annotations
@@ -14,9 +22,11 @@ from typing import Any
 
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.drawing import mismatches
+from labrobfail_vlm.monitor import RobotMonitor
 from sim_backends.policies.base import EpisodeContext
 from sim_backends.source import FailureSource
 from sim_backends.supervision.base import Supervisor, Verdict, live_grid, register_supervisor, view_indices
+from sim_backends.supervision.monitor import LiveMonitor
 
 
 def calibrated_threshold(alarm: str | None, alpha: float | None) -> float:
@@ -67,13 +77,24 @@ class VLMSupervisor(Supervisor):
         alarm: str | None = None,
         alpha: float | None = None,
         check_drawing: bool = True,
+        monitor: str | None = None,
+        monitor_row: str | None = None,
     ):
         from labrobfail_vlm.analyzer import FailureAnalyzer, check_threshold
         from labrobfail_vlm.train.checkpoint import trained_drawing
 
-        if alarm is not None or alpha is not None:  # in (0, 1]: 1.0 when the calibrated one is the float under 1
+        self.monitor: LiveMonitor | None = None
+        if monitor is not None:  # the robot-signal alarm decides; the model diagnoses and corrects what it flagged
+            if alarm is not None:
+                raise ConfigError("vlm.monitor/vlm.alarm: one alarm decides when to intervene; give one of them")
+            if alpha is None:
+                raise ConfigError("vlm.monitor: give vlm.alpha too (one of the alphas its bench calibrated)")
+            self.monitor = LiveMonitor(RobotMonitor.load(monitor, alpha, monitor_row))
+        elif monitor_row is not None:
+            raise ConfigError("vlm.monitor_row: names a row of vlm.monitor, which is not given")
+        if alarm is not None or (alpha is not None and monitor is None):  # in (0, 1]: 1.0 from the float under 1
             threshold = calibrated_threshold(alarm, alpha)
-        else:
+        else:  # (with a monitor: the final review's, when the policy has stopped)
             try:
                 threshold = check_threshold(threshold)
             except ValueError as e:
@@ -105,11 +126,41 @@ class VLMSupervisor(Supervisor):
     def reset(self, ctx: EpisodeContext) -> None:
         super().reset(ctx)
         self.view_idx = view_indices(ctx.camera_names, self.views)
+        self.reported: tuple[dict[str, Any], Verdict] | None = None  # the monitor's alarm and the model's verdict
+        self.stood_down = False
+
+    def handled(self, src: FailureSource, acted: bool = True) -> None:
+        # The monitor's bound is on an episode's first alarm: no calibration success was corrected halfway, and on
+        # the development block (docs/EXPERIMENTS.md, 7 Dec night) its later alarms were mostly false, each
+        # correction a new risk (a regrasp that drops what the first one saved). It stands down for the episode.
+        # A correction refused before it moved anything leaves the failure to the final review (the development
+        # block's variant that kept it handled lost place and pour failures the review would have mended).
+        if self.monitor is None or acted:
+            super().handled(src, acted)
+        self.stood_down = True
 
     def query(self, src: FailureSource, final: bool = False) -> Verdict:
+        if self.monitor is None or final:  # once the policy stops, the model reviews the whole episode itself
+            return self._ask(src, final)
+        hit = None if self.stood_down else self.monitor.check(src, self.ctx.nominal)
+        if hit is None:  # quiet: the model is not asked (Sentinel's cheap detector first)
+            return Verdict(False, diagnosis={"failure": False, "monitor": None})
+        if self.reported is None or self.reported[0] != hit:  # an alarm the loop did not act on (its budget spent)
+            self.reported = (hit, self._ask(src, final, hit))  # is diagnosed once, not at every later keyframe
+        return self.reported[1]
+
+    def _ask(self, src: FailureSource, final: bool, hit: dict[str, Any] | None = None) -> Verdict:
+        """The model on the live grid; after the monitor's alarm (`hit`) its verdict is a failure whatever its
+        P(failure) (the operating point 0 for this one ask), and Q3-Q6 say which and how to correct it."""
         g = live_grid(src, self.ctx.nominal, self.fa.grid, final, self.view_idx)
-        d = self.fa.analyze(g.image, task=self.ctx.instruction, frames=max(1, g.visible), objects=self.ctx.objects)
+        threshold, self.fa.threshold = self.fa.threshold, 0.0 if hit is not None else self.fa.threshold
+        try:
+            d = self.fa.analyze(g.image, task=self.ctx.instruction, frames=max(1, g.visible), objects=self.ctx.objects)
+        finally:
+            self.fa.threshold = threshold
         kf = g.keyframes[d.failure_frame - 1] if d.failure and d.failure_frame and g.keyframes else None
+        if hit is not None and (kf is None or kf <= self.handled_upto):  # the model's frame is one already dealt with
+            kf = hit["keyframe"]
         new = d.failure and (kf is None or kf > self.handled_upto)
         return Verdict(
             bool(new),
@@ -118,6 +169,6 @@ class VLMSupervisor(Supervisor):
             d.correction if new else "",
             d.correction_strategy if new else None,
             list(d.primitives or []) if new else [],
-            {k: v for k, v in d.__dict__.items() if k != "raw"} | {"raw": d.raw},
+            {k: v for k, v in d.__dict__.items() if k != "raw"} | {"raw": d.raw, "monitor": hit},
             g.image,
         )
