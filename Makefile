@@ -510,11 +510,13 @@ online-power: $(STAMP)
 # need its own). Chosen on the development block 10000-10099 (docs/EXPERIMENTS.md, 7 Dec night); about 8 min.
 MONITOR ?= $(R)/robot_online_val_both/monitor
 MONITOR_ALPHA ?= 0.05
-$(R)/robot_online_val_both/monitor/monitor.json:
+$(R)/robot_online_val_both/monitor/monitor.json: $(R)/dataset/stats.json | $(STAMP)
 	$(BIN)/labrobfail-evaluate mode=online dataset_dir=$(R)/dataset split=val_both calibration=val \
 	  delta=$(ONLINE_DELTA) out_dir=$(R)/robot_online_val_both progress=false
 recovery-monitor: $(STAMP)
 	@test -d $(VLM) || { echo "recovery-monitor: no model $(VLM) (make reproduce, or VLM=<model dir>)" >&2; exit 2; }
+	@test -f $(MONITOR)/monitor.json || test "$(MONITOR)" = "$(R)/robot_online_val_both/monitor" || { echo \
+	  "recovery-monitor: no monitor in $(MONITOR) (an online bench's out_dir/monitor)" >&2; exit 2; }
 	$(MAKE) $(MONITOR)/monitor.json
 	$(BIN)/labrobfail-supervise policy=scripted supervisor=vlm vlm.model=$(VLM) vlm.monitor=$(MONITOR) \
 	  vlm.alpha=$(MONITOR_ALPHA) task=pick,place,pour $(RECOVERY_RUN) loop.query_every=0 out_dir=$(R)/recovery/monitor

@@ -19,6 +19,7 @@ calibration split was drawn from); another policy or scene needs calibrating ane
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from dataclasses import dataclass
@@ -86,9 +87,9 @@ def save_monitor(out: Path, models: dict[str, Any], rows: dict[str, Any], meta: 
     """Write the monitor of the bench's robot-signal `rows` whose MLPs are all in `models` ("frame", "dense": fitted
     pipelines); `meta` goes to monitor.json as it is (calibration, delta, chosen row). None when there is no such
     row."""
-    from safetensors.numpy import save_file
+    from safetensors.numpy import save
 
-    from labrobfail_vlm.io import atomic_write_json
+    from labrobfail_vlm.io import atomic_write_bytes, atomic_write_json
 
     keep = {name: members for name, members in ROWS.items() if name in rows and all(m in models for m in members)}
     if not keep:
@@ -97,11 +98,11 @@ def save_monitor(out: Path, models: dict[str, Any], rows: dict[str, Any], meta: 
     mlps = {m: Mlp.from_sklearn(models[m]) for m in used}
     out.mkdir(parents=True, exist_ok=True)
     tensors = {k: v for m in used for k, v in mlps[m].tensors(m).items()}
-    tmp = out / f".{WEIGHTS}.tmp"
-    save_file(tensors, str(tmp))
-    tmp.replace(out / WEIGHTS)
+    data = save(tensors)
+    atomic_write_bytes(out / WEIGHTS, data)
     config = {
         "format": FORMAT,
+        "weights_sha256": hashlib.sha256(data).hexdigest(),  # a crash between the two writes is caught on load
         "layers": {m: len(mlps[m].weights) for m in used},
         "rows": {name: {"members": list(members), "alphas": _levels(rows[name])} for name, members in keep.items()},
         **meta,
@@ -122,13 +123,54 @@ def _levels(row: dict[str, Any]) -> dict[str, Any]:
 def read_mlps(where: Path, config: dict[str, Any]) -> dict[str, Mlp]:
     """Every MLP of a monitor directory (`config`: its monitor.json), or a one-line ConfigError."""
     from safetensors import SafetensorError
-    from safetensors.numpy import load_file
+    from safetensors.numpy import load
 
     try:
-        tensors = load_file(str(where / WEIGHTS))
+        data = (where / WEIGHTS).read_bytes()
+        if hashlib.sha256(data).hexdigest() != config.get("weights_sha256"):  # the two files are one monitor
+            raise ValueError(f"its sha256 is not the one {CONFIG} names (written by another bench run?)")
+        tensors = load(data)
         return {m: Mlp.from_tensors(tensors, m, int(n)) for m, n in config["layers"].items()}
-    except (OSError, ValueError, KeyError, TypeError, AttributeError, SafetensorError) as e:
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, IndexError, SafetensorError) as e:
         raise ConfigError(f"vlm.monitor: cannot read {where / WEIGHTS} ({type(e).__name__}: {e})") from None
+
+
+def _read_config(where: Path) -> dict[str, Any]:
+    try:
+        config = json.loads((where / CONFIG).read_text())
+    except (OSError, ValueError) as e:
+        raise ConfigError(f"vlm.monitor: {where} holds no readable {CONFIG} ({type(e).__name__})") from None
+    if not isinstance(config, dict) or config.get("format") != FORMAT or not isinstance(config.get("rows"), dict):
+        raise ConfigError(f"vlm.monitor: {where / CONFIG} is not a robot-signal monitor ({FORMAT})")
+    return config
+
+
+def _row(config: dict[str, Any], row: str | None, where: Path) -> tuple[str, dict[str, Any]]:
+    """The row asked for, or by default the one chosen on calibration if saved here, else the pair, else any."""
+    rows, chosen = config["rows"], config.get("chosen_on_calibration")
+    if row is None:
+        row = next((r for r in (chosen, robot_baseline.ROBOT_PAIR, *rows) if r in rows), None)
+        if row is None:
+            raise ConfigError(f"vlm.monitor: {where / CONFIG} holds no row")
+    if row not in rows:
+        raise ConfigError(f"vlm.monitor_row: {row!r} is not in {where / CONFIG} (it has {', '.join(rows)})")
+    return row, rows[row]
+
+
+def _thresholds(entry: dict[str, Any], alpha: Any, name: str, where: Path) -> list[float]:
+    """A row's members' thresholds at alpha (+inf: that member never sounds), or a one-line ConfigError."""
+    levels = entry["alphas"].get(str(float(alpha)) if _number(alpha) else str(alpha))
+    if levels is None:
+        have = ", ".join(entry["alphas"])
+        raise ConfigError(f"vlm.alpha: {alpha!r} was not calibrated for this monitor (it has {have})")
+    raw = levels.get("thresholds") if isinstance(levels, dict) else None
+    if not isinstance(raw, list) or not all(t is None or (_number(t) and 0 <= t <= 1) for t in raw):
+        raise ConfigError(
+            f"vlm.monitor: {where / CONFIG} gives {name} at {alpha} thresholds {raw!r}, not a P(failure) in [0, 1]"
+        )
+    if all(t is None for t in raw):
+        raise ConfigError(f"vlm.alpha: too few calibration successes for alpha {alpha}: the monitor never sounds")
+    return [math.inf if t is None else float(t) for t in raw]
 
 
 @dataclass(frozen=True)
@@ -146,42 +188,20 @@ class RobotMonitor:
         """The monitor in `path` at `alpha` (one the bench calibrated), row `row` (None: the row the bench chose on
         its calibration split when that is a robot-signal row, else the pair). One-line ConfigErrors."""
         where = Path(str(path))
+        config = _read_config(where)
         try:
-            config = json.loads((where / CONFIG).read_text())
-        except (OSError, ValueError) as e:
-            raise ConfigError(f"vlm.monitor: {where} holds no readable {CONFIG} ({type(e).__name__})") from None
-        if not isinstance(config, dict) or config.get("format") != FORMAT:
-            raise ConfigError(f"vlm.monitor: {where / CONFIG} is not a robot-signal monitor ({FORMAT})")
-        rows = config.get("rows") or {}
-        chosen = config.get("chosen_on_calibration")
-        name = (
-            row
-            if row is not None
-            else chosen
-            if chosen in rows
-            else robot_baseline.ROBOT_PAIR
-            if robot_baseline.ROBOT_PAIR in rows
-            else next(iter(rows), None)
-        )
-        if name not in rows:
-            raise ConfigError(f"vlm.monitor_row: {name!r} is not in {where / CONFIG} (it has {', '.join(rows)})")
-        levels = rows[name]["alphas"].get(str(float(alpha)) if _number(alpha) else str(alpha))
-        if levels is None:
-            have = ", ".join(rows[name]["alphas"])
-            raise ConfigError(f"vlm.alpha: {alpha!r} was not calibrated for this monitor (it has {have})")
-        raw = levels.get("thresholds") if isinstance(levels, dict) else None
-        if not isinstance(raw, list) or not all(t is None or (_number(t) and 0 <= t <= 1) for t in raw):
-            raise ConfigError(
-                f"vlm.monitor: {where / CONFIG} gives {name} at {alpha} thresholds {raw!r}, not a P(failure) in [0, 1]"
-            )
-        ths = [math.inf if t is None else float(t) for t in raw]
-        if all(math.isinf(t) for t in ths):
-            raise ConfigError(f"vlm.alpha: too few calibration successes for alpha {alpha}: the monitor never sounds")
-        mlps = read_mlps(where, config)
-        try:
-            members = {m: (mlps[m], t) for m, t in zip(rows[name]["members"], ths, strict=True)}
-        except (KeyError, ValueError) as e:
-            raise ConfigError(f"vlm.monitor: {where / CONFIG} names members its weights lack ({e})") from None
+            name, entry = _row(config, row, where)
+            ths = _thresholds(entry, alpha, name, where)
+            mlps = read_mlps(where, config)
+            members = {m: (mlps[m], t) for m, t in zip(entry["members"], ths, strict=True)}
+        except (KeyError, ValueError, TypeError, AttributeError) as e:
+            raise ConfigError(f"vlm.monitor: {where / CONFIG} is malformed ({type(e).__name__}: {e})") from None
+        for m, (mlp, _) in members.items():  # a width the live features would not match fails here, not mid-run
+            if len(mlp.mean) != robot_baseline.FEATURES[m]:
+                raise ConfigError(
+                    f"vlm.monitor: its {m} MLP reads {len(mlp.mean)} features, the robot's signals give "
+                    f"{robot_baseline.FEATURES[m]}"
+                )
         frames = config.get("max_frames")
         if "frame" in members and (not isinstance(frames, int) or isinstance(frames, bool) or frames < 1):
             raise ConfigError(f"vlm.monitor: {where / CONFIG} gives no grid size (max_frames) for its per-frame MLP")

@@ -152,7 +152,10 @@ SECTIONS = {
         "(`RECOVERY_SEED`, 20000-20099 for 100 trials) that no choice saw (choices: seeds 0-49 and the development "
         "block 10000-10099); the line above its table names the model and when it was asked (`actft`: "
         "the model above taught one more epoch with the pour ACT's own rollouts, labeled by the labeler, for the ACT "
-        "pour cell; chosen on the development block, docs/EXPERIMENTS.md 2 Dec).",
+        "pour cell; chosen on the development block, docs/EXPERIMENTS.md 2 Dec). `make recovery-monitor`: the "
+        "scripted cells the same way with the online bench's robot-signal alarm deciding while the policy runs (the "
+        "row chosen on validation, saved by the bench) and the model asked only when it sounds; its design chosen "
+        "on the development block (docs/EXPERIMENTS.md, 7 Dec night).",
         ("online", "recovery", "train/final/eval_online_*", "online_power*"),
     ),
 }
@@ -494,9 +497,10 @@ POWER_LEAD = (
 
 
 def _page_online_benches(section: list[str]) -> list[str]:
-    """The online bench's lines of an existing Supervision section: its guarantee paragraph up to the recovery
+    """The online bench's lines of an existing Supervision section: its guarantee paragraph up to a recovery
     table's lead (or the section's end)."""
-    return block(section, lambda line: line.startswith(ONLINE_GUARANTEE[:40]), lambda line: line.startswith(LEAD))
+    ends = (LEAD, MONITOR_LEAD)  # a page may hold either recovery table without the other
+    return block(section, lambda line: line.startswith(ONLINE_GUARANTEE[:40]), lambda line: line.startswith(ends))
 
 
 def _bench_lead(line: str) -> str | None:

@@ -245,7 +245,7 @@ class CorrectionExecutor(ExecutorCore):
         the button: a model's correction can name one) cannot be carried, and is refused before anything moves."""
         kind = self.meta.objects[obj].kind if obj in self.meta.objects else "zone"
         if kind not in MOVABLE:
-            raise PrimitiveError(f"cannot carry {obj!r} (fixed: {kind})")
+            raise PrimitiveError(f"cannot carry {obj!r}: {'a place' if kind == 'zone' else f'the {kind} is fixed'}")
         if self._held(obj):
             return
         self._gripper_open()

@@ -69,6 +69,10 @@ def test_a_saved_monitor_gives_scikit_learns_p_failure_and_the_bench_thresholds(
         ("weights", {"alpha": 0.05}, "cannot read"),
         ("frames", {"alpha": 0.05}, "gives no grid size (max_frames)"),
         ("threshold", {"alpha": 0.05}, "not a P(failure) in [0, 1]"),
+        ("rows", {"alpha": 0.05}, "is not a robot-signal monitor"),
+        ("members", {"alpha": 0.05}, "is malformed"),
+        ("stale", {"alpha": 0.05}, "its sha256 is not the one monitor.json names"),
+        ("width", {"alpha": 0.05}, "its frame MLP reads 20 features, the robot's signals give 16"),
     ],
 )
 def test_a_bad_monitor_is_a_one_line_error(tmp_path, change, kwargs, needle):
@@ -85,9 +89,28 @@ def test_a_bad_monitor_is_a_one_line_error(tmp_path, change, kwargs, needle):
     elif change == "threshold":
         config["rows"][ROBOT_PAIR]["alphas"]["0.05"]["thresholds"] = [0.4, 7]
         (where / CONFIG).write_text(json.dumps(config))
+    elif change == "rows":
+        (where / CONFIG).write_text(json.dumps({**config, "rows": [1, 2]}))
+    elif change == "members":
+        config["rows"][ROBOT_PAIR]["members"] = "frame"
+        (where / CONFIG).write_text(json.dumps(config))
+    elif change == "stale":  # the weights of another run beside this run's thresholds (a crash between the writes)
+        save_monitor(tmp_path / "other", {"frame": _fitted(16, 7), "dense": _fitted(17, 8)}, _rows({ROBOT: [0.4]}), {})
+        (where / WEIGHTS).write_bytes((tmp_path / "other" / WEIGHTS).read_bytes())
+    elif change == "width":  # a monitor whose MLP the live signals cannot feed: refused at load, not mid-run
+        save_monitor(where, {"frame": _fitted(20), "dense": _fitted(17)}, _rows({ROBOT: [0.4]}), {"max_frames": 8})
     with pytest.raises(ConfigError) as e:
         RobotMonitor.load(where, **kwargs)
     assert needle in str(e.value) and "\n" not in str(e.value)
+
+
+def test_the_feature_widths_are_the_robots_signals() -> None:
+    from sim_backends.robot_signals import SIGNALS
+
+    assert robot_baseline.SIGNAL_COUNT == len(SIGNALS)
+    assert robot_baseline.prefix_features(np.zeros((3, len(SIGNALS)))).shape[1] == robot_baseline.FEATURES["frame"]
+    table = np.zeros((5, 2 + len(SIGNALS)))  # t, keyframe, signals
+    assert robot_baseline.dense_features(table).shape[1] == robot_baseline.FEATURES["dense"]
 
 
 def reproduces_bench(out: Path, dataset: Path, res: dict) -> None:
@@ -150,6 +173,18 @@ def test_the_supervisor_intervenes_where_the_monitor_sounds_and_asks_the_model_o
     assert first["diagnosis"]["category"] is not None and first["primitives"] == first["diagnosis"]["primitives"]
     # after its correction the monitor stands down (its bound is on a first alarm): quiet until the final review
     assert later and all(q["diagnosis"] == {"failure": False, "monitor": None} for q in later if not q["final"])
+    frames = write_monitor(tmp_path / "f", 0.0, 1.0)  # the per-frame MLP sounds at the first grid frame
+    r = _supervise(tiny, tmp_path / "frames", f"vlm.monitor={frames}", "vlm.alpha=0.05", "loop.budget=2")
+    assert r.returncode == 0, r.stderr
+    first = queries("frames")[0]
+    hit = first["diagnosis"]["monitor"]  # the first frame's keyframe and the sim time its images were taken
+    assert first["failure"] and hit["member"] == "frame" and hit["keyframe"] == 0 and hit["t_s"] > 0
+    with pytest.raises(ConfigError, match="calibrated on the scripted policy's successes, not act's"):
+        from omegaconf import OmegaConf
+
+        from sim_backends.supervision.experiment import build_supervisor
+
+        build_supervisor(OmegaConf.create({"policy": "act", "vlm": {"monitor": str(frames)}}), "vlm")
     for args, needle in (
         ([f"vlm.monitor={loud}"], "vlm.monitor: give vlm.alpha too"),
         ([f"vlm.monitor={loud}", "vlm.alpha=0.05", f"vlm.alarm={loud}/x.json"], "one alarm decides"),

@@ -45,6 +45,7 @@ CLI adds online.md, the tables of online_page.py.
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from pathlib import Path
 from typing import Any, Sequence
@@ -378,6 +379,8 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path, apart: Path | None) -> d
     meta["chosen_on_calibration"] = res["chosen_on_calibration"]["chosen"]  # the row a supervisor takes by default
     meta["max_frames"] = grid.max_frames  # the per-frame MLP read k / F of grids this size
     monitor = save_monitor(out_dir / "monitor", {k: v for k, v in models.items() if v is not None}, rows, meta)
+    if monitor is None and (out_dir / "monitor").is_dir():  # an earlier run's monitor would outlive its bench
+        shutil.rmtree(out_dir / "monitor")
     res["monitor"] = None if monitor is None else "monitor"  # the robot-signal alarms, for labrobfail-supervise
     atomic_write_json(out_dir / "online.json", res)
     auroc_png(res["auroc_by_keyframe"], f"online bench, {cfg.split}", out_dir / "auroc_by_keyframe.png")

@@ -24,6 +24,9 @@ ROBOT = "robot signals (MLP)"
 DENSE = "robot signals, every trace sample (MLP)"
 ROBOT_PAIR = "robot signals per grid frame or every sample (alpha/2 each)"
 RUNNING = (9, 10, 11)  # tracking_error, segment_error_max, closed_width (sim_backends/robot_signals.SIGNALS)
+SIGNAL_COUNT = 12  # len(sim_backends/robot_signals.SIGNALS) (tests/test_monitor.py checks)
+# the features each MLP reads: the signals and their running maxima, then k / F (per frame) or keyframe and time
+FEATURES = {"frame": SIGNAL_COUNT + len(RUNNING) + 1, "dense": SIGNAL_COUNT + len(RUNNING) + 2}
 # The same signals at every sample of the state trace (40 Hz), per whole trajectory, beside trajectories.json: what a
 # monitor checked at the robot's own rate sees between two grid frames. Columns: trajectory, t (s since the trace
 # began), keyframe (0-based: the commanded keyframe the sample belongs to), signals (the SIGNALS, row after row).

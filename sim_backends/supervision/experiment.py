@@ -74,7 +74,13 @@ def build_policy(cfg: DictConfig) -> Policy:
 def build_supervisor(cfg: DictConfig, name: str) -> Supervisor:
     if name not in SUPERVISORS.names():
         raise ConfigError(f"supervisor: unknown supervisor {name!r}; available: {', '.join(SUPERVISORS.names())}")
-    return make_supervisor(name, **policy_kwargs(cfg, name))
+    kwargs = policy_kwargs(cfg, name)
+    if kwargs.get("monitor") is not None and cfg.policy != "scripted":  # a learned policy's keyframes are its ticks
+        raise ConfigError(
+            f"vlm.monitor: its alarm was calibrated on the scripted policy's successes, not {cfg.policy}'s (whose "
+            "every control tick is a keyframe); calibrate one on that policy's episodes"
+        )
+    return make_supervisor(name, **kwargs)
 
 
 def percentile(xs: list[float], q: float) -> float | None:

@@ -338,12 +338,12 @@ def _query(
         rec["outcome"] = {"executed": False, "error": "intervention budget spent"}
     elif v.failure:
         res = executor.run(v.primitives)
-        sup.handled(src, res.keyframes > 0)  # the report is dealt with, even when its plan was refused
-        rec["outcome"] = res.to_dict()
         # a plan refused before its first primitive (an impossible return, an unknown primitive) left the world as
         # it was: it is no intervention (the budget counts corrections that acted) and the policy's plan or action
         # chunks still hold, so it is not told to re-plan. A hand-over to a person counts.
         moved = res.keyframes > 0
+        sup.handled(src, moved or bool(res.manual))  # the report is dealt with, even when its plan was refused
+        rec["outcome"] = res.to_dict()
         if moved or res.manual:
             t.interventions += 1
             policy.after_correction(src.observe(), res.executed, res.step)

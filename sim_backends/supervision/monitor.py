@@ -3,7 +3,8 @@ read on the running episode's state trace, the robot's own signals only (sim_bac
 fingers, gripper command, the commanded keyframes; no object's state, which is the labeler's privilege).
 
 - The every-sample MLP reads each trace sample (40 Hz in PyBullet) with features of the past only, so its live score
-  at a sample is the one the bench gave the same sample of a recorded episode (tests/test_monitor.py).
+  at a sample is the one the bench gives the same sample of the recorded episode (which stores the signals as
+  float32: tests/test_monitor.py).
 - The per-frame MLP reads the frames the supervisor's grid shows so far (`live_picks`), at k / F with F the grid's
   frames as laid out from the plan. Where a failure changes the episode's length, F differs from the recorded
   episode's count, and its score with it.

@@ -10,9 +10,11 @@ When to intervene: P(failure) >= `threshold`; or the threshold an online bench c
 with `monitor` + `alpha`, a robot-signal monitor that bench saved (sim_backends/supervision/monitor.py), as Sentinel
 pairs a cheap detector with a VLM: while the policy runs, the monitor reads the robot's signals at every query and
 the model is asked only once it sounds, for the diagnosis and the correction (its Q2 taken as a failure); after one
-correction the monitor stands down for the episode. Its false-alarm bound is then that of the supervisor's stops
-while the policy runs: on successes exchangeable with its calibration ones, at most alpha are stopped. Once the
-policy stops, the final query is the model's own review at `threshold` (as without a monitor).
+correction the monitor stands down for the episode. Its false-alarm bound then covers the supervisor's stops
+while the policy runs: on successes exchangeable with its calibration ones (the scripted policy's), at most alpha
+are stopped (the every-sample member reads live what the bench read; the per-frame one reads the grid as laid out
+from the plan, close to the recorded one: sim_backends/supervision/monitor.py). Once the policy stops, the final
+query is the model's own review at `threshold` (as without a monitor).
 """
 
 from __future__ import annotations
