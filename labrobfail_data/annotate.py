@@ -18,7 +18,6 @@ import numpy as np
 from PIL import Image
 
 from labrobfail_data.facts import aux_records, frame_facts
-from sim_backends.robot_signals import dense_table, frame_times, irreversible, robot_signals
 from labrobfail_vlm import questions as Q
 from labrobfail_vlm.config import ConfigError
 from labrobfail_vlm.corrections import Context, correction
@@ -26,6 +25,7 @@ from labrobfail_vlm.grid import GridConfig, build_grid, frame_for_keyframe, whol
 from labrobfail_vlm.taxonomy import ATOMIC_ACTIONS, Category, Severity
 from sim_backends.failure_context import failure_context
 from sim_backends.labeler import derive_labels, severity
+from sim_backends.robot_signals import dense_table, frame_times, irreversible, robot_signals
 from sim_backends.schema import trace_until
 
 # What a prefix grid may be asked (prefix.questions). Q4 is not: severity is a rule on the final state (a door
