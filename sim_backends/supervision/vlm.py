@@ -10,11 +10,11 @@ When to intervene: P(failure) >= `threshold`; or the threshold an online bench c
 with `monitor` + `alpha`, a robot-signal monitor that bench saved (sim_backends/supervision/monitor.py), as Sentinel
 pairs a cheap detector with a VLM: while the policy runs, the monitor reads the robot's signals at every query and
 the model is asked only once it sounds, for the diagnosis and the correction (its Q2 taken as a failure); after one
-correction the monitor stands down for the episode. Its false-alarm bound then covers the supervisor's stops
-while the policy runs: on successes exchangeable with its calibration ones (the scripted policy's), at most alpha
-are stopped (the every-sample member reads live what the bench read; the per-frame one reads the grid as laid out
-from the plan, close to the recorded one: sim_backends/supervision/monitor.py). Once the policy stops, the final
-query is the model's own review at `threshold` (as without a monitor).
+correction the monitor stands down for the episode. Once the policy stops, the model reviews the whole episode at
+`threshold` (as without a monitor), but only in an episode the monitor flagged: the supervisor touches no episode
+in which the calibrated alarm stayed quiet, so on successes exchangeable with its calibration ones (the scripted
+policy's) it intervenes in at most alpha (the every-sample member reads live what the bench read; the per-frame one
+reads the grid as laid out from the plan, close to the recorded one: sim_backends/supervision/monitor.py).
 """
 
 from __future__ import annotations
@@ -133,8 +133,8 @@ class VLMSupervisor(Supervisor):
 
     def handled(self, src: FailureSource, acted: bool = True) -> None:
         # The monitor's bound is on an episode's first alarm: no calibration success was corrected halfway, and on
-        # the development block (docs/EXPERIMENTS.md, 7 Dec night) its later alarms were mostly false, each
-        # correction a new risk (a regrasp that drops what the first one saved). It stands down for the episode.
+        # the development block (docs/EXPERIMENTS.md, 7 Dec night) acting on its later alarms did more harm than
+        # good (pick +3 against +96: a second regrasp dropping what the first one saved). It stands down.
         # A correction refused before it moved anything leaves the failure to the final review (the development
         # block's variant that kept it handled lost place and pour failures the review would have mended).
         if self.monitor is None or acted:
@@ -142,10 +142,12 @@ class VLMSupervisor(Supervisor):
         self.stood_down = True
 
     def query(self, src: FailureSource, final: bool = False) -> Verdict:
-        if self.monitor is None or final:  # once the policy stops, the model reviews the whole episode itself
+        if self.monitor is None:
+            return self._ask(src, final)
+        if final and self.stood_down:  # the policy stopped in an episode the monitor flagged: the model's review
             return self._ask(src, final)
         hit = None if self.stood_down else self.monitor.check(src, self.ctx.nominal)
-        if hit is None:  # quiet: the model is not asked (Sentinel's cheap detector first)
+        if hit is None:  # quiet: the model is not asked (Sentinel's cheap detector first), not even at the end
             return Verdict(False, diagnosis={"failure": False, "monitor": None})
         if self.reported is None or self.reported[0] != hit:  # an alarm the loop did not act on (its budget spent)
             self.reported = (hit, self._ask(src, final, hit))  # is diagnosed once, not at every later keyframe
