@@ -507,9 +507,12 @@ online-power: $(STAMP)
 # the recipe's train split and calibrates them on seen val, so they save the same MLPs and thresholds), read at every
 # keyframe at alpha MONITOR_ALPHA; the model is asked when it first sounds (then the monitor stands down) and once
 # more when the policy stops. Scripted cells only: the monitor was calibrated on scripted successes (an ACT's would
-# need its own). Chosen on the development block 10000-10099 (docs/EXPERIMENTS.md, 7 Dec night); about 8 min.
+# need its own); once the policy stops, the model reviews only an episode the monitor flagged. Chosen on the
+# development block 10000-10099 (docs/EXPERIMENTS.md, 7 Dec night and late night) and reported on its own block,
+# MONITOR_SEED 21000-21099 (the recovery table's 20000-20099 had reported the design before); about 10 min.
 MONITOR ?= $(R)/robot_online_val_both/monitor
 MONITOR_ALPHA ?= 0.05
+MONITOR_SEED ?= 21000
 $(R)/robot_online_val_both/monitor/monitor.json: $(R)/dataset/stats.json | $(STAMP)
 	$(BIN)/labrobfail-evaluate mode=online dataset_dir=$(R)/dataset split=val_both calibration=val \
 	  delta=$(ONLINE_DELTA) out_dir=$(R)/robot_online_val_both progress=false
@@ -519,7 +522,8 @@ recovery-monitor: $(STAMP)
 	  "recovery-monitor: no monitor in $(MONITOR) (an online bench's out_dir/monitor)" >&2; exit 2; }
 	$(MAKE) $(MONITOR)/monitor.json
 	$(BIN)/labrobfail-supervise policy=scripted supervisor=vlm vlm.model=$(VLM) vlm.monitor=$(MONITOR) \
-	  vlm.alpha=$(MONITOR_ALPHA) task=pick,place,pour $(RECOVERY_RUN) loop.query_every=0 out_dir=$(R)/recovery/monitor
+	  vlm.alpha=$(MONITOR_ALPHA) task=pick,place,pour $(RECOVERY_RUN) seed=$(MONITOR_SEED) loop.query_every=0 \
+	  out_dir=$(R)/recovery/monitor
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS) 'sections=[supervision]'
 
 recovery: recovery-scripted online-bench

@@ -154,8 +154,9 @@ SECTIONS = {
         "the model above taught one more epoch with the pour ACT's own rollouts, labeled by the labeler, for the ACT "
         "pour cell; chosen on the development block, docs/EXPERIMENTS.md 2 Dec). `make recovery-monitor`: the "
         "scripted cells the same way with the online bench's robot-signal alarm deciding while the policy runs (the "
-        "row chosen on validation, saved by the bench) and the model asked only when it sounds; its design chosen "
-        "on the development block (docs/EXPERIMENTS.md, 7 Dec night).",
+        "row chosen on validation, saved by the bench) and the model asked only in episodes it flagged; its design "
+        "chosen on the development block and reported on its own block, 21000-21099 (docs/EXPERIMENTS.md, 7 Dec "
+        "night and late night).",
         ("online", "recovery", "train/final/eval_online_*", "online_power*"),
     ),
 }

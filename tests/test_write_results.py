@@ -98,7 +98,8 @@ def test_the_monitor_table_stands_apart_and_a_later_recovery_run_keeps_it(tmp_pa
     i, j = at(lines, LEAD), at(lines, MONITOR_LEAD)
     assert i < j and "asked only when the policy stops" in lines[i]
     assert (
-        "asked when the robot-signal monitor `m/monitor` (alpha 0.05), read at every keyframe, first sounds" in lines[j]
+        "asked when the robot-signal monitor `m/monitor` (alpha 0.05), read at every keyframe, first sounds and, in an "
+        "episode it flagged, once more when the policy stops, budget 2" in lines[j]
     )
     assert "| 6/25 | 20/25 |" in "\n".join(lines[i:j]) and "| 6/25 | 24/25 |" in "\n".join(lines[j:])
     later = tmp_path / "later"

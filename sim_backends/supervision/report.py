@@ -42,14 +42,15 @@ def setting(cfg: dict[str, Any]) -> str:
     asked = {0: "at every keyframe", -1: "only when the policy stops"}.get(
         loop["query_every"], f"every {loop['query_every']} policy steps"
     )
+    more = " and once more when the policy stops" if loop["final_query"] and loop["query_every"] >= 0 else ""
     monitor = (cfg.get(sup) or {}).get("monitor")
     if monitor and loop["query_every"] >= 0:  # sim_backends/supervision/vlm.py: the monitor decides, the model says
         asked = f"when the robot-signal monitor `{monitor}` (alpha {cfg[sup].get('alpha')}), read {asked}, first sounds"
+        more = more and " and, in an episode it flagged, once more when the policy stops"
     seeds = f" (seeds {cfg['seed']}-{cfg['seed'] + cfg['trials'] - 1})" if isinstance(cfg.get("seed"), int) else ""
     return (
         f"{cfg['trials']} trials per cell{seeds}, variant {cfg['variant']}, supervisor {sup} "
-        f"(`{(cfg.get(sup) or {}).get('model', '')}`) asked {asked}"
-        + (" and once more when the policy stops" if loop["final_query"] and loop["query_every"] >= 0 else "")
+        f"(`{(cfg.get(sup) or {}).get('model', '')}`) asked {asked}{more}"
         + f", budget {loop['budget']}, a manual correction: {loop['on_manual']}"
     )
 
