@@ -68,6 +68,11 @@ def is_int(value: object, low: int) -> bool:
     return isinstance(value, int) and not isinstance(value, bool) and value >= low
 
 
+def is_number(value: object) -> bool:
+    """An int or a float (YAML's true is not 1)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def require_ints(cfg: Any, keys: Iterable[str], low: int = 1, section: str = "") -> None:
     """A one-line ConfigError naming the first of `keys` in `cfg` (the `section` of a larger config, e.g.
     "prefix.") that is not an integer >= `low`."""

@@ -28,8 +28,10 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from labrobfail_vlm.alarm import first_alarm
 from labrobfail_vlm.bench import robot_baseline
-from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.bench.online_alarm import alpha_key
+from labrobfail_vlm.config import ConfigError, is_int, is_number
 
 FORMAT = "labrobfail-robot-monitor/1"
 WEIGHTS, CONFIG = "monitor.safetensors", "monitor.json"
@@ -159,12 +161,12 @@ def _row(config: dict[str, Any], row: str | None, where: Path) -> tuple[str, dic
 
 def _thresholds(entry: dict[str, Any], alpha: Any, name: str, where: Path) -> list[float]:
     """A row's members' thresholds at alpha (+inf: that member never sounds), or a one-line ConfigError."""
-    levels = entry["alphas"].get(str(float(alpha)) if _number(alpha) else str(alpha))
+    levels = entry["alphas"].get(alpha_key(alpha))
     if levels is None:
         have = ", ".join(entry["alphas"])
         raise ConfigError(f"vlm.alpha: {alpha!r} was not calibrated for this monitor (it has {have})")
     raw = levels.get("thresholds") if isinstance(levels, dict) else None
-    if not isinstance(raw, list) or not all(t is None or (_number(t) and 0 <= t <= 1) for t in raw):
+    if not isinstance(raw, list) or not all(t is None or (is_number(t) and 0 <= t <= 1) for t in raw):
         raise ConfigError(
             f"vlm.monitor: {where / CONFIG} gives {name} at {alpha} thresholds {raw!r}, not a P(failure) in [0, 1]"
         )
@@ -203,9 +205,9 @@ class RobotMonitor:
                     f"{robot_baseline.FEATURES[m]}"
                 )
         frames = config.get("max_frames")
-        if "frame" in members and (not isinstance(frames, int) or isinstance(frames, bool) or frames < 1):
+        if "frame" in members and not is_int(frames, 1):
             raise ConfigError(f"vlm.monitor: {where / CONFIG} gives no grid size (max_frames) for its per-frame MLP")
-        return cls(name, float(alpha), members, int(frames or 0), config.get("delta"))
+        return cls(name, float(alpha), members, frames if is_int(frames, 1) else 0, config.get("delta"))
 
     def frame_scores(self, signals: Sequence[Sequence[float]], total: int) -> np.ndarray | None:
         """The per-frame MLP's running score at each of the frames shown so far (`signals`, one row per grid frame),
@@ -224,9 +226,4 @@ class RobotMonitor:
         """The first index at which `member`'s scores are above its threshold (the alarm's rule), or None."""
         if scores is None or member not in self.members:
             return None
-        hits = np.flatnonzero(scores > self.members[member][1])
-        return int(hits[0]) if len(hits) else None
-
-
-def _number(x: Any) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool)
+        return first_alarm(scores, self.members[member][1])

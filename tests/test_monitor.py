@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import cli, run_here
+from test_supervise import records, supervise
 from test_train import tiny  # noqa: F401  (session fixture: a tiny Qwen3-VL checkpoint)
 
 from labrobfail_vlm.bench import robot_baseline
@@ -146,26 +146,23 @@ def reproduces_bench(out: Path, dataset: Path, res: dict) -> None:
             assert sum(s for s, t in zip(sounded, scored) if not t["success"]) == bench["detected"], (name, alpha)
 
 
-def _supervise(tiny_model, out: Path, *args: str):  # noqa: F811
-    argv = [cli("supervise"), "image_size=48", "progress=false", "cameras=[front]", "supervisor=vlm"]
-    argv += [f"vlm.model={tiny_model}", "baseline=false", "task=open_oven_center", "trials=1", f"out_dir={out}", *args]
-    return run_here(argv)
+def _supervise(tiny_model, out: Path, *args: str, check: bool = True):  # noqa: F811
+    """labrobfail-supervise (tests/test_supervise.py's) with the VLM supervisor on one open-oven trial."""
+    vlm = ["supervisor=vlm", f"vlm.model={tiny_model}", "baseline=false", "task=open_oven_center", "trials=1"]
+    return supervise(*vlm, f"out_dir={out}", *args, check=check)
 
 
 def test_the_supervisor_intervenes_where_the_monitor_sounds_and_asks_the_model_only_then(tmp_path, tiny):  # noqa: F811
     def queries(out: str) -> list[dict]:
-        recs = [json.loads(x) for x in (tmp_path / out / "log.jsonl").read_text().splitlines()]
-        return [q for q in recs if q["event"] == "query"]
+        return [q for q in records(tmp_path / out) if q["event"] == "query"]
 
     quiet = write_monitor(tmp_path / "q", 1.0, 1.0)  # no score is above 1
-    r = _supervise(tiny, tmp_path / "quiet", f"vlm.monitor={quiet}", "vlm.alpha=0.05")
-    assert r.returncode == 0, r.stderr
+    _supervise(tiny, tmp_path / "quiet", f"vlm.monitor={quiet}", "vlm.alpha=0.05")
     qs = queries("quiet")  # never a failure, never the model's answer: not even once the policy stops
     assert len(qs) > 2 and all(q["diagnosis"] == {"failure": False, "monitor": None} for q in qs)
     assert [q["final"] for q in qs].count(True) == 1
     loud = write_monitor(tmp_path / "l", 1.0, 0.0)  # the every-sample MLP sounds at the first sample
-    r = _supervise(tiny, tmp_path / "loud", f"vlm.monitor={loud}", "vlm.alpha=0.05", "loop.budget=2")
-    assert r.returncode == 0, r.stderr
+    _supervise(tiny, tmp_path / "loud", f"vlm.monitor={loud}", "vlm.alpha=0.05", "loop.budget=2")
     first, *later = queries("loud")
     hit = first["diagnosis"]["monitor"]
     assert first["failure"] and hit["member"] == "dense" and hit["t_s"] == 0.0 and hit["threshold"] == 0.0
@@ -176,8 +173,7 @@ def test_the_supervisor_intervenes_where_the_monitor_sounds_and_asks_the_model_o
     final = [q for q in later if q["final"]]
     assert final and all(q["diagnosis"]["monitor"] is None and "p_failure" in q["diagnosis"] for q in final)
     frames = write_monitor(tmp_path / "f", 0.0, 1.0)  # the per-frame MLP sounds at the first grid frame
-    r = _supervise(tiny, tmp_path / "frames", f"vlm.monitor={frames}", "vlm.alpha=0.05", "loop.budget=2")
-    assert r.returncode == 0, r.stderr
+    _supervise(tiny, tmp_path / "frames", f"vlm.monitor={frames}", "vlm.alpha=0.05", "loop.budget=2")
     first = queries("frames")[0]
     hit = first["diagnosis"]["monitor"]  # the first frame's keyframe and the sim time its images were taken
     assert first["failure"] and hit["member"] == "frame" and hit["keyframe"] == 0 and hit["t_s"] > 0
@@ -193,6 +189,6 @@ def test_the_supervisor_intervenes_where_the_monitor_sounds_and_asks_the_model_o
         (["vlm.monitor_row=x"], "vlm.monitor_row: names a row of vlm.monitor"),
         ([f"vlm.monitor={tmp_path}", "vlm.alpha=0.05"], "holds no readable monitor.json"),
     ):
-        r = _supervise(tiny, tmp_path / "bad", *args)
+        r = _supervise(tiny, tmp_path / "bad", *args, check=False)
         assert r.returncode == 2 and needle in r.stderr.strip().splitlines()[-1] and "Traceback" not in r.stderr
     assert not (tmp_path / "bad" / "log.jsonl").exists()

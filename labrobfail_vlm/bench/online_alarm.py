@@ -15,8 +15,17 @@ from typing import Any, Sequence
 import numpy as np
 
 from labrobfail_vlm.alarm import AnyAlarm, false_alarm_pvalue
+from labrobfail_vlm.config import is_number
 
 ALPHAS = (0.01, 0.05, 0.1, 0.2)
+
+
+def alpha_key(alpha: object) -> str:
+    """The key of `alpha` in a bench row (and a saved monitor's): its float's str, 0.05 -> "0.05"; a value that is
+    no number as it reads (so that a lookup of it finds nothing)."""
+    return str(float(alpha)) if is_number(alpha) else str(alpha)  # type: ignore[arg-type]
+
+
 LABELER = "labeler on live state (ceiling)"
 
 
@@ -38,8 +47,8 @@ def alarm_rows(
     out: dict[str, Any] = {}
     for alpha in ALPHAS:
         alarm, when = fire(cal, cal_trajs, ev, ev_trajs, alpha, axes, shares, delta)
-        out[str(alpha)] = alarm.to_dict() | summarise(when, ev_trajs)
-        out[str(alpha)]["bound_p"] = bound_check(out[str(alpha)])
+        row = out[alpha_key(alpha)] = alarm.to_dict() | summarise(when, ev_trajs)
+        row["bound_p"] = bound_check(row)
     return out
 
 

@@ -22,7 +22,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from labrobfail_vlm.config import ConfigError
+from labrobfail_vlm.bench.online_alarm import alpha_key
+from labrobfail_vlm.config import ConfigError, is_number
 from labrobfail_vlm.drawing import mismatches
 from labrobfail_vlm.monitor import RobotMonitor
 from sim_backends.policies.base import EpisodeContext
@@ -49,7 +50,7 @@ def calibrated_threshold(alarm: str | None, alpha: float | None) -> float:
             f"vlm.alarm: {alarm} has no model row (a bench run without model=); the supervisor runs the model's "
             "alarm only, not the robot-signal monitors"
         )
-    row = rows.get(str(float(alpha)) if isinstance(alpha, (int, float)) else str(alpha))
+    row = rows.get(alpha_key(alpha))
     if row is None:
         raise ConfigError(f"vlm.alpha: {alpha!r} was not calibrated in {alarm} (it has {', '.join(rows)})")
     t = row.get("threshold")
@@ -57,7 +58,7 @@ def calibrated_threshold(alarm: str | None, alpha: float | None) -> float:
         raise ConfigError(
             f"vlm.alpha: too few calibration successes in {alarm} for alpha {alpha}: the alarm never fires"
         )
-    if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0.0 <= t <= 1.0:
+    if not is_number(t) or not 0.0 <= t <= 1.0:
         raise ConfigError(f"vlm.alarm: {alarm} gives alpha {alpha} the threshold {t!r}, not a P(failure) in [0, 1]")
     if t >= 1.0:  # no P(failure) is above 1: the bench's alarm never fires at this alpha, and neither would this
         raise ConfigError(f"vlm.alpha: the alarm calibrated in {alarm} at alpha {alpha} is 1.0: it never fires")
@@ -157,11 +158,13 @@ class VLMSupervisor(Supervisor):
         """The model on the live grid; after the monitor's alarm (`hit`) its verdict is a failure whatever its
         P(failure) (the operating point 0 for this one ask), and Q3-Q6 say which and how to correct it."""
         g = live_grid(src, self.ctx.nominal, self.fa.grid, final, self.view_idx)
-        threshold, self.fa.threshold = self.fa.threshold, 0.0 if hit is not None else self.fa.threshold
+        operating_point = self.fa.threshold
+        if hit is not None:
+            self.fa.threshold = 0.0
         try:
             d = self.fa.analyze(g.image, task=self.ctx.instruction, frames=max(1, g.visible), objects=self.ctx.objects)
         finally:
-            self.fa.threshold = threshold
+            self.fa.threshold = operating_point
         kf = g.keyframes[d.failure_frame - 1] if d.failure and d.failure_frame and g.keyframes else None
         if hit is not None and (kf is None or kf <= self.handled_upto):  # the model's frame is one already dealt with
             kf = hit["keyframe"]
