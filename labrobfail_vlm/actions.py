@@ -22,7 +22,8 @@ to the plan's orientation for the step, keeping its heading (yaw).
 
 Special names a correction may use besides the scene's: "door handle" (the handle of the device being
 operated), "its original position" (the held object's home), "target position" (where the plan puts it),
-"omitted:<action>" (pose id: the first keyframe of the step with that action that never ran).
+"omitted:<action>" (pose id: the first keyframe of the step with that action that never ran; for a grasp that ran but
+did not take, where the plan has the object in the hand and the hand does not hold it, that grasp made again).
 """
 
 from __future__ import annotations

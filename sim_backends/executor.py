@@ -19,7 +19,8 @@ Primitive semantics (frames as documented in labrobfail_vlm/actions.py):
                      above the destination, lower to h above its surface
   align_above        the plan's pouring pose for src over dest (its last keyframe before the tilt)
   move_to_pose       the keyframes of the omitted step (pose_id "omitted:<action>"; its object grasped first when
-                     the step carries it) or one named keyframe
+                     the step carries it) or one named keyframe; "omitted:grasp" where no grasp was skipped but
+                     the plan has an object in the hand that the hand does not hold: that grasp made again
   set_orient         level the gripper: the step's planned orientation with the current heading (yaw)
   hold_orientation / hold_gripper   keep what is there (no motion)
   rotate             turn about a world axis;  tilt_pour  roll as the plan pours, in three stages, then upright
@@ -285,7 +286,11 @@ class CorrectionExecutor(ExecutorCore):
 
     def _move_to_pose(self, pose_id: str) -> None:
         if pose_id.startswith("omitted:"):
-            step = self._omitted_step(pose_id)
+            step, ran = self._omitted_step(pose_id)
+            if ran:  # a grasp that did not take: made again where the object now stands, as align_to makes one
+                self._ensure_held(step.object)
+                self.note = "the grasp that did not take, made again"
+                return
             kfs = [k for k in self.nominal if k.segment == step.index]
             # a step the plan enters holding its object (a pour, a place) needs it in the hand: a vessel set down
             # unpoured is picked up again first, as move_above and align_above do

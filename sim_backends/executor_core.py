@@ -189,11 +189,29 @@ class ExecutorCore:
             return np.asarray(self.meta.places[role], float)
         return np.asarray(self.meta.objects[role].home, float)
 
-    def _omitted_step(self, pose_id: str) -> Any:
-        """The plan's first step that has not run with the action of `pose_id` ("omitted:<action>")."""
+    def _omitted_step(self, pose_id: str) -> tuple[Step, bool]:
+        """The step "omitted:<action>" returns to, and whether it has run: the plan's first step with that action
+        that has not run, else (a grasp) the grasp that did not take (`_grasp_not_taken`)."""
         action = pose_id.split(":", 1)[1]
         ran = set(self.meta.executed_steps())
         step = next((s for s in self.meta.steps if s.action == action and s.index not in ran), None)
-        if step is None:
+        if step is not None:
+            return step, False
+        missed = self._grasp_not_taken(ran) if action == "grasp" else None
+        if missed is None:
             raise PrimitiveError(f"no {action} step was omitted")
-        return step
+        return missed, True
+
+    def _grasp_not_taken(self, ran: set[int]) -> Step | None:
+        """The grasp that ran but did not take: at this point the plan has its object in the hand (the keyframe the
+        arm is in commands the fingers closed, in a step on that object) and the hand does not hold it (the fingers
+        closed beside it, or it slipped out). To a person the grasp the plan needs here was never made, so "return
+        to perform the omitted grasp" makes it. None where the plan holds nothing here, or the hand holds it."""
+        kf = next((k for k in self.nominal if k.name == self.cur.name), None)
+        if kf is None or kf.gripper != 1 or kf.segment >= len(self.meta.steps):
+            return None
+        obj = self.meta.steps[kf.segment].object
+        if obj not in self.meta.objects or self.meta.objects[obj].kind not in MOVABLE or self._held(obj):
+            return None
+        grasps = [s for s in self._steps(obj, "grasp") if s.index in ran and s.index <= kf.segment]
+        return grasps[-1] if grasps else None

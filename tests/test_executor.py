@@ -184,6 +184,36 @@ def test_move_to_pose_runs_the_omitted_step(src):
     assert len(src.executed_so_far()) == n and list(state(src)["ee_pos"]) == list(before)
 
 
+def test_a_grasp_that_did_not_take_is_made_again_by_a_return_to_the_omitted_grasp(src):
+    """The grasp ran 5 cm beside the beaker (as the translate injection misses it): no grasp step was skipped, but
+    the plan has the beaker in the hand and the hand is empty, so "return to perform the omitted grasp" grasps it
+    where it stands and names the grasp step for the policy's re-planning. Where the plan holds nothing yet (the
+    fingers still open) or the hand holds it, the return is refused before anything moves, as before."""
+    src.reset("pick_place_beaker_small", 0, "seen")
+    src.begin()
+    beside = [dataclasses.replace(k, pos=(k.pos[0], k.pos[1] + 0.05, k.pos[2])) for k in src.scripted_keyframes()]
+    for k in beside[:2]:  # s0_pre, s0_reach: the fingers still open
+        src.step(k)
+    before, n = list(state(src)["ee_pos"]), len(src.executed_so_far())
+    res = CorrectionExecutor(src).run([prim("hold_position"), prim("move_to_pose", pose_id="omitted:grasp")])
+    assert not res.executed and res.error == "move_to_pose: no grasp step was omitted" and res.log == []
+    assert len(src.executed_so_far()) == n and list(state(src)["ee_pos"]) == before
+    src.step(beside[2])  # s0_close beside the beaker: the fingers close on nothing
+    assert state(src)["obj.contacts"] == 0 and state(src)["grip_cmd"] == 1
+    res = run(src, prim("hold_position"), prim("move_to_pose", pose_id="omitted:grasp"))
+    assert state(src)["obj.contacts"] > 0 and res.step == 0
+    assert res.log[1]["note"] == "the grasp that did not take, made again" and res.log[1]["keyframes"] >= 3
+    res = CorrectionExecutor(src).run([prim("move_to_pose", pose_id="omitted:grasp")])
+    assert not res.executed and res.error == "move_to_pose: no grasp step was omitted"  # now it is held
+
+
+def test_a_return_to_a_grasp_is_refused_once_the_plan_has_set_the_object_down(src):
+    start(src, "pick_place_beaker_small", src.scripted_keyframes()[-1].name)  # placed and released
+    assert state(src)["obj.contacts"] == 0
+    res = CorrectionExecutor(src).run([prim("move_to_pose", pose_id="omitted:grasp")])
+    assert not res.executed and res.error == "move_to_pose: no grasp step was omitted" and res.log == []
+
+
 def first_of(src, template):
     """The first scenario of a template (scenario names change as the catalogue grows)."""
     return next(s for s in src.scenarios() if src.scenario_info(s)["template"] == template)
