@@ -508,8 +508,8 @@ online-power: $(STAMP)
 # keyframe at alpha MONITOR_ALPHA; the model is asked when it first sounds (then the monitor stands down) and once
 # more when the policy stops. Scripted cells only: the monitor was calibrated on scripted successes (an ACT's would
 # need its own); once the policy stops, the model reviews only an episode the monitor flagged. Chosen on the
-# development block 10000-10099 (docs/EXPERIMENTS.md, 7 Dec night and late night) and reported on its own block,
-# MONITOR_SEED 21000-21099 (the recovery table's 20000-20099 had reported the design before); about 10 min.
+# development block 10000-10099 (docs/EXPERIMENTS.md, 7 Dec night to late night, second) and reported on its own
+# block, MONITOR_SEED 22000-22099 (20000-20099 had reported v3, 21000-21099 v4); about 10 min.
 MONITOR ?= $(R)/robot_online_val_both/monitor
 MONITOR_ALPHA ?= 0.05
 MONITOR_SEED ?= 22000

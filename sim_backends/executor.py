@@ -101,22 +101,25 @@ class CorrectionExecutor(ExecutorCore):
     `ExecutorCore`'s (sim_backends/executor_core.py)."""
 
     # ---- entry point -------------------------------------------------------------------------------------
-    def run(self, primitives: Sequence[dict[str, Any]]) -> ExecResult:
-        """Execute `primitives` in order from the current state; stops at the first one that cannot run."""
+    def run(self, primitives: Sequence[dict[str, Any]], final: bool = False) -> ExecResult:
+        """Execute `primitives` in order from the current state; stops at the first one that cannot run. `final`:
+        the policy has stopped, so a step of the plan that never ran was left out even when no later step ran (a
+        last step skipped); while it runs, only a step before the current one was omitted (a later one is to come)."""
         manual = [str(p["args"].get("phrase", "")) for p in primitives if p.get("op") == MANUAL]
         if manual:
             return ExecResult(False, manual=manual, error="manual correction: not executed")
         unknown = [str(p.get("op")) for p in primitives if p.get("op") not in PRIMITIVES]
         if unknown:
             return ExecResult(False, error=f"unknown primitive {unknown[0]!r}")
-        self._start()
+        self._start(final)
         # a plan that names an omitted step that is not there cannot do what it says: refuse it before its first
-        # primitive moves the arm (a pause before an impossible return would disturb a policy that was on course)
+        # primitive moves the arm (a pause before an impossible return would disturb a policy that was on course);
+        # the step found here is the one the return runs, whatever the primitives before it change
         for p in primitives:
             pose_id = str(p.get("args", {}).get("pose_id", ""))
             if p.get("op") == "move_to_pose" and pose_id.startswith("omitted:"):
                 try:
-                    self._omitted_step(pose_id)
+                    self.returns[pose_id] = self._omitted_step(pose_id)
                 except PrimitiveError as e:
                     return ExecResult(False, error=f"move_to_pose: {e}")
         res = ExecResult(True)
@@ -286,10 +289,12 @@ class CorrectionExecutor(ExecutorCore):
 
     def _move_to_pose(self, pose_id: str) -> None:
         if pose_id.startswith("omitted:"):
-            step, ran = self._omitted_step(pose_id)
-            if ran:  # a grasp that did not take: made again where the object now stands, as align_to makes one
+            step, redo = self.returns.get(pose_id) or self._omitted_step(pose_id)
+            if redo:  # a grasp that did not take: made again where the object now stands, as align_to makes one
+                n0 = self.count
                 self._ensure_held(step.object)
-                self.note = "the grasp that did not take, made again"
+                self.step = step.index
+                self.note = "the grasp that did not take, made again" if self.count > n0 else "already held"
                 return
             kfs = [k for k in self.nominal if k.segment == step.index]
             # a step the plan enters holding its object (a pour, a place) needs it in the hand: a vessel set down

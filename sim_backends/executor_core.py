@@ -40,7 +40,9 @@ class ExecutorCore:
         self.src = src
 
     # ---- state -------------------------------------------------------------------------------------------
-    def _start(self) -> None:
+    def _start(self, final: bool = False) -> None:
+        self.final = final  # the policy has stopped (CorrectionExecutor.run)
+        self.returns: dict[str, tuple[Step, bool]] = {}  # "omitted:<action>" -> the step it returns to, found once
         done = self.src.executed_so_far()
         self.nominal: list[Keyframe] = self.src.scripted_keyframes()
         self.meta: TaskMeta = self.src.task_meta(done)
@@ -191,10 +193,12 @@ class ExecutorCore:
 
     def _omitted_step(self, pose_id: str) -> tuple[Step, bool]:
         """The step "omitted:<action>" returns to, and whether it has run: the plan's first step with that action
-        that has not run, else (a grasp) the grasp that did not take (`_grasp_not_taken`)."""
+        that was left out (it has not run, and lies before the current step unless the policy has stopped), else
+        (a grasp) the grasp that did not take (`_grasp_not_taken`)."""
         action = pose_id.split(":", 1)[1]
         ran = set(self.meta.executed_steps())
-        step = next((s for s in self.meta.steps if s.action == action and s.index not in ran), None)
+        left_out = [s for s in self.meta.steps if s.index not in ran and (self.final or s.index < self.cur.segment)]
+        step = next((s for s in left_out if s.action == action), None)
         if step is not None:
             return step, False
         missed = self._grasp_not_taken(ran) if action == "grasp" else None

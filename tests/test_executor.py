@@ -214,6 +214,37 @@ def test_a_return_to_a_grasp_is_refused_once_the_plan_has_set_the_object_down(sr
     assert not res.executed and res.error == "move_to_pose: no grasp step was omitted" and res.log == []
 
 
+def test_a_step_still_to_come_is_not_omitted_until_the_policy_has_stopped(src):
+    """Mid-episode only a step before the current one was left out: with the plan in its grasp step, "return to
+    the omitted place" is refused before anything moves (the place is to come); once the policy has stopped
+    (`final`), the same return runs the place that never ran."""
+    start(src, "pick_place_beaker_small", "s0_lift")  # grasped and lifted; the place step never runs
+    before, n = list(state(src)["ee_pos"]), len(src.executed_so_far())
+    res = CorrectionExecutor(src).run([prim("move_to_pose", pose_id="omitted:place")])
+    assert not res.executed and res.error == "move_to_pose: no place step was omitted" and res.log == []
+    assert len(src.executed_so_far()) == n and list(state(src)["ee_pos"]) == before
+    res = CorrectionExecutor(src).run([prim("move_to_pose", pose_id="omitted:place")], final=True)
+    assert res.executed and res.step == 1 and state(src)["grip_cmd"] == 0 and state(src)["obj.contacts"] == 0
+
+
+def test_a_later_grasp_of_another_object_is_not_the_omitted_grasp(src):
+    """pour_and_stir grasps the source, pours, sets it down, then grasps the rod. Pouring with the source in the
+    hand, "return to perform the omitted grasp" names no grasp that was left out: the rod's is to come and the
+    source's took. It is refused before anything moves (it used to send the arm to the rod)."""
+    scenario = first_of(src, "pour_and_stir")
+    src.reset(scenario, 0, "seen")
+    src.begin()
+    for k in src.scripted_keyframes():
+        src.step(k)
+        if k.segment == 1:  # the first keyframe of the pour
+            break
+    assert state(src)["src.contacts"] > 0
+    n = len(src.executed_so_far())
+    res = CorrectionExecutor(src).run([prim("move_to_pose", pose_id="omitted:grasp")])
+    assert not res.executed and res.error == "move_to_pose: no grasp step was omitted" and res.log == []
+    assert len(src.executed_so_far()) == n
+
+
 def first_of(src, template):
     """The first scenario of a template (scenario names change as the catalogue grows)."""
     return next(s for s in src.scenarios() if src.scenario_info(s)["template"] == template)

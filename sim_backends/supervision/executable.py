@@ -54,7 +54,7 @@ def run_correction(
     src.begin(events_from_record(json.loads(row["perturbation"] or "{}")))
     for kd in json.loads(row["keyframes"])[: failure_keyframe + 1]:
         src.step(Keyframe.from_dict(kd))
-    res = CorrectionExecutor(src).run(prims)
+    res = CorrectionExecutor(src).run(prims, final=True)  # any step not run counts as left out, as it always has
     if res.executed:
         for kf in plan[resume_index(plan, src.observe().state, res.step) :]:
             src.step(kf)

@@ -337,7 +337,7 @@ def _query(
     if v.failure and t.interventions >= cfg.budget:
         rec["outcome"] = {"executed": False, "error": "intervention budget spent"}
     elif v.failure:
-        res = executor.run(v.primitives)
+        res = executor.run(v.primitives, final)
         # a plan refused before its first primitive (an impossible return, an unknown primitive) left the world as
         # it was: it is no intervention (the budget counts corrections that acted) and the policy's plan or action
         # chunks still hold, so it is not told to re-plan. A hand-over to a person counts.
