@@ -508,11 +508,12 @@ online-power: $(STAMP)
 # keyframe at alpha MONITOR_ALPHA; the model is asked when it first sounds (then the monitor stands down) and once
 # more when the policy stops. Scripted cells only: the monitor was calibrated on scripted successes (an ACT's would
 # need its own); once the policy stops, the model reviews only an episode the monitor flagged. Chosen on the
-# development block 10000-10099 (docs/EXPERIMENTS.md, 7 Dec night to late night, second) and reported on its own
-# block, MONITOR_SEED 22000-22099 (20000-20099 had reported v3, 21000-21099 v4); about 10 min.
+# development block 10000-10099 (docs/EXPERIMENTS.md, 7 Dec night to late night, third) and reported on its own
+# block: the page's table is `make recovery-monitor VLM=$(R)/online/final` (the model of make reproduce-online) on
+# MONITOR_SEED 23000-23099 (20000-20099 had reported v3, 21000-21099 v4, 22000-22099 v5); about 10 min.
 MONITOR ?= $(R)/robot_online_val_both/monitor
 MONITOR_ALPHA ?= 0.05
-MONITOR_SEED ?= 22000
+MONITOR_SEED ?= 23000
 $(R)/robot_online_val_both/monitor/monitor.json: $(R)/dataset/stats.json | $(STAMP)
 	$(BIN)/labrobfail-evaluate mode=online dataset_dir=$(R)/dataset split=val_both calibration=val \
 	  delta=$(ONLINE_DELTA) out_dir=$(R)/robot_online_val_both progress=false

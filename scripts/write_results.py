@@ -155,8 +155,8 @@ SECTIONS = {
         "pour cell; chosen on the development block, docs/EXPERIMENTS.md 2 Dec). `make recovery-monitor`: the "
         "scripted cells the same way with the online bench's robot-signal alarm deciding while the policy runs (the "
         "row chosen on validation, saved by the bench) and the model asked only in episodes it flagged; its design "
-        "chosen on the development block and reported on its own block, 22000-22099 (docs/EXPERIMENTS.md, 7 Dec "
-        "night to late night, second).",
+        "chosen on the development block and reported on its own block, 23000-23099, with `online/final` diagnosing "
+        "(docs/EXPERIMENTS.md, 7 Dec night to late night, third).",
         ("online", "recovery", "train/final/eval_online_*", "online_power*"),
     ),
 }
