@@ -289,7 +289,7 @@ class CorrectionExecutor(ExecutorCore):
 
     def _move_to_pose(self, pose_id: str) -> None:
         if pose_id.startswith("omitted:"):
-            step, redo = self.returns.get(pose_id) or self._omitted_step(pose_id)
+            step, redo = self.returns[pose_id]  # found by run's check before the first primitive moved
             if redo:  # a grasp that did not take: made again where the object now stands, as align_to makes one
                 n0 = self.count
                 self._ensure_held(step.object)
