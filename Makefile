@@ -509,20 +509,23 @@ online-power: $(STAMP)
 # more when the policy stops. Scripted cells only: the monitor was calibrated on scripted successes (an ACT's would
 # need its own); once the policy stops, the model reviews only an episode the monitor flagged. Chosen on the
 # development block 10000-10099 (docs/EXPERIMENTS.md, 7 Dec night to late night, third) and reported on its own
-# block: the page's table is `make recovery-monitor VLM=$(R)/online/final` (the model of make reproduce-online) on
-# MONITOR_SEED 23000-23099 (20000-20099 had reported v3, 21000-21099 v4, 22000-22099 v5); about 10 min.
+# block: the page's table is `make recovery-monitor` on MONITOR_SEED 23000-23099 (20000-20099 had reported v3,
+# 21000-21099 v4, 22000-22099 v5); about 10 min. Its model is make reproduce-online's (MONITOR_VLM: chosen on the
+# development block over make reproduce's, 7 Dec late night, third); a VLM= given on the command line is taken too.
 MONITOR ?= $(R)/robot_online_val_both/monitor
+MONITOR_VLM ?= $(if $(filter command line,$(origin VLM)),$(VLM),$(R)/online/final)
 MONITOR_ALPHA ?= 0.05
 MONITOR_SEED ?= 23000
 $(R)/robot_online_val_both/monitor/monitor.json: $(R)/dataset/stats.json | $(STAMP)
 	$(BIN)/labrobfail-evaluate mode=online dataset_dir=$(R)/dataset split=val_both calibration=val \
 	  delta=$(ONLINE_DELTA) out_dir=$(R)/robot_online_val_both progress=false
 recovery-monitor: $(STAMP)
-	@test -d $(VLM) || { echo "recovery-monitor: no model $(VLM) (make reproduce, or VLM=<model dir>)" >&2; exit 2; }
+	@test -d $(MONITOR_VLM) || { echo >&2 \
+	  "recovery-monitor: no model $(MONITOR_VLM) (make reproduce-online, or MONITOR_VLM=<model dir>)"; exit 2; }
 	@test -f $(MONITOR)/monitor.json || test "$(MONITOR)" = "$(R)/robot_online_val_both/monitor" || { echo \
 	  "recovery-monitor: no monitor in $(MONITOR) (an online bench's out_dir/monitor)" >&2; exit 2; }
 	$(MAKE) $(MONITOR)/monitor.json
-	$(BIN)/labrobfail-supervise policy=scripted supervisor=vlm vlm.model=$(VLM) vlm.monitor=$(MONITOR) \
+	$(BIN)/labrobfail-supervise policy=scripted supervisor=vlm vlm.model=$(MONITOR_VLM) vlm.monitor=$(MONITOR) \
 	  vlm.alpha=$(MONITOR_ALPHA) task=pick,place,pour $(RECOVERY_RUN) seed=$(MONITOR_SEED) loop.query_every=0 \
 	  out_dir=$(R)/recovery/monitor
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS) 'sections=[supervision]'

@@ -372,6 +372,23 @@ def test_supervised_trials_draw_what_the_recipes_grids_draw(tmp_path):
         assert looks <= set(run.split()), run
 
 
+def test_recovery_monitor_asks_the_model_taught_prefix_grids_unless_told_otherwise(tmp_path):
+    """`make recovery-monitor` (a dry run): the page's table is the model of make reproduce-online diagnosing what
+    the monitor flags, so that is its default; VLM= or MONITOR_VLM= on the command line names another."""
+    for made in ("dataset/stats.json", "robot_online_val_both/monitor/monitor.json"):  # the monitor after its data
+        (tmp_path / made).parent.mkdir(parents=True)
+        (tmp_path / made).write_text("{}")
+
+    def model(*settings: str) -> str:
+        plan = _make_dry("recovery-monitor", f"R={tmp_path}", *settings)
+        run = next(w for w in plan.stdout.split() if w.startswith("vlm.model="))
+        return run.split("=", 1)[1]
+
+    assert model() == f"{tmp_path}/online/final"
+    assert model(f"VLM={tmp_path}/other") == f"{tmp_path}/other"
+    assert model(f"MONITOR_VLM={tmp_path}/third") == f"{tmp_path}/third"
+
+
 def test_the_sealed_catalogue_has_shapes_sizes_and_colours_of_its_own():
     from sim_backends.pybullet.scene import SEALED_OBJECTS, SEEN_OBJECTS, VAL_OBJECTS
 
