@@ -735,6 +735,25 @@ def _renamed_copy(src, dst, split: str, to: str | None = None) -> None:
     _renamed(dst, split, ["apart-"], to or split, keep=False)
 
 
+def test_online_bench_without_a_train_split_to_fit_on_says_so_in_one_line(small_ds, tmp_path):  # noqa: F811
+    """A dataset built with no train split (an ACT's rollouts, ratios [0, 0.5, 0.5]), or one whose train split
+    holds one outcome only: the robot-signal MLPs have nothing to fit, so without a model the bench refuses in one
+    line (it failed inside numpy before), and with one it runs the model's rows alone."""
+    for name, keep in (
+        ("none", lambda t: {**t, "split": "val"} if t["split"] == "train" else t),
+        ("one_outcome", lambda t: t if t["split"] != "train" or t["success"] else None),
+    ):
+        ds = tmp_path / name
+        shutil.copytree(small_ds, ds)
+        trajs = [keep(t) for t in json.loads((ds / "trajectories.json").read_text())]
+        trajs += [{**t, "split": "val"} for t in trajs if t and t["split"] == "test" and "prefix_of" not in t]
+        (ds / "trajectories.json").write_text(json.dumps([t for t in trajs if t]))
+        argv = [cli("evaluate"), f"dataset_dir={ds}", "mode=online", "split=test", "calibration=val"]
+        r = run_here([*argv, f"out_dir={tmp_path / (name + '_out')}"])
+        last = r.stderr.strip().splitlines()[-1]
+        assert r.returncode == 2 and "Traceback" not in r.stderr and "lacks successes or failures" in last, r.stderr
+
+
 def test_online_bench_scores_a_dataset_drawn_apart_with_the_fit_and_calibration_of_another(  # noqa: F811
     tiny,  # noqa: F811
     small_ds,  # noqa: F811

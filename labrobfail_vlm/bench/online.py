@@ -339,8 +339,9 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path, apart: Path | None) -> d
     # fitted on the train split, so it is calibrated and scored on others only
     # (a train split of a dataset drawn apart is none of the fit's trajectories)
     apart_from_fit = "train" not in (cfg.calibration, cfg.split if apart is None else "")
-    if apart_from_fit and robot_baseline.has_signals([*train_t, *cal_t, *ev_t]):
-        fitted = robot_baseline.fit(train_t)
+    signals = apart_from_fit and robot_baseline.has_signals([*train_t, *cal_t, *ev_t])
+    fitted = robot_baseline.fit(train_t) if signals else None
+    if fitted is not None:  # none without a train split holding both outcomes: the model's rows only
         rcal, rev = robot_baseline.score(fitted, cal_t), robot_baseline.score(fitted, ev_t)
         rows[ROBOT] = alarm_rows([rcal], cal_t, [rev], ev_t, delta=delta)
         cands[ROBOT] = Candidate([rcal])
@@ -357,7 +358,7 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path, apart: Path | None) -> d
     if fa is None and ROBOT not in rows:
         raise ConfigError(
             "mode=online without model=: the dataset has no robot signals to fit on the train split (built before "
-            "29 Nov), or calibration/split is train"
+            "29 Nov), its train split lacks successes or failures, or calibration/split is train"
         )
     rows[LABELER] = ceiling(ev_t)
     res = {

@@ -60,10 +60,14 @@ def has_signals(trajs: Sequence[dict[str, Any]]) -> bool:
     return bool(trajs) and all(t.get("robot_signals") for t in trajs)
 
 
-def fit(train: Sequence[dict[str, Any]], seed: int = 0) -> Any:
+def fit(train: Sequence[dict[str, Any]], seed: int = 0) -> Any | None:
     """The baseline fitted on `train`'s prefixes: scaling, then an MLP (32, 32), with early stopping on a tenth of
-    them when there are enough (a test's handful of prefixes has too few to hold any out)."""
-    return _mlp(*_xy(train), seed)
+    them when there are enough (a test's handful of prefixes has too few to hold any out). None when the prefixes
+    hold one class only or there are none (a dataset built without a train split: an ACT's rollouts, say)."""
+    if not train:
+        return None
+    x, y = _xy(train)
+    return _mlp(x, y, seed) if 0 < y.sum() < len(y) else None
 
 
 def _mlp(x: np.ndarray, y: np.ndarray, seed: int) -> Any:
