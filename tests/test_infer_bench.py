@@ -738,7 +738,7 @@ def _renamed_copy(src, dst, split: str, to: str | None = None) -> None:
 def test_online_bench_without_a_train_split_to_fit_on_says_so_in_one_line(small_ds, tmp_path):  # noqa: F811
     """A dataset built with no train split (an ACT's rollouts, ratios [0, 0.5, 0.5]), or one whose train split
     holds one outcome only: the robot-signal MLPs have nothing to fit, so without a model the bench refuses in one
-    line (it failed inside numpy before), and with one it runs the model's rows alone."""
+    line (it failed inside numpy before); with one it runs the model's rows alone (not run here)."""
     for name, keep in (
         ("none", lambda t: {**t, "split": "val"} if t["split"] == "train" else t),
         ("one_outcome", lambda t: t if t["split"] != "train" or t["success"] else None),
