@@ -457,7 +457,7 @@ $(R)/actft/final/labrobfail.json: $(VLM)/labrobfail.json | $(call act_dir,pour)/
 	$(BIN)/labrobfail-train $(REPRO_TRAIN) epochs=1 dataset_dir=$(R)/dataset 'extra_train=[$(R)/rollouts/dataset]' \
 	  extra_repeat=4 model.path=$(VLM) $(ONLINE_STAGE) output_dir=$(R)/actft
 recovery-scripted: $(STAMP)
-	@test -d $(VLM) || { echo "recovery: no model $(VLM) (make reproduce, or VLM=<model dir>)" >&2; exit 2; }
+	@test -d "$(VLM)" || { echo "recovery: no model $(VLM) (make reproduce, or VLM=<model dir>)" >&2; exit 2; }
 	$(BIN)/labrobfail-supervise policy=scripted supervisor=vlm vlm.model=$(VLM) task=pick,place,pour $(RECOVERY_RUN) \
 	  out_dir=$(R)/recovery/scripted
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
@@ -473,7 +473,7 @@ ONLINE_TRAJ ?= null
 # the calibration draw (a marginal one, ONLINE_DELTA=null, lands above alpha on roughly 40 % of its draws).
 ONLINE_DELTA ?= 0.1
 online-bench: $(STAMP)
-	@test -d $(VLM) || { echo "online-bench: no model $(VLM) (make reproduce, or VLM=<model dir>)" >&2; exit 2; }
+	@test -d "$(VLM)" || { echo "online-bench: no model $(VLM) (make reproduce, or VLM=<model dir>)" >&2; exit 2; }
 	for s in test val_both; do $(BIN)/labrobfail-evaluate mode=online model=$(VLM) dataset_dir=$(R)/dataset split=$$s \
 	  calibration=val max_trajectories=$(ONLINE_TRAJ) delta=$(ONLINE_DELTA) progress=false || exit 1; done
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS)
@@ -511,16 +511,17 @@ online-power: $(STAMP)
 # development block 10000-10099 (docs/EXPERIMENTS.md, 7 Dec night to late night, third) and reported on its own
 # block: the page's table is `make recovery-monitor` on MONITOR_SEED 23000-23099 (20000-20099 had reported v3,
 # 21000-21099 v4, 22000-22099 v5); about 10 min. Its model is make reproduce-online's (MONITOR_VLM: chosen on the
-# development block over make reproduce's, 7 Dec late night, third); a VLM= given on the command line is taken too.
+# development block over make reproduce's, 7 Dec late night, third); a VLM given on the command line or in the
+# environment is taken too.
 MONITOR ?= $(R)/robot_online_val_both/monitor
-MONITOR_VLM ?= $(if $(filter command line,$(origin VLM)),$(VLM),$(R)/online/final)
+MONITOR_VLM ?= $(if $(filter file,$(origin VLM)),$(R)/online/final,$(VLM))
 MONITOR_ALPHA ?= 0.05
 MONITOR_SEED ?= 23000
 $(R)/robot_online_val_both/monitor/monitor.json: $(R)/dataset/stats.json | $(STAMP)
 	$(BIN)/labrobfail-evaluate mode=online dataset_dir=$(R)/dataset split=val_both calibration=val \
 	  delta=$(ONLINE_DELTA) out_dir=$(R)/robot_online_val_both progress=false
 recovery-monitor: $(STAMP)
-	@test -d $(MONITOR_VLM) || { echo >&2 \
+	@test -d "$(MONITOR_VLM)" || { echo >&2 \
 	  "recovery-monitor: no model $(MONITOR_VLM) (make reproduce-online, or MONITOR_VLM=<model dir>)"; exit 2; }
 	@test -f $(MONITOR)/monitor.json || test "$(MONITOR)" = "$(R)/robot_online_val_both/monitor" || { echo \
 	  "recovery-monitor: no monitor in $(MONITOR) (an online bench's out_dir/monitor)" >&2; exit 2; }

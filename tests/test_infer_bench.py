@@ -751,7 +751,12 @@ def test_online_bench_without_a_train_split_to_fit_on_says_so_in_one_line(small_
         argv = [cli("evaluate"), f"dataset_dir={ds}", "mode=online", "split=test", "calibration=val"]
         r = run_here([*argv, f"out_dir={tmp_path / (name + '_out')}"])
         last = r.stderr.strip().splitlines()[-1]
-        assert r.returncode == 2 and "Traceback" not in r.stderr and "lacks successes or failures" in last, r.stderr
+        assert r.returncode == 2 and "Traceback" not in r.stderr and "no prefixes of both outcomes" in last, r.stderr
+    from labrobfail_vlm.bench import robot_baseline
+
+    trajs = json.loads((small_ds / "trajectories.json").read_text())
+    assert robot_baseline.fit([]) is None
+    assert robot_baseline.fit([t for t in trajs if t["success"] and t.get("robot_signals")]) is None
 
 
 def test_online_bench_scores_a_dataset_drawn_apart_with_the_fit_and_calibration_of_another(  # noqa: F811

@@ -196,7 +196,8 @@ def _make_dry(target: str, *settings: str) -> subprocess.CompletedProcess:
     if make is None:
         pytest.skip("make is not installed")
     # the suite itself runs under make test: its MAKEFLAGS and MAKELEVEL would make this one a sub-make
-    env = {k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MFLAGS", "MAKELEVEL")}
+    # and a model named in the environment would stand in for the Makefile's defaults the tests read
+    env = {k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MFLAGS", "MAKELEVEL", "VLM", "MONITOR_VLM")}
     cmd = [make, "-n", "--no-print-directory", target, *settings]
     root = Path(__file__).resolve().parents[1]
     return subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=60)
@@ -381,8 +382,11 @@ def test_recovery_monitor_asks_the_model_taught_prefix_grids_unless_told_otherwi
 
     def model(*settings: str) -> str:
         plan = _make_dry("recovery-monitor", f"R={tmp_path}", *settings)
+        assert plan.returncode == 0, plan.stderr
         run = next(w for w in plan.stdout.split() if w.startswith("vlm.model="))
-        return run.split("=", 1)[1]
+        used = run.split("=", 1)[1]
+        assert f'test -d "{used}"' in plan.stdout  # the model checked is the model run
+        return used
 
     assert model() == f"{tmp_path}/online/final"
     assert model(f"VLM={tmp_path}/other") == f"{tmp_path}/other"

@@ -356,10 +356,14 @@ def run_online(cfg: Any, fa: Any | None, out_dir: Path, apart: Path | None) -> d
         extra |= more
         models["frame"] = fitted
     if fa is None and ROBOT not in rows:
-        raise ConfigError(
-            "mode=online without model=: the dataset has no robot signals to fit on the train split (built before "
-            "29 Nov), its train split lacks successes or failures, or calibration/split is train"
+        why = (
+            "calibration/split is train, where the robot-signal MLPs are fitted"
+            if not apart_from_fit
+            else "the dataset has no robot signals (built before 29 Nov)"
+            if not signals
+            else "its train split holds no prefixes of both outcomes to fit the robot-signal MLPs on"
         )
+        raise ConfigError(f"mode=online without model=: {why}")
     rows[LABELER] = ceiling(ev_t)
     res = {
         "dataset": str(dataset),

@@ -62,8 +62,9 @@ def has_signals(trajs: Sequence[dict[str, Any]]) -> bool:
 
 def fit(train: Sequence[dict[str, Any]], seed: int = 0) -> Any | None:
     """The baseline fitted on `train`'s prefixes: scaling, then an MLP (32, 32), with early stopping on a tenth of
-    them when there are enough (a test's handful of prefixes has too few to hold any out). None when the prefixes
-    hold one class only or there are none (a dataset built without a train split: an ACT's rollouts, say)."""
+    them when there are enough (a test's handful of prefixes has too few to hold any out). None when there are no
+    prefixes (a dataset built without a train split: an ACT's rollouts, say) or all carry one label (failed by
+    their frame or not)."""
     if not train:
         return None
     x, y = _xy(train)
