@@ -4,7 +4,7 @@ PY    := $(VENV)/bin/python
 BIN   := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: install browser vulkan demo demo-bench demo-supervise demo-diagnosis demo-online reproduce reproduce-rows reproduce-more reproduce-grid16 reproduce-tower ablate reproduce-online reproduce-tuned report-tuned online-bench online-power recovery recovery-scripted recovery-monitor tower sim20k lint test test-fast bench clean
+.PHONY: install browser vulkan demo demo-bench demo-supervise demo-diagnosis demo-online reproduce reproduce-rows reproduce-more reproduce-grid16 reproduce-tower ablate reproduce-online reproduce-tuned report-tuned online-bench online-power recovery recovery-scripted recovery-monitor recovery-act-alarm tower sim20k lint test test-fast bench clean
 APT_STAMP := $(VENV)/.apt-stamp
 VULKAN_STAMP := $(VENV)/.vulkan-stamp
 BACKPORTS := /etc/apt/sources.list.d/bookworm-backports.sources
@@ -530,6 +530,36 @@ recovery-monitor: $(STAMP)
 	  vlm.alpha=$(MONITOR_ALPHA) task=pick,place,pour $(RECOVERY_RUN) seed=$(MONITOR_SEED) loop.query_every=0 \
 	  out_dir=$(R)/recovery/monitor
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS) 'sections=[supervision]'
+
+# The ACT pick cell with an alarm calibrated on that ACT's own successes (FIPER's way; docs/EXPERIMENTS.md, 7 Dec late
+# night, seventh): two runs of ACT_ALARM_ROLLOUTS rollouts of make recovery's pick ACT without a supervisor, from
+# seeds 40000 and 40300, as reported (a trial's number picks its scenario, so one run of 600 would draw others after
+# the first 300), every success and the failures the labeler can explain becoming shards (the rest left out),
+# built half val, half test; the online bench of MONITOR_VLM calibrates the model's alarm on val's successes (delta
+# ONLINE_DELTA) and checks it on test; then the cell on ACT_ALARM_SEED, the model asked once when the ACT stops and
+# intervening only above the threshold at MONITOR_ALPHA. Reported once on 24000-24099 (24 -> 30, +6 [+0.9, +10.8]);
+# about 20 min on 2 cores with the ACT's training; out: $(R)/recovery/act_alarm/pick/results.md (not on the page).
+ACT_ALARM_ROLLOUTS ?= 300
+ACT_ALARM_SEED ?= 24000
+recovery-act-alarm: $(STAMP)
+	@test -d "$(MONITOR_VLM)" || { echo >&2 \
+	  "recovery-act-alarm: no model $(MONITOR_VLM) (make reproduce-online, or MONITOR_VLM=<model dir>)"; exit 2; }
+	test -f $(call act_dir,pick)/final/model.safetensors || OMP_NUM_THREADS=1 $(PY) scripts/train_act.py task=pick \
+	  $(ACT_pick) progress=false out_dir=$(call act_dir,pick) \
+	  $(if $(wildcard $(call act_dir,pick)/checkpoints/step-*),resume=true)
+	$(foreach s,40000 40300,$(BIN)/labrobfail-supervise policy=act act.checkpoint=$(call act_dir,pick)/final \
+	  supervisor=none task=pick trials=$(ACT_ALARM_ROLLOUTS) seed=$(s) shards=true loop.query_every=-1 progress=false \
+	  $(REPRO_LOOK) out_dir=$(R)/rollouts/act_pick_$(s) || exit 1;)
+	test -f $(R)/rollouts/dataset_act_pick/stats.json || $(BIN)/labrobfail-build-dataset \
+	  out_dir=$(R)/rollouts/dataset_act_pick $(DEMO_GRID) 'views=[front,side]' 'ratios=[0,0.5,0.5]' progress=false \
+	  'shards=[$(R)/rollouts/act_pick_40000/shards/none,$(R)/rollouts/act_pick_40300/shards/none]'
+	# made once: the cell is bound to this file's bytes (a rerun of the bench rewrites its timings), as a run resumes
+	test -f $(R)/rollouts/online_act_pick/online.json || $(BIN)/labrobfail-evaluate mode=online model=$(MONITOR_VLM) \
+	  dataset_dir=$(R)/rollouts/dataset_act_pick split=test calibration=val delta=$(ONLINE_DELTA) progress=false \
+	  out_dir=$(R)/rollouts/online_act_pick
+	$(BIN)/labrobfail-supervise policy=act act.checkpoint=$(call act_dir,pick)/final supervisor=vlm \
+	  vlm.model=$(MONITOR_VLM) vlm.alarm=$(R)/rollouts/online_act_pick/online.json vlm.alpha=$(MONITOR_ALPHA) task=pick \
+	  $(RECOVERY_RUN) seed=$(ACT_ALARM_SEED) out_dir=$(R)/recovery/act_alarm/pick
 
 recovery: recovery-scripted online-bench
 	$(foreach t,pick place pour,test -f $(call act_dir,$(t))/final/model.safetensors || OMP_NUM_THREADS=1 \

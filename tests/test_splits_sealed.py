@@ -393,6 +393,34 @@ def test_recovery_monitor_asks_the_model_taught_prefix_grids_unless_told_otherwi
     assert model(f"MONITOR_VLM={tmp_path}/third") == f"{tmp_path}/third"
 
 
+def test_the_act_alarm_cell_is_calibrated_on_that_acts_own_rollouts_apart_from_its_trials(tmp_path):
+    """`make recovery-act-alarm` (a dry run): the alarm's threshold comes from the online bench of the ACT's own
+    rollouts (half calibration, half a held-out check), and the supervised cell reads that bench's online.json; the
+    rollouts' seeds (40000 on) are none of the cell's trials (ACT_ALARM_SEED) nor the development block's."""
+    model = tmp_path / "online" / "final"
+    model.mkdir(parents=True)
+    plan = _make_dry("recovery-act-alarm", f"R={tmp_path}")
+    assert plan.returncode == 0, plan.stderr
+    runs = [line for line in plan.stdout.replace("\\\n", "").splitlines() if "labrobfail-" in line]
+    rollouts, build, bench, cell = (
+        next(r for r in runs if k in r) for k in ("supervisor=none", "build-dataset", "mode=online", "supervisor=vlm")
+    )
+    assert "'ratios=[0,0.5,0.5]'" in build and "calibration=val" in bench and f"model={model}" in bench
+    bench_out = next(w.split("=", 1)[1] for w in bench.split() if w.startswith("out_dir="))
+    assert f"vlm.alarm={bench_out}/online.json" in cell and "vlm.alpha=0.05" in cell and "policy=act" in cell
+    trial_seed = int([w.split("=", 1)[1] for w in cell.split() if w.startswith("seed=")][-1])  # the last one wins
+    assert trial_seed == 24000
+    calls = [r for r in plan.stdout.replace("\\\n", "").replace(";", "\n").splitlines() if "supervisor=none" in r]
+    assert len(calls) == 2  # two runs of 300, as reported
+    for run in calls:
+        first = int(next(w.split("=", 1)[1] for w in run.split() if w.startswith("seed=")))
+        count = int(next(w.split("=", 1)[1] for w in run.split() if w.startswith("trials=")))
+        out = next(w.split("=", 1)[1] for w in run.split() if w.startswith("out_dir="))
+        assert f"{out}/shards/none" in build
+        for block in (trial_seed, 10000):  # the cell's trials, the development block
+            assert not (first <= block + 99 and block < first + count)
+
+
 def test_the_sealed_catalogue_has_shapes_sizes_and_colours_of_its_own():
     from sim_backends.pybullet.scene import SEALED_OBJECTS, SEEN_OBJECTS, VAL_OBJECTS
 
