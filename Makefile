@@ -541,19 +541,21 @@ recovery-monitor: $(STAMP)
 # about 20 min on 2 cores with the ACT's training; out: $(R)/recovery/act_alarm/pick/results.md (not on the page).
 ACT_ALARM_ROLLOUTS ?= 300
 ACT_ALARM_SEED ?= 24000
+# the two runs' first seeds, apart whatever the count: 40000 and 40300 by default, as reported
+ACT_ALARM_FIRSTS = 40000 $(shell expr 40000 + $(ACT_ALARM_ROLLOUTS))
+# The bench is run once: the cell is bound to its online.json's bytes (a rerun rewrites its timings), as a run resumes.
 recovery-act-alarm: $(STAMP)
 	@test -d "$(MONITOR_VLM)" || { echo >&2 \
 	  "recovery-act-alarm: no model $(MONITOR_VLM) (make reproduce-online, or MONITOR_VLM=<model dir>)"; exit 2; }
 	test -f $(call act_dir,pick)/final/model.safetensors || OMP_NUM_THREADS=1 $(PY) scripts/train_act.py task=pick \
 	  $(ACT_pick) progress=false out_dir=$(call act_dir,pick) \
 	  $(if $(wildcard $(call act_dir,pick)/checkpoints/step-*),resume=true)
-	$(foreach s,40000 40300,$(BIN)/labrobfail-supervise policy=act act.checkpoint=$(call act_dir,pick)/final \
+	$(foreach s,$(ACT_ALARM_FIRSTS),$(BIN)/labrobfail-supervise policy=act act.checkpoint=$(call act_dir,pick)/final \
 	  supervisor=none task=pick trials=$(ACT_ALARM_ROLLOUTS) seed=$(s) shards=true loop.query_every=-1 progress=false \
 	  $(REPRO_LOOK) out_dir=$(R)/rollouts/act_pick_$(s) || exit 1;)
 	test -f $(R)/rollouts/dataset_act_pick/stats.json || $(BIN)/labrobfail-build-dataset \
 	  out_dir=$(R)/rollouts/dataset_act_pick $(DEMO_GRID) 'views=[front,side]' 'ratios=[0,0.5,0.5]' progress=false \
-	  'shards=[$(R)/rollouts/act_pick_40000/shards/none,$(R)/rollouts/act_pick_40300/shards/none]'
-	# made once: the cell is bound to this file's bytes (a rerun of the bench rewrites its timings), as a run resumes
+	  'shards=[$(subst $(space),$(comma),$(foreach s,$(ACT_ALARM_FIRSTS),$(R)/rollouts/act_pick_$(s)/shards/none))]'
 	test -f $(R)/rollouts/online_act_pick/online.json || $(BIN)/labrobfail-evaluate mode=online model=$(MONITOR_VLM) \
 	  dataset_dir=$(R)/rollouts/dataset_act_pick split=test calibration=val delta=$(ONLINE_DELTA) progress=false \
 	  out_dir=$(R)/rollouts/online_act_pick

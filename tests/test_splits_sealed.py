@@ -408,17 +408,25 @@ def test_the_act_alarm_cell_is_calibrated_on_that_acts_own_rollouts_apart_from_i
     assert "'ratios=[0,0.5,0.5]'" in build and "calibration=val" in bench and f"model={model}" in bench
     bench_out = next(w.split("=", 1)[1] for w in bench.split() if w.startswith("out_dir="))
     assert f"vlm.alarm={bench_out}/online.json" in cell and "vlm.alpha=0.05" in cell and "policy=act" in cell
+    assert bench.startswith(f"test -f {bench_out}/online.json ||") and "split=test" in bench  # made once
     trial_seed = int([w.split("=", 1)[1] for w in cell.split() if w.startswith("seed=")][-1])  # the last one wins
     assert trial_seed == 24000
-    calls = [r for r in plan.stdout.replace("\\\n", "").replace(";", "\n").splitlines() if "supervisor=none" in r]
-    assert len(calls) == 2  # two runs of 300, as reported
-    for run in calls:
-        first = int(next(w.split("=", 1)[1] for w in run.split() if w.startswith("seed=")))
-        count = int(next(w.split("=", 1)[1] for w in run.split() if w.startswith("trials=")))
-        out = next(w.split("=", 1)[1] for w in run.split() if w.startswith("out_dir="))
-        assert f"{out}/shards/none" in build
-        for block in (trial_seed, 10000):  # the cell's trials, the development block
-            assert not (first <= block + 99 and block < first + count)
+    assert "|| exit 1" in rollouts  # a failed first run stops the target
+
+    def word(run: str, key: str) -> str:
+        return next(w.split("=", 1)[1] for w in run.split() if w.startswith(key + "="))
+
+    for n in (300, 450):  # two runs, as reported, apart from each other whatever their size
+        got = _make_dry("recovery-act-alarm", f"R={tmp_path}", f"ACT_ALARM_ROLLOUTS={n}").stdout
+        calls = [r for r in got.replace("\\\n", "").replace(";", "\n").splitlines() if "supervisor=none" in r]
+        spans = sorted((int(word(r, "seed")), int(word(r, "seed")) + int(word(r, "trials"))) for r in calls)
+        assert len(spans) == 2 and spans[0][1] <= spans[1][0] and (n != 300 or spans[1][0] == 40300)
+        for run in calls:
+            assert word(run, "act.checkpoint") == word(cell, "act.checkpoint")  # the cell's own ACT
+            assert f"{word(run, 'out_dir')}/shards/none" in got
+        for first, end in spans:
+            for block in (trial_seed, 10000):  # the cell's trials, the development block
+                assert not (first <= block + 99 and block < end)
 
 
 def test_the_sealed_catalogue_has_shapes_sizes_and_colours_of_its_own():
