@@ -394,38 +394,48 @@ def test_recovery_monitor_asks_the_model_taught_prefix_grids_unless_told_otherwi
 
 
 def test_the_act_alarm_cell_is_calibrated_on_that_acts_own_rollouts_apart_from_its_trials(tmp_path):
-    """`make recovery-act-alarm` (a dry run): the alarm's threshold comes from the online bench of the ACT's own
-    rollouts (half calibration, half a held-out check), and the supervised cell reads that bench's online.json; the
-    rollouts' seeds (40000 on) are none of the cell's trials (ACT_ALARM_SEED) nor the development block's."""
+    """`make recovery-act-alarm` (a dry run): the cell's model is taught one set of the ACT's own rollouts and its
+    alarm calibrated on another (half calibration, half a held-out check); the cell reads that bench's online.json;
+    the four rollout runs are apart from each other, from the cell's trials (ACT_ALARM_SEED) and from the
+    development block, and all are the cell's own ACT."""
     model = tmp_path / "online" / "final"
     model.mkdir(parents=True)
-    plan = _make_dry("recovery-act-alarm", f"R={tmp_path}")
-    assert plan.returncode == 0, plan.stderr
-    runs = [line for line in plan.stdout.replace("\\\n", "").splitlines() if "labrobfail-" in line]
-    rollouts, build, bench, cell = (
-        next(r for r in runs if k in r) for k in ("supervisor=none", "build-dataset", "mode=online", "supervisor=vlm")
-    )
-    assert "'ratios=[0,0.5,0.5]'" in build and "calibration=val" in bench and f"model={model}" in bench
-    bench_out = next(w.split("=", 1)[1] for w in bench.split() if w.startswith("out_dir="))
-    assert f"vlm.alarm={bench_out}/online.json" in cell and "vlm.alpha=0.05" in cell and "policy=act" in cell
-    assert bench.startswith(f"test -f {bench_out}/online.json ||") and "split=test" in bench  # made once
-    trial_seed = int([w.split("=", 1)[1] for w in cell.split() if w.startswith("seed=")][-1])  # the last one wins
-    assert trial_seed == 24000
-    assert "|| exit 1" in rollouts  # a failed first run stops the target
+    (tmp_path / "dataset_online").mkdir()
+    (tmp_path / "dataset_online" / "stats.json").write_text("{}")
 
     def word(run: str, key: str) -> str:
-        return next(w.split("=", 1)[1] for w in run.split() if w.startswith(key + "="))
+        words = [w.strip("'") for w in run.split()]  # a list is quoted for the shell
+        return [w.split("=", 1)[1] for w in words if w.startswith(key + "=")][-1]  # the last one wins
 
-    for n in (300, 450):  # two runs, as reported, apart from each other whatever their size
-        got = _make_dry("recovery-act-alarm", f"R={tmp_path}", f"ACT_ALARM_ROLLOUTS={n}").stdout
-        calls = [r for r in got.replace("\\\n", "").replace(";", "\n").splitlines() if "supervisor=none" in r]
+    for n in (300, 450):
+        plan = _make_dry("recovery-act-alarm", f"R={tmp_path}", f"ACT_ALARM_ROLLOUTS={n}")
+        assert plan.returncode == 0, plan.stderr
+        runs = [line for line in plan.stdout.replace("\\\n", "").splitlines() if "labrobfail-" in line]
+        rollouts = next(r for r in runs if "supervisor=none" in r)
+        calib, taught = (next(r for r in runs if "build-dataset" in r and k in r) for k in ("[0,0.5,0.5]", "[1,0,0]"))
+        stage = next(r for r in runs if "labrobfail-train" in r)
+        bench = next(r for r in runs if "mode=online" in r)
+        cell = next(r for r in runs if "supervisor=vlm" in r)
+        ft = word(stage, "output_dir")
+        assert f"model.path={model}" in stage and "prefix.cuts=1" in taught and "|| exit 1" in rollouts
+        assert word(stage, "extra_train") == f"[{word(taught, 'out_dir')}]"
+        assert bench.startswith(f"test -f {word(bench, 'out_dir')}/online.json ||")  # made once
+        assert word(bench, "model") == f"{ft}/final" and word(bench, "dataset_dir") == word(calib, "out_dir")
+        assert "split=test" in bench and "calibration=val" in bench
+        assert (
+            word(cell, "vlm.model") == f"{ft}/final"
+            and word(cell, "vlm.alarm") == f"{word(bench, 'out_dir')}/online.json"
+        )
+        assert word(cell, "seed") == "25000"
+        calls = [r for r in rollouts.replace(";", "\n").splitlines() if "supervisor=none" in r]
         spans = sorted((int(word(r, "seed")), int(word(r, "seed")) + int(word(r, "trials"))) for r in calls)
-        assert len(spans) == 2 and spans[0][1] <= spans[1][0] and (n != 300 or spans[1][0] == 40300)
-        for run in calls:
-            assert word(run, "act.checkpoint") == word(cell, "act.checkpoint")  # the cell's own ACT
-            assert f"{word(run, 'out_dir')}/shards/none" in got
+        assert len(spans) == 4 and all(a[1] <= b[0] for a, b in zip(spans, spans[1:]))
+        for r in calls:
+            assert word(r, "act.checkpoint") == word(cell, "act.checkpoint")  # the cell's own ACT
+            built = calib if int(word(r, "seed")) < 41000 else taught  # calibration rollouts apart from taught ones
+            assert f"{word(r, 'out_dir')}/shards/none" in built
         for first, end in spans:
-            for block in (trial_seed, 10000):  # the cell's trials, the development block
+            for block in (25000, 10000):  # the cell's trials, the development block
                 assert not (first <= block + 99 and block < end)
 
 
