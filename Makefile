@@ -446,16 +446,21 @@ act_dir = $(R)/act/$(or $(ACT_DIR_$(1)),$(1))
 # $(VLM), 15/50 with this model (docs/EXPERIMENTS.md, 2 Dec). About 30 min of rollouts and 13 of training alone.
 ROLLOUTS ?= 160
 ROLLOUT_SEED ?= 30000
+# An ACT's own rollouts without a supervisor (task $(1), $(2) trials from seed $(3), into $(4)), each episode labeled
+# from the simulator state (`shards=true`): what a supervisor beside that ACT is taught or calibrated on.
+act_rollouts = $(BIN)/labrobfail-supervise policy=act act.checkpoint=$(call act_dir,$(1))/final $(ACT_SUP_$(1)) \
+  supervisor=none task=$(1) trials=$(2) seed=$(3) shards=true loop.query_every=-1 progress=false $(REPRO_LOOK) \
+  out_dir=$(4)
+# One more epoch of the model $(3) on the dataset $(1) with an ACT's rollouts $(2) beside it, drawn 4 times each, into $(4)
+act_taught = $(BIN)/labrobfail-train $(REPRO_TRAIN) epochs=1 dataset_dir=$(1) 'extra_train=[$(2)]' extra_repeat=4 \
+  model.path=$(3) $(ONLINE_STAGE) output_dir=$(4)
 VLM_ACT_pour := $(R)/actft/final
 $(R)/actft/final/labrobfail.json: $(VLM)/labrobfail.json | $(call act_dir,pour)/final/model.safetensors
 	rm -rf $(R)/rollouts/act_pour $(R)/rollouts/dataset $(R)/actft
-	$(BIN)/labrobfail-supervise policy=act act.checkpoint=$(call act_dir,pour)/final $(ACT_SUP_pour) supervisor=none \
-	  task=pour trials=$(ROLLOUTS) seed=$(ROLLOUT_SEED) shards=true loop.query_every=-1 progress=false $(REPRO_LOOK) \
-	  out_dir=$(R)/rollouts/act_pour
+	$(call act_rollouts,pour,$(ROLLOUTS),$(ROLLOUT_SEED),$(R)/rollouts/act_pour)
 	$(BIN)/labrobfail-build-dataset shards=$(R)/rollouts/act_pour/shards/none out_dir=$(R)/rollouts/dataset \
 	  $(DEMO_GRID) 'views=[front,side]' progress=false
-	$(BIN)/labrobfail-train $(REPRO_TRAIN) epochs=1 dataset_dir=$(R)/dataset 'extra_train=[$(R)/rollouts/dataset]' \
-	  extra_repeat=4 model.path=$(VLM) $(ONLINE_STAGE) output_dir=$(R)/actft
+	$(call act_taught,$(R)/dataset,$(R)/rollouts/dataset,$(VLM),$(R)/actft)
 recovery-scripted: $(STAMP)
 	@test -d "$(VLM)" || { echo "recovery: no model $(VLM) (make reproduce, or VLM=<model dir>)" >&2; exit 2; }
 	$(BIN)/labrobfail-supervise policy=scripted supervisor=vlm vlm.model=$(VLM) task=pick,place,pour $(RECOVERY_RUN) \
@@ -558,18 +563,16 @@ recovery-act-alarm: $(STAMP)
 	test -f $(call act_dir,pick)/final/model.safetensors || OMP_NUM_THREADS=1 $(PY) scripts/train_act.py task=pick \
 	  $(ACT_pick) progress=false out_dir=$(call act_dir,pick) \
 	  $(if $(wildcard $(call act_dir,pick)/checkpoints/step-*),resume=true)
-	$(foreach s,$(call act_alarm_firsts,40000) $(call act_alarm_firsts,41000),$(BIN)/labrobfail-supervise policy=act \
-	  act.checkpoint=$(call act_dir,pick)/final supervisor=none task=pick trials=$(ACT_ALARM_ROLLOUTS) seed=$(s) \
-	  shards=true loop.query_every=-1 progress=false $(REPRO_LOOK) out_dir=$(R)/rollouts/act_pick_$(s) || exit 1;)
+	$(foreach s,$(call act_alarm_firsts,40000) $(call act_alarm_firsts,41000),\
+	  $(call act_rollouts,pick,$(ACT_ALARM_ROLLOUTS),$(s),$(R)/rollouts/act_pick_$(s)) || exit 1;)
 	test -f $(R)/rollouts/dataset_act_pick/stats.json || $(BIN)/labrobfail-build-dataset \
 	  out_dir=$(R)/rollouts/dataset_act_pick $(DEMO_GRID) 'views=[front,side]' 'ratios=[0,0.5,0.5]' progress=false \
 	  $(call act_alarm_shards,40000)
 	test -f $(R)/rollouts/dataset_act_pick_train/stats.json || $(BIN)/labrobfail-build-dataset \
 	  out_dir=$(R)/rollouts/dataset_act_pick_train $(DEMO_GRID) 'views=[front,side]' 'ratios=[1,0,0]' $(ONLINE_PREFIX) \
 	  progress=false $(call act_alarm_shards,41000)
-	test -f $(ACT_ALARM_FT)/final/labrobfail.json || $(BIN)/labrobfail-train $(REPRO_TRAIN) epochs=1 \
-	  dataset_dir=$(R)/dataset_online 'extra_train=[$(R)/rollouts/dataset_act_pick_train]' extra_repeat=4 \
-	  model.path=$(MONITOR_VLM) $(ONLINE_STAGE) output_dir=$(ACT_ALARM_FT)
+	test -f $(ACT_ALARM_FT)/final/labrobfail.json || \
+	  $(call act_taught,$(R)/dataset_online,$(R)/rollouts/dataset_act_pick_train,$(MONITOR_VLM),$(ACT_ALARM_FT))
 	test -f $(R)/rollouts/online_act_pick_ft/online.json || $(BIN)/labrobfail-evaluate mode=online \
 	  model=$(ACT_ALARM_FT)/final dataset_dir=$(R)/rollouts/dataset_act_pick split=test calibration=val \
 	  delta=$(ONLINE_DELTA) progress=false out_dir=$(R)/rollouts/online_act_pick_ft
