@@ -67,7 +67,7 @@ from sim_backends.generate import run_physics
 from sim_backends.supervision.report import CARRIED as CARRIED_ROWS
 from sim_backends.supervision.report import (
     LEAD,
-    MONITOR_LEAD,
+    LEADS,
     block,
     page_recovery,
     recovery_files,
@@ -156,7 +156,12 @@ SECTIONS = {
         "scripted cells the same way with the online bench's robot-signal alarm deciding while the policy runs (the "
         "row chosen on validation, saved by the bench) and the model asked only in episodes it flagged; its design "
         "chosen on the development block and reported on its own block, 23000-23099, with `online/final` diagnosing "
-        "(docs/EXPERIMENTS.md, 7 Dec night to late night, third).",
+        "(docs/EXPERIMENTS.md, 7 Dec night to late night, third). `make recovery-act-alarm`: an ACT cell whose "
+        "model was taught one epoch of that ACT's own rollouts and whose alarm was calibrated on that ACT's "
+        "successes in other rollouts (FIPER's way; rollouts on seeds from 40000 up, apart from every block), the "
+        "model asked once when the ACT stops and intervening only above the threshold; its design chosen on the "
+        "development block, each task reported on its own block (docs/EXPERIMENTS.md, 7 Dec late night, seventh to "
+        "ninth). The pour ACT succeeds in none of its rollouts: its cell has nothing to calibrate on.",
         ("online", "recovery", "train/final/eval_online_*", "online_power*"),
     ),
 }
@@ -452,7 +457,7 @@ def _ran(run: Path, folder: str) -> bool:
     (`make online-bench`) or a model-free one (`make online-power`: online_power*), or a bench of the seen test
     split."""
     if folder == "recovery":
-        return bool(recovery_files(run) or recovery_files(run, MONITOR_LEAD))
+        return any(recovery_files(run, lead) for lead in LEADS)
     if "*" in folder:
         return any(run.glob(f"{folder}/online.json"))
     return bool(run_evals(run / folder, ("test",)))
@@ -500,8 +505,8 @@ POWER_LEAD = (
 def _page_online_benches(section: list[str]) -> list[str]:
     """The online bench's lines of an existing Supervision section: its guarantee paragraph up to a recovery
     table's lead (or the section's end)."""
-    ends = (LEAD, MONITOR_LEAD)  # a page may hold either recovery table without the other
-    return block(section, lambda line: line.startswith(ONLINE_GUARANTEE[:40]), lambda line: line.startswith(ends))
+    # a page may hold any recovery table without the others
+    return block(section, lambda line: line.startswith(ONLINE_GUARANTEE[:40]), lambda line: line.startswith(LEADS))
 
 
 def _bench_lead(line: str) -> str | None:
@@ -577,10 +582,12 @@ def supervision(run: Path, page: list[str] | None = None) -> list[str]:
             "",
         ]
     lines += online_benches(run, page)
-    lines += recovery_md([json.loads(f.read_text()) for f in recovery_files(run)], page_recovery(page or []))
-    for_monitor = [json.loads(f.read_text()) for f in recovery_files(run, MONITOR_LEAD)]
-    monitor = recovery_md(for_monitor, page_recovery(page or [], MONITOR_LEAD), MONITOR_LEAD)
-    return lines + (["", *monitor] if monitor else [])
+    for lead in LEADS:  # make recovery's table, then make recovery-monitor's and make recovery-act-alarm's
+        table = recovery_md(
+            [json.loads(f.read_text()) for f in recovery_files(run, lead)], page_recovery(page or [], lead), lead
+        )
+        lines += ["", *table] if table and lead != LEAD else table
+    return lines
 
 
 def timing(stamps: list[list[str]]) -> list[str]:

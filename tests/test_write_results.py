@@ -110,6 +110,42 @@ def test_the_monitor_table_stands_apart_and_a_later_recovery_run_keeps_it(tmp_pa
     assert again[j].endswith("(rows carried from the page, not re-run).") and "| 6/25 | 24/25 |" in again[-1]
 
 
+def test_the_act_alarm_table_follows_the_monitor_table_and_names_its_calibrated_threshold(tmp_path: Path) -> None:
+    """make recovery-act-alarm's cells (the model asked when the ACT stops, intervening only above the threshold its
+    bench calibrated on that ACT's successes) are the last table, one row per task, named with the bench and alpha;
+    a later run of the monitor table alone carries them."""
+    from sim_backends.supervision.report import ALARM_LEAD, MONITOR_LEAD
+
+    def at(lines: list[str], lead: str) -> int:
+        return next(k for k, line in enumerate(lines) if line.startswith(lead))
+
+    watched = {"monitor": "m/monitor", "alpha": 0.05}
+    _results(tmp_path / "recovery" / "monitor" / "results.json", "scripted", {"pick": (6, 24)}, monitor=watched)
+    alarm = {"alarm": "b/online.json", "alpha": 0.05}
+    for task, cell in (("place", (2, 9)), ("pick", (5, 14))):
+        _results(
+            tmp_path / "recovery" / "act_alarm" / task / "results.json", "act", {task: cell}, "ft", -1, 25000, alarm
+        )
+    lines = supervision(tmp_path)
+    j, k = at(lines, MONITOR_LEAD), at(lines, ALARM_LEAD)
+    assert j < k and "b/online.json" not in lines[j]
+    assert (
+        "supervisor vlm (`ft`) asked only when the policy stops, intervening only above the threshold `b/online.json` "
+        "calibrated at alpha 0.05, budget 2" in lines[k]
+    )
+    rows = [r for r in lines[k:] if r.startswith("| ") and not r.startswith("| task")]
+    assert [r.split(" | ")[:4] for r in rows] == [
+        ["| pick", "act", "5/25", "14/25"],
+        ["| place", "act", "2/25", "9/25"],
+    ]
+    later = tmp_path / "later"
+    _results(later / "recovery" / "monitor" / "results.json", "scripted", {"pick": (6, 23)}, monitor=watched)
+    again = supervision(later, lines)
+    k = at(again, ALARM_LEAD)
+    assert again[k].endswith("(rows carried from the page, not re-run).") and "| 5/25 | 14/25 |" in "\n".join(again[k:])
+    assert "| 6/25 | 23/25 |" in "\n".join(again[:k])
+
+
 def _eval(path: Path, q2: float) -> None:
     """A bench results.json with the fields the page's tables read (seen Q2, failure-only Q3/Q5/ROUGE-L, intervals)."""
     path.mkdir(parents=True, exist_ok=True)

@@ -21,16 +21,24 @@ HEADER = (
 LEAD = "Recovery: the same initial states and injections with and without the supervisor; "
 # make recovery-monitor's table: the VLM supervisor with a saved robot-signal monitor deciding while the policy runs
 MONITOR_LEAD = "Recovery with the robot-signal monitor, the same initial states and injections with and without it; "
+# make recovery-act-alarm's table: beside an ACT, the model's alarm calibrated on that ACT's own successes
+ALARM_LEAD = (
+    "Recovery with an alarm calibrated on the policy's own successes, the same initial states and injections with "
+    "and without it; "
+)
+LEADS = (LEAD, MONITOR_LEAD, ALARM_LEAD)  # the page's recovery tables, in its order
 TASK_ORDER = ("pick", "place", "pour")
 CARRIED = " (rows carried from the page, not re-run)"
 
 
 def recovery_files(run: Path, lead: str = LEAD) -> list[Path]:
     """`make recovery`'s results.json files of a run: the scripted policy's, then each ACT task's; with
-    MONITOR_LEAD, `make recovery-monitor`'s."""
+    MONITOR_LEAD, `make recovery-monitor`'s; with ALARM_LEAD, each task's of `make recovery-act-alarm`."""
     rec = run / "recovery"
     if lead == MONITOR_LEAD:
         return [f for f in (rec / "monitor" / "results.json",) if f.is_file()]
+    if lead == ALARM_LEAD:  # the tasks' reported cells only (a development run writes elsewhere)
+        return [f for f in (rec / "act_alarm" / t / "results.json" for t in TASK_ORDER) if f.is_file()]
     return [
         f for f in (rec / "scripted" / "results.json", *sorted((rec / "act").glob("*/results.json"))) if f.is_file()
     ]
@@ -39,18 +47,22 @@ def recovery_files(run: Path, lead: str = LEAD) -> list[Path]:
 def setting(cfg: dict[str, Any]) -> str:
     """How a results.json's cells ran: trials, variant, supervisor and model, when it was asked, budget."""
     sup, loop = cfg["supervisor"], cfg["loop"]
+    given = cfg.get(sup) or {}  # the supervisor's own settings (none for supervisor=none)
     asked = {0: "at every keyframe", -1: "only when the policy stops"}.get(
         loop["query_every"], f"every {loop['query_every']} policy steps"
     )
     more = " and once more when the policy stops" if loop["final_query"] and loop["query_every"] >= 0 else ""
-    monitor = (cfg.get(sup) or {}).get("monitor")
+    alarm = given.get("alarm")
+    if alarm:  # sim_backends/supervision/vlm.py: the model intervenes only above the threshold its bench calibrated
+        more += f", intervening only above the threshold `{alarm}` calibrated at alpha {given.get('alpha')}"
+    monitor = given.get("monitor")
     if monitor and loop["query_every"] >= 0:  # sim_backends/supervision/vlm.py: the monitor decides, the model says
-        asked = f"when the robot-signal monitor `{monitor}` (alpha {cfg[sup].get('alpha')}), read {asked}, first sounds"
+        asked = f"when the robot-signal monitor `{monitor}` (alpha {given.get('alpha')}), read {asked}, first sounds"
         more = more and " and, in an episode it flagged, once more when the policy stops"
     seeds = f" (seeds {cfg['seed']}-{cfg['seed'] + cfg['trials'] - 1})" if isinstance(cfg.get("seed"), int) else ""
     return (
         f"{cfg['trials']} trials per cell{seeds}, variant {cfg['variant']}, supervisor {sup} "
-        f"(`{(cfg.get(sup) or {}).get('model', '')}`) asked {asked}{more}"
+        f"(`{given.get('model', '')}`) asked {asked}{more}"
         + f", budget {loop['budget']}, a manual correction: {loop['on_manual']}"
     )
 
