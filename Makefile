@@ -446,6 +446,11 @@ act_dir = $(R)/act/$(or $(ACT_DIR_$(1)),$(1))
 # $(VLM), 15/50 with this model (docs/EXPERIMENTS.md, 2 Dec). About 30 min of rollouts and 13 of training alone.
 ROLLOUTS ?= 160
 ROLLOUT_SEED ?= 30000
+# The ACT of task $(1) trained by make recovery's recipe (ACT_$(1)) unless its final weights exist; a run stopped
+# midway resumes from its last checkpoint.
+act_trained = test -f $(call act_dir,$(1))/final/model.safetensors || OMP_NUM_THREADS=1 $(PY) scripts/train_act.py \
+  task=$(1) $(ACT_$(1)) progress=false out_dir=$(call act_dir,$(1)) \
+  $(if $(wildcard $(call act_dir,$(1))/checkpoints/step-*),resume=true)
 # An ACT's own rollouts without a supervisor (task $(1), $(2) trials from seed $(3), into $(4)), each episode labeled
 # from the simulator state (`shards=true`): what a supervisor beside that ACT is taught or calibrated on.
 act_rollouts = $(BIN)/labrobfail-supervise policy=act act.checkpoint=$(call act_dir,$(1))/final $(ACT_SUP_$(1)) \
@@ -536,54 +541,72 @@ recovery-monitor: $(STAMP)
 	  out_dir=$(R)/recovery/monitor
 	$(PY) scripts/write_results.py run=$(R) out=$(RESULTS) 'sections=[supervision]'
 
-# The ACT pick cell with an alarm calibrated on that ACT's own successes (FIPER's way; docs/EXPERIMENTS.md, 7 Dec late
-# night, seventh and eighth), after its supervisor has seen that ACT's own rollouts (as the pour cell's, `actft`).
-# Rollouts of make recovery's pick ACT without a supervisor, each a pair of runs of ACT_ALARM_ROLLOUTS (a trial's
-# number picks its scenario, so the runs are kept as reported), every success and the failures the labeler can
-# explain becoming shards (the rest left out): for teaching, from seeds 41000 (built all-train with prefix grids,
-# then one epoch from MONITOR_VLM on make reproduce-online's dataset with them beside it, 4 times each); for the
-# alarm, from seeds 40000 (half calibrating the taught model's alarm on their successes, delta ONLINE_DELTA, half
-# checking it). Then the cell on ACT_ALARM_SEED: the model asked once when the ACT stops, intervening only above
-# the threshold at MONITOR_ALPHA. Adopted on the development block and reported once on 25000-25099: 20 -> 55 (+35
-# [+24.9, +43.7]), 0 of 20 broken (the untaught model's alarm, 24000-24099: 24 -> 30). About 55 min on 2 cores with
-# the ACT's training (rollouts 8 + 8, the stage 25); out: $(R)/recovery/act_alarm/pick/results.md (not on the page).
+# An ACT cell with an alarm calibrated on that ACT's own successes (FIPER's way; docs/EXPERIMENTS.md, 7 Dec late
+# night, seventh to ninth), after its supervisor has seen that ACT's own rollouts (as the pour cell's, `actft`), for
+# ACT_ALARM_TASK pick (the default) or place; pour is refused (its ACT succeeds in none of its rollouts: nothing to
+# calibrate on). Rollouts of make recovery's ACT without a supervisor, in runs of ACT_ALARM_ROLLOUTS from the task's
+# first seeds (a trial's number picks its scenario, so the runs are kept as reported), every success and the
+# failures the labeler can explain becoming shards (the rest left out): for teaching, ACT_ALARM_TEACH_<task> (built
+# all-train with prefix grids, then one epoch from MONITOR_VLM on make reproduce-online's dataset with them beside
+# it, 4 times each); for the alarm, ACT_ALARM_CAL_<task> (half calibrating the taught model's alarm on their
+# successes, delta ONLINE_DELTA, half checking it; place succeeds in about 6 % of trials, so it takes three times
+# pick's runs for the 45 successes a threshold at alpha 0.05 needs). Then the cell on ACT_ALARM_SEED into
+# ACT_ALARM_OUT: the model asked once when the ACT stops, intervening only above the threshold at MONITOR_ALPHA, and
+# the page's Supervision section spliced (a run on another block, the development block 10000 say, is refused
+# unless it has an ACT_ALARM_OUT of its own, and leaves the page alone). Pick: adopted on the development block and
+# reported once on 25000-25099, 20 -> 55 (+35 [+24.9, +43.7]), 0 of 20 broken (the untaught model's alarm,
+# 24000-24099: 24 -> 30). About 55 min on 2 cores for pick with the ACT's training (rollouts 8 + 8, the stage 25);
+# place about 3.5 h (its ACT runs out its 400 ticks in most trials: about 4 s a rollout, 2,400 of them).
+ACT_ALARM_TASK ?= pick
 ACT_ALARM_ROLLOUTS ?= 300
-ACT_ALARM_SEED ?= 25000
-ACT_ALARM_FT := $(R)/actft_pick
-# each pair's first seeds, apart whatever the count (the calibration pair ends before 41000 up to 500 a run)
-act_alarm_firsts = $(1) $(shell expr $(1) + $(ACT_ALARM_ROLLOUTS))
-act_alarm_shards = 'shards=[$(subst $(space),$(comma),$(foreach s,$(call act_alarm_firsts,$(1)),$(R)/rollouts/act_pick_$(s)/shards/none))]'
+ACT_ALARM_CAL_pick := 40000 40300
+ACT_ALARM_TEACH_pick := 41000 41300
+ACT_ALARM_SEED_pick := 25000
+ACT_ALARM_CAL_place := 42000 42300 42600 42900 43200 43500
+ACT_ALARM_TEACH_place := 45000 45300
+ACT_ALARM_SEED_place := 26000
+ACT_ALARM_SEED ?= $(ACT_ALARM_SEED_$(ACT_ALARM_TASK))
+act_alarm_page = $(R)/recovery/act_alarm/$(ACT_ALARM_TASK)
+ACT_ALARM_OUT ?= $(act_alarm_page)
+act_alarm_ft = $(R)/actft_$(ACT_ALARM_TASK)
+act_alarm_runs = $(foreach s,$(1),$(R)/rollouts/act_$(ACT_ALARM_TASK)_$(s))
+act_alarm_shards = 'shards=[$(subst $(space),$(comma),$(addsuffix /shards/none,$(call act_alarm_runs,$(1))))]'
+act_alarm_data = $(R)/rollouts/dataset_act_$(ACT_ALARM_TASK)
+act_alarm_bench = $(R)/rollouts/online_act_$(ACT_ALARM_TASK)_ft
 # Each step is made once: the stage and its bench are the cell's (bound to their bytes, as a run resumes).
 recovery-act-alarm: $(STAMP)
+	@test -n "$(ACT_ALARM_CAL_$(ACT_ALARM_TASK))" || { echo >&2 "recovery-act-alarm: ACT_ALARM_TASK is pick or" \
+	  "place, not '$(ACT_ALARM_TASK)' (the pour ACT succeeds in none of its rollouts: none to calibrate on)"; exit 2; }
 	@test -d "$(MONITOR_VLM)" || { echo >&2 \
 	  "recovery-act-alarm: no model $(MONITOR_VLM) (make reproduce-online, or MONITOR_VLM=<model dir>)"; exit 2; }
 	@test -f $(R)/dataset_online/stats.json || { echo >&2 "recovery-act-alarm: run make reproduce-online first"; exit 2; }
-	@test "$(ACT_ALARM_ROLLOUTS)" -le 500 2>/dev/null || { echo >&2 \
-	  "recovery-act-alarm: ACT_ALARM_ROLLOUTS is a count up to 500 (the calibration rollouts end before 41000)"; exit 2; }
-	test -f $(call act_dir,pick)/final/model.safetensors || OMP_NUM_THREADS=1 $(PY) scripts/train_act.py task=pick \
-	  $(ACT_pick) progress=false out_dir=$(call act_dir,pick) \
-	  $(if $(wildcard $(call act_dir,pick)/checkpoints/step-*),resume=true)
-	$(foreach s,$(call act_alarm_firsts,40000) $(call act_alarm_firsts,41000),\
-	  $(call act_rollouts,pick,$(ACT_ALARM_ROLLOUTS),$(s),$(R)/rollouts/act_pick_$(s)) || exit 1;)
-	test -f $(R)/rollouts/dataset_act_pick/stats.json || $(BIN)/labrobfail-build-dataset \
-	  out_dir=$(R)/rollouts/dataset_act_pick $(DEMO_GRID) 'views=[front,side]' 'ratios=[0,0.5,0.5]' progress=false \
-	  $(call act_alarm_shards,40000)
-	test -f $(R)/rollouts/dataset_act_pick_train/stats.json || $(BIN)/labrobfail-build-dataset \
-	  out_dir=$(R)/rollouts/dataset_act_pick_train $(DEMO_GRID) 'views=[front,side]' 'ratios=[1,0,0]' $(ONLINE_PREFIX) \
-	  progress=false $(call act_alarm_shards,41000)
-	test -f $(ACT_ALARM_FT)/final/labrobfail.json || \
-	  $(call act_taught,$(R)/dataset_online,$(R)/rollouts/dataset_act_pick_train,$(MONITOR_VLM),$(ACT_ALARM_FT))
-	test -f $(R)/rollouts/online_act_pick_ft/online.json || $(BIN)/labrobfail-evaluate mode=online \
-	  model=$(ACT_ALARM_FT)/final dataset_dir=$(R)/rollouts/dataset_act_pick split=test calibration=val \
-	  delta=$(ONLINE_DELTA) progress=false out_dir=$(R)/rollouts/online_act_pick_ft
-	$(BIN)/labrobfail-supervise policy=act act.checkpoint=$(call act_dir,pick)/final supervisor=vlm \
-	  vlm.model=$(ACT_ALARM_FT)/final vlm.alarm=$(R)/rollouts/online_act_pick_ft/online.json vlm.alpha=$(MONITOR_ALPHA) \
-	  task=pick $(RECOVERY_RUN) seed=$(ACT_ALARM_SEED) out_dir=$(R)/recovery/act_alarm/pick
+	@test "$(ACT_ALARM_ROLLOUTS)" -le 300 2>/dev/null || { echo >&2 \
+	  "recovery-act-alarm: ACT_ALARM_ROLLOUTS is a count up to 300 (each run's first seed is 300 after the last)"; exit 2; }
+	@test "$(ACT_ALARM_SEED)" = "$(ACT_ALARM_SEED_$(ACT_ALARM_TASK))" -o "$(ACT_ALARM_OUT)" != "$(act_alarm_page)" || { \
+	  echo >&2 "recovery-act-alarm: ACT_ALARM_SEED $(ACT_ALARM_SEED) is not $(ACT_ALARM_TASK)'s reporting block" \
+	  "($(ACT_ALARM_SEED_$(ACT_ALARM_TASK))): give that run its own ACT_ALARM_OUT (the page reads $(act_alarm_page))"; exit 2; }
+	$(call act_trained,$(ACT_ALARM_TASK))
+	$(foreach s,$(ACT_ALARM_CAL_$(ACT_ALARM_TASK)) $(ACT_ALARM_TEACH_$(ACT_ALARM_TASK)),\
+	  $(call act_rollouts,$(ACT_ALARM_TASK),$(ACT_ALARM_ROLLOUTS),$(s),$(call act_alarm_runs,$(s))) || exit 1;)
+	test -f $(act_alarm_data)/stats.json || $(BIN)/labrobfail-build-dataset out_dir=$(act_alarm_data) $(DEMO_GRID) \
+	  'views=[front,side]' 'ratios=[0,0.5,0.5]' progress=false $(call act_alarm_shards,$(ACT_ALARM_CAL_$(ACT_ALARM_TASK)))
+	test -f $(act_alarm_data)_train/stats.json || $(BIN)/labrobfail-build-dataset out_dir=$(act_alarm_data)_train \
+	  $(DEMO_GRID) 'views=[front,side]' 'ratios=[1,0,0]' $(ONLINE_PREFIX) progress=false \
+	  $(call act_alarm_shards,$(ACT_ALARM_TEACH_$(ACT_ALARM_TASK)))
+	test -f $(act_alarm_ft)/final/labrobfail.json || \
+	  $(call act_taught,$(R)/dataset_online,$(act_alarm_data)_train,$(MONITOR_VLM),$(act_alarm_ft))
+	test -f $(act_alarm_bench)/online.json || $(BIN)/labrobfail-evaluate mode=online model=$(act_alarm_ft)/final \
+	  dataset_dir=$(act_alarm_data) split=test calibration=val delta=$(ONLINE_DELTA) progress=false \
+	  out_dir=$(act_alarm_bench)
+	$(BIN)/labrobfail-supervise policy=act act.checkpoint=$(call act_dir,$(ACT_ALARM_TASK))/final \
+	  $(ACT_SUP_$(ACT_ALARM_TASK)) supervisor=vlm vlm.model=$(act_alarm_ft)/final \
+	  vlm.alarm=$(act_alarm_bench)/online.json vlm.alpha=$(MONITOR_ALPHA) \
+	  task=$(ACT_ALARM_TASK) $(RECOVERY_RUN) seed=$(ACT_ALARM_SEED) out_dir=$(ACT_ALARM_OUT)
+	$(if $(filter $(act_alarm_page),$(ACT_ALARM_OUT)),$(PY) scripts/write_results.py run=$(R) out=$(RESULTS) \
+	  'sections=[supervision]')
 
 recovery: recovery-scripted online-bench
-	$(foreach t,pick place pour,test -f $(call act_dir,$(t))/final/model.safetensors || OMP_NUM_THREADS=1 \
-	  $(PY) scripts/train_act.py task=$(t) $(ACT_$(t)) progress=false out_dir=$(call act_dir,$(t)) \
-	  $(if $(wildcard $(call act_dir,$(t))/checkpoints/step-*),resume=true) || exit 1;)
+	$(foreach t,pick place pour,$(call act_trained,$(t)) || exit 1;)
 	$(MAKE) $(VLM_ACT_pour)/labrobfail.json
 	$(foreach t,pick place pour,$(BIN)/labrobfail-supervise policy=act act.checkpoint=$(call act_dir,$(t))/final \
 	  $(ACT_SUP_$(t)) supervisor=vlm vlm.model=$(or $(VLM_ACT_$(t)),$(VLM)) task=$(t) $(RECOVERY_RUN) \

@@ -189,16 +189,18 @@ def test_no_augmentation_a_model_trains_on_brings_a_family_into_the_sealed_satur
     assert reached(before, "bench", sealed["bench"]) >= sealed["bench"]
 
 
-def _make_dry(target: str, *settings: str) -> subprocess.CompletedProcess:
+def _make_dry(target: str, *settings: str, checks: bool = False) -> subprocess.CompletedProcess:
     """`make -n target settings...` in the checkout: what make would run, read by make itself (nothing is built or
-    installed)."""
+    installed); `checks`: run it for real with the install taken as done, for a target whose first lines refuse
+    bad settings (a test that they do, before anything runs)."""
     make = shutil.which("make")
     if make is None:
         pytest.skip("make is not installed")
     # the suite itself runs under make test: its MAKEFLAGS and MAKELEVEL would make this one a sub-make
     # and a model named in the environment would stand in for the Makefile's defaults the tests read
     env = {k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MFLAGS", "MAKELEVEL", "VLM", "MONITOR_VLM")}
-    cmd = [make, "-n", "--no-print-directory", target, *settings]
+    how = ["-s", "-o", ".venv/.installed-stamp"] if checks else ["-n"]
+    cmd = [make, *how, "--no-print-directory", target, *settings]
     root = Path(__file__).resolve().parents[1]
     return subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=60)
 
@@ -394,10 +396,10 @@ def test_recovery_monitor_asks_the_model_taught_prefix_grids_unless_told_otherwi
 
 
 def test_the_act_alarm_cell_is_calibrated_on_that_acts_own_rollouts_apart_from_its_trials(tmp_path):
-    """`make recovery-act-alarm` (a dry run): the cell's model is taught one set of the ACT's own rollouts and its
-    alarm calibrated on another (half calibration, half a held-out check); the cell reads that bench's online.json;
-    the four rollout runs are apart from each other, from the cell's trials (ACT_ALARM_SEED) and from the
-    development block, and all are the cell's own ACT."""
+    """`make recovery-act-alarm` (a dry run, pick and place): the cell's model is taught one set of the ACT's own
+    rollouts and its alarm calibrated on another (half calibration, half a held-out check); the cell reads that
+    bench's online.json; the rollout runs are apart from each other, from the cell's trials (ACT_ALARM_SEED), from
+    the development block and from the other task's runs, and all are the cell's own ACT; pour is refused."""
     model = tmp_path / "online" / "final"
     model.mkdir(parents=True)
     (tmp_path / "dataset_online").mkdir()
@@ -407,8 +409,9 @@ def test_the_act_alarm_cell_is_calibrated_on_that_acts_own_rollouts_apart_from_i
         words = [w.strip("'") for w in run.split()]  # a list is quoted for the shell
         return [w.split("=", 1)[1] for w in words if w.startswith(key + "=")][-1]  # the last one wins
 
-    for n in (300, 450):
-        plan = _make_dry("recovery-act-alarm", f"R={tmp_path}", f"ACT_ALARM_ROLLOUTS={n}")
+    spans: list[tuple[int, int]] = []  # every rollout run's seeds, both tasks
+    for task, runs_made, block in (("pick", 4, 25000), ("place", 8, 26000)):
+        plan = _make_dry("recovery-act-alarm", f"R={tmp_path}", "ACT_ALARM_ROLLOUTS=300", f"ACT_ALARM_TASK={task}")
         assert plan.returncode == 0, plan.stderr
         runs = [line for line in plan.stdout.replace("\\\n", "").splitlines() if "labrobfail-" in line]
         rollouts = next(r for r in runs if "supervisor=none" in r)
@@ -418,6 +421,7 @@ def test_the_act_alarm_cell_is_calibrated_on_that_acts_own_rollouts_apart_from_i
         cell = next(r for r in runs if "supervisor=vlm" in r)
         ft = word(stage, "output_dir")
         assert f"model.path={model}" in stage and "prefix.cuts=1" in taught and "|| exit 1" in rollouts
+        assert ft == f"{tmp_path}/actft_{task}" and word(cell, "task") == task
         assert word(stage, "extra_train") == f"[{word(taught, 'out_dir')}]"
         assert bench.startswith(f"test -f {word(bench, 'out_dir')}/online.json ||")  # made once
         assert word(bench, "model") == f"{ft}/final" and word(bench, "dataset_dir") == word(calib, "out_dir")
@@ -426,17 +430,33 @@ def test_the_act_alarm_cell_is_calibrated_on_that_acts_own_rollouts_apart_from_i
             word(cell, "vlm.model") == f"{ft}/final"
             and word(cell, "vlm.alarm") == f"{word(bench, 'out_dir')}/online.json"
         )
-        assert word(cell, "seed") == "25000"
+        assert word(cell, "seed") == str(block) and word(cell, "out_dir") == f"{tmp_path}/recovery/act_alarm/{task}"
+        assert "write_results.py" in plan.stdout.split(word(cell, "out_dir"), 1)[1]  # the page spliced after it
         calls = [r for r in rollouts.replace(";", "\n").splitlines() if "supervisor=none" in r]
-        spans = sorted((int(word(r, "seed")), int(word(r, "seed")) + int(word(r, "trials"))) for r in calls)
-        assert len(spans) == 4 and all(a[1] <= b[0] for a, b in zip(spans, spans[1:]))
+        assert len(calls) == runs_made
         for r in calls:
-            assert word(r, "act.checkpoint") == word(cell, "act.checkpoint")  # the cell's own ACT
-            built = calib if int(word(r, "seed")) < 41000 else taught  # calibration rollouts apart from taught ones
-            assert f"{word(r, 'out_dir')}/shards/none" in built
-        for first, end in spans:
-            for block in (25000, 10000):  # the cell's trials, the development block
-                assert not (first <= block + 99 and block < end)
+            assert word(r, "act.checkpoint") == word(cell, "act.checkpoint") and word(r, "task") == task
+            shards = f"{word(r, 'out_dir')}/shards/none"
+            assert (shards in calib) != (shards in taught)  # calibration rollouts apart from taught ones
+            spans.append((int(word(r, "seed")), int(word(r, "seed")) + int(word(r, "trials"))))
+        # a run off the reporting block (the development block) writes elsewhere and leaves the page alone
+        dev = f"{tmp_path}/dev_{task}"
+        off_block = (f"ACT_ALARM_TASK={task}", "ACT_ALARM_SEED=10000", f"ACT_ALARM_OUT={dev}")
+        plan = _make_dry("recovery-act-alarm", f"R={tmp_path}", *off_block)
+        assert plan.returncode == 0 and f"seed=10000 out_dir={dev}" in plan.stdout.replace("\\\n", "")
+        assert "write_results.py" not in plan.stdout
+    spans.sort()
+    assert all(a[1] <= b[0] for a, b in zip(spans, spans[1:]))  # no seed in two runs, of either task
+    for first, end in spans:  # nor in the development block or any reporting block
+        assert not any(first < b_end and b < end for b, b_end in ((10000, 10100), (20000, 26100)))
+    refusals = {  # each refused in its own words before anything runs (PY and BIN name nothing that could run)
+        "ACT_ALARM_TASK is pick or place, not 'pour'": ["ACT_ALARM_TASK=pour"],
+        "ACT_ALARM_ROLLOUTS is a count up to 300": ["ACT_ALARM_ROLLOUTS=301"],
+        "ACT_ALARM_SEED 10000 is not place's reporting block": ["ACT_ALARM_TASK=place", "ACT_ALARM_SEED=10000"],
+    }
+    for words, settings in refusals.items():
+        plan = _make_dry("recovery-act-alarm", f"R={tmp_path}", "PY=false", "BIN=/nonexistent", *settings, checks=True)
+        assert plan.returncode == 2 and plan.stderr.count("\n") == 2 and f"recovery-act-alarm: {words}" in plan.stderr
 
 
 def test_the_sealed_catalogue_has_shapes_sizes_and_colours_of_its_own():
