@@ -410,6 +410,7 @@ def test_the_act_alarm_cell_is_calibrated_on_that_acts_own_rollouts_apart_from_i
         return [w.split("=", 1)[1] for w in words if w.startswith(key + "=")][-1]  # the last one wins
 
     spans: list[tuple[int, int]] = []  # every rollout run's seeds, both tasks
+    cal_seeds = {"pick": ("40000", "40300"), "place": tuple(str(42000 + 300 * i) for i in range(6))}
     for task, runs_made, block in (("pick", 4, 25000), ("place", 8, 26000)):
         plan = _make_dry("recovery-act-alarm", f"R={tmp_path}", "ACT_ALARM_ROLLOUTS=300", f"ACT_ALARM_TASK={task}")
         assert plan.returncode == 0, plan.stderr
@@ -431,13 +432,16 @@ def test_the_act_alarm_cell_is_calibrated_on_that_acts_own_rollouts_apart_from_i
             and word(cell, "vlm.alarm") == f"{word(bench, 'out_dir')}/online.json"
         )
         assert word(cell, "seed") == str(block) and word(cell, "out_dir") == f"{tmp_path}/recovery/act_alarm/{task}"
-        assert "write_results.py" in plan.stdout.split(word(cell, "out_dir"), 1)[1]  # the page spliced after it
+        lines = plan.stdout.replace("\\\n", "").splitlines()
+        page = next(i for i, line in enumerate(lines) if "write_results.py" in line)
+        assert page > lines.index(cell)  # the page spliced after the cell has run
         calls = [r for r in rollouts.replace(";", "\n").splitlines() if "supervisor=none" in r]
         assert len(calls) == runs_made
         for r in calls:
             assert word(r, "act.checkpoint") == word(cell, "act.checkpoint") and word(r, "task") == task
             shards = f"{word(r, 'out_dir')}/shards/none"
-            assert (shards in calib) != (shards in taught)  # calibration rollouts apart from taught ones
+            calibrating = word(r, "seed") in cal_seeds[task]  # the task's calibration runs, the others teach
+            assert (shards in calib) == calibrating and (shards in taught) != calibrating
             spans.append((int(word(r, "seed")), int(word(r, "seed")) + int(word(r, "trials"))))
         # a run off the reporting block (the development block) writes elsewhere and leaves the page alone
         dev = f"{tmp_path}/dev_{task}"
@@ -445,16 +449,32 @@ def test_the_act_alarm_cell_is_calibrated_on_that_acts_own_rollouts_apart_from_i
         plan = _make_dry("recovery-act-alarm", f"R={tmp_path}", *off_block)
         assert plan.returncode == 0 and f"seed=10000 out_dir={dev}" in plan.stdout.replace("\\\n", "")
         assert "write_results.py" not in plan.stdout
+        # and gets past every check, run for real: it stops at the ACT's training (PY=false), not at a refusal
+        plan = _make_dry("recovery-act-alarm", f"R={tmp_path}", "PY=false", "BIN=/nonexistent", *off_block, checks=True)
+        assert plan.returncode != 0 and "recovery-act-alarm: " not in plan.stderr and "Error" in plan.stderr
     spans.sort()
     assert all(a[1] <= b[0] for a, b in zip(spans, spans[1:]))  # no seed in two runs, of either task
     for first, end in spans:  # nor in the development block or any reporting block
         assert not any(first < b_end and b < end for b, b_end in ((10000, 10100), (20000, 26100)))
     refusals = {  # each refused in its own words before anything runs (PY and BIN name nothing that could run)
         "ACT_ALARM_TASK is pick or place, not 'pour'": ["ACT_ALARM_TASK=pour"],
-        "ACT_ALARM_ROLLOUTS is a count up to 300": ["ACT_ALARM_ROLLOUTS=301"],
-        "ACT_ALARM_SEED 10000 is not place's reporting block": ["ACT_ALARM_TASK=place", "ACT_ALARM_SEED=10000"],
+        "ACT_ALARM_TASK is pick or place, not 'pour' ": ["ACT_ALARM_TASK=pour", "ACT_ALARM_CAL_pour=47000"],
+        "ACT_ALARM_ROLLOUTS is a count from 1 to 300": ["ACT_ALARM_ROLLOUTS=301"],
+        "ACT_ALARM_ROLLOUTS is a count from 1 to 300 ": ["ACT_ALARM_ROLLOUTS=0"],
+        "ACT_ALARM_SEED 10000 into ACT_ALARM_OUT": ["ACT_ALARM_TASK=place", "ACT_ALARM_SEED=10000"],
+        # the page's folder however it is written, or another task's folder the page also reads
+        "ACT_ALARM_SEED 10000 into ACT_ALARM_OUT ": [
+            "ACT_ALARM_TASK=place",
+            "ACT_ALARM_SEED=10000",
+            f"ACT_ALARM_OUT={tmp_path}/recovery/act_alarm/place/",
+        ],
+        "ACT_ALARM_SEED 26000 into ACT_ALARM_OUT": [
+            "ACT_ALARM_TASK=place",
+            f"ACT_ALARM_OUT={tmp_path}/recovery/act_alarm/pour",
+        ],
     }
     for words, settings in refusals.items():
+        words = words.rstrip()  # a trailing space only keeps two cases of the same refusal apart as keys
         plan = _make_dry("recovery-act-alarm", f"R={tmp_path}", "PY=false", "BIN=/nonexistent", *settings, checks=True)
         assert plan.returncode == 2 and plan.stderr.count("\n") == 2 and f"recovery-act-alarm: {words}" in plan.stderr
 
