@@ -556,7 +556,8 @@ recovery-monitor: $(STAMP)
 # its ACT_ALARM_OUT is outside recovery/act_alarm, all of which the page reads, and leaves the page alone). Pick:
 # adopted on the development block and reported once on 25000-25099, 20 -> 55 (+35 [+24.9, +43.7]), 0 of 20 broken
 # (the untaught model's alarm, 24000-24099: 24 -> 30). About 55 min on 2 cores for pick with the ACT's training
-# (rollouts 8 + 8, the stage 25); place about 3.5 h (its ACT runs out its 400 ticks in most trials: about 4 s a rollout, 2,400 of them).
+# (rollouts 8 + 8, the stage 25); place about 3.5 h (its ACT runs out its 400 ticks in most trials: about 4 s a
+# rollout, 2,400 of them).
 ACT_ALARM_TASK ?= pick
 ACT_ALARM_ROLLOUTS ?= 300
 ACT_ALARM_CAL_pick := 40000 40300
