@@ -414,7 +414,8 @@ def test_the_act_alarm_cell_is_calibrated_on_that_acts_own_rollouts_apart_from_i
     for task, runs_made, block in (("pick", 4, 25000), ("place", 8, 26000)):
         plan = _make_dry("recovery-act-alarm", f"R={tmp_path}", "ACT_ALARM_ROLLOUTS=300", f"ACT_ALARM_TASK={task}")
         assert plan.returncode == 0, plan.stderr
-        runs = [line for line in plan.stdout.replace("\\\n", "").splitlines() if "labrobfail-" in line]
+        lines = plan.stdout.replace("\\\n", "").splitlines()
+        runs = [line for line in lines if "labrobfail-" in line]
         rollouts = next(r for r in runs if "supervisor=none" in r)
         calib, taught = (next(r for r in runs if "build-dataset" in r and k in r) for k in ("[0,0.5,0.5]", "[1,0,0]"))
         stage = next(r for r in runs if "labrobfail-train" in r)
@@ -432,7 +433,6 @@ def test_the_act_alarm_cell_is_calibrated_on_that_acts_own_rollouts_apart_from_i
             and word(cell, "vlm.alarm") == f"{word(bench, 'out_dir')}/online.json"
         )
         assert word(cell, "seed") == str(block) and word(cell, "out_dir") == f"{tmp_path}/recovery/act_alarm/{task}"
-        lines = plan.stdout.replace("\\\n", "").splitlines()
         page = next(i for i, line in enumerate(lines) if "write_results.py" in line)
         assert page > lines.index(cell)  # the page spliced after the cell has run
         calls = [r for r in rollouts.replace(";", "\n").splitlines() if "supervisor=none" in r]
@@ -456,25 +456,23 @@ def test_the_act_alarm_cell_is_calibrated_on_that_acts_own_rollouts_apart_from_i
     assert all(a[1] <= b[0] for a, b in zip(spans, spans[1:]))  # no seed in two runs, of either task
     for first, end in spans:  # nor in the development block or any reporting block
         assert not any(first < b_end and b < end for b, b_end in ((10000, 10100), (20000, 26100)))
-    refusals = {  # each refused in its own words before anything runs (PY and BIN name nothing that could run)
-        "ACT_ALARM_TASK is pick or place, not 'pour'": ["ACT_ALARM_TASK=pour"],
-        "ACT_ALARM_TASK is pick or place, not 'pour' ": ["ACT_ALARM_TASK=pour", "ACT_ALARM_CAL_pour=47000"],
-        "ACT_ALARM_ROLLOUTS is a count from 1 to 300": ["ACT_ALARM_ROLLOUTS=301"],
-        "ACT_ALARM_ROLLOUTS is a count from 1 to 300 ": ["ACT_ALARM_ROLLOUTS=0"],
-        "ACT_ALARM_SEED 10000 into ACT_ALARM_OUT": ["ACT_ALARM_TASK=place", "ACT_ALARM_SEED=10000"],
+    refusals = [  # each refused in its own words before anything runs (PY and BIN name nothing that could run)
+        ("ACT_ALARM_TASK is pick or place, not 'pour'", ["ACT_ALARM_TASK=pour"]),
+        ("ACT_ALARM_TASK is pick or place, not 'pour'", ["ACT_ALARM_TASK=pour", "ACT_ALARM_CAL_pour=47000"]),
+        ("ACT_ALARM_ROLLOUTS is a count from 1 to 300", ["ACT_ALARM_ROLLOUTS=301"]),
+        ("ACT_ALARM_ROLLOUTS is a count from 1 to 300", ["ACT_ALARM_ROLLOUTS=0"]),
+        ("ACT_ALARM_SEED 10000 into ACT_ALARM_OUT", ["ACT_ALARM_TASK=place", "ACT_ALARM_SEED=10000"]),
         # the page's folder however it is written, or another task's folder the page also reads
-        "ACT_ALARM_SEED 10000 into ACT_ALARM_OUT ": [
-            "ACT_ALARM_TASK=place",
-            "ACT_ALARM_SEED=10000",
-            f"ACT_ALARM_OUT={tmp_path}/recovery/act_alarm/place/",
-        ],
-        "ACT_ALARM_SEED 26000 into ACT_ALARM_OUT": [
-            "ACT_ALARM_TASK=place",
-            f"ACT_ALARM_OUT={tmp_path}/recovery/act_alarm/pour",
-        ],
-    }
-    for words, settings in refusals.items():
-        words = words.rstrip()  # a trailing space only keeps two cases of the same refusal apart as keys
+        (
+            "ACT_ALARM_SEED 10000 into ACT_ALARM_OUT",
+            ["ACT_ALARM_TASK=place", "ACT_ALARM_SEED=10000", f"ACT_ALARM_OUT={tmp_path}/recovery/act_alarm/place/"],
+        ),
+        (
+            "ACT_ALARM_SEED 26000 into ACT_ALARM_OUT",
+            ["ACT_ALARM_TASK=place", f"ACT_ALARM_OUT={tmp_path}/recovery/act_alarm/pour"],
+        ),
+    ]
+    for words, settings in refusals:
         plan = _make_dry("recovery-act-alarm", f"R={tmp_path}", "PY=false", "BIN=/nonexistent", *settings, checks=True)
         assert plan.returncode == 2 and plan.stderr.count("\n") == 2 and f"recovery-act-alarm: {words}" in plan.stderr
 
